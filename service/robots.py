@@ -1,0 +1,75 @@
+"""Where robot descriptions come from: built-in names or a user URDF file."""
+
+from __future__ import annotations
+
+import os
+import site
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from solver.errors import ModelError
+
+
+@dataclass(frozen=True)
+class RobotDescription:
+    """A URDF and the chain to calibrate in it."""
+
+    name: str
+    urdf_xml: str
+    base_frame: str
+    tip_frame: str
+
+
+# name -> (URDF path inside example-robot-data's share folder, base frame, tip frame)
+BUILTIN_ROBOTS: dict[str, tuple[str, str, str]] = {
+    "kinova": ("robots/kinova_description/robots/kinova.urdf", "base", "j2s6s200_end_effector"),
+    "panda": ("robots/panda_description/urdf/panda.urdf", "panda_link0", "panda_link8"),
+    "ur10": ("robots/ur_description/urdf/ur10_robot.urdf", "base_link", "tool0"),
+}
+
+
+def example_robot_data_dir() -> Path:
+    """The share folder of the ``example-robot-data`` wheel (it ships URDFs, no Python module).
+
+    ``KINCAL_EXAMPLE_ROBOT_DATA`` overrides the search.
+    """
+    override = os.environ.get("KINCAL_EXAMPLE_ROBOT_DATA")
+    candidates = [Path(override)] if override else []
+    roots = [*site.getsitepackages(), site.getusersitepackages(), *sys.path]
+    candidates += [Path(r) / "cmeel.prefix" / "share" / "example-robot-data" for r in roots]
+    for candidate in candidates:
+        if (candidate / "robots").is_dir():
+            return candidate
+    raise ModelError(
+        "example-robot-data URDFs not found; install the 'example-robot-data' package or set "
+        "KINCAL_EXAMPLE_ROBOT_DATA to its share/example-robot-data folder"
+    )
+
+
+def load_robot(
+    name: str | None = None,
+    *,
+    urdf_path: str | Path | None = None,
+    base_frame: str | None = None,
+    tip_frame: str | None = None,
+) -> RobotDescription:
+    """A built-in robot by name, or a URDF file with explicit base and tip frames."""
+    if urdf_path is not None:
+        if base_frame is None or tip_frame is None:
+            raise ModelError("--urdf needs --base FRAME and --tip FRAME")
+        path = Path(urdf_path)
+        try:
+            xml = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ModelError(f"cannot read URDF {path}: {exc.strerror or exc}") from exc
+        return RobotDescription(name or path.stem, xml, base_frame, tip_frame)
+    if name is None:
+        raise ModelError(
+            "give --robot NAME (one of: " + ", ".join(BUILTIN_ROBOTS) + ") or --urdf FILE"
+        )
+    if name not in BUILTIN_ROBOTS:
+        raise ModelError(f"unknown robot {name!r}; built-in robots: {', '.join(BUILTIN_ROBOTS)}")
+    relative, default_base, default_tip = BUILTIN_ROBOTS[name]
+    xml = (example_robot_data_dir() / relative).read_text(encoding="utf-8")
+    return RobotDescription(name, xml, base_frame or default_base, tip_frame or default_tip)

@@ -1,0 +1,72 @@
+"""Evaluation protocol of DESIGN.md §4 / paper §V-A: repeated 90/10 train/test splits.
+
+Each method is a function ``(train_indices, test_indices) -> predicted test poses`` so that the
+nominal baseline, kincal's calibration and learned baselines are scored on identical splits.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.calibration import pose_errors
+
+FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.intp]
+Method = Callable[[IndexArray, IndexArray], FloatArray]
+
+PAPER_SEEDS = tuple(range(1, 11))
+
+
+def split_indices(n: int, seed: int, train_fraction: float = 0.9) -> tuple[IndexArray, IndexArray]:
+    """Random permutation with ``default_rng(seed)``; first ``round(fraction n)`` rows train."""
+    order = np.random.default_rng(seed).permutation(n)
+    n_train = round(train_fraction * n)
+    n_train = min(max(n_train, 1), n - 1)
+    return np.sort(order[:n_train]), np.sort(order[n_train:])
+
+
+@dataclass(frozen=True)
+class SplitError:
+    """Mean held-out error of one method on one split (rotation None for position-only)."""
+
+    method: str
+    seed: int
+    n_train: int
+    n_test: int
+    translation_mm: float
+    rotation_deg: float | None
+
+
+def cross_validate(
+    measured_pose: FloatArray,
+    methods: Mapping[str, Method],
+    *,
+    position_only: bool,
+    seeds: Iterable[int] = PAPER_SEEDS,
+    train_fraction: float = 0.9,
+) -> list[SplitError]:
+    """Score every method on the same splits; one :class:`SplitError` per (method, seed)."""
+    n = measured_pose.shape[0]
+    out: list[SplitError] = []
+    for seed in seeds:
+        train, test = split_indices(n, seed, train_fraction)
+        for name, method in methods.items():
+            predicted = method(train, test)
+            translation, rotation = pose_errors(
+                predicted, measured_pose[test], position_only=position_only
+            )
+            out.append(
+                SplitError(
+                    method=name,
+                    seed=seed,
+                    n_train=train.size,
+                    n_test=test.size,
+                    translation_mm=float(translation.mean()),
+                    rotation_deg=None if rotation is None else float(rotation.mean()),
+                )
+            )
+    return out
