@@ -1,6 +1,243 @@
-"""Command-line interface (placeholder until the pipeline lands)."""
+"""``kincal`` command line (DESIGN.md §3). Every bad input ends in one line and exit code 2."""
+
 from __future__ import annotations
+
+import json
+import os
+import sys
+import traceback
+from pathlib import Path
+from typing import Annotated
+
+import pandas as pd
+import pydantic
+import typer
+
+from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.dataset import read_configurations, read_dataset, write_dataset
+from service import pipeline, scenarios
+from service.report import summary
+from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
+from service.urdf_export import export_urdf
+from solver import lie
+from solver.errors import KincalError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    rich_markup_mode=None,
+    help="Calibrate robot kinematics, including the randomness inside the chain.",
+)
+
+RobotOpt = Annotated[
+    str | None, typer.Option("--robot", help=f"Built-in robot: {', '.join(BUILTIN_ROBOTS)}.")
+]
+UrdfOpt = Annotated[Path | None, typer.Option("--urdf", help="A URDF file instead of --robot.")]
+BaseOpt = Annotated[str | None, typer.Option("--base", help="Base frame (with --urdf).")]
+TipOpt = Annotated[str | None, typer.Option("--tip", help="Tip frame (with --urdf).")]
+OutputOpt = Annotated[Path, typer.Option("-o", "--output", help="Output file.")]
+
+
+def _robot(
+    robot: str | None, urdf: Path | None, base: str | None, tip: str | None
+) -> RobotDescription:
+    return load_robot(robot, urdf_path=urdf, base_frame=base, tip_frame=tip)
+
+
+def _names(text: str | None) -> list[str] | None:
+    return None if text is None else [n.strip() for n in text.split(",") if n.strip()]
+
+
+def _vector3(text: str, option: str) -> tuple[float, float, float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise KincalError(f"{option} takes three comma-separated numbers, e.g. 0,0,-9.81")
+    return values[0], values[1], values[2]
+
+
+def _write_json(path: Path, document: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(document + "\n", encoding="utf-8")
+    tmp.replace(path)
+
+
+def read_result(path: Path) -> CalibrationResult:
+    """Load a result JSON written by ``kincal calibrate``, with a one-line error otherwise."""
+    try:
+        return CalibrationResult.model_validate_json(path.read_bytes())
+    except OSError as exc:
+        raise KincalError(f"cannot read result {path}: {exc.strerror}") from exc
+    except pydantic.ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or "document"
+        raise KincalError(
+            f"{path} is not a kincal calibration result ({where}: {first['msg']}); "
+            "pass the -o file of 'kincal calibrate'"
+        ) from exc
+
+
+@app.command()
+def simulate(
+    output: OutputOpt,
+    robot: RobotOpt = "kinova",
+    urdf: UrdfOpt = None,
+    base: BaseOpt = None,
+    tip: TipOpt = None,
+    n: Annotated[int, typer.Option("--n", min=1, help="Number of configurations.")] = 154,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 1,
+    effect: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--effect",
+            help="Repeatable. "
+            + "; ".join(f"{k}: {v}" for k, v in scenarios.EFFECTS.items())
+            + f". Default: {', '.join(scenarios.DEFAULT_EFFECTS)}.",
+        ),
+    ] = None,
+    noise_mm: Annotated[float, typer.Option(min=0.0, help="Measurement noise σ, mm.")] = 0.05,
+    noise_deg: Annotated[float, typer.Option(min=0.0, help="Measurement noise σ, deg.")] = 0.003,
+    position_only: Annotated[bool, typer.Option(help="Write positions only.")] = False,
+    truth: Annotated[Path | None, typer.Option(help="Also write the ground truth JSON.")] = None,
+) -> None:
+    """Simulate a recording with known ground truth and write it in the dataset contract."""
+    description = _robot(robot if urdf is None else None, urdf, base, tip)
+    scn, recording = scenarios.simulate(
+        description,
+        n_samples=n,
+        seed=seed,
+        effects=effect or scenarios.DEFAULT_EFFECTS,
+        noise_translation_mm=noise_mm,
+        noise_rotation_deg=noise_deg,
+    )
+    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=position_only)
+    write_dataset(dataset, output)
+    if truth is not None:
+        _write_json(
+            truth, json.dumps(scenarios.truth_document(scn, recording, description), indent=1)
+        )
+    typer.echo(f"wrote {n} samples ({', '.join(scn.effects)}) to {output}")
+
+
+@app.command()
+def calibrate(
+    data: Annotated[Path, typer.Argument(help="Dataset: CSV, Parquet or JSON.")],
+    output: OutputOpt,
+    robot: RobotOpt = None,
+    urdf: UrdfOpt = None,
+    base: BaseOpt = None,
+    tip: TipOpt = None,
+    compliant_joints: Annotated[
+        str | None, typer.Option(help="Comma-separated elastic joints (default: all revolute).")
+    ] = None,
+    rigid: Annotated[bool, typer.Option(help="No joint compliance at all.")] = False,
+    virtual_axes: Annotated[
+        str | None, typer.Option(help="Joints that get two virtual flex axes (paper §V-A).")
+    ] = None,
+    outlier_sigma: Annotated[
+        float, typer.Option(min=0.0, help="Paper §V-A rule; 0 disables.")
+    ] = 2.0,
+    rotation_weight: Annotated[
+        float, typer.Option(min=0.0, help="Weight of 1 rad against 1 m in the fit.")
+    ] = 1.0,
+    gravity: Annotated[str, typer.Option(help="Gravity in the base frame, m/s².")] = "0,0,-9.81",
+    payload_kg: Annotated[float, typer.Option(min=0.0, help="Payload if not in the data.")] = 0.0,
+    payload_com: Annotated[str, typer.Option(help="Payload centre in the tip frame, m.")] = "0,0,0",
+    marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
+    heldout: Annotated[bool, typer.Option(help="Run the 10-split held-out evaluation.")] = True,
+    max_iterations: Annotated[int, typer.Option(min=1)] = 50,
+    export_urdf_to: Annotated[
+        Path | None, typer.Option("--export-urdf", help="Also write the calibrated URDF.")
+    ] = None,
+) -> None:
+    """Calibrate geometry and joint compliance from recorded poses (paper Eq. 8–10)."""
+    description = _robot(robot, urdf, base, tip)
+    options = _options(
+        compliant_joints=[] if rigid else _names(compliant_joints),
+        virtual_axes_at=_names(virtual_axes) or [],
+        outlier_sigma=outlier_sigma or None,
+        rotation_weight_m_per_rad=rotation_weight,
+        gravity_base_m_s2=_vector3(gravity, "--gravity"),
+        payload_kg=payload_kg,
+        payload_com_m=_vector3(payload_com, "--payload-com"),
+        heldout=heldout,
+        max_iterations=max_iterations,
+    )
+    chain = pipeline.chain_for(description, options)
+    dataset = read_dataset(
+        data, chain.joint_names, other_joint_names=chain.other_joint_names, marker=marker
+    )
+    result = pipeline.calibrate(dataset, description, options)
+    _write_json(output, result.model_dump_json(indent=1))
+    if export_urdf_to is not None:
+        export_urdf_to.parent.mkdir(parents=True, exist_ok=True)
+        export_urdf_to.write_text(export_urdf(result), encoding="utf-8")
+    typer.echo(summary(result))
+    typer.echo(f"\nresult written to {output}")
+
+
+def _options(**values: object) -> CalibrationOptions:
+    try:
+        return CalibrationOptions(**values)  # type: ignore[arg-type]
+    except pydantic.ValidationError as exc:
+        first = exc.errors()[0]
+        raise KincalError(f"option {first['loc'][0]}: {first['msg']}") from exc
+
+
+@app.command()
+def predict(
+    result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result JSON.")],
+    configs: Annotated[Path, typer.Argument(help="Configurations: joint columns (+ payload_kg).")],
+    output: OutputOpt,
+) -> None:
+    """Predicted marker pose (x,y,z,qx,qy,qz,qw; measurement frame) per configuration."""
+    result = read_result(result_path)
+    chain, _ = pipeline.result_chain(result)
+    configurations = read_configurations(
+        configs, chain.joint_names, other_joint_names=chain.other_joint_names
+    )
+    pose = pipeline.predict_poses(result, configurations.joint_positions, configurations.payload_kg)
+    frame = pd.DataFrame(pose[:, :3, 3], columns=["x", "y", "z"])
+    frame[["qx", "qy", "qz", "qw"]] = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
+    if configurations.sample_id is not None:
+        frame.insert(0, "sample_id", configurations.sample_id)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(output, index=False, float_format="%.17g")
+    typer.echo(f"wrote {len(frame)} predicted poses to {output}")
+
+
+@app.command()
+def demo(
+    output_dir: Annotated[Path, typer.Option(help="Where the demo writes its files.")] = Path(
+        "out/demo"
+    ),
+) -> None:
+    """Simulate a Jaco2 recording like the paper's, calibrate it, print Table II."""
+    from service.demo import run_demo
+
+    run_demo(output_dir, echo=typer.echo)
 
 
 def main() -> None:
-    raise SystemExit("kincal: not built yet")
+    """Entry point: domain errors become one line on stderr and exit code 2.
+
+    Usage errors (unknown option, missing argument) are typer's, also exit code 2.
+    """
+    try:
+        app()
+    except KincalError as exc:
+        typer.echo(f"kincal: error: {exc}", err=True)
+        sys.exit(2)
+    except Exception as exc:  # a bug, not bad input: keep it short unless asked
+        if os.environ.get("KINCAL_DEBUG"):
+            traceback.print_exc()
+        typer.echo(
+            f"kincal: internal error: {type(exc).__name__}: {exc} "
+            "(set KINCAL_DEBUG=1 for the traceback and please report it)",
+            err=True,
+        )
+        sys.exit(1)

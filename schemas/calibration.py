@@ -1,0 +1,184 @@
+"""Calibration options and the result JSON (``"format": "kincal.calibration/1"``, DESIGN.md §3).
+
+Units are in the field names. Matrices are row-major nested lists; the 4x4 ``placement`` /
+``matrix`` fields are authoritative (full float precision), the xyz/quaternion fields are for
+reading. The result embeds the URDF, so ``predict``, ``rank`` and the URDF export need nothing
+else.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+RESULT_FORMAT = "kincal.calibration/1"
+
+Vector3 = tuple[float, float, float]
+Matrix4 = Annotated[list[list[float]], Field(min_length=4, max_length=4)]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class CalibrationOptions(_Model):
+    """Everything a calibration run can be told (CLI flags and HTTP body share this)."""
+
+    compliant_joints: list[str] | None = Field(
+        None, description="Joints with an elastic axis; None = every revolute joint."
+    )
+    virtual_axes_at: list[str] = Field(
+        default_factory=list,
+        description="Joints that get two virtual compliant axes orthogonal to their axis "
+        "(flex of the structure carrying them, paper §V-A).",
+    )
+    gravity_base_m_s2: Vector3 = (0.0, 0.0, -9.81)
+    payload_kg: float = Field(0.0, ge=0.0, description="Used when the data has no payload_kg.")
+    payload_com_m: Vector3 = (0.0, 0.0, 0.0)
+    rotation_weight_m_per_rad: float = Field(
+        1.0, gt=0.0, description="How much 1 rad of rotation residual counts against 1 m."
+    )
+    outlier_sigma: float | None = Field(
+        2.0, gt=0.0, description="Paper §V-A outlier rule (None disables)."
+    )
+    max_iterations: int = Field(50, ge=1, le=1000)
+    tolerance: float = Field(1e-10, gt=0.0)
+    rank_tolerance: float = Field(1e-7, gt=0.0, lt=1.0)
+    heldout: bool = Field(True, description="Run the 10-split held-out evaluation.")
+    seeds: list[int] = Field(default_factory=lambda: list(range(1, 11)), min_length=1)
+    train_fraction: float = Field(0.9, gt=0.0, lt=1.0)
+
+
+class Transform(_Model):
+    matrix: Matrix4
+    xyz_m: Vector3
+    quaternion_xyzw: tuple[float, float, float, float]
+    stderr_translation_m: Vector3 | None = None
+    stderr_rotation_rad: Vector3 | None = None
+
+
+class RobotInfo(_Model):
+    name: str
+    base_frame: str
+    tip_frame: str
+    joint_names: list[str]
+    urdf_sha256: str
+    urdf: str = Field(repr=False)
+
+
+class LinkCalibration(_Model):
+    """Calibrated placement L_i of one joint (or of the tip, last entry) in its parent frame.
+
+    ``correction_*``: the local twist Log(L_nominal^-1 L_calibrated). For the first link and
+    the tip it also contains the measurement frame / tool offset, so it is left out there
+    (see ``measurement_frame`` and ``tool``).
+    """
+
+    link: str
+    placement: Matrix4
+    correction_translation_m: Vector3 | None
+    correction_rotation_rad: Vector3 | None
+    stderr_translation_m: tuple[float | None, float | None, float | None]
+    stderr_rotation_rad: tuple[float | None, float | None, float | None]
+
+
+class ComplianceCalibration(_Model):
+    axis: str
+    joint: str
+    kind: Literal["joint", "virtual"]
+    axis_vector: Vector3
+    value_rad_per_nm: float
+    stderr_rad_per_nm: float | None
+    estimated: bool
+    significant: bool = Field(
+        description="Estimated and more than 2 standard errors from zero; otherwise the data "
+        "cannot tell this compliance from none."
+    )
+
+
+class Identifiability(_Model):
+    n_parameters: int
+    rank: int
+    condition_number: float
+    removed: list[str]
+
+
+class ErrorStats(_Model):
+    n_samples: int
+    translation_mean_mm: float
+    translation_rms_mm: float
+    rotation_mean_deg: float | None
+    rotation_rms_deg: float | None
+
+
+class FitPhase(_Model):
+    train: ErrorStats
+    heldout: ErrorStats | None = None
+
+
+class FitStatistics(_Model):
+    before: FitPhase
+    after: FitPhase
+
+
+class HeldoutSplit(_Model):
+    method: str
+    seed: int
+    n_train: int
+    n_test: int
+    translation_mm: float
+    rotation_deg: float | None
+
+
+class Evaluation(_Model):
+    protocol: str
+    splits: list[HeldoutSplit]
+
+
+class OutlierReport(_Model):
+    sigma: float | None
+    n_input: int
+    n_used: int
+    removed_rows: list[int] = Field(description="1-based data rows dropped as outliers.")
+
+
+class SolverReport(_Model):
+    name: str
+    status: Literal["optimal", "optimal_inaccurate", "iteration_limit", "diverged", "error"]
+    iterations: int
+    time_s: float
+    objective: float
+
+
+class DatasetInfo(_Model):
+    source: str
+    n_samples: int
+    position_only: bool
+
+
+class CalibrationResult(_Model):
+    format: Literal["kincal.calibration/1"] = RESULT_FORMAT
+    kincal_version: str
+    created_utc: str
+    dataset: DatasetInfo
+    robot: RobotInfo
+    options: CalibrationOptions
+    measurement_frame: Transform = Field(
+        description="Robot base frame expressed in the measurement frame (camera, tracker)."
+    )
+    tool: Transform = Field(description="Marker/tool frame expressed in the tip frame.")
+    links: list[LinkCalibration]
+    compliance: list[ComplianceCalibration]
+    identifiability: Identifiability
+    fit: FitStatistics
+    evaluation: Evaluation | None
+    outliers: OutlierReport
+    solver: SolverReport
+
+    @field_validator("links")
+    @classmethod
+    def _links_present(cls, links: list[LinkCalibration]) -> list[LinkCalibration]:
+        if len(links) < 2:
+            raise ValueError("a chain has at least one joint and the tip")
+        return links

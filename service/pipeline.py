@@ -1,0 +1,373 @@
+"""The calibration pipeline: validated dataset -> solver -> result schema.
+
+The CLI and the HTTP service both call these functions; nothing is computed anywhere else.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib import metadata
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas.calibration import (
+    CalibrationOptions,
+    CalibrationResult,
+    ComplianceCalibration,
+    DatasetInfo,
+    ErrorStats,
+    Evaluation,
+    FitPhase,
+    FitStatistics,
+    HeldoutSplit,
+    Identifiability,
+    LinkCalibration,
+    OutlierReport,
+    RobotInfo,
+    SolverReport,
+    Transform,
+)
+from schemas.dataset import PoseDataset
+from service.robots import RobotDescription
+from solver import lie
+from solver.calibration import (
+    DeterministicFit,
+    FitOptions,
+    fit_deterministic,
+    outlier_mask,
+    pose_errors,
+)
+from solver.evaluation import SplitError, cross_validate
+from solver.kinematics import ChainParameters, forward_kinematics, parameter_names
+from solver.model import KinematicChain, build_chain, gravity_loads
+
+FloatArray = NDArray[np.float64]
+
+BEFORE = "before"
+CALIBRATED = "calibrated"
+
+
+@dataclass(frozen=True)
+class PreparedData:
+    """A dataset turned into solver arrays for one chain."""
+
+    chain: KinematicChain
+    joint_positions: FloatArray
+    measured_pose: FloatArray
+    loads_nm: FloatArray
+    position_only: bool
+
+
+def kincal_version() -> str:
+    try:
+        return metadata.version("kincal")
+    except metadata.PackageNotFoundError:
+        return "0+unknown"
+
+
+def chain_for(robot: RobotDescription, options: CalibrationOptions) -> KinematicChain:
+    return build_chain(
+        robot.urdf_xml,
+        robot.base_frame,
+        robot.tip_frame,
+        compliant_joints=options.compliant_joints,
+        virtual_axes_at=options.virtual_axes_at,
+        payload_com_m=options.payload_com_m,
+    )
+
+
+def prepare(
+    chain: KinematicChain, dataset: PoseDataset, options: CalibrationOptions
+) -> PreparedData:
+    payload = dataset.payload_kg if dataset.payload_kg is not None else options.payload_kg
+    loads = gravity_loads(
+        chain,
+        dataset.joint_positions,
+        gravity_base=np.asarray(options.gravity_base_m_s2),
+        payload_kg=payload,
+    )
+    return PreparedData(
+        chain=chain,
+        joint_positions=dataset.joint_positions,
+        measured_pose=lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw),
+        loads_nm=loads,
+        position_only=dataset.is_position_only,
+    )
+
+
+def fit_options(
+    options: CalibrationOptions, *, baseline: bool = False, n_links: int = 0
+) -> FitOptions:
+    """Solver settings; ``baseline`` fits only the measurement frame and tool (nominal robot)."""
+    return FitOptions(
+        max_iterations=options.max_iterations,
+        tolerance=options.tolerance,
+        rotation_weight_m_per_rad=options.rotation_weight_m_per_rad,
+        rank_tolerance=options.rank_tolerance,
+        free_links=(0, n_links - 1) if baseline else None,
+        fit_compliance=not baseline,
+    )
+
+
+def _fit(data: PreparedData, rows: NDArray[np.intp], options: FitOptions) -> DeterministicFit:
+    return fit_deterministic(
+        data.chain,
+        data.joint_positions[rows],
+        data.measured_pose[rows],
+        data.loads_nm[rows],
+        position_only=data.position_only,
+        options=options,
+    )
+
+
+def calibrate(
+    dataset: PoseDataset, robot: RobotDescription, options: CalibrationOptions
+) -> CalibrationResult:
+    """Deterministic calibration (Eq. 8–10) with outlier removal (§V-A) and held-out scores."""
+    chain = chain_for(robot, options)
+    data = prepare(chain, dataset, options)
+    everything = np.arange(dataset.n_samples)
+    full = fit_options(options)
+    first = _fit(data, everything, full)
+    used = everything
+    if options.outlier_sigma is not None:
+        used = everything[outlier_mask(first.residuals, options.outlier_sigma)]
+    fit = first if used.size == everything.size else _fit(data, used, full)
+    baseline = _fit(data, used, fit_options(options, baseline=True, n_links=chain.n_links))
+    splits = heldout_splits(data, used, options) if options.heldout else []
+    return CalibrationResult(
+        kincal_version=kincal_version(),
+        created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        dataset=DatasetInfo(
+            source=dataset.source, n_samples=dataset.n_samples, position_only=data.position_only
+        ),
+        robot=RobotInfo(
+            name=robot.name,
+            base_frame=robot.base_frame,
+            tip_frame=robot.tip_frame,
+            joint_names=list(chain.joint_names),
+            urdf_sha256=chain.urdf_sha256,
+            urdf=robot.urdf_xml,
+        ),
+        options=options,
+        measurement_frame=_transform(
+            fit.params.links[0] @ lie.inverse(chain.nominal_links[0]), *_link_stderr(fit, chain, 0)
+        ),
+        tool=_transform(
+            lie.inverse(chain.nominal_links[-1]) @ fit.params.links[-1],
+            *_link_stderr(fit, chain, chain.n_links - 1),
+        ),
+        links=_links(chain, fit),
+        compliance=_compliance(chain, fit),
+        identifiability=Identifiability(
+            n_parameters=len(parameter_names(chain)),
+            rank=fit.rank,
+            condition_number=fit.condition_number,
+            removed=fit.removed,
+        ),
+        fit=FitStatistics(
+            before=FitPhase(
+                train=_stats(data, used, baseline.params),
+                heldout=_heldout_stats(splits, BEFORE, data.position_only),
+            ),
+            after=FitPhase(
+                train=_stats(data, used, fit.params),
+                heldout=_heldout_stats(splits, CALIBRATED, data.position_only),
+            ),
+        ),
+        evaluation=_evaluation(splits, options) if splits else None,
+        outliers=OutlierReport(
+            sigma=options.outlier_sigma,
+            n_input=dataset.n_samples,
+            n_used=int(used.size),
+            removed_rows=[int(i) + 1 for i in np.setdiff1d(everything, used)],
+        ),
+        solver=SolverReport(
+            name="gauss_newton",
+            status="optimal" if fit.converged else "iteration_limit",
+            iterations=fit.iterations,
+            time_s=fit.elapsed_s,
+            objective=fit.cost_history[-1],
+        ),
+    )
+
+
+def heldout_splits(
+    data: PreparedData, used: NDArray[np.intp], options: CalibrationOptions
+) -> list[SplitError]:
+    """DESIGN.md §4: nominal robot (frame + tool fitted) vs calibrated, on identical splits."""
+    n_links = data.chain.n_links
+
+    def method(baseline: bool) -> Callable[[NDArray[np.intp], NDArray[np.intp]], FloatArray]:
+        settings = fit_options(options, baseline=baseline, n_links=n_links)
+
+        def predict_test(train: NDArray[np.intp], test: NDArray[np.intp]) -> FloatArray:
+            params = _fit(data, used[train], settings).params
+            rows = used[test]
+            return forward_kinematics(
+                data.chain, params, data.joint_positions[rows], data.loads_nm[rows]
+            )
+
+        return predict_test
+
+    return cross_validate(
+        data.measured_pose[used],
+        {BEFORE: method(True), CALIBRATED: method(False)},
+        position_only=data.position_only,
+        seeds=options.seeds,
+        train_fraction=options.train_fraction,
+    )
+
+
+def result_chain(result: CalibrationResult) -> tuple[KinematicChain, ChainParameters]:
+    """Rebuild the calibrated chain from a result JSON (it embeds the URDF)."""
+    chain = build_chain(
+        result.robot.urdf,
+        result.robot.base_frame,
+        result.robot.tip_frame,
+        compliant_joints=result.options.compliant_joints,
+        virtual_axes_at=result.options.virtual_axes_at,
+        payload_com_m=result.options.payload_com_m,
+    )
+    links = np.array([link.placement for link in result.links], dtype=float)
+    compliance = np.array([c.value_rad_per_nm for c in result.compliance], dtype=float)
+    return chain, ChainParameters(links, compliance)
+
+
+def predict_poses(
+    result: CalibrationResult, joint_positions: FloatArray, payload_kg: FloatArray | None = None
+) -> FloatArray:
+    """Calibrated mean pose (N, 4, 4) of the marker in the measurement frame."""
+    chain, params = result_chain(result)
+    payload = payload_kg if payload_kg is not None else result.options.payload_kg
+    loads = gravity_loads(
+        chain,
+        joint_positions,
+        gravity_base=np.asarray(result.options.gravity_base_m_s2),
+        payload_kg=payload,
+    )
+    return forward_kinematics(chain, params, joint_positions, loads)
+
+
+# --- result assembly -------------------------------------------------------------------------
+
+
+def _transform(
+    matrix: FloatArray,
+    stderr_translation: tuple[float | None, ...] | None = None,
+    stderr_rotation: tuple[float | None, ...] | None = None,
+) -> Transform:
+    def complete(values: tuple[float | None, ...] | None) -> tuple[float, float, float] | None:
+        if values is None or any(v is None for v in values):
+            return None
+        return (float(values[0]), float(values[1]), float(values[2]))  # type: ignore[arg-type]
+
+    return Transform(
+        matrix=matrix.tolist(),
+        xyz_m=tuple(matrix[:3, 3].tolist()),
+        quaternion_xyzw=tuple(lie.matrix_to_quaternion_xyzw(matrix[:3, :3]).tolist()),
+        stderr_translation_m=complete(stderr_translation),
+        stderr_rotation_rad=complete(stderr_rotation),
+    )
+
+
+def _link_stderr(
+    fit: DeterministicFit, chain: KinematicChain, link: int
+) -> tuple[tuple[float | None, ...], tuple[float | None, ...]]:
+    """Standard errors of link ``link``'s local twist components (None where not estimated)."""
+    lookup = dict(zip(fit.estimated, fit.standard_errors.tolist(), strict=True))
+    name = chain.link_names[link]
+    values = [lookup.get(f"{name}.{c}") for c in ("tx", "ty", "tz", "rx", "ry", "rz")]
+    return tuple(values[:3]), tuple(values[3:])
+
+
+def _links(chain: KinematicChain, fit: DeterministicFit) -> list[LinkCalibration]:
+    out = []
+    for i, name in enumerate(chain.link_names):
+        correction = lie.se3_log(lie.inverse(chain.nominal_links[i]) @ fit.params.links[i])
+        inner = 0 < i < chain.n_links - 1
+        stderr_t, stderr_r = _link_stderr(fit, chain, i)
+        out.append(
+            LinkCalibration(
+                link=name,
+                placement=fit.params.links[i].tolist(),
+                correction_translation_m=tuple(correction[:3].tolist()) if inner else None,
+                correction_rotation_rad=tuple(correction[3:].tolist()) if inner else None,
+                stderr_translation_m=stderr_t,  # type: ignore[arg-type]
+                stderr_rotation_rad=stderr_r,  # type: ignore[arg-type]
+            )
+        )
+    return out
+
+
+def _compliance(chain: KinematicChain, fit: DeterministicFit) -> list[ComplianceCalibration]:
+    lookup = dict(zip(fit.estimated, fit.standard_errors.tolist(), strict=True))
+    out = []
+    for a, axis in enumerate(chain.compliance_axes):
+        stderr = lookup.get(f"compliance.{axis.name}")
+        out.append(
+            ComplianceCalibration(
+                axis=axis.name,
+                joint=chain.joint_names[axis.joint_index],
+                kind="joint" if axis.is_joint_axis else "virtual",
+                axis_vector=tuple(axis.axis.tolist()),
+                value_rad_per_nm=float(fit.params.compliance_rad_per_nm[a]),
+                stderr_rad_per_nm=stderr,
+                estimated=stderr is not None,
+                significant=stderr is not None
+                and abs(float(fit.params.compliance_rad_per_nm[a])) > 2.0 * stderr,
+            )
+        )
+    return out
+
+
+def _stats(data: PreparedData, rows: NDArray[np.intp], params: ChainParameters) -> ErrorStats:
+    predicted = forward_kinematics(
+        data.chain, params, data.joint_positions[rows], data.loads_nm[rows]
+    )
+    translation, rotation = pose_errors(
+        predicted, data.measured_pose[rows], position_only=data.position_only
+    )
+    return _error_stats(translation, rotation)
+
+
+def _error_stats(translation_mm: FloatArray, rotation_deg: FloatArray | None) -> ErrorStats:
+    return ErrorStats(
+        n_samples=int(translation_mm.size),
+        translation_mean_mm=float(translation_mm.mean()),
+        translation_rms_mm=float(np.sqrt(np.mean(translation_mm**2))),
+        rotation_mean_deg=None if rotation_deg is None else float(rotation_deg.mean()),
+        rotation_rms_deg=None if rotation_deg is None else float(np.sqrt(np.mean(rotation_deg**2))),
+    )
+
+
+def _heldout_stats(splits: list[SplitError], method: str, position_only: bool) -> ErrorStats | None:
+    """Mean over splits of the per-split mean errors (RMS over the split means)."""
+    mine = [s for s in splits if s.method == method]
+    if not mine:
+        return None
+    translation = np.array([s.translation_mm for s in mine])
+    rotation = None if position_only else np.array([s.rotation_deg for s in mine], dtype=float)
+    stats = _error_stats(translation, rotation)
+    return stats.model_copy(update={"n_samples": sum(s.n_test for s in mine)})
+
+
+def _evaluation(splits: list[SplitError], options: CalibrationOptions) -> Evaluation:
+    return Evaluation(
+        protocol=f"{len(options.seeds)} random train/test splits "
+        f"({options.train_fraction:.0%} train), seeds {options.seeds}, after outlier removal",
+        splits=[
+            HeldoutSplit(
+                method=s.method,
+                seed=s.seed,
+                n_train=s.n_train,
+                n_test=s.n_test,
+                translation_mm=s.translation_mm,
+                rotation_deg=s.rotation_deg,
+            )
+            for s in splits
+        ],
+    )

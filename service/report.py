@@ -1,0 +1,67 @@
+"""Plain-text summaries: the paper's Table II layout and a calibration summary."""
+
+from __future__ import annotations
+
+from schemas.calibration import CalibrationResult, HeldoutSplit
+
+METHOD_LABELS = {"before": "Init.", "calibrated": "Cal. Ours", "gp": "Cal. GP"}
+
+
+def table_ii(splits: list[HeldoutSplit], *, position_only: bool) -> str:
+    """Mean test-set error per seed (rows: method x {Trans. mm, Rot. deg}), like paper Table II."""
+    seeds = sorted({s.seed for s in splits})
+    methods = [m for m in METHOD_LABELS if any(s.method == m for s in splits)]
+    by_key = {(s.method, s.seed): s for s in splits}
+    header = f"{'':<10}{'':<8}" + "".join(f"{seed:>8}" for seed in seeds) + f"{'mean':>9}"
+    lines = ["Mean error on test set in mm / deg", header]
+    for method in methods:
+        rows = [("Trans.", "translation_mm")]
+        if not position_only:
+            rows.append(("Rot.", "rotation_deg"))
+        for r, (label, field) in enumerate(rows):
+            values = [getattr(by_key[(method, seed)], field) for seed in seeds]
+            name = METHOD_LABELS[method] if r == 0 else ""
+            cells = "".join(f"{v:>8.2f}" for v in values)
+            lines.append(f"{name:<10}{label:<8}{cells}{sum(values) / len(values):>9.2f}")
+    return "\n".join(lines)
+
+
+def summary(result: CalibrationResult) -> str:
+    """A few lines a user reads after ``kincal calibrate``."""
+    fit = result.fit
+    lines = [
+        f"robot {result.robot.name} ({result.robot.base_frame} -> {result.robot.tip_frame}), "
+        f"{result.outliers.n_used} of {result.outliers.n_input} samples used "
+        f"({len(result.outliers.removed_rows)} outliers removed), "
+        f"{'position-only' if result.dataset.position_only else 'full pose'}",
+        f"identifiable parameters: {result.identifiability.rank} of "
+        f"{result.identifiability.n_parameters} "
+        f"({len(result.identifiability.removed)} removed as unidentifiable)",
+        f"Gauss-Newton: {result.solver.status} after {result.solver.iterations} iterations "
+        f"({result.solver.time_s:.2f} s)",
+    ]
+    for phase_name, phase in (("before", fit.before), ("after", fit.after)):
+        for split_name, stats in (("train", phase.train), ("held-out", phase.heldout)):
+            if stats is None:
+                continue
+            rotation = (
+                "" if stats.rotation_mean_deg is None else f", {stats.rotation_mean_deg:.3f} deg"
+            )
+            lines.append(
+                f"  {phase_name:<6} {split_name:<9} mean error {stats.translation_mean_mm:.3f} mm"
+                f"{rotation}"
+            )
+    estimated = [c for c in result.compliance if c.estimated]
+    if estimated:
+        lines.append("compliance (rad/Nm, ± standard error):")
+        lines += [
+            f"  {c.axis:<28} {c.value_rad_per_nm: .3e} ± {c.stderr_rad_per_nm:.1e}"
+            + ("" if c.significant else "   not significant (within 2 standard errors of 0)")
+            for c in estimated
+        ]
+    if result.evaluation is not None:
+        lines += [
+            "",
+            table_ii(result.evaluation.splits, position_only=result.dataset.position_only),
+        ]
+    return "\n".join(lines)

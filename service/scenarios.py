@@ -1,0 +1,153 @@
+"""Named simulation effects (``kincal simulate --effect``) and the paper-like Jaco2 scenario."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from schemas.dataset import PoseDataset
+from service.robots import RobotDescription
+from solver import lie
+from solver.errors import ModelError
+from solver.model import KinematicChain, build_chain
+from solver.simulate import SimulatedRecording, SimulationSpec, look_at, simulate_recording
+
+EFFECTS = {
+    "geometry": "per-link geometric errors (1 mm, 2 mrad standard deviation)",
+    "compliance": "elastic 2nd and 3rd joints (5e-4 and 8e-4 rad/Nm)",
+    "base_flex": "two virtual compliant axes at the first joint (2e-4 rad/Nm)",
+    "random": "random rotations in every joint frame, 0.3 -> 2 mrad toward the end effector",
+    "outliers": "10 % gross outliers (10 deg, 5 mm)",
+    "camera": "unknown measurement frame: a camera 1.2 m away looking at the workspace",
+    "marker": "unknown marker offset on the flange (about 6 cm)",
+}
+DEFAULT_EFFECTS = ("geometry", "compliance", "camera", "marker")
+PAPER_EFFECTS = ("geometry", "compliance", "base_flex", "random", "outliers", "camera", "marker")
+
+
+@dataclass(frozen=True)
+class Scenario:
+    chain: KinematicChain
+    spec: SimulationSpec
+    effects: tuple[str, ...]
+
+
+def scenario(
+    robot: RobotDescription,
+    *,
+    n_samples: int,
+    seed: int,
+    effects: Iterable[str] = DEFAULT_EFFECTS,
+    noise_translation_mm: float = 0.05,
+    noise_rotation_deg: float = 0.003,
+) -> Scenario:
+    """The true robot for a list of named effects (see :data:`EFFECTS`)."""
+    chosen = tuple(dict.fromkeys(effects))
+    unknown = [e for e in chosen if e not in EFFECTS]
+    if unknown:
+        raise ModelError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(EFFECTS)}")
+    probe = build_chain(robot.urdf_xml, robot.base_frame, robot.tip_frame)
+    first = probe.joint_names[0]
+    chain = build_chain(
+        robot.urdf_xml,
+        robot.base_frame,
+        robot.tip_frame,
+        virtual_axes_at=[first] if "base_flex" in chosen else [],
+    )
+    compliance: dict[str, float] = {}
+    if "compliance" in chosen:
+        compliance |= dict(zip(chain.joint_names[1:3], (5e-4, 8e-4), strict=False))
+    if "base_flex" in chosen:
+        compliance |= {f"{first}.flex_a": 2e-4, f"{first}.flex_b": 2e-4}
+    k = chain.n_joints
+    perturbation = np.zeros((k, 6))
+    if "random" in chosen:
+        perturbation[:, 3:] = np.linspace(3e-4, 2e-3, k)[:, None]
+    noise = np.r_[[noise_translation_mm * 1e-3] * 3, [np.radians(noise_rotation_deg)] * 3]
+    spec = SimulationSpec(
+        n_samples=n_samples,
+        seed=seed,
+        geometry_translation_m=1e-3 if "geometry" in chosen else 0.0,
+        geometry_rotation_rad=2e-3 if "geometry" in chosen else 0.0,
+        compliance_rad_per_nm=compliance,
+        perturbation_sigma=perturbation,
+        noise_sigma=noise,
+        measurement_frame=_camera(chain) if "camera" in chosen else np.eye(4),
+        tool_offset=_marker() if "marker" in chosen else np.eye(4),
+        outlier_fraction=0.1 if "outliers" in chosen else 0.0,
+    )
+    return Scenario(chain, spec, chosen)
+
+
+def _camera(chain: KinematicChain) -> np.ndarray:
+    """A camera about 1.2 m from the base, looking at the middle of the reachable space."""
+    reach_m = float(np.sum(np.linalg.norm(chain.nominal_links[:, :3, 3], axis=1)))
+    eye = np.array([0.9, -0.6, 0.5]) * max(reach_m, 0.5) / 1.0
+    return look_at(eye, np.array([0.0, 0.0, 0.3 * reach_m]))
+
+
+def _marker() -> np.ndarray:
+    marker = np.eye(4)
+    marker[:3, :3] = lie.so3_exp(np.array([0.3, -0.2, 0.5]))
+    marker[:3, 3] = [0.03, -0.02, 0.05]
+    return marker
+
+
+def recording_dataset(
+    recording: SimulatedRecording, chain: KinematicChain, *, position_only: bool
+) -> PoseDataset:
+    """The measurements of a simulated recording in the dataset contract."""
+    pose = recording.measured_pose
+    return PoseDataset(
+        joint_names=chain.joint_names,
+        joint_positions=recording.joint_positions,
+        position_m=pose[:, :3, 3],
+        quaternion_xyzw=None if position_only else lie.matrix_to_quaternion_xyzw(pose[:, :3, :3]),
+        sample_id=np.arange(1, pose.shape[0] + 1),
+        time_s=recording.time_s,
+        source="simulation",
+    )
+
+
+def truth_document(
+    scn: Scenario, recording: SimulatedRecording, robot: RobotDescription
+) -> dict[str, Any]:
+    """JSON-ready ground truth (``--truth``): what a perfect calibration would find."""
+    chain, spec = scn.chain, scn.spec
+    return {
+        "format": "kincal.truth/1",
+        "robot": robot.name,
+        "base_frame": robot.base_frame,
+        "tip_frame": robot.tip_frame,
+        "seed": spec.seed,
+        "n_samples": spec.n_samples,
+        "effects": list(scn.effects),
+        "measurement_frame": spec.measurement_frame.tolist(),
+        "tool_offset": spec.tool_offset.tolist(),
+        "links": [
+            {
+                "link": name,
+                "placement": recording.true_params.links[i].tolist(),
+                "error_twist": recording.link_errors[i].tolist(),
+            }
+            for i, name in enumerate(chain.link_names)
+        ],
+        "compliance_rad_per_nm": {
+            axis.name: float(recording.true_params.compliance_rad_per_nm[a])
+            for a, axis in enumerate(chain.compliance_axes)
+        },
+        "perturbation_sigma": {
+            name: recording.perturbation_sigma[i].tolist()
+            for i, name in enumerate(chain.joint_names)
+        },
+        "noise_sigma": recording.noise_sigma.tolist(),
+        "outlier_rows": [int(i) + 1 for i in recording.outliers],
+    }
+
+
+def simulate(robot: RobotDescription, **kwargs: Any) -> tuple[Scenario, SimulatedRecording]:
+    scn = scenario(robot, **kwargs)
+    return scn, simulate_recording(scn.chain, scn.spec)

@@ -1,0 +1,118 @@
+"""Write a calibrated robot as a plain URDF that any URDF tool (Pinocchio, ROS) loads.
+
+* joints 2..k get their origins replaced by ``origin_nominal · L_nominal^-1 · L_calibrated``
+  (so fixed joints in between are left untouched);
+* a new root link ``kincal_measurement_frame`` carries the measurement frame (camera, tracker)
+  through a fixed joint to the old root, absorbing the first link's correction;
+* a new link ``kincal_marker`` is fixed to the tip link at the calibrated marker/tool offset.
+
+Forward kinematics from ``kincal_measurement_frame`` to ``kincal_marker`` then equals kincal's
+calibrated prediction with zero gravity load. Gravity-dependent joint compliance cannot be
+expressed in URDF; its calibrated values are written in an XML comment and stay in the result JSON
+(``kincal predict`` applies them).
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pinocchio as pin
+from numpy.typing import NDArray
+
+from schemas.calibration import CalibrationResult
+from service.pipeline import result_chain
+from solver import lie
+from solver.errors import ModelError
+
+MEASUREMENT_LINK = "kincal_measurement_frame"
+MARKER_LINK = "kincal_marker"
+
+FloatArray = NDArray[np.float64]
+
+
+def export_urdf(result: CalibrationResult) -> str:
+    """The calibrated URDF as text (see module docstring for what changes)."""
+    chain, params = result_chain(result)
+    root = ET.fromstring(result.robot.urdf)
+    joints = {j.get("name"): j for j in root.findall("joint")}
+    for i, name in enumerate(chain.joint_names[1:], start=1):
+        delta = lie.inverse(chain.nominal_links[i]) @ params.links[i]
+        _set_origin(joints[name], _origin(joints[name]) @ delta)
+
+    old_root = _root_link(root)
+    base_in_root = _frame_in_root(result.robot.urdf, chain.base_frame)
+    measurement = params.links[0] @ lie.inverse(chain.nominal_links[0]) @ lie.inverse(base_in_root)
+    marker = lie.inverse(chain.nominal_links[-1]) @ params.links[-1]
+    tip_link = _link_of_frame(result.robot.urdf, chain.tip_frame)
+
+    root.insert(0, ET.Element("link", name=MEASUREMENT_LINK))
+    root.append(_fixed_joint("kincal_measurement_joint", MEASUREMENT_LINK, old_root, measurement))
+    root.append(ET.Element("link", name=MARKER_LINK))
+    root.append(_fixed_joint("kincal_marker_joint", tip_link, MARKER_LINK, marker))
+    root.insert(0, ET.Comment(_compliance_note(result)))
+    ET.indent(root)
+    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
+def _origin(joint: ET.Element) -> FloatArray:
+    origin = joint.find("origin")
+    out = np.eye(4)
+    if origin is None:
+        return out
+    xyz = [float(v) for v in origin.get("xyz", "0 0 0").split()]
+    rpy = [float(v) for v in origin.get("rpy", "0 0 0").split()]
+    out[:3, :3] = pin.rpy.rpyToMatrix(*rpy)
+    out[:3, 3] = xyz
+    return out
+
+
+def _set_origin(element: ET.Element, transform: FloatArray) -> None:
+    origin = element.find("origin")
+    if origin is None:
+        origin = ET.SubElement(element, "origin")
+    origin.set("xyz", " ".join(repr(float(v)) for v in transform[:3, 3]))
+    origin.set("rpy", " ".join(repr(float(v)) for v in pin.rpy.matrixToRpy(transform[:3, :3])))
+
+
+def _fixed_joint(name: str, parent: str, child: str, transform: FloatArray) -> ET.Element:
+    joint = ET.Element("joint", name=name, type="fixed")
+    ET.SubElement(joint, "parent", link=parent)
+    ET.SubElement(joint, "child", link=child)
+    _set_origin(joint, transform)
+    return joint
+
+
+def _root_link(root: ET.Element) -> str:
+    children = {c.get("link") for c in root.iter("child")}
+    roots = [link.get("name") for link in root.findall("link") if link.get("name") not in children]
+    if len(roots) != 1:
+        raise ModelError(f"URDF must have exactly one root link, found {roots}")
+    return str(roots[0])
+
+
+def _frame_in_root(urdf: str, frame: str) -> FloatArray:
+    """Placement of a frame in the URDF's root link at the neutral configuration."""
+    model = pin.buildModelFromXML(urdf)
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, pin.neutral(model))
+    return data.oMf[model.getFrameId(frame)].homogeneous
+
+
+def _link_of_frame(urdf: str, frame: str) -> str:
+    """The URDF link a Pinocchio frame belongs to (the frame itself if it is a link)."""
+    model = pin.buildModelFromXML(urdf)
+    current = model.frames[model.getFrameId(frame)]
+    while current.type != pin.FrameType.BODY:
+        current = model.frames[current.parentFrame]
+    return str(current.name)
+
+
+def _compliance_note(result: CalibrationResult) -> str:
+    lines = [
+        f" Calibrated by kincal {result.kincal_version} on {result.created_utc}.",
+        f" Measurement frame: link {MEASUREMENT_LINK}; measured marker: link {MARKER_LINK}.",
+        " Joint compliance (deflection = c * gravity torque; not expressible in URDF):",
+    ]
+    lines += [f"   {c.axis}: {c.value_rad_per_nm!r} rad/Nm" for c in result.compliance]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,269 @@
+"""The ``kincal`` command line: round trips, and one clear line + exit code 2 on bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from schemas.calibration import CalibrationResult
+from service import cli, pipeline
+from solver import lie
+
+
+def run(
+    args: list[str], capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> tuple[int, str, str]:
+    monkeypatch.setattr(sys, "argv", ["kincal", *args])
+    code = 0
+    try:
+        cli.main()
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small simulated UR10 recording written by ``kincal simulate``."""
+    path = tmp_path_factory.mktemp("cli") / "ur10.csv"
+    subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from service.cli import main; main()",
+            "simulate",
+            "--robot",
+            "ur10",
+            "--n",
+            "60",
+            "--seed",
+            "2",
+            "-o",
+            str(path),
+            "--truth",
+            str(path.with_suffix(".json")),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    return path
+
+
+def test_console_script_is_installed() -> None:
+    out = subprocess.run(
+        [Path(sys.executable).with_name("kincal"), "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    for command in ("simulate", "calibrate", "predict", "demo"):
+        assert command in out.stdout
+
+
+def test_simulate_writes_contract_and_truth(recording: Path) -> None:
+    frame = pd.read_csv(recording)
+    assert list(frame.columns[1:7]) == [
+        "shoulder_pan_joint",
+        "shoulder_lift_joint",
+        "elbow_joint",
+        "wrist_1_joint",
+        "wrist_2_joint",
+        "wrist_3_joint",
+    ]
+    assert {"x", "y", "z", "qx", "qy", "qz", "qw", "sample_id", "t"} <= set(frame.columns)
+    truth = json.loads(recording.with_suffix(".json").read_text())
+    assert truth["compliance_rad_per_nm"]["shoulder_lift_joint"] == 5e-4
+
+
+def test_calibrate_then_predict_round_trip(
+    recording: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    result_path, poses_path, urdf_path = (
+        tmp_path / "r.json",
+        tmp_path / "p.csv",
+        tmp_path / "c.urdf",
+    )
+    code, out, err = run(
+        [
+            "calibrate",
+            str(recording),
+            "--robot",
+            "ur10",
+            "-o",
+            str(result_path),
+            "--export-urdf",
+            str(urdf_path),
+            "--no-heldout",
+        ],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 0, err
+    assert "Gauss-Newton: optimal" in out and urdf_path.exists()
+    result = CalibrationResult.model_validate_json(result_path.read_text())
+    assert result.format == "kincal.calibration/1"
+    code, _, err = run(
+        ["predict", str(result_path), str(recording), "-o", str(poses_path)], capsys, monkeypatch
+    )
+    assert code == 0, err
+    predicted = pd.read_csv(poses_path)
+    data = pd.read_csv(recording)
+    q = data[result.robot.joint_names].to_numpy()
+    expected = pipeline.predict_poses(result, q)
+    assert np.allclose(predicted[["x", "y", "z"]].to_numpy(), expected[:, :3, 3], atol=1e-12)
+    rotation = lie.pose_matrix(
+        np.zeros((len(q), 3)), predicted[["qx", "qy", "qz", "qw"]].to_numpy()
+    )
+    assert np.allclose(rotation[:, :3, :3], expected[:, :3, :3], atol=1e-12)
+    # predictions land on the (noisy) measurements: the calibration is good
+    assert (
+        np.abs(predicted[["x", "y", "z"]].to_numpy() - data[["x", "y", "z"]].to_numpy()).mean()
+        < 1e-3
+    )
+
+
+def _bad(recording: Path, tmp_path: Path, edit) -> Path:  # type: ignore[no-untyped-def]
+    frame = pd.read_csv(recording)
+    out = tmp_path / "bad.csv"
+    edited = edit(frame)
+    if isinstance(edited, str):
+        out.write_text(edited)
+    else:
+        edited.to_csv(out, index=False)
+    return out
+
+
+def _set(frame: pd.DataFrame, row: int, column: str, value: object) -> pd.DataFrame:
+    frame[column] = frame[column].astype(object)
+    frame.loc[row, column] = value
+    return frame
+
+
+UR10_JOINTS = [
+    "shoulder_pan_joint",
+    "shoulder_lift_joint",
+    "elbow_joint",
+    "wrist_1_joint",
+    "wrist_2_joint",
+    "wrist_3_joint",
+]
+
+BAD_DATA = {
+    "nan": (lambda f: _set(f, 4, "elbow_joint", np.nan), "data row 5, column elbow_joint"),
+    "inf": (lambda f: _set(f, 2, "x", np.inf), "data row 3, column x"),
+    "non_unit_quaternion": (lambda f: _set(f, 6, "qw", 3.0), "data row 7"),
+    "unknown_joint": (lambda f: f.assign(wrist_4_joint=0.0), "unknown column(s) wrist_4_joint"),
+    "missing_joint": (
+        lambda f: f.drop(columns=["elbow_joint"]),
+        "missing joint column(s) elbow_joint",
+    ),
+    "wrong_column_count": (
+        lambda f: f.rename(columns={n: f"q{i + 1}" for i, n in enumerate(UR10_JOINTS)}).drop(
+            columns=["q6"]
+        ),
+        "missing q6",
+    ),
+    "duplicate_columns": (
+        lambda f: f.to_csv(index=False).replace("elbow_joint", "shoulder_lift_joint", 1),
+        "duplicate column",
+    ),
+    "too_few_samples": (lambda f: f.head(4), "fewer samples than identifiable parameters"),
+    "non_numeric": (lambda f: _set(f, 9, "y", "abc"), "data row 10, column y"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_DATA))
+def test_bad_dataset_gives_one_line_and_exit_2(
+    case: str, recording: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    edit, expected = BAD_DATA[case]
+    path = _bad(recording, tmp_path, edit)
+    code, _, err = run(
+        ["calibrate", str(path), "--robot", "ur10", "-o", str(tmp_path / "r.json")],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 2
+    assert err.count("\n") == 1 and err.startswith("kincal: error: ")
+    assert expected in err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["--robot", "abb"], "unknown robot 'abb'; built-in robots: kinova, panda, ur10"),
+        (
+            ["--urdf", "{urdf}", "--base", "base_link", "--tip", "nope"],
+            "tip frame 'nope' is not in the URDF",
+        ),
+        (
+            ["--urdf", "/no/such.urdf", "--base", "a", "--tip", "b"],
+            "cannot read URDF /no/such.urdf",
+        ),
+        (
+            ["--robot", "ur10", "--compliant-joints", "nope"],
+            "compliant joint 'nope' is not on the chain",
+        ),
+        (["--robot", "ur10", "--gravity", "1,2"], "--gravity takes three comma-separated numbers"),
+        (["--robot", "ur10", "--rotation-weight", "0"], "option rotation_weight_m_per_rad"),
+    ],
+)
+def test_bad_robot_or_option_gives_one_line_and_exit_2(
+    args: list[str], expected: str, recording: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    from service.robots import example_robot_data_dir
+
+    urdf = example_robot_data_dir() / "robots/ur_description/urdf/ur10_robot.urdf"
+    args = [a.replace("{urdf}", str(urdf)) for a in args]
+    code, _, err = run(
+        ["calibrate", str(recording), "-o", str(tmp_path / "r.json"), *args], capsys, monkeypatch
+    )
+    assert code == 2
+    assert err.count("\n") == 1 and expected in err
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "expected"),
+    [
+        ("missing.csv", None, "missing.csv"),
+        ("data.txt", "a,b\n1,2\n", "'.txt'"),
+        ("garbage.parquet", "not parquet", "garbage.parquet"),
+        ("broken.json", '{"samples": [', "broken.json"),
+    ],
+)
+def test_unreadable_file_gives_one_line_and_exit_2(
+    name: str, content: str | None, expected: str, tmp_path: Path, capsys, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / name
+    if content is not None:
+        path.write_text(content)
+    code, _, err = run(
+        ["calibrate", str(path), "--robot", "ur10", "-o", str(tmp_path / "r.json")],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 2 and err.count("\n") == 1 and expected in err
+
+
+def test_predict_rejects_a_file_that_is_not_a_result(
+    recording: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    bogus = tmp_path / "r.json"
+    bogus.write_text('{"format": "something else"}')
+    code, _, err = run(
+        ["predict", str(bogus), str(recording), "-o", str(tmp_path / "p.csv")], capsys, monkeypatch
+    )
+    assert code == 2 and "is not a kincal calibration result" in err and err.count("\n") == 1
+
+
+def test_usage_error_exits_2(capsys, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    code, _, err = run(["calibrate"], capsys, monkeypatch)
+    assert code == 2 and "Missing argument" in err
