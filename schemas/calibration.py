@@ -67,6 +67,13 @@ class RobotInfo(_Model):
     urdf: str = Field(repr=False)
 
 
+class BaselineFit(_Model):
+    """The nominal robot with only the measurement frame and the tool fitted: the "before"."""
+
+    measurement_frame: Transform
+    tool: Transform
+
+
 class LinkCalibration(_Model):
     """Calibrated placement L_i of one joint (or of the tip, last entry) in its parent frame.
 
@@ -168,6 +175,7 @@ class CalibrationResult(_Model):
         description="Robot base frame expressed in the measurement frame (camera, tracker)."
     )
     tool: Transform = Field(description="Marker/tool frame expressed in the tip frame.")
+    baseline: BaselineFit
     links: list[LinkCalibration]
     compliance: list[ComplianceCalibration]
     identifiability: Identifiability

@@ -16,6 +16,7 @@ import numpy as np
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import read_dataset, write_dataset
 from service import pipeline, scenarios
+from service.plots import residual_histograms
 from service.report import summary
 from service.robots import load_robot
 from service.urdf_export import export_urdf
@@ -48,6 +49,16 @@ def run_demo(output_dir: Path, *, echo: Callable[[str], None] = print) -> dict[s
     result = pipeline.calibrate(dataset, robot, options)
     (output_dir / "result.json").write_text(result.model_dump_json(indent=1), encoding="utf-8")
     (output_dir / "jaco2_calibrated.urdf").write_text(export_urdf(result), encoding="utf-8")
+    kept = dataset.subset(
+        np.setdiff1d(np.arange(dataset.n_samples), np.array(result.outliers.removed_rows) - 1)
+    )
+    residual_histograms(
+        pipeline.residuals(result, kept, baseline=True),
+        pipeline.residuals(result, kept),
+        output_dir / "residuals.png",
+        title=f"Simulated Jaco2: end-effector-frame residuals of the {kept.n_samples} samples "
+        f"kept after outlier removal, nominal robot vs calibrated",
+    )
     echo("")
     echo(summary(result))
 

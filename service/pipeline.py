@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from schemas.calibration import (
+    BaselineFit,
     CalibrationOptions,
     CalibrationResult,
     ComplianceCalibration,
@@ -41,7 +42,12 @@ from solver.calibration import (
     pose_errors,
 )
 from solver.evaluation import SplitError, cross_validate
-from solver.kinematics import ChainParameters, forward_kinematics, parameter_names
+from solver.kinematics import (
+    ChainParameters,
+    forward_kinematics,
+    parameter_names,
+    pose_residuals,
+)
 from solver.model import KinematicChain, build_chain, gravity_loads
 
 FloatArray = NDArray[np.float64]
@@ -160,6 +166,12 @@ def calibrate(
             lie.inverse(chain.nominal_links[-1]) @ fit.params.links[-1],
             *_link_stderr(fit, chain, chain.n_links - 1),
         ),
+        baseline=BaselineFit(
+            measurement_frame=_transform(
+                baseline.params.links[0] @ lie.inverse(chain.nominal_links[0])
+            ),
+            tool=_transform(lie.inverse(chain.nominal_links[-1]) @ baseline.params.links[-1]),
+        ),
         links=_links(chain, fit),
         compliance=_compliance(chain, fit),
         identifiability=Identifiability(
@@ -222,8 +234,13 @@ def heldout_splits(
     )
 
 
-def result_chain(result: CalibrationResult) -> tuple[KinematicChain, ChainParameters]:
-    """Rebuild the calibrated chain from a result JSON (it embeds the URDF)."""
+def result_chain(
+    result: CalibrationResult, *, baseline: bool = False
+) -> tuple[KinematicChain, ChainParameters]:
+    """Rebuild the calibrated chain from a result JSON (it embeds the URDF).
+
+    ``baseline=True`` gives the "before" model: nominal robot, fitted measurement frame and tool.
+    """
     chain = build_chain(
         result.robot.urdf,
         result.robot.base_frame,
@@ -232,9 +249,25 @@ def result_chain(result: CalibrationResult) -> tuple[KinematicChain, ChainParame
         virtual_axes_at=result.options.virtual_axes_at,
         payload_com_m=result.options.payload_com_m,
     )
+    if baseline:
+        links = chain.nominal_links.copy()
+        links[0] = np.array(result.baseline.measurement_frame.matrix) @ links[0]
+        links[-1] = links[-1] @ np.array(result.baseline.tool.matrix)
+        return chain, ChainParameters(links, np.zeros(len(chain.compliance_axes)))
     links = np.array([link.placement for link in result.links], dtype=float)
     compliance = np.array([c.value_rad_per_nm for c in result.compliance], dtype=float)
     return chain, ChainParameters(links, compliance)
+
+
+def residuals(
+    result: CalibrationResult, dataset: PoseDataset, *, baseline: bool = False
+) -> FloatArray:
+    """End-effector-frame residuals (N, 6 or 3) of a dataset under the calibrated (or "before")
+    model, in m and rad."""
+    chain, params = result_chain(result, baseline=baseline)
+    data = prepare(chain, dataset, result.options)
+    predicted = forward_kinematics(chain, params, data.joint_positions, data.loads_nm)
+    return pose_residuals(predicted, data.measured_pose, position_only=data.position_only)
 
 
 def predict_poses(

@@ -1,0 +1,91 @@
+"""Held-out calibration error on the real recordings shipped in data/real (DESIGN.md §4).
+
+Prints the paper's Table II layout per recording and a markdown summary (the README table).
+Usage: ``python benchmarks/evaluate_real.py [--seeds 10] [--figures docs]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+import solver  # noqa: F401  (BLAS defaults)
+from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.dataset import PoseDataset, read_dataset
+from service import pipeline
+from service.plots import residual_histograms
+from service.report import table_ii
+from service.robots import load_robot
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "real"
+RECORDINGS = {
+    "FR3 eye-in-hand camera (philnad)": ("panda", "philnad_fr3_eye_in_hand/fr3_poses.csv"),
+    "UR10 (FIGAROH experiment)": ("ur10", "figaroh_ur10_experiment/calibration.csv"),
+}
+
+
+def evaluate(name: str, seeds: int) -> tuple[CalibrationResult, PoseDataset, float]:
+    robot_name, relative = RECORDINGS[name]
+    robot = load_robot(robot_name)
+    options = CalibrationOptions(seeds=list(range(1, seeds + 1)))
+    chain = pipeline.chain_for(robot, options)
+    dataset = read_dataset(
+        DATA / relative, chain.joint_names, other_joint_names=chain.other_joint_names
+    )
+    started = time.perf_counter()
+    result = pipeline.calibrate(dataset, robot, options)
+    return result, dataset, time.perf_counter() - started
+
+
+def figure(result: CalibrationResult, dataset: PoseDataset, name: str, path: Path) -> Path:
+    """Before/after residual histograms of the samples kept after outlier removal."""
+    removed = np.array(result.outliers.removed_rows, dtype=int) - 1
+    kept = dataset.subset(np.setdiff1d(np.arange(dataset.n_samples), removed))
+    return residual_histograms(
+        pipeline.residuals(result, kept, baseline=True),
+        pipeline.residuals(result, kept),
+        path,
+        title=f"{name}: end-effector-frame residuals, nominal robot vs calibrated "
+        f"({kept.n_samples} samples, all used for training)",
+    )
+
+
+def main(seeds: int = 10, figures: Path | None = None) -> str:
+    header = ["Recording", "Robot", "Samples (used)", "Before: held-out mm / deg"]
+    header += ["Calibrated: held-out mm / deg", "Splits improved", "Time"]
+    rows = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    for name in RECORDINGS:
+        result, dataset, elapsed = evaluate(name, seeds)
+        assert result.evaluation is not None
+        if figures is not None:
+            figures.mkdir(parents=True, exist_ok=True)
+            stem = RECORDINGS[name][1].split("/")[0]
+            print("wrote", figure(result, dataset, name, figures / f"{stem}_residuals.png"))
+        print(f"\n## {name}\n")
+        print(table_ii(result.evaluation.splits, position_only=result.dataset.position_only))
+        before, after = result.fit.before.heldout, result.fit.after.heldout
+        assert before is not None and after is not None
+        by = {(s.method, s.seed): s.translation_mm for s in result.evaluation.splits}
+        seeds_run = sorted({s.seed for s in result.evaluation.splits})
+        improved = sum(by[("calibrated", s)] < by[("before", s)] for s in seeds_run)
+        rows.append(
+            f"| {name} | {result.robot.name} "
+            f"| {result.outliers.n_input} ({result.outliers.n_used}) "
+            f"| {before.translation_mean_mm:.2f} / {before.rotation_mean_deg:.3f} "
+            f"| {after.translation_mean_mm:.2f} / {after.rotation_mean_deg:.3f} "
+            f"| {improved} of {len(seeds_run)} | {elapsed:.1f} s |"
+        )
+    table = "\n".join(rows)
+    print("\n" + table)
+    return table
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=10, help="number of train/test splits")
+    parser.add_argument("--figures", type=Path, help="write residual histograms (PNG) here")
+    arguments = parser.parse_args()
+    main(arguments.seeds, arguments.figures)

@@ -1,0 +1,37 @@
+"""Figures for reports and the README (matplotlib's object API: no display, no global state)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+from numpy.typing import NDArray
+
+COMPONENTS = (("x", "mm", 1e3), ("y", "mm", 1e3), ("z", "mm", 1e3))
+COMPONENTS += (("roll", "deg", np.degrees(1.0)), ("pitch", "deg", np.degrees(1.0)))
+COMPONENTS += (("yaw", "deg", np.degrees(1.0)),)
+
+
+def residual_histograms(
+    before: NDArray[np.float64], after: NDArray[np.float64], path: Path, *, title: str
+) -> Path:
+    """Paper Fig. 4a: distribution of each residual component before and after calibration.
+
+    ``before``/``after`` (N, 6 or 3): end-effector-frame residuals [v; w] in m and rad.
+    """
+    d = before.shape[1]
+    figure = Figure(figsize=(2.6 * d, 2.8), layout="constrained")
+    axes = figure.subplots(1, d)
+    for i, ax in enumerate(np.atleast_1d(axes)):
+        name, unit, scale = COMPONENTS[i]
+        values_before, values_after = before[:, i] * scale, after[:, i] * scale
+        edges = np.histogram_bin_edges(np.r_[values_before, values_after], bins=25)
+        ax.hist(values_before, bins=edges, alpha=0.55, label="before", color="tab:red")
+        ax.hist(values_after, bins=edges, alpha=0.65, label="calibrated", color="tab:blue")
+        ax.set_xlabel(f"{name} [{unit}]")
+        ax.set_yticks([])
+    np.atleast_1d(axes)[0].legend(fontsize=8)
+    figure.suptitle(title, fontsize=10)
+    figure.savefig(path, dpi=110)
+    return path
