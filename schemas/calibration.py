@@ -12,7 +12,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-RESULT_FORMAT = "kincal.calibration/1"
+RESULT_FORMAT: Literal["kincal.calibration/1"] = "kincal.calibration/1"
 
 Vector3 = tuple[float, float, float]
 Matrix4 = Annotated[list[list[float]], Field(min_length=4, max_length=4)]

@@ -79,6 +79,7 @@ def run_demo(output_dir: Path, *, echo: Callable[[str], None] = print) -> dict[s
     error_mm, error_deg = pose_errors(
         predicted, recording.true_mean_pose[clean], position_only=False
     )
+    assert error_deg is not None
     echo(
         f"calibrated model vs the true robot's mean pose: {error_mm.mean():.3f} mm, "
         f"{error_deg.mean():.4f} deg (what is left is random perturbation + noise)"

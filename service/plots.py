@@ -8,9 +8,16 @@ import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
-COMPONENTS = (("x", "mm", 1e3), ("y", "mm", 1e3), ("z", "mm", 1e3))
-COMPONENTS += (("roll", "deg", np.degrees(1.0)), ("pitch", "deg", np.degrees(1.0)))
-COMPONENTS += (("yaw", "deg", np.degrees(1.0)),)
+DEG_PER_RAD = 180.0 / np.pi
+# Residual components [v; w]: name, unit, scale from m or rad.
+COMPONENTS: tuple[tuple[str, str, float], ...] = (
+    ("x", "mm", 1e3),
+    ("y", "mm", 1e3),
+    ("z", "mm", 1e3),
+    ("roll", "deg", DEG_PER_RAD),
+    ("pitch", "deg", DEG_PER_RAD),
+    ("yaw", "deg", DEG_PER_RAD),
+)
 
 
 def residual_histograms(
@@ -22,8 +29,8 @@ def residual_histograms(
     """
     d = before.shape[1]
     figure = Figure(figsize=(2.6 * d, 2.8), layout="constrained")
-    axes = figure.subplots(1, d)
-    for i, ax in enumerate(np.atleast_1d(axes)):
+    axes = figure.subplots(1, d, squeeze=False)[0]
+    for i, ax in enumerate(axes):
         name, unit, scale = COMPONENTS[i]
         values_before, values_after = before[:, i] * scale, after[:, i] * scale
         edges = np.histogram_bin_edges(np.r_[values_before, values_after], bins=25)
@@ -31,7 +38,7 @@ def residual_histograms(
         ax.hist(values_after, bins=edges, alpha=0.65, label="calibrated", color="tab:blue")
         ax.set_xlabel(f"{name} [{unit}]")
         ax.set_yticks([])
-    np.atleast_1d(axes)[0].legend(fontsize=8)
+    axes[0].legend(fontsize=8)
     figure.suptitle(title, fontsize=10)
     figure.savefig(path, dpi=110)
     return path

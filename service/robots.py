@@ -62,7 +62,9 @@ def load_robot(
         try:
             xml = path.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as exc:
-            raise ModelError(f"cannot read URDF {path}: {exc.strerror or exc}") from exc
+            raise ModelError(
+                f"cannot read URDF {path}: {getattr(exc, 'strerror', None) or exc}"
+            ) from exc
         return RobotDescription(name or path.stem, xml, base_frame, tip_frame)
     if name is None:
         raise ModelError(

@@ -124,7 +124,7 @@ def simulate_recording(chain: KinematicChain, spec: SimulationSpec) -> Simulated
     return SimulatedRecording(
         joint_positions=q,
         measured_pose=measured,
-        time_s=spec.sample_period_s * np.arange(spec.n_samples),
+        time_s=spec.sample_period_s * np.arange(spec.n_samples, dtype=np.float64),
         true_params=params,
         link_errors=errors,
         perturbation_sigma=sigma_xi,
