@@ -158,6 +158,47 @@ class SolverReport(_Model):
     objective: float
 
 
+Matrix6 = Annotated[list[list[float]], Field(min_length=6, max_length=6)]
+Vector6 = tuple[float, float, float, float, float, float]
+
+
+class CovarianceFrame(_Model):
+    """Covariance of the random local twist ξ ~ N(0, Σ) of one frame (Eq. 7, DESIGN.md §2).
+
+    ``name`` is the joint whose frame (right after L_i, before the joint moves) carries the
+    perturbation, or ``"noise"`` for the measurement noise (end-effector frame). ``matrix`` is
+    6x6 in [v; w] order, m² / m·rad / rad²; ``std`` the square roots of its diagonal (m, rad).
+    """
+
+    name: str
+    joint_index: int | None = Field(description="0-based chain joint; None for the noise.")
+    matrix: Matrix6
+    std: Vector6
+    std_stderr: tuple[float | None, ...] | None = Field(
+        None, description="Standard error of each std entry (None where not identifiable)."
+    )
+
+
+class CovarianceIdentifiability(_Model):
+    rank: int
+    n_parameters: int
+    condition_number: float
+    null_directions: list[str] = Field(description="What the data cannot tell apart, in words.")
+    fixed: list[str] = Field(description="Entries fixed by rule (named), and the rule.")
+    warnings: list[str]
+
+
+class CovarianceResult(_Model):
+    """Calibrated random effects (paper §IV-C): Σ_n and Σ_1..Σ_k."""
+
+    structure: Literal["diag", "full"]
+    estimator: str
+    solver: SolverReport
+    noise: CovarianceFrame
+    frames: list[CovarianceFrame]
+    identifiability: CovarianceIdentifiability
+
+
 class DatasetInfo(_Model):
     source: str
     n_samples: int
@@ -183,6 +224,9 @@ class CalibrationResult(_Model):
     evaluation: Evaluation | None
     outliers: OutlierReport
     solver: SolverReport
+    covariance: CovarianceResult | None = Field(
+        None, description="Random-effect covariances; None until that stage has run."
+    )
 
     @field_validator("links")
     @classmethod
