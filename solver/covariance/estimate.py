@@ -1,0 +1,381 @@
+"""Single entry point of the covariance calibration (paper §IV-C): :func:`estimate_covariances`.
+
+Pipeline: sufficient statistics (Eq. 13–14) → identifiability → moment solution (Eq. 14, by
+clarabel / pgd / nnls) → optionally ML (Eq. 16–17) or REML started from it → the
+unidentifiable part fixed by the rule of :mod:`identifiability` → standard errors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.covariance.fitting import fit_likelihood
+from solver.covariance.identifiability import (
+    RANK_RTOL,
+    WEAK_RTOL,
+    IdentifiabilityReport,
+    analyse_identifiability,
+    resolve_null_space,
+)
+from solver.covariance.layout import CovarianceLayout, Structure, make_layout
+from solver.covariance.likelihood import (
+    check_likelihood_inputs,
+    ee_covariance_batch,
+    fisher_information_ml,
+    fisher_information_reml,
+    moment_sandwich_meat,
+    orthonormal_fit_basis,
+)
+from solver.covariance.solvers import PGD_STABLE, CovarianceSolution, PGDSettings, solve_moment
+from solver.covariance.statistics import (
+    DEFAULT_CHUNK_SIZE,
+    MomentStatistics,
+    build_moment_statistics,
+)
+from solver.covariance.uncertainty import ThetaUncertainty, theta_covariance, theta_uncertainty
+from solver.errors import CalibrationError, SolverError
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+EstimatorName = Literal["moment", "ml", "reml"]
+SolverName = Literal["clarabel", "pgd", "nnls"]
+
+
+@dataclass(frozen=True)
+class FrameCovariance:
+    """Σ of one source (6×6, [v; w], m² / m·rad / rad²) and per-axis σ with intervals.
+
+    ``std`` (6,) = sqrt(diag Σ) in m, m, m, rad, rad, rad; ``std_se``, ``std_ci_low/high`` from
+    :mod:`uncertainty` (NaN where unknown); ``at_boundary``: σ ≈ 0, the interval is one-sided;
+    ``identifiable``: the entry is determined by the data on its own; ``estimated``: the axis
+    was free (False: fixed at 0 by the caller); ``fixed``: the whole Σ was given (known noise).
+    """
+
+    name: str
+    covariance: FloatArray
+    std: FloatArray
+    std_se: FloatArray
+    std_ci_low: FloatArray
+    std_ci_high: FloatArray
+    at_boundary: BoolArray
+    identifiable: BoolArray
+    estimated: BoolArray
+    fixed: bool = False
+
+
+@dataclass(frozen=True)
+class CovarianceEstimate:
+    """Result of :func:`estimate_covariances`.
+
+    ``frames``: chain frames in the caller's order; ``noise``: Σ_n (estimated, or the known one
+    with ``fixed=True``; None if the noise was neither). ``theta`` (Q,) after the null-space
+    rule, labelled by ``layout.labels()``; ``theta_covariance`` (Q, Q) or None.
+    ``moment_solution`` is the Eq. (14) solver's raw answer, ``solution`` the final stage's.
+    """
+
+    estimator: EstimatorName
+    structure: Structure
+    solver: SolverName
+    n_samples: int
+    frames: tuple[FrameCovariance, ...]
+    noise: FrameCovariance | None
+    theta: FloatArray
+    layout: CovarianceLayout
+    identifiability: IdentifiabilityReport
+    moment_solution: CovarianceSolution
+    solution: CovarianceSolution
+    statistics: MomentStatistics = field(repr=False)
+    theta_covariance: FloatArray | None = field(default=None, repr=False)
+    uncertainty: ThetaUncertainty | None = field(default=None, repr=False)
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def converged(self) -> bool:
+        return self.solution.converged
+
+    def frame(self, name: str) -> FrameCovariance:
+        for frame in (*self.frames, *((self.noise,) if self.noise else ())):
+            if frame.name == name:
+                return frame
+        raise KeyError(name)
+
+    def frame_covariances(self) -> FloatArray:
+        """Σ_f of the chain frames, (F_chain, 6, 6)."""
+        return np.stack([f.covariance for f in self.frames])
+
+    def noise_covariance(self) -> FloatArray:
+        """Σ_n (6, 6), zeros if there is none."""
+        return np.zeros((6, 6)) if self.noise is None else self.noise.covariance
+
+    def ee_covariance(self, frame_jacobians: FloatArray, *, include_noise: bool) -> FloatArray:
+        """Eq. (12) at new configurations: (N, d, d) from frame Jacobians (N, F_chain, d, 6)."""
+        noise = self.noise_covariance() if include_noise else None
+        return ee_covariance_batch(frame_jacobians, self.frame_covariances(), noise)
+
+
+def estimate_covariances(
+    residuals: FloatArray,
+    frame_jacobians: FloatArray,
+    frame_names: Sequence[str],
+    *,
+    structure: Structure = "diag",
+    estimator: EstimatorName = "moment",
+    solver: SolverName = "clarabel",
+    fit_jacobian: FloatArray | None = None,
+    noise_covariance: FloatArray | None = None,
+    include_noise: bool = True,
+    noise_name: str = "noise",
+    free_axes: Mapping[str, Sequence[str]] | None = None,
+    pgd_settings: PGDSettings = PGD_STABLE,
+    standard_errors: bool = True,
+    confidence: float = 0.95,
+    rank_rtol: float = RANK_RTOL,
+    weak_rtol: float = WEAK_RTOL,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+    max_likelihood_iterations: int = 200,
+) -> CovarianceEstimate:
+    """Calibrate the covariances of random perturbations in the chain (paper §IV-C).
+
+    ``residuals`` (N, d): end-effector-frame residuals after the deterministic fit ([v; w] or
+    [v], m and rad). ``frame_jacobians`` (N, F, d, 6): A_f(q_n) = rows of Ad_{B_f}^-1 for each
+    frame that carries randomness, named by ``frame_names``. The measurement noise is one more
+    frame (Jacobian I, named ``noise_name``) unless ``noise_covariance`` (6×6 or d×d, known,
+    e.g. measured separately) is given or ``include_noise`` is False.
+
+    ``estimator``: "moment" (Eq. 13–15), "ml" (Eq. 16–17) or "reml" (needs ``fit_jacobian``
+    (N, d, p), the deterministic fit's Jacobian in the same residual space, e.g. the rows of
+    the stacked calibration Jacobian; only its column space matters). ``solver`` solves the
+    moment problem, which also starts ML/REML (projected Fisher scoring, :mod:`.fitting`).
+    ``free_axes`` restricts frames to some axes (names from ``POSE_AXES``); ``structure``
+    "full" needs ``solver`` "clarabel" or "pgd".
+
+    Unidentifiable combinations are resolved by the rule of :mod:`.identifiability` (minimum
+    norm among equally good fits; entries without effect are 0) and reported in words in
+    ``identifiability``; ``warnings`` collects noise confusions and solver trouble.
+    """
+    residuals = np.asarray(residuals, dtype=float)
+    frame_jacobians = np.asarray(frame_jacobians, dtype=float)
+    _check_inputs(residuals, frame_jacobians, frame_names, estimator, fit_jacobian)
+    d = residuals.shape[1]
+    known = None
+    if noise_covariance is not None:
+        known = np.asarray(noise_covariance, dtype=float)
+        if known.shape not in ((6, 6), (d, d)):
+            raise SolverError(f"noise_covariance must be 6×6 or {d}×{d}, got {known.shape}")
+        known = 0.5 * (known + known.T)[:d, :d]
+        include_noise = False
+    layout = make_layout(
+        frame_names,
+        d,
+        structure=structure,
+        include_noise=include_noise,
+        noise_name=noise_name,
+        free_axes=free_axes,
+    )
+    stats = build_moment_statistics(
+        residuals, frame_jacobians, layout, known_covariance=known, chunk_size=chunk_size
+    )
+    report = analyse_identifiability(
+        stats, rank_rtol=rank_rtol, weak_rtol=weak_rtol, frame_jacobians=frame_jacobians
+    )
+    moment = solve_moment(stats, solver, pgd_settings=pgd_settings)
+    if not np.all(np.isfinite(moment.theta)):
+        raise SolverError(f"moment solver {solver!r} failed ({moment.status}): {moment.message}")
+    notes = list(report.warnings)
+    if not moment.converged:
+        notes.append(
+            f"moment solver {solver!r} ended with status {moment.status!r}"
+            + (f": {moment.message}" if moment.message else "")
+        )
+    theta = resolve_null_space(moment.theta, report, layout)
+    solution = moment
+    fit_basis = None
+    if estimator != "moment":
+        check_likelihood_inputs(residuals, frame_jacobians, layout)
+        if estimator == "reml":
+            assert fit_jacobian is not None
+            fit_basis = orthonormal_fit_basis(np.asarray(fit_jacobian, dtype=float))
+        solution = fit_likelihood(
+            estimator,
+            theta,
+            residuals,
+            frame_jacobians,
+            stats,
+            report.scaling,
+            fit_basis=fit_basis,
+            known_covariance=known,
+            max_iterations=max_likelihood_iterations,
+            chunk_size=chunk_size,
+        )
+        if not solution.converged:
+            notes.append(
+                f"{estimator} fit ended with status {solution.status!r}: {solution.message}"
+            )
+        theta = resolve_null_space(solution.theta, report, layout)
+    cov, unc = None, None
+    if standard_errors:
+        try:
+            cov = _theta_covariance(
+                estimator, theta, frame_jacobians, stats, report, fit_basis, known
+            )
+            unc = theta_uncertainty(
+                theta,
+                cov,
+                report,
+                layout.is_variance,
+                confidence=confidence,
+                method=_SE_METHOD[estimator],
+            )
+        except CalibrationError as exc:
+            notes.append(f"no standard errors: {exc}")
+    frames = _frames(layout, theta, unc)
+    noise = None
+    if layout.noise_frame is not None:
+        noise = frames[-1]
+        frames = frames[:-1]
+    elif known is not None:
+        full = np.zeros((6, 6))
+        full[:d, :d] = known
+        noise = _fixed_frame(noise_name, full)
+    return CovarianceEstimate(
+        estimator,
+        structure,
+        solver,
+        residuals.shape[0],
+        tuple(frames),
+        noise,
+        theta,
+        layout,
+        report,
+        moment,
+        solution,
+        stats,
+        cov,
+        unc,
+        tuple(notes),
+    )
+
+
+_SE_METHOD = {
+    "moment": "sandwich G⁺·2ΣK̃ᵀK̃·G⁺ (Gaussian fourth moments)",
+    "ml": "inverse expected Fisher information of Eq. (16)",
+    "reml": "inverse expected Fisher information of the restricted likelihood",
+}
+
+
+def _theta_covariance(
+    estimator: EstimatorName,
+    theta: FloatArray,
+    frame_jacobians: FloatArray,
+    stats: MomentStatistics,
+    report: IdentifiabilityReport,
+    fit_basis: FloatArray | None,
+    known: FloatArray | None,
+) -> FloatArray:
+    layout = stats.layout
+    if estimator == "moment":
+        meat = moment_sandwich_meat(theta, frame_jacobians, layout, known_covariance=known)
+        return theta_covariance(meat, report, bread=stats.gram)
+    if estimator == "ml":
+        info = fisher_information_ml(theta, frame_jacobians, layout, known_covariance=known)
+    else:
+        assert fit_basis is not None
+        info = fisher_information_reml(
+            theta, frame_jacobians, fit_basis, layout, known_covariance=known
+        )
+    return theta_covariance(info, report)
+
+
+def _frames(
+    layout: CovarianceLayout, theta: FloatArray, unc: ThetaUncertainty | None
+) -> list[FrameCovariance]:
+    covs = layout.frame_covariances(theta)
+    out = []
+    for f, name in enumerate(layout.frame_names):
+        arrays = {key: np.full(6, np.nan) for key in ("std_se", "low", "high")}
+        boundary, identifiable = np.zeros(6, bool), np.zeros(6, bool)
+        for p in np.flatnonzero((layout.param_frame == f) & layout.is_variance):
+            axis = layout.param_row[p]
+            if unc is not None:
+                arrays["std_se"][axis] = unc.std_se[p]
+                arrays["low"][axis] = unc.std_ci_low[p]
+                arrays["high"][axis] = unc.std_ci_high[p]
+                boundary[axis] = unc.at_boundary[p]
+            identifiable[axis] = _identifiable(layout, f, axis, unc)
+        out.append(
+            FrameCovariance(
+                name,
+                covs[f],
+                np.sqrt(np.clip(np.diag(covs[f]), 0.0, None)),
+                arrays["std_se"],
+                arrays["low"],
+                arrays["high"],
+                boundary,
+                identifiable,
+                np.array(layout.free_axes[f], dtype=bool),
+            )
+        )
+    return out
+
+
+def _identifiable(
+    layout: CovarianceLayout, f: int, axis: int, unc: ThetaUncertainty | None
+) -> bool:
+    if unc is None:
+        return False
+    p = np.flatnonzero(
+        (layout.param_frame == f) & (layout.param_row == axis) & (layout.param_col == axis)
+    )
+    return bool(unc.identifiable[p[0]]) if p.size else False
+
+
+def _fixed_frame(name: str, covariance: FloatArray) -> FrameCovariance:
+    nan = np.full(6, np.nan)
+    return FrameCovariance(
+        name,
+        covariance,
+        np.sqrt(np.clip(np.diag(covariance), 0.0, None)),
+        nan,
+        nan,
+        nan,
+        np.zeros(6, bool),
+        np.zeros(6, bool),
+        np.zeros(6, bool),
+        fixed=True,
+    )
+
+
+def _check_inputs(
+    residuals: FloatArray,
+    frame_jacobians: FloatArray,
+    frame_names: Sequence[str],
+    estimator: str,
+    fit_jacobian: FloatArray | None,
+) -> None:
+    if residuals.ndim != 2 or residuals.shape[1] not in (3, 6):
+        raise SolverError(f"residuals must be (N, 6) or (N, 3), got {residuals.shape}")
+    n, d = residuals.shape
+    if (
+        frame_jacobians.ndim != 4
+        or frame_jacobians.shape[0] != n
+        or frame_jacobians.shape[2:] != (d, 6)
+    ):
+        raise SolverError(f"frame_jacobians must be ({n}, F, {d}, 6), got {frame_jacobians.shape}")
+    if frame_jacobians.shape[1] != len(frame_names):
+        raise SolverError(f"{len(frame_names)} frame names for {frame_jacobians.shape[1]} frames")
+    if estimator not in ("moment", "ml", "reml"):
+        raise SolverError(f"unknown estimator {estimator!r}; use 'moment', 'ml' or 'reml'")
+    if estimator == "reml":
+        if fit_jacobian is None:
+            raise CalibrationError("estimator 'reml' needs fit_jacobian (N, d, p)")
+        if np.shape(fit_jacobian)[:2] != (n, d):
+            raise SolverError(f"fit_jacobian must be ({n}, {d}, p), got {np.shape(fit_jacobian)}")
+    if n < 2:
+        raise CalibrationError(f"covariance calibration needs at least 2 samples, got {n}")
+    if not (np.all(np.isfinite(residuals)) and np.all(np.isfinite(frame_jacobians))):
+        raise CalibrationError("residuals or frame Jacobians contain NaN or inf")

@@ -1,0 +1,161 @@
+"""Minimising the ML (Eq. 17) or REML negative log-likelihood over PSD covariances.
+
+Projected Fisher scoring, started from the moment solution (Eq. 14): each step solves the cone
+QP ``min_θ' ½(θ'−θ)ᵀH(θ'−θ) + ∇NLL(θ)ᵀ(θ'−θ)`` over θ' ≥ 0 (diagonal) or Σ'_f ⪰ 0 (full)
+with the same solvers as Eq. (14) (nnls / clarabel), then backtracks on the NLL along the
+segment θ → θ' (which stays in the cone). H = 2·(Fisher information of Eq. 16) = Σ_n K̃_nᵀK̃_n
+with the whitened Jacobians L_n⁻¹A_f, plus a tiny proximal term for the null directions.
+
+For ML the unconstrained step is exactly the moment match of Eq. (13) weighted by Σ_E⁻¹ ⊗ Σ_E⁻¹
+(iteratively reweighted moment matching); for REML the same H is used as the metric (it differs
+from the REML information by O(p/N)), which changes the path but not the fixed point. Compared
+with L-BFGS-B on the same problem (several hundred iterations at condition numbers ~1e7) this
+converges in tens of steps.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.covariance.layout import CovarianceLayout
+from solver.covariance.likelihood import (
+    fisher_information_ml,
+    gaussian_nll,
+    restricted_nll,
+    theta_gradient,
+)
+from solver.covariance.objective import ProblemScaling, clip_psd, moment_objective
+from solver.covariance.solvers import CovarianceSolution, Status, solve_clarabel, solve_nnls
+from solver.covariance.statistics import DEFAULT_CHUNK_SIZE, MomentStatistics
+from solver.errors import CalibrationError
+
+FloatArray = NDArray[np.float64]
+Estimator = Literal["ml", "reml"]
+
+PROXIMAL_RTOL = 1e-10  # proximal weight relative to the largest equilibrated curvature
+
+
+def fit_likelihood(
+    estimator: Estimator,
+    start_theta: FloatArray,
+    residuals: FloatArray,
+    frame_jacobians: FloatArray,
+    stats: MomentStatistics,
+    scaling: ProblemScaling,
+    *,
+    fit_basis: FloatArray | None = None,
+    known_covariance: FloatArray | None = None,
+    max_iterations: int = 200,
+    tolerance: float = 1e-10,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+) -> CovarianceSolution:
+    """ML or REML estimate of θ (Q,), started from ``start_theta`` (PSD, e.g. moment).
+
+    Stops when the predicted decrease ``−∇NLLᵀ(θ'−θ)`` per sample is below ``tolerance``
+    (reported as ``kkt_residual``). ``objective`` is the NLL (constants omitted).
+    """
+    started = time.perf_counter()
+    layout = stats.layout
+    n = residuals.shape[0]
+    if estimator == "reml" and fit_basis is None:
+        raise CalibrationError(
+            "estimator 'reml' needs fit_jacobian (the deterministic fit's "
+            "Jacobian in the residual space)"
+        )
+
+    def nll(theta: FloatArray) -> tuple[float, FloatArray]:
+        if estimator == "ml":
+            return gaussian_nll(
+                theta,
+                residuals,
+                frame_jacobians,
+                layout,
+                known_covariance=known_covariance,
+                chunk_size=chunk_size,
+            )
+        assert fit_basis is not None
+        return restricted_nll(
+            theta,
+            residuals,
+            frame_jacobians,
+            fit_basis,
+            layout,
+            known_covariance=known_covariance,
+            chunk_size=chunk_size,
+        )
+
+    theta, (value, psi) = _positive_start(start_theta, nll, layout, scaling)
+    inv_scale2 = 1.0 / scaling.param_scale**2
+    status: Status = "iteration_limit"
+    decrement, message, iterations = float("inf"), "", 0
+    for _ in range(max_iterations):
+        iterations += 1
+        grad = theta_gradient(layout, psi)
+        hess = 2.0 * fisher_information_ml(
+            theta, frame_jacobians, layout, known_covariance=known_covariance
+        )
+        mu = PROXIMAL_RTOL * float(np.max(np.diag(hess) / inv_scale2))
+        gram = hess + np.diag(mu * inv_scale2)
+        qp = MomentStatistics(layout, gram, gram @ theta - grad, 0.0, n)
+        target = (solve_nnls(qp) if layout.structure == "diag" else solve_clarabel(qp)).theta
+        if not np.all(np.isfinite(target)):
+            status, message = "error", "scoring QP failed"
+            break
+        step = target - theta
+        decrement = float(-grad @ step)
+        if decrement <= tolerance * n:
+            status = "optimal"
+            break
+        accepted = False
+        t = 1.0
+        while t > 1e-12:
+            cand = theta + t * step
+            cand_value, cand_psi = nll(cand)
+            if cand_value <= value - 1e-4 * t * decrement:
+                accepted = True
+                break
+            t *= 0.5
+        if not accepted:
+            status = "optimal_inaccurate"
+            message = f"line search stalled (predicted decrease {decrement / n:.2e} per sample)"
+            break
+        theta, value, psi = cand, cand_value, cand_psi
+    theta = layout.theta_from_covariances(clip_psd(layout.frame_covariances(theta)))
+    value = nll(theta)[0]
+    return CovarianceSolution(
+        estimator,
+        status,
+        theta,
+        layout.frame_covariances(theta),
+        iterations,
+        time.perf_counter() - started,
+        float(value),
+        moment_objective(theta, stats),
+        max(decrement, 0.0) / n,
+        message or f"projected Fisher scoring, {iterations} steps",
+    )
+
+
+def _positive_start(
+    theta: FloatArray,
+    nll,
+    layout: CovarianceLayout,
+    scaling: ProblemScaling,
+) -> tuple[FloatArray, tuple[float, FloatArray]]:
+    """The start, with small variances ε·D_p added until every Σ_E is positive definite."""
+    value = nll(theta)
+    if np.isfinite(value[0]):
+        return theta, value
+    lift = np.where(layout.is_variance, scaling.param_scale, 0.0)
+    for eps in (1e-8, 1e-6, 1e-4, 1e-2):
+        value = nll(theta + eps * lift)
+        if np.isfinite(value[0]):
+            return theta + eps * lift, value
+    raise CalibrationError(
+        "Σ_E(q) is singular for every start of the likelihood fit: estimate the noise or pass "
+        "a known noise covariance, or free more axes"
+    )

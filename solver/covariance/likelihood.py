@@ -1,0 +1,317 @@
+"""End-effector covariance (Eq. 12) and the likelihood estimators: ML (Eq. 16–17) and REML.
+
+All residuals, Jacobians and covariances are in the end-effector frame, [v; w], m and rad.
+For θ the NLLs return ``Ψ_f = ∂NLL/∂Σ_f`` (F, 6, 6, symmetric); ``∂NLL/∂θ_p = ⟨Ψ_f, E_p⟩``.
+
+Gradient (ML): ``∂/∂Σ_E [log det Σ_E + rᵀΣ_E⁻¹r] = Σ_E⁻¹ − Σ_E⁻¹rrᵀΣ_E⁻¹`` =: Ω, so
+``Ψ_f = Σ_n A_fᵀ Ω_n A_f``. Its zero is a moment match weighted by Σ_E⁻¹ ⊗ Σ_E⁻¹, not Eq. (13):
+the paper's Eq. (20–21) drop the weights (and a sign), so ML and moment matching differ.
+
+REML: with the deterministic fit's Jacobian X (N, d, p) and V = blockdiag Σ_E(q_n),
+``NLL_R = Σ_n log det Σ_E(q_n) + log det(XᵀV⁻¹X) + rᵀPr``, P = V⁻¹ − V⁻¹X(XᵀV⁻¹X)⁻¹XᵀV⁻¹.
+It depends on X only through its column space (X is orthonormalised once). Its gradient has
+the ML form with ``Ω_n = P_nn − s_n s_nᵀ``, s = Pr (block n).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.covariance._blas import gram_tn
+from solver.covariance.layout import CovarianceLayout, block_diagonal, column_matrix
+from solver.covariance.statistics import DEFAULT_CHUNK_SIZE, design_gram
+from solver.errors import CalibrationError, SolverError
+
+FloatArray = NDArray[np.float64]
+
+
+def ee_covariance_batch(
+    frame_jacobians: FloatArray,
+    frame_covariances: FloatArray,
+    noise_covariance: FloatArray | None = None,
+) -> FloatArray:
+    """Eq. (12): ``Σ_E(q_n) = Σ_n + Σ_f A_f(q_n) Σ_f A_f(q_n)ᵀ``, (N, d, d).
+
+    ``frame_jacobians`` (N, F, d, 6) map local twists [v; w] of each frame to the
+    end-effector-frame residual; ``frame_covariances`` (F, 6, 6) in m²/rad²;
+    ``noise_covariance`` (6, 6) acts in the end-effector frame (its first d×d block is used).
+    """
+    out = np.einsum(
+        "nfdi,fij,nfej->nde", frame_jacobians, frame_covariances, frame_jacobians, optimize=True
+    )
+    if noise_covariance is not None:
+        d = frame_jacobians.shape[2]
+        out = out + np.asarray(noise_covariance)[:d, :d]
+    return out
+
+
+def theta_gradient(layout: CovarianceLayout, psi: FloatArray) -> FloatArray:
+    """``∂NLL/∂θ_p = ⟨Ψ_f, E_p⟩``: Ψ_ii for variances, 2Ψ_ij for covariances, (Q,)."""
+    f, i, j = layout.param_frame, layout.param_row, layout.param_col
+    return np.where(layout.is_variance, 1.0, 2.0) * psi[f, i, j]
+
+
+@dataclass(frozen=True)
+class _Chunk:
+    columns: FloatArray  # C (n, d, 6F)
+    residuals: FloatArray  # (n, d)
+    basis: FloatArray | None  # (n, d, k)
+
+
+def _chunks(
+    residuals: FloatArray,
+    frame_jacobians: FloatArray,
+    layout: CovarianceLayout,
+    basis: FloatArray | None,
+    chunk_size: int,
+) -> Iterator[_Chunk]:
+    for start in range(0, residuals.shape[0], chunk_size):
+        stop = start + chunk_size
+        cols = column_matrix(frame_jacobians[start:stop], layout)
+        yield _Chunk(cols, residuals[start:stop], None if basis is None else basis[start:stop])
+
+
+def _ee_chunk(
+    chunk: _Chunk, sigma_all: FloatArray, known: FloatArray | None
+) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+    """Σ_E, its inverse and log det for one chunk; None if some Σ_E is not positive definite."""
+    cov = chunk.columns @ sigma_all @ chunk.columns.transpose(0, 2, 1)
+    if known is not None:
+        cov = cov + known
+    cov = 0.5 * (cov + cov.transpose(0, 2, 1))
+    try:
+        chol = np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        return None
+    logdet = 2.0 * np.log(np.diagonal(chol, axis1=1, axis2=2)).sum(axis=1)
+    inv = np.linalg.inv(cov)
+    return cov, 0.5 * (inv + inv.transpose(0, 2, 1)), logdet
+
+
+def _psi_from_omega(chunk: _Chunk, omega: FloatArray, n_frames: int) -> FloatArray:
+    """Σ_n A_fᵀ Ω_n A_f for every frame, (F, 6, 6).
+
+    Stacks of 6×6 products per frame: a single (6F × n·d)·(n·d × 6F) GEMM would compute the
+    unneeded off-diagonal blocks and, on few cores, suffers from BLAS thread contention.
+    """
+    cols = chunk.columns
+    t = omega @ cols
+    return np.stack(
+        [
+            (cols[:, :, 6 * f : 6 * f + 6].transpose(0, 2, 1) @ t[:, :, 6 * f : 6 * f + 6]).sum(0)
+            for f in range(n_frames)
+        ]
+    )
+
+
+def gaussian_nll(
+    theta: FloatArray,
+    residuals: FloatArray,
+    frame_jacobians: FloatArray,
+    layout: CovarianceLayout,
+    *,
+    known_covariance: FloatArray | None = None,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+) -> tuple[float, FloatArray]:
+    """Eq. (17): ``Σ_n [log det Σ_E(q_n) + r_nᵀ Σ_E(q_n)⁻¹ r_n]`` and Ψ = ∂/∂Σ_f (F, 6, 6).
+
+    Returns (inf, 0) where some Σ_E is not positive definite. Constants (N·d·log 2π) omitted.
+    """
+    sigma_all = block_diagonal(layout.frame_covariances(theta))
+    value, psi = 0.0, np.zeros((layout.n_frames, 6, 6))
+    for chunk in _chunks(residuals, frame_jacobians, layout, None, chunk_size):
+        ee = _ee_chunk(chunk, sigma_all, known_covariance)
+        if ee is None:
+            return float("inf"), psi
+        _, inv, logdet = ee
+        a = np.einsum("nij,nj->ni", inv, chunk.residuals)
+        value += float(logdet.sum() + np.einsum("ni,ni->", a, chunk.residuals))
+        omega = inv - a[:, :, None] * a[:, None, :]
+        psi += _psi_from_omega(chunk, omega, layout.n_frames)
+    return value, 0.5 * (psi + psi.transpose(0, 2, 1))
+
+
+def orthonormal_fit_basis(fit_jacobian: FloatArray, *, rtol: float = 1e-10) -> FloatArray:
+    """Orthonormal basis (N, d, k) of the column space of the stacked fit Jacobian X (N, d, p).
+
+    Columns with relative singular value below ``rtol`` (unidentifiable parameters the
+    deterministic fit removed) are dropped; REML only depends on this column space.
+    """
+    n, d, p = fit_jacobian.shape
+    u, s, _ = np.linalg.svd(fit_jacobian.reshape(n * d, p), full_matrices=False)
+    keep = s > rtol * (s[0] if s.size else 0.0)
+    if not np.any(keep):
+        raise SolverError("fit_jacobian has no non-zero column")
+    return u[:, keep].reshape(n, d, int(keep.sum()))
+
+
+def restricted_nll(
+    theta: FloatArray,
+    residuals: FloatArray,
+    frame_jacobians: FloatArray,
+    fit_basis: FloatArray,
+    layout: CovarianceLayout,
+    *,
+    known_covariance: FloatArray | None = None,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+) -> tuple[float, FloatArray]:
+    """REML NLL ``Σ log det Σ_E + log det(XᵀV⁻¹X) + rᵀPr`` and Ψ = ∂/∂Σ_f (F, 6, 6).
+
+    ``fit_basis`` (N, d, k) from :func:`orthonormal_fit_basis`. Two passes over the chunks,
+    O(N·d²·k + N·d·k²) per evaluation.
+    """
+    sigma_all = block_diagonal(layout.frame_covariances(theta))
+    k = fit_basis.shape[2]
+    value, fisher_x, u = 0.0, np.zeros((k, k)), np.zeros(k)
+    for chunk in _chunks(residuals, frame_jacobians, layout, fit_basis, chunk_size):
+        ee = _ee_chunk(chunk, sigma_all, known_covariance)
+        if ee is None:
+            return float("inf"), np.zeros((layout.n_frames, 6, 6))
+        _, inv, logdet = ee
+        assert chunk.basis is not None
+        q = inv @ chunk.basis  # V⁻¹X, (n, d, k)
+        a = np.einsum("nij,nj->ni", inv, chunk.residuals)
+        value += float(logdet.sum() + np.einsum("ni,ni->", a, chunk.residuals))
+        fisher_x += gram_tn(chunk.basis.reshape(-1, k), q.reshape(-1, k))
+        u += np.einsum("ndk,nd->k", chunk.basis, a)
+    fisher_x = 0.5 * (fisher_x + fisher_x.T)
+    try:
+        chol = np.linalg.cholesky(fisher_x)
+    except np.linalg.LinAlgError:
+        return float("inf"), np.zeros((layout.n_frames, 6, 6))
+    m_inv = np.linalg.inv(fisher_x)
+    m_inv_u = m_inv @ u
+    value += 2.0 * float(np.log(np.diag(chol)).sum()) - float(u @ m_inv_u)
+    psi = np.zeros((layout.n_frames, 6, 6))
+    for chunk in _chunks(residuals, frame_jacobians, layout, fit_basis, chunk_size):
+        ee = _ee_chunk(chunk, sigma_all, known_covariance)
+        assert ee is not None and chunk.basis is not None
+        _, inv, _ = ee
+        q = inv @ chunk.basis
+        s = np.einsum("nij,nj->ni", inv, chunk.residuals) - q @ m_inv_u
+        p_nn = inv - (q @ m_inv) @ q.transpose(0, 2, 1)
+        omega = p_nn - s[:, :, None] * s[:, None, :]
+        psi += _psi_from_omega(chunk, omega, layout.n_frames)
+    return value, 0.5 * (psi + psi.transpose(0, 2, 1))
+
+
+def _whitening(
+    theta: FloatArray,
+    frame_jacobians: FloatArray,
+    layout: CovarianceLayout,
+    known_covariance: FloatArray | None,
+    *,
+    inverse: bool,
+) -> FloatArray:
+    """Per sample L⁻¹ (inverse=True) or Lᵀ (False) with Σ_E(q_n) = L Lᵀ, (N, d, d).
+
+    Lᵀ is the symmetric square root (works for singular PSD Σ_E); L⁻¹ needs Σ_E ≻ 0.
+    """
+    sigma_all = block_diagonal(layout.frame_covariances(theta))
+    cols = column_matrix(frame_jacobians, layout)
+    cov = cols @ sigma_all @ cols.transpose(0, 2, 1)
+    if known_covariance is not None:
+        cov = cov + known_covariance
+    if not inverse:
+        eigval, eigvec = np.linalg.eigh(0.5 * (cov + cov.transpose(0, 2, 1)))
+        root = (eigvec * np.sqrt(np.clip(eigval, 0.0, None))[:, None, :]) @ eigvec.transpose(
+            0, 2, 1
+        )
+        return root
+    try:
+        chol = np.linalg.cholesky(0.5 * (cov + cov.transpose(0, 2, 1)))
+    except np.linalg.LinAlgError as exc:
+        raise CalibrationError(
+            "Σ_E(q) is singular at the estimate: standard errors need a positive-definite "
+            "end-effector covariance (estimate the noise or pass a known noise covariance)"
+        ) from exc
+    return np.linalg.inv(chol)
+
+
+def fisher_information_ml(
+    theta: FloatArray,
+    frame_jacobians: FloatArray,
+    layout: CovarianceLayout,
+    *,
+    known_covariance: FloatArray | None = None,
+) -> FloatArray:
+    """Expected Fisher information of θ for Eq. (16): ``½ Σ_n tr(Σ_E⁻¹ ∂_pΣ_E Σ_E⁻¹ ∂_qΣ_E)``.
+
+    Equal to half the moment Gram of the whitened Jacobians L_n⁻¹A_f, (Q, Q).
+    """
+    left = _whitening(theta, frame_jacobians, layout, known_covariance, inverse=True)
+    return 0.5 * design_gram(frame_jacobians, layout, left=left).gram
+
+
+def fisher_information_reml(
+    theta: FloatArray,
+    frame_jacobians: FloatArray,
+    fit_basis: FloatArray,
+    layout: CovarianceLayout,
+    *,
+    known_covariance: FloatArray | None = None,
+    chunk_size: int = 512,
+) -> FloatArray:
+    """Expected Fisher information of the REML likelihood: ``½ tr(P V_p P V_q)``, (Q, Q).
+
+    Whitened (W = blockdiag L_n⁻¹, U orthonormal basis of W X, Π_n = U_n U_nᵀ = R_n R_nᵀ with
+    R_n its d×d square root, S̃ = L⁻¹ ∂Σ_E L⁻ᵀ):
+    ``tr(PV_pPV_q) = Σ_n ⟨S̃_p, S̃_q⟩ − 2 Σ_n ⟨S̃_p R_n, S̃_q R_n⟩ + ⟨Z_p, Z_q⟩``,
+    ``Z_p = Σ_n U_nᵀ S̃_p U_n``.
+    """
+    left = _whitening(theta, frame_jacobians, layout, known_covariance, inverse=True)
+    n, d, k = fit_basis.shape
+    white_x = left @ fit_basis
+    basis = np.linalg.svd(white_x.reshape(n * d, k), full_matrices=False)[0].reshape(n, d, -1)
+    proj = basis @ basis.transpose(0, 2, 1)
+    eigval, eigvec = np.linalg.eigh(proj)
+    root = eigvec * np.sqrt(np.clip(eigval, 0.0, None))[:, None, :]  # R Rᵀ = Π_n, (n, d, d)
+    term1 = design_gram(frame_jacobians, layout, left=left).gram
+    q = layout.n_params
+    half = np.where(layout.is_variance, 0.5, 1.0)
+    term2, z = np.zeros((q, q)), np.zeros((q, basis.shape[2], basis.shape[2]))
+    ci, cj = layout.column_i, layout.column_j
+    for start in range(0, n, chunk_size):
+        stop = min(start + chunk_size, n)
+        cols = left[start:stop] @ column_matrix(frame_jacobians[start:stop], layout)
+        a_r = cols.transpose(0, 2, 1) @ root[start:stop]  # (m, 6F, d): a_cᵀ R
+        # S̃_p R = s_p (a_i (a_jᵀR) + a_j (a_iᵀR)), as (m, d, d, Q)
+        r_i = a_r[:, ci, :].transpose(0, 2, 1)[:, None]
+        r_j = a_r[:, cj, :].transpose(0, 2, 1)[:, None]
+        sr = half * (cols[:, :, ci][:, :, None, :] * r_j + cols[:, :, cj][:, :, None, :] * r_i)
+        term2 += gram_tn(sr.reshape(-1, q))
+        beta = cols.transpose(0, 2, 1) @ basis[start:stop]  # (m, 6F, k): a_cᵀ u
+        zb = np.einsum("mak,mal->akl", beta[:, ci, :], beta[:, cj, :])
+        z += half[:, None, None] * (zb + zb.transpose(0, 2, 1))
+    zf = z.reshape(q, -1)
+    out = 0.5 * (term1 - 2.0 * term2 + gram_tn(zf.T))
+    return 0.5 * (out + out.T)
+
+
+def moment_sandwich_meat(
+    theta: FloatArray,
+    frame_jacobians: FloatArray,
+    layout: CovarianceLayout,
+    *,
+    known_covariance: FloatArray | None = None,
+) -> FloatArray:
+    """Cov of h under Gaussian residuals: ``Σ_n B_nᵀ Cov(vec r rᵀ) B_n = 2 Σ_n K̃ᵀK̃``, (Q, Q).
+
+    K̃ uses the coloured Jacobians L_nᵀA_f (Σ_E = LLᵀ): ``Cov(⟨S_p, rrᵀ⟩, ⟨S_q, rrᵀ⟩) =
+    2 tr(S_p Σ_E S_q Σ_E)``. The moment estimator's covariance is G⁺ · meat · G⁺.
+    """
+    left = _whitening(theta, frame_jacobians, layout, known_covariance, inverse=False)
+    return 2.0 * design_gram(frame_jacobians, layout, left=left).gram
+
+
+def check_likelihood_inputs(
+    residuals: FloatArray, frame_jacobians: FloatArray, layout: CovarianceLayout
+) -> None:
+    if residuals.shape != (frame_jacobians.shape[0], layout.residual_dim):
+        raise SolverError(f"residuals must be (N, {layout.residual_dim}), got {residuals.shape}")
+    if not np.all(np.isfinite(residuals)):
+        raise CalibrationError("residuals contain NaN or inf")

@@ -1,0 +1,198 @@
+"""Eq. (12), the ML (Eq. 16–17) and REML likelihoods: values, gradients, Fisher information."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from solver.covariance import (
+    column_matrix,
+    ee_covariance_batch,
+    estimate_covariances,
+    fisher_information_ml,
+    fisher_information_reml,
+    gaussian_nll,
+    make_layout,
+    orthonormal_fit_basis,
+    restricted_nll,
+    theta_gradient,
+)
+from solver.covariance.layout import block_diagonal
+from solver.errors import CalibrationError
+
+
+def _load_support():
+    name = "kincal_covariance_test_support"
+    if name not in sys.modules:
+        path = Path(__file__).with_name("test_covariance_support.py")
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+S = _load_support()
+
+
+def case(structure, residual_dim, known, seed=0, n=15, n_frames=2):
+    rng = np.random.default_rng(seed)
+    jac = S.random_frame_jacobians(n, n_frames, rng, residual_dim=residual_dim)
+    layout = make_layout(
+        [f"f{i}" for i in range(n_frames)],
+        residual_dim,
+        structure=structure,
+        include_noise=not known,
+    )
+    roots = rng.normal(size=(layout.n_frames, 6, 6)) * 2e-3
+    covs = roots @ roots.transpose(0, 2, 1)
+    if structure == "diag":
+        covs = np.einsum("fii->fi", covs)[:, :, None] * np.eye(6)
+    theta = layout.theta_from_covariances(covs)
+    known_cov = np.diag(rng.uniform(1, 3, residual_dim)) * 1e-6 if known else None
+    residuals = rng.normal(size=(n, residual_dim)) * 3e-3
+    fit = rng.normal(size=(n, residual_dim, 5))
+    return layout, theta, jac, residuals, known_cov, fit
+
+
+def dense(layout, theta, jac, known_cov):
+    """V = blockdiag Σ_E(q_n) and ∂V/∂θ_p as dense (N·d)² matrices."""
+    cols = column_matrix(jac, layout)
+    n, d, _ = cols.shape
+
+    def stack(t):
+        blocks = cols @ block_diagonal(layout.frame_covariances(t)) @ cols.transpose(0, 2, 1)
+        out = np.zeros((n * d, n * d))
+        for k in range(n):
+            out[k * d : (k + 1) * d, k * d : (k + 1) * d] = blocks[k]
+        return out
+
+    v = stack(theta)
+    if known_cov is not None:
+        v += np.kron(np.eye(n), known_cov)
+    return v, [stack(e) for e in np.eye(layout.n_params)]
+
+
+CASES = [
+    ("diag", 6, False),
+    ("full", 6, False),
+    ("diag", 3, True),
+    ("full", 3, True),
+    ("diag", 6, True),
+]
+
+
+@pytest.mark.parametrize(("structure", "d", "known"), CASES)
+def test_ml_and_reml_values_equal_the_dense_formulas(structure, d, known):
+    layout, theta, jac, r, known_cov, fit = case(structure, d, known)
+    v, _ = dense(layout, theta, jac, known_cov)
+    x = fit.reshape(-1, fit.shape[2])
+    v_inv = np.linalg.inv(v)
+    rs = r.reshape(-1)
+    p = v_inv - v_inv @ x @ np.linalg.solve(x.T @ v_inv @ x, x.T @ v_inv)
+    ml = np.linalg.slogdet(v)[1] + rs @ v_inv @ rs
+    basis = orthonormal_fit_basis(fit).reshape(-1, 5)
+    reml = np.linalg.slogdet(v)[1] + np.linalg.slogdet(basis.T @ v_inv @ basis)[1] + rs @ p @ rs
+    kw = {"known_covariance": known_cov, "chunk_size": 4}
+    assert gaussian_nll(theta, r, jac, layout, **kw)[0] == pytest.approx(ml, rel=1e-10)
+    assert restricted_nll(theta, r, jac, orthonormal_fit_basis(fit), layout, **kw)[
+        0
+    ] == pytest.approx(reml, rel=1e-10)
+
+
+@pytest.mark.parametrize(("structure", "d", "known"), CASES)
+@pytest.mark.parametrize("estimator", ["ml", "reml"])
+def test_analytic_gradients_match_finite_differences(structure, d, known, estimator):
+    layout, theta, jac, r, known_cov, fit = case(structure, d, known, seed=1)
+    basis = orthonormal_fit_basis(fit)
+
+    def f(t):
+        if estimator == "ml":
+            return gaussian_nll(t, r, jac, layout, known_covariance=known_cov, chunk_size=4)
+        return restricted_nll(t, r, jac, basis, layout, known_covariance=known_cov, chunk_size=4)
+
+    grad = theta_gradient(layout, f(theta)[1])
+    step = 1e-4 * np.abs(theta).max()
+    numeric = np.array(
+        [
+            (f(theta + step * e)[0] - f(theta - step * e)[0]) / (2 * step)
+            for e in np.eye(layout.n_params)
+        ]
+    )
+    np.testing.assert_allclose(grad, numeric, rtol=1e-5, atol=1e-6 * np.abs(numeric).max())
+
+
+@pytest.mark.parametrize(("structure", "d", "known"), CASES[:3])
+def test_fisher_information_equals_half_the_trace_formula(structure, d, known):
+    layout, theta, jac, _, known_cov, fit = case(structure, d, known, seed=2, n=10)
+    v, dv = dense(layout, theta, jac, known_cov)
+    v_inv = np.linalg.inv(v)
+    x = fit.reshape(-1, fit.shape[2])
+    p = v_inv - v_inv @ x @ np.linalg.solve(x.T @ v_inv @ x, x.T @ v_inv)
+    ml = 0.5 * np.array([[np.trace(v_inv @ a @ v_inv @ b) for b in dv] for a in dv])
+    reml = 0.5 * np.array([[np.trace(p @ a @ p @ b) for b in dv] for a in dv])
+    got_ml = fisher_information_ml(theta, jac, layout, known_covariance=known_cov)
+    got_reml = fisher_information_reml(
+        theta, jac, orthonormal_fit_basis(fit), layout, known_covariance=known_cov, chunk_size=3
+    )
+    np.testing.assert_allclose(got_ml, ml, rtol=1e-9, atol=1e-12 * np.abs(ml).max())
+    np.testing.assert_allclose(got_reml, reml, rtol=1e-9, atol=1e-12 * np.abs(reml).max())
+
+
+def test_ee_covariance_batch_is_eq_12():
+    rng = np.random.default_rng(3)
+    jac = S.random_frame_jacobians(7, 3, rng)
+    roots = rng.normal(size=(3, 6, 6))
+    covs = roots @ roots.transpose(0, 2, 1)
+    noise = np.diag(rng.uniform(size=6))
+    want = np.array(
+        [noise + sum(jac[n, f] @ covs[f] @ jac[n, f].T for f in range(3)) for n in range(7)]
+    )
+    np.testing.assert_allclose(ee_covariance_batch(jac, covs, noise), want, rtol=1e-12)
+    np.testing.assert_allclose(
+        ee_covariance_batch(jac[:, :, :3], covs, noise), want[:, :3, :3], rtol=1e-12
+    )
+
+
+def test_ml_is_a_weighted_moment_match_not_eq_13():
+    """The paper's Eq. (20–21) claim ML = moment matching; the ML gradient at the moment
+    solution is not zero, and the ML fit ends at a stationary point of Eq. (17)."""
+    names = S.jaco_joint_names()
+    data = S.simulate_jaco(300, seed=4)
+    free = {n: ("w_x", "w_y", "w_z") for n in names}
+    noise = np.diag(S.NOISE_STD**2)
+    kw = {"free_axes": free, "noise_covariance": noise, "standard_errors": False, "solver": "nnls"}
+    moment = estimate_covariances(data.residuals, data.frame_jacobians, names, **kw)
+    ml = estimate_covariances(data.residuals, data.frame_jacobians, names, estimator="ml", **kw)
+    assert ml.solution.status == "optimal"
+    layout = ml.layout
+    scale = ml.identifiability.scaling.param_scale
+    identifiable = ml.identifiability.identifiable
+
+    def scaled_grad(theta):
+        _, psi = gaussian_nll(
+            theta, data.residuals, data.frame_jacobians, layout, known_covariance=noise
+        )
+        return theta_gradient(layout, psi) * scale / 300
+
+    at_moment, at_ml = scaled_grad(moment.theta), scaled_grad(ml.theta)
+    interior = identifiable & (ml.theta > 1e-3 * ml.theta.max())
+    assert np.abs(at_ml[interior]).max() < 1e-4 * np.abs(at_moment[interior]).max()
+    assert ml.solution.objective < estimate_nll(moment.theta, data, layout, noise)
+
+
+def estimate_nll(theta, data, layout, noise):
+    return gaussian_nll(
+        theta, data.residuals, data.frame_jacobians, layout, known_covariance=noise
+    )[0]
+
+
+def test_reml_without_the_fit_jacobian_is_refused():
+    rng = np.random.default_rng(5)
+    jac = S.random_frame_jacobians(20, 1, rng)
+    with pytest.raises(CalibrationError, match="fit_jacobian"):
+        estimate_covariances(rng.normal(size=(20, 6)), jac, ["a"], estimator="reml")
