@@ -116,47 +116,39 @@ def _evaluate(
     n = joint_positions.shape[0]
     k = chain.n_joints
     moved, virtual_angles = _joint_angles(chain, params, joint_positions, loads_nm)
-    joint_motion = lie.se3_exp(moved[:, :, None] * chain.joint_screws[None])  # (N, k, 4, 4)
     axes_at = [
         [a for a, ax in enumerate(chain.compliance_axes) if ax.joint_index == i] for i in range(k)
     ]
 
-    link_jac = np.zeros((n, k + 1, 6, 6)) if jacobians else np.zeros((0,))
+    # Written slice by slice in place: at 10^5..10^6 samples allocation and copies dominate.
+    link_jac = np.empty((n, k + 1, 6, 6)) if jacobians else np.zeros((0,))
     comp_jac = np.zeros((n, len(chain.compliance_axes), 6)) if jacobians else np.zeros((0,))
     suffix = np.broadcast_to(params.links[k], (n, 4, 4)).copy()  # L_{k+1}
     if jacobians:
         link_jac[:, k] = np.eye(6)
     # Walk the chain backwards; `suffix` is always the product of everything after the cursor.
     for i in range(k - 1, -1, -1):
-        suffix = joint_motion[:, i] @ suffix
-        own = [a for a in axes_at[i] if chain.compliance_axes[a].is_joint_axis]
-        if jacobians and own:
-            column = lie.adjoint_inverse(suffix) @ chain.joint_screws[i]
-            for a in own:
-                comp_jac[:, a] = column * loads_nm[:, a, None]
+        suffix = lie.screw_exp(chain.joint_screws[i], moved[:, i]) @ suffix
+        if jacobians:
+            own = [a for a in axes_at[i] if chain.compliance_axes[a].is_joint_axis]
+            if own:
+                column = lie.adjoint_inverse_apply(suffix, chain.joint_screws[i])
+                for a in own:
+                    comp_jac[:, a] = column * loads_nm[:, a, None]
         for a in reversed(axes_at[i]):
             axis = chain.compliance_axes[a]
             if axis.is_joint_axis:
                 continue
-            suffix = lie.se3_exp(_rotation_twist(axis.axis, virtual_angles[:, a])) @ suffix
+            screw = np.r_[0.0, 0.0, 0.0, axis.axis]
+            suffix = lie.screw_exp(screw, virtual_angles[:, a]) @ suffix
             if jacobians:
-                comp_jac[:, a] = _column(suffix, np.r_[0.0, 0.0, 0.0, axis.axis], loads_nm[:, a])
+                comp_jac[:, a] = lie.adjoint_inverse_apply(suffix, screw) * loads_nm[:, a, None]
         if perturbations is not None:
             suffix = lie.se3_exp(perturbations[:, i]) @ suffix
         if jacobians:
-            link_jac[:, i] = lie.adjoint_inverse(suffix)
+            lie.adjoint_inverse(suffix, out=link_jac[:, i])
         suffix = params.links[i] @ suffix
     return ChainEvaluation(suffix, link_jac, comp_jac)
-
-
-def _column(suffix: FloatArray, screw: FloatArray, load_nm: FloatArray) -> FloatArray:
-    return (lie.adjoint_inverse(suffix) @ screw) * load_nm[:, None]
-
-
-def _rotation_twist(axis: FloatArray, angle_rad: FloatArray) -> FloatArray:
-    twist = np.zeros((angle_rad.shape[0], 6))
-    twist[:, 3:] = angle_rad[:, None] * axis
-    return twist
 
 
 def pose_residuals(

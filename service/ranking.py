@@ -1,0 +1,446 @@
+"""Configuration ranking from a calibration result (paper §IV-D): the ONE place the CLI and the
+HTTP service call. Result JSON + configurations or a target pose -> :class:`RankingResult`.
+
+Planners call this many times per second: build the :class:`solver.ranking.UncertaintyModel`
+once per calibration with :func:`uncertainty_model` and pass it in (``model=``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pydantic
+from numpy.typing import NDArray
+
+from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.ranking import (
+    CalibrationReference,
+    PoseWeights,
+    RankedConfiguration,
+    RankingOptions,
+    RankingResult,
+    TargetRankingRequest,
+    TaskWeights,
+)
+from service import pipeline
+from solver import lie
+from solver.calibration import fit_deterministic
+from solver.errors import KincalError, SolverError
+from solver.evaluation import Method
+from solver.gp_baseline import GPSettings, gp_method
+from solver.ik import IKCandidate, IKOptions, ik_candidates
+from solver.kinematics import ChainParameters, forward_kinematics
+from solver.model import KinematicChain
+from solver.ranking import (
+    ConfigurationScores,
+    RandomEffects,
+    TaskMetric,
+    UncertaintyModel,
+    score_configurations,
+)
+
+FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.intp]
+
+NO_COVARIANCE = "has no covariance: run calibrate with covariance first"
+NO_IK_SOLUTION = (
+    "no configuration within the joint limits reaches the target; give it in the measurement "
+    "frame (as kincal predict reports poses) or allow a free axis (--free-axis)"
+)
+_AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
+
+
+def random_effects(result: CalibrationResult, chain: KinematicChain) -> RandomEffects:
+    """Σ_1..Σ_k (+ tip frame) and Σ_n from the result's ``covariance`` block, by frame name."""
+    if result.covariance is None:
+        raise KincalError(f"calibration result {NO_COVARIANCE}")
+    names = chain.link_names  # joint names, then the tip frame
+    frames = np.zeros((len(names), 6, 6))
+    seen: set[str] = set()
+    for frame in result.covariance.frames:
+        if frame.name not in names:
+            raise KincalError(
+                f"covariance frame {frame.name!r} is not a joint of the chain "
+                f"({', '.join(names)}); the result is inconsistent, re-run calibrate"
+            )
+        if frame.name in seen:
+            raise KincalError(f"covariance frame {frame.name!r} appears twice; re-run calibrate")
+        seen.add(frame.name)
+        frames[names.index(frame.name)] = np.array(frame.matrix, dtype=float)
+    try:
+        return RandomEffects(frames, np.array(result.covariance.noise.matrix, dtype=float))
+    except SolverError as exc:
+        raise KincalError(f"calibration result covariance: {exc}") from exc
+
+
+def uncertainty_model(result: CalibrationResult) -> UncertaintyModel:
+    """Calibrated chain + random effects + gravity settings of a result, ready to score."""
+    chain, params = pipeline.result_chain(result)
+    effects = random_effects(result, chain)
+    return UncertaintyModel.build(
+        chain, params, effects, np.asarray(result.options.gravity_base_m_s2, dtype=float)
+    )
+
+
+def task_metric(options: RankingOptions) -> TaskMetric:
+    """The task matrix M of Eq. (22) from the weights in the options."""
+    weights = options.weights
+    try:
+        if isinstance(weights, PoseWeights):
+            w = np.array(weights.matrix if weights.matrix is not None else weights.diagonal)
+            return TaskMetric.pose_weights(
+                w,
+                rotation_scale_m_per_rad=weights.rotation_scale_m_per_rad,
+                include_noise=options.include_noise,
+            )
+        return TaskMetric.task_point(
+            weights.point_m, weights.axis_weights, include_noise=options.include_noise
+        )
+    except SolverError as exc:
+        raise KincalError(f"weights: {exc}") from exc
+
+
+def ignored_rotation_axis(weights: TaskWeights) -> tuple[float, float, float] | None:
+    """End-effector axis whose rotation the task does not see (z preferred), or None.
+
+    Pose weights: a rotation axis whose column of W is zero (e.g. yaw weight 0). Task point:
+    an axis through the point (rotating about it leaves the point where it is).
+    """
+    if isinstance(weights, PoseWeights):
+        w = np.array(weights.matrix if weights.matrix is not None else np.diag(weights.diagonal))
+        ignored = [a for a in range(3) if not np.any(w[:, 3 + a])]
+    else:
+        p = np.array(weights.point_m)
+        ignored = [a for a in range(3) if not np.any(np.cross(np.eye(3)[a], p))]
+    if not ignored:
+        return None
+    return _AXES["xyz"[2 if 2 in ignored else ignored[0]]]
+
+
+def calibration_reference(result: CalibrationResult) -> CalibrationReference:
+    covariance = result.covariance
+    return CalibrationReference(
+        robot=result.robot.name,
+        urdf_sha256=result.robot.urdf_sha256,
+        created_utc=result.created_utc,
+        kincal_version=result.kincal_version,
+        result_sha256=hashlib.sha256(result.model_dump_json().encode()).hexdigest(),
+        covariance_structure=covariance.structure if covariance else "none",
+        covariance_estimator=covariance.estimator if covariance else "none",
+    )
+
+
+def rank_configurations(
+    result: CalibrationResult,
+    joint_positions: FloatArray,
+    options: RankingOptions,
+    *,
+    payload_kg: FloatArray | float | None = None,
+    model: UncertaintyModel | None = None,
+) -> RankingResult:
+    """Score configurations (N, k) rad and order them best first (Eq. 22–23).
+
+    ``payload_kg`` per configuration or scalar (default: the calibration's payload option).
+    ``index`` in the output is the 0-based input row.
+    """
+    model = model or uncertainty_model(result)
+    q = _joint_array(joint_positions, model.chain)
+    metric = task_metric(options)
+    payload = result.options.payload_kg if payload_kg is None else payload_kg
+    try:
+        scores = score_configurations(model, q, metric, payload_kg=payload)
+    except SolverError as exc:
+        raise KincalError(str(exc)) from exc
+    entries = _entries(scores, options.top, joint_positions=None)
+    return _result(result, model, metric, options, scores, entries)
+
+
+def rank_target(
+    result: CalibrationResult,
+    request: TargetRankingRequest,
+    *,
+    model: UncertaintyModel | None = None,
+) -> RankingResult:
+    """Distinct IK solutions for the target pose (measurement frame, as ``kincal predict``
+    reports poses), ranked. Each entry carries its joints and its IK pose error."""
+    model = model or uncertainty_model(result)
+    axis = _free_axis(request)
+    target = lie.pose_matrix(
+        np.array(request.target.position_m), np.array(request.target.quaternion_xyzw)
+    )
+    settings = IKOptions(
+        n_candidates=request.n_candidates,
+        seed=request.seed,
+        free_axis=axis,
+        n_free_rotations=request.n_free_rotations,
+    )
+    try:
+        candidates = ik_candidates(
+            model.chain,
+            model.params,
+            target,
+            settings,
+            gravity_base=model.gravity_base,
+            payload_kg=request.payload_kg,
+        )
+    except SolverError as exc:
+        raise KincalError(str(exc)) from exc
+    metric = task_metric(request.options)
+    q = np.array([c.joint_positions for c in candidates]).reshape(-1, model.chain.n_joints)
+    scores = score_configurations(model, q, metric, payload_kg=request.payload_kg)
+    entries = _entries(scores, request.options.top, joint_positions=q, candidates=candidates)
+    out = _result(result, model, metric, request.options, scores, entries)
+    return out.model_copy(update={"target": request.target, "free_axis": axis})
+
+
+def _free_axis(request: TargetRankingRequest) -> tuple[float, float, float] | None:
+    if request.free_axis == "none":
+        return None
+    if request.free_axis == "auto":
+        return ignored_rotation_axis(request.options.weights)
+    return _AXES[request.free_axis]
+
+
+def _joint_array(joint_positions: FloatArray, chain: KinematicChain) -> FloatArray:
+    q = np.asarray(joint_positions, dtype=float)
+    if q.ndim != 2 or q.shape[1] != chain.n_joints or q.shape[0] == 0:
+        raise KincalError(
+            f"configurations must be rows of {chain.n_joints} joint positions "
+            f"({', '.join(chain.joint_names)}), got shape {q.shape}"
+        )
+    if not np.all(np.isfinite(q)):
+        raise KincalError("configurations contain non-finite joint positions")
+    return q
+
+
+def _entries(
+    scores: ConfigurationScores,
+    top: int | None,
+    *,
+    joint_positions: FloatArray | None,
+    candidates: Sequence[IKCandidate] = (),
+) -> list[RankedConfiguration]:
+    order = scores.order()[:top]
+    std = np.sqrt(np.maximum(scores.ee_variance[order], 0.0)).tolist()
+    trace_position = scores.trace_position_m2[order].tolist()
+    trace_rotation = scores.trace_rotation_rad2[order].tolist()
+    score = scores.score[order].tolist()
+    out = []
+    for rank, i in enumerate(order.tolist()):
+        extra: dict[str, object] = {}
+        if joint_positions is not None:
+            extra["joint_positions_rad"] = joint_positions[i].tolist()
+        if candidates:
+            c = candidates[i]
+            extra |= {
+                "free_rotation_rad": c.free_rotation_rad,
+                "ik_translation_error_m": c.translation_error_m,
+                "ik_rotation_error_rad": c.rotation_error_rad,
+                "ik_source": c.source,
+            }
+        out.append(
+            RankedConfiguration(
+                rank=rank + 1,
+                index=i,
+                score=score[rank],
+                trace_position_m2=trace_position[rank],
+                trace_rotation_rad2=trace_rotation[rank],
+                ee_std=tuple(std[rank]),  # type: ignore[arg-type]
+                **extra,  # type: ignore[arg-type]
+            )
+        )
+    return out
+
+
+def _result(
+    result: CalibrationResult,
+    model: UncertaintyModel,
+    metric: TaskMetric,
+    options: RankingOptions,
+    scores: ConfigurationScores,
+    entries: list[RankedConfiguration],
+) -> RankingResult:
+    return RankingResult(
+        kincal_version=pipeline.kincal_version(),
+        calibration=calibration_reference(result),
+        joint_names=list(model.chain.joint_names),
+        weights=options.weights,
+        task_matrix=metric.matrix.tolist(),
+        score_unit=metric.unit,
+        include_noise=options.include_noise,
+        n_configurations=int(scores.score.size),
+        best_index=scores.best() if scores.score.size else None,
+        ranking=entries,
+    )
+
+
+def gp_calibration_method(
+    data: pipeline.PreparedData,
+    used: IndexArray,
+    options: CalibrationOptions,
+    settings: GPSettings | None = None,
+) -> Method:
+    """Paper Table II "Cal. GP" as a ``cross_validate`` method over the rows ``used``: the
+    "before" model (measurement frame + tool, fitted on each training split, exactly as in
+    :func:`service.pipeline.heldout_splits`) corrected by one GP per residual component."""
+    fit_settings = pipeline.fit_options(options, baseline=True, n_links=data.chain.n_links)
+    fitted: dict[bytes, ChainParameters] = {}  # the GP method asks for train and test rows
+
+    def before(train: IndexArray, rows: IndexArray) -> FloatArray:
+        key = np.asarray(train).tobytes()
+        if key not in fitted:
+            fitted.clear()
+            fitted[key] = fit_deterministic(
+                data.chain,
+                data.joint_positions[used[train]],
+                data.measured_pose[used[train]],
+                data.loads_nm[used[train]],
+                position_only=data.position_only,
+                options=fit_settings,
+            ).params
+        return forward_kinematics(
+            data.chain, fitted[key], data.joint_positions[used[rows]], data.loads_nm[used[rows]]
+        )
+
+    return gp_method(
+        data.joint_positions[used],
+        data.measured_pose[used],
+        before,
+        position_only=data.position_only,
+        settings=settings or GPSettings(),
+    )
+
+
+# --- command-line flags -> request models (``kincal rank``) ---------------------------------
+
+
+def numbers(text: str, option: str, count: int | None = None) -> list[float]:
+    """Comma-separated numbers of a flag, with a one-line error naming the flag."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or (count is not None and len(values) != count):
+        expected = f"{count} comma-separated numbers" if count else "comma-separated numbers"
+        raise KincalError(f"{option} takes {expected}, got {text!r}")
+    if not all(np.isfinite(values)):
+        raise KincalError(f"{option} must be finite numbers, got {text!r}")
+    return values
+
+
+def read_weight_matrix(path: Path) -> list[list[float]]:
+    """A 6×6 W from a JSON file (nested list) or a text file of 6 rows of 6 numbers."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise KincalError(f"cannot read weight matrix {path}: {exc.strerror}") from exc
+    try:
+        matrix = np.array(json.loads(text), dtype=float)
+    except (ValueError, TypeError):
+        try:
+            matrix = np.loadtxt(io.StringIO(text.replace(",", " ")), ndmin=2)
+        except ValueError as exc:
+            raise KincalError(f"{path}: not a 6×6 matrix of numbers ({exc})") from exc
+    if matrix.shape != (6, 6) or not np.all(np.isfinite(matrix)):
+        raise KincalError(
+            f"{path}: weight matrix must be 6×6 finite numbers, got shape {matrix.shape}"
+        )
+    return matrix.tolist()
+
+
+def options_from_flags(
+    *,
+    weights: str | None,
+    weight_matrix: Path | None,
+    rotation_scale_m_per_rad: float,
+    task_point: str | None,
+    task_weights: str | None,
+    include_noise: bool,
+    top: int | None,
+) -> RankingOptions:
+    """``kincal rank`` flags -> :class:`RankingOptions` (exclusive choices checked)."""
+    if task_point is not None and (weights is not None or weight_matrix is not None):
+        raise KincalError("--task-point replaces --weights/--weight-matrix; give one of them")
+    if weights is not None and weight_matrix is not None:
+        raise KincalError("give --weights or --weight-matrix, not both")
+    if task_weights is not None and task_point is None:
+        raise KincalError("--task-weights needs --task-point x,y,z")
+    document: dict[str, object]
+    if task_point is not None:
+        document = {"kind": "task_point", "point_m": numbers(task_point, "--task-point", 3)}
+        if task_weights is not None:
+            document["axis_weights"] = numbers(task_weights, "--task-weights", 3)
+    else:
+        document = {"kind": "pose", "rotation_scale_m_per_rad": rotation_scale_m_per_rad}
+        if weights is not None:
+            document["diagonal"] = numbers(weights, "--weights", 6)
+        if weight_matrix is not None:
+            document["matrix"] = read_weight_matrix(weight_matrix)
+    try:
+        return RankingOptions.model_validate(
+            {"weights": document, "include_noise": include_noise, "top": top}
+        )
+    except pydantic.ValidationError as exc:
+        raise KincalError(_flag_error(exc)) from exc
+
+
+def target_request(
+    target: str,
+    options: RankingOptions,
+    *,
+    n_candidates: int,
+    seed: int,
+    free_axis: str,
+    payload_kg: float,
+) -> TargetRankingRequest:
+    """``--target x,y,z,qx,qy,qz,qw`` and friends -> :class:`TargetRankingRequest`."""
+    values = numbers(target, "--target", 7)
+    try:
+        return TargetRankingRequest.model_validate(
+            {
+                "target": {"position_m": values[:3], "quaternion_xyzw": values[3:]},
+                "n_candidates": n_candidates,
+                "seed": seed,
+                "free_axis": free_axis,
+                "payload_kg": payload_kg,
+                "options": options,
+            }
+        )
+    except pydantic.ValidationError as exc:
+        raise KincalError(_flag_error(exc)) from exc
+
+
+def _flag_error(exc: pydantic.ValidationError) -> str:
+    first = exc.errors()[0]
+    where = ".".join(str(p) for p in first["loc"])
+    names = {
+        "weights.pose.diagonal": "--weights",
+        "weights.pose.matrix": "--weight-matrix",
+        "weights.pose.rotation_scale_m_per_rad": "--rotation-scale",
+        "weights.task_point.point_m": "--task-point",
+        "weights.task_point.axis_weights": "--task-weights",
+        "target": "--target",
+        "free_axis": "--free-axis",
+        "n_candidates": "--n-candidates",
+        "payload_kg": "--payload-kg",
+        "top": "--top",
+    }
+    flag = next((f for key, f in names.items() if where.startswith(key)), where)
+    return f"{flag}: {first['msg']}"
+
+
+def summary(ranking: RankingResult) -> str:
+    """One line for the terminal."""
+    if not ranking.ranking:
+        return "no configuration to rank"
+    best = ranking.ranking[0]
+    what = "IK candidates" if ranking.target is not None else "configurations"
+    return (
+        f"ranked {ranking.n_configurations} {what}; best: index {best.index}, score "
+        f"{best.score:.4g} {ranking.score_unit} (worst {ranking.ranking[-1].score:.4g})"
+    )
