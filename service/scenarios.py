@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -12,8 +12,20 @@ from schemas.dataset import PoseDataset
 from service.robots import RobotDescription
 from solver import lie
 from solver.errors import ModelError
-from solver.model import KinematicChain, build_chain
-from solver.simulate import SimulatedRecording, SimulationSpec, look_at, simulate_recording
+from solver.model import (
+    ComplianceAxis,
+    KinematicChain,
+    build_chain,
+    gravity_loads,
+    sample_configurations,
+)
+from solver.simulate import (
+    JointEffect,
+    SimulatedRecording,
+    SimulationSpec,
+    look_at,
+    simulate_recording,
+)
 
 EFFECTS = {
     "geometry": "per-link geometric errors (1 mm, 2 mrad standard deviation)",
@@ -23,6 +35,19 @@ EFFECTS = {
     "outliers": "10 % gross outliers (10 deg, 5 mm)",
     "camera": "unknown measurement frame: a camera 1.2 m away looking at the workspace",
     "marker": "unknown marker offset on the flange (about 6 cm)",
+    # Hidden effects for `kincal discover` (DESIGN.md §2: discovery starts from the rigid model).
+    "gear_error": "periodic transmission error of the 3rd joint, 2x per revolution (0.2 mrad)",
+    "backlash": "1 mrad backlash of the 2nd joint, taken up by the sign of its gravity load",
+    "floating_backlash": "2 mrad load-sign backlash of the 2nd joint, floating (random) where "
+    "its load is in the lowest 10 %",
+    "approach_backlash": "1 mrad backlash of the 3rd joint, taken up by the approach direction",
+    "joint_scale": "2nd joint angle scaled by 1 + 5e-4 (gear ratio error)",
+    "thermal_drift": "warm-up drift of the 2nd joint zero: 0.5 mrad, time constant 5 min",
+    "tilted_base": "base tilted 2 deg about x (visible through joint compliance)",
+    "payload": "undeclared 1 kg payload at the flange (visible through joint compliance)",
+    "depth_scale": "the sensor's depth along its z axis reads 0.2 % long",
+    "quadratic_joint": "outside the discovery library: last joint off by 1e-4 rad x q^2",
+    "blocked_order": "samples recorded in order of the first joint's angle (blocked acquisition)",
 }
 DEFAULT_EFFECTS = ("geometry", "compliance", "camera", "marker")
 PAPER_EFFECTS = ("geometry", "compliance", "base_flex", "random", "outliers", "camera", "marker")
@@ -78,8 +103,51 @@ def scenario(
         measurement_frame=_camera(chain) if "camera" in chosen else np.eye(4),
         tool_offset=_marker() if "marker" in chosen else np.eye(4),
         outlier_fraction=0.1 if "outliers" in chosen else 0.0,
+        **_hidden(chain, chosen),
     )
     return Scenario(chain, spec, chosen)
+
+
+def _hidden(chain: KinematicChain, chosen: tuple[str, ...]) -> dict[str, Any]:
+    """SimulationSpec fields of the hidden effects (see :data:`EFFECTS`)."""
+    names = chain.joint_names
+    second, third = names[min(1, len(names) - 1)], names[min(2, len(names) - 1)]
+    effects: list[JointEffect] = []
+    if "gear_error" in chosen:
+        effects.append(JointEffect(third, "gear_periodic", 2e-4, harmonic=2, phase_rad=0.3))
+    if "backlash" in chosen:
+        effects.append(JointEffect(second, "backlash_load", 1e-3))
+    if "floating_backlash" in chosen:
+        zone = _load_quantile(chain, names.index(second), 0.1)
+        effects.append(JointEffect(second, "backlash_load", 2e-3, float_below_nm=zone))
+    if "approach_backlash" in chosen:
+        effects.append(JointEffect(third, "backlash_direction", 1e-3))
+    if "joint_scale" in chosen:
+        effects.append(JointEffect(second, "joint_scale", 5e-4))
+    if "thermal_drift" in chosen:
+        effects.append(JointEffect(second, "drift_warmup", 5e-4, time_constant_s=300.0))
+    if "quadratic_joint" in chosen:
+        effects.append(JointEffect(names[-1], "quadratic", 1e-4))
+    out: dict[str, Any] = {"joint_effects": tuple(effects)}
+    if "tilted_base" in chosen:
+        out["gravity_base"] = lie.so3_exp(np.array([np.radians(2.0), 0.0, 0.0])) @ np.array(
+            [0.0, 0.0, -9.81]
+        )
+    if "payload" in chosen:
+        out["payload_kg"] = 1.0
+    if "depth_scale" in chosen:
+        out["depth_scale"] = 2e-3
+    if "blocked_order" in chosen:
+        out["order_by_joint"] = names[0]
+    return out
+
+
+def _load_quantile(chain: KinematicChain, joint: int, fraction: float) -> float:
+    """``fraction`` quantile of |gravity torque| on a joint over its workspace (N·m)."""
+    q = sample_configurations(chain, 500, np.random.default_rng(0))
+    axis = ComplianceAxis(chain.joint_names[joint], joint, chain.joint_screws[joint, 3:], True)
+    single = replace(chain, compliance_axes=(axis,))
+    return float(np.quantile(np.abs(gravity_loads(single, q)[:, 0]), fraction))
 
 
 def _camera(chain: KinematicChain) -> np.ndarray:
@@ -145,6 +213,14 @@ def truth_document(
         },
         "noise_sigma": recording.noise_sigma.tolist(),
         "outlier_rows": [int(i) + 1 for i in recording.outliers],
+        "hidden": {
+            "joint_effects": [vars(e) for e in spec.joint_effects],
+            "gravity_base_m_s2": np.asarray(spec.gravity_base).tolist(),
+            "payload_kg": spec.payload_kg,
+            "depth_scale": spec.depth_scale,
+            "depth_axis": spec.depth_axis,
+            "order_by_joint": spec.order_by_joint,
+        },
     }
 
 

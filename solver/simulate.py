@@ -3,13 +3,17 @@
 A "true robot" is the nominal chain with per-link geometric errors, joint compliance, virtual
 compliant axes (base flex), random local perturbations ξ_i ~ N(0, Σ_i) (Eq. 7), measurement noise
 ε ~ N(0, Σ_n) in the end-effector frame, an unknown measurement frame (camera/tracker) and an
-unknown marker offset, plus gross outliers. Samples come in execution order with timestamps.
+unknown marker offset, plus gross outliers. For missing-physics discovery it can also hide joint
+angle errors (gear, backlash, scale, drift, off-library shapes), a depth scale of the sensor, a
+tilted gravity or an undeclared payload (``gravity_base``, ``payload_kg``) and a blocked
+acquisition order. Samples come in execution order with timestamps.
 Everything random is drawn from one ``numpy.random.Generator`` seeded by ``spec.seed``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,12 +22,44 @@ from solver import lie
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import (
     STANDARD_GRAVITY_BASE,
+    ComplianceAxis,
     KinematicChain,
     gravity_loads,
     sample_configurations,
 )
 
 FloatArray = NDArray[np.float64]
+
+JointEffectKind = Literal[
+    "gear_periodic",
+    "backlash_load",
+    "backlash_direction",
+    "joint_scale",
+    "drift_linear",
+    "drift_warmup",
+    "quadratic",
+]
+
+
+@dataclass(frozen=True)
+class JointEffect:
+    """A hidden error of one joint's angle: the robot is at ``q_read + δ_n`` (rad).
+
+    ``gear_periodic``: δ = size·sin(harmonic·q + phase); ``backlash_load``: ±size/2 by the sign
+    of the joint's gravity torque, uniform in the dead band where |τ| < ``float_below_nm``
+    (backlash with nothing to take it up); ``backlash_direction``: ±size/2 by the sign of
+    q[n] − q[n−1] (0 for the first sample); ``joint_scale``: size·q; ``drift_linear``:
+    size·t (rad/s); ``drift_warmup``: size·(1 − exp(−t/T)); ``quadratic``: size·q² (rad/rad²,
+    an effect outside the discovery library).
+    """
+
+    joint: str
+    kind: JointEffectKind
+    size: float
+    harmonic: int = 1
+    phase_rad: float = 0.0
+    time_constant_s: float = 600.0
+    float_below_nm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -53,10 +89,15 @@ class SimulationSpec:
     outlier_fraction: float = 0.0
     outlier_rotation_rad: float = np.radians(10.0)
     outlier_translation_m: float = 5e-3
-    joint_range_fraction: float = 1.0
+    joint_range_fraction: float | FloatArray = 1.0  # scalar or per joint (k,)
     sample_period_s: float = 4.0
     gravity_base: FloatArray = field(default_factory=lambda: STANDARD_GRAVITY_BASE.copy())
     payload_kg: float = 0.0
+    # Hidden effects for missing-physics discovery (defaults: none, behaviour unchanged).
+    joint_effects: tuple[JointEffect, ...] = ()
+    depth_scale: float = 0.0  # the sensor's depth reading is off by this factor
+    depth_axis: Literal["measurement_z", "marker_z"] = "measurement_z"
+    order_by_joint: str | None = None  # blocked acquisition: samples sorted by this joint
 
 
 @dataclass(frozen=True)
@@ -78,6 +119,7 @@ class SimulatedRecording:
     true_pose: FloatArray
     true_mean_pose: FloatArray
     loads_nm: FloatArray
+    joint_offsets_rad: FloatArray | None = None  # (N, k) hidden angle errors δ, if any
 
 
 def true_parameters(
@@ -106,7 +148,9 @@ def simulate_recording(chain: KinematicChain, spec: SimulationSpec) -> Simulated
     """Draw a recording of ``spec.n_samples`` configurations from the true robot."""
     rng = np.random.default_rng(spec.seed)
     params, errors = true_parameters(chain, spec, rng)
-    q = sample_configurations(chain, spec.n_samples, rng, spec.joint_range_fraction)
+    q = sample_configurations(chain, spec.n_samples, rng, spec.joint_range_fraction)  # type: ignore[arg-type]
+    if spec.order_by_joint is not None:
+        q = q[np.argsort(q[:, chain.joint_names.index(spec.order_by_joint)], kind="stable")]
     loads = gravity_loads(chain, q, gravity_base=spec.gravity_base, payload_kg=spec.payload_kg)
     sigma_xi = (
         np.zeros((chain.n_joints, 6))
@@ -114,8 +158,11 @@ def simulate_recording(chain: KinematicChain, spec: SimulationSpec) -> Simulated
         else spec.perturbation_sigma
     )
     xi = rng.normal(size=(spec.n_samples, chain.n_joints, 6)) * sigma_xi
-    mean_pose = forward_kinematics(chain, params, q, loads)
-    true_pose = forward_kinematics(chain, params, q, loads, perturbations=xi)
+    time_s = spec.sample_period_s * np.arange(spec.n_samples, dtype=np.float64)
+    offsets = _joint_offsets(chain, spec, q, time_s) if spec.joint_effects else None
+    q_true = q if offsets is None else q + offsets
+    mean_pose = _sensor(forward_kinematics(chain, params, q_true, loads), spec)
+    true_pose = _sensor(forward_kinematics(chain, params, q_true, loads, perturbations=xi), spec)
     noise = rng.normal(size=(spec.n_samples, 6)) * spec.noise_sigma
     measured = true_pose @ lie.se3_exp(noise)
     n_outliers = round(spec.outlier_fraction * spec.n_samples)
@@ -124,7 +171,7 @@ def simulate_recording(chain: KinematicChain, spec: SimulationSpec) -> Simulated
     return SimulatedRecording(
         joint_positions=q,
         measured_pose=measured,
-        time_s=spec.sample_period_s * np.arange(spec.n_samples, dtype=np.float64),
+        time_s=time_s,
         true_params=params,
         link_errors=errors,
         perturbation_sigma=sigma_xi,
@@ -133,7 +180,68 @@ def simulate_recording(chain: KinematicChain, spec: SimulationSpec) -> Simulated
         true_pose=true_pose,
         true_mean_pose=mean_pose,
         loads_nm=loads,
+        joint_offsets_rad=offsets,
     )
+
+
+def _joint_offsets(
+    chain: KinematicChain, spec: SimulationSpec, q: FloatArray, time_s: FloatArray
+) -> FloatArray:
+    """Hidden joint-angle errors δ (N, k) of ``spec.joint_effects`` (see :class:`JointEffect`).
+
+    Random parts (floating backlash) draw from their own stream, so the main stream and every
+    recording without them stay exactly as before.
+    """
+    rng = np.random.default_rng([spec.seed, 1])
+    offsets = np.zeros_like(q)
+    for effect in spec.joint_effects:
+        j = chain.joint_names.index(effect.joint)
+        angle = q[:, j]
+        if effect.kind == "gear_periodic":
+            delta = effect.size * np.sin(effect.harmonic * angle + effect.phase_rad)
+        elif effect.kind == "backlash_load":
+            torque = _joint_torque(chain, spec, q, j)
+            delta = 0.5 * effect.size * np.sign(torque)
+            floating = np.abs(torque) < effect.float_below_nm
+            delta[floating] = rng.uniform(-0.5, 0.5, size=int(floating.sum())) * effect.size
+        elif effect.kind == "backlash_direction":
+            delta = np.zeros_like(angle)
+            delta[1:] = 0.5 * effect.size * np.sign(np.diff(angle))
+        elif effect.kind == "joint_scale":
+            delta = effect.size * angle
+        elif effect.kind == "drift_linear":
+            delta = effect.size * time_s
+        elif effect.kind == "drift_warmup":
+            delta = effect.size * (1.0 - np.exp(-time_s / effect.time_constant_s))
+        elif effect.kind == "quadratic":
+            delta = effect.size * angle**2
+        else:
+            raise ValueError(f"unknown joint effect {effect.kind!r}")
+        offsets[:, j] += delta
+    return offsets
+
+
+def _joint_torque(chain: KinematicChain, spec: SimulationSpec, q: FloatArray, j: int) -> FloatArray:
+    """Gravity torque on joint j's own axis (N,), N·m, as in paper Eq. (6)."""
+    axis = ComplianceAxis(chain.joint_names[j], j, chain.joint_screws[j, 3:], is_joint_axis=True)
+    single = replace(chain, compliance_axes=(axis,))
+    return gravity_loads(single, q, gravity_base=spec.gravity_base, payload_kg=spec.payload_kg)[
+        :, 0
+    ]
+
+
+def _sensor(pose: FloatArray, spec: SimulationSpec) -> FloatArray:
+    """What the sensor reports for true poses: the depth along its axis scaled (if set)."""
+    if spec.depth_scale == 0.0:
+        return pose
+    out = pose.copy()
+    p, rotation = pose[:, :3, 3], pose[:, :3, :3]
+    if spec.depth_axis == "measurement_z":
+        out[:, 2, 3] += spec.depth_scale * p[:, 2]
+    else:
+        depth = np.einsum("nji,nj->ni", rotation, p)[:, 2]
+        out[:, :3, 3] += spec.depth_scale * depth[:, None] * rotation[:, :, 2]
+    return out
 
 
 def _gross_errors(spec: SimulationSpec, n: int, rng: np.random.Generator) -> FloatArray:

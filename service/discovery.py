@@ -1,0 +1,425 @@
+"""Missing-physics discovery pipeline: dataset + robot + options -> findings JSON (+ plots).
+
+The CLI (``kincal discover``) and the HTTP service both call :func:`discover`; the maths is in
+:mod:`solver.discovery`.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from schemas.calibration import CalibrationOptions, DatasetInfo
+from schemas.dataset import PoseDataset
+from schemas.discovery import (
+    EFFECTS,
+    Ambiguity,
+    Candidate,
+    Dependence,
+    DiscoveredModel,
+    DiscoveryOptions,
+    ErrorPair,
+    Finding,
+    FindingsResult,
+    Health,
+    HealthPair,
+    Heldout,
+    ModelTerm,
+    OutlierScreen,
+    RandomEffect,
+    RobotRef,
+    Step,
+    Unexplained,
+)
+from service.pipeline import kincal_version
+from service.robots import RobotDescription
+from solver import discovery as solver_discovery
+from solver import lie
+from solver.discovery.explain import describe, reported_parameters
+from solver.discovery.health import HealthReport
+from solver.discovery.library import UNEXPLAINED
+from solver.discovery.results import HeldoutError, PlotPanel, TermEstimate
+from solver.model import KinematicChain, build_chain
+
+__all__ = ["EFFECTS", "calibration_options", "chain_for", "discover", "summary"]
+
+PROTOCOL = "{k}-fold cross-validation (seed {seed}), the same folds before and after"
+
+
+def chain_for(robot: RobotDescription, options: DiscoveryOptions) -> KinematicChain:
+    """The user's model: rigid unless joints/axes are declared compliant."""
+    return build_chain(
+        robot.urdf_xml,
+        robot.base_frame,
+        robot.tip_frame,
+        compliant_joints=options.compliant_joints,
+        virtual_axes_at=options.virtual_axes_at,
+        payload_com_m=options.payload_com_m,
+    )
+
+
+def solver_options(options: DiscoveryOptions) -> solver_discovery.DiscoveryOptions:
+    sensor = None
+    if options.sensor_sigma_mm is not None and options.sensor_sigma_deg is not None:
+        sensor = (options.sensor_sigma_mm * 1e-3, math.radians(options.sensor_sigma_deg))
+    return solver_discovery.DiscoveryOptions(
+        alpha=options.alpha,
+        seed=options.seed,
+        max_terms=options.max_terms,
+        folds=options.folds,
+        bootstrap=options.bootstrap,
+        effects=tuple(options.effects),
+        sensor_sigma=sensor,
+        outlier_level=options.outlier_level,
+        heldout_level=options.heldout_level,
+    )
+
+
+def discover(
+    dataset: PoseDataset,
+    robot: RobotDescription,
+    options: DiscoveryOptions,
+    plot_dir: Path | None = None,
+    plot_stem: str = "findings",
+) -> FindingsResult:
+    """Run discovery; with ``plot_dir`` also write one PNG per finding there."""
+    started = time.perf_counter()
+    chain = chain_for(robot, options)
+    payload = dataset.payload_kg if dataset.payload_kg is not None else None
+    data = solver_discovery.DiscoveryData(
+        joint_positions=dataset.joint_positions,
+        measured_pose=lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw),
+        position_only=dataset.is_position_only,
+        time_s=dataset.time_s,
+        payload_kg=payload
+        if payload is not None
+        else np.full(dataset.n_samples, options.payload_kg),
+        gravity_base=np.asarray(options.gravity_base_m_s2, dtype=float),
+    )
+    result = solver_discovery.discover(chain, data, solver_options(options))
+    names = chain.joint_names
+    plots: list[str] = []
+    findings = []
+    for i, f in enumerate(result.findings, start=1):
+        plot = None
+        if plot_dir is not None and f.panels:
+            label = _slug(describe(f.estimate.term, names))
+            path = plot_dir / f"{plot_stem}_{i:02d}_{label}.png"
+            finding_figure(f.panels, f.explanation, path)
+            plot = path.name
+            plots.append(plot)
+        findings.append(_finding(f, names, options, plot))
+    return FindingsResult(
+        kincal_version=kincal_version(),
+        created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        dataset=DatasetInfo(
+            source=dataset.source, n_samples=dataset.n_samples, position_only=data.position_only
+        ),
+        robot=RobotRef(
+            name=robot.name,
+            base_frame=robot.base_frame,
+            tip_frame=robot.tip_frame,
+            joint_names=list(names),
+            urdf_sha256=chain.urdf_sha256,
+        ),
+        options=options,
+        findings=findings,
+        ambiguous=[_ambiguity(a, names) for a in result.ambiguous],
+        unexplained=[_unexplained(u, names) for u in result.unexplained],
+        random_effects=[
+            RandomEffect(
+                joint=names[r.joint_index],
+                p_value=r.p_value,
+                variance_ratio=r.variance_ratio,
+                explanation=r.explanation,
+            )
+            for r in result.random_effects
+        ],
+        heldout=_heldout(result.heldout_before, result.heldout_after, options),
+        health=HealthPair(
+            before=_health(result.health_before, names),
+            after=_health(result.health_after, names),
+        ),
+        steps=[
+            Step(
+                step=s.step,
+                candidate=s.candidate,
+                action=s.action,  # type: ignore[arg-type]
+                p_value=s.p_value,
+                heldout_before_mm=s.heldout_before_mm,
+                heldout_after_mm=s.heldout_after_mm,
+            )
+            for s in result.steps
+        ],
+        outliers=OutlierScreen(
+            level=options.outlier_level,
+            removed_rows=[int(i) + 1 for i in result.outlier_rows],
+        ),
+        model=_model(result, names, options),
+        n_candidates=result.n_candidates,
+        plots=plots,
+        elapsed_s=time.perf_counter() - started,
+    )
+
+
+def calibration_options(findings: FindingsResult) -> CalibrationOptions:
+    """Calibration options that carry the discovered compliance, flex, tilt and payload."""
+    model = findings.model
+    return CalibrationOptions(
+        compliant_joints=model.calibrate_compliant_joints,
+        virtual_axes_at=model.calibrate_virtual_axes_at,
+        gravity_base_m_s2=model.calibrate_gravity_base_m_s2,
+        payload_kg=model.calibrate_payload_kg,
+        payload_com_m=findings.options.payload_com_m,
+    )
+
+
+def summary(findings: FindingsResult) -> str:
+    """What a user reads after ``kincal discover``."""
+    lines = [
+        f"tested {findings.n_candidates} library terms on {findings.dataset.n_samples} samples "
+        f"({len(findings.outliers.removed_rows)} gross outliers left out)"
+    ]
+    for f in findings.findings:
+        lines.append(f"found: {f.explanation}")
+    for a in findings.ambiguous:
+        lines.append(f"ambiguous: {a.explanation}")
+    for u in findings.unexplained:
+        lines.append(f"unexplained: {u.explanation}")
+    for r in findings.random_effects:
+        lines.append(f"random: {r.explanation}")
+    if not (findings.findings or findings.ambiguous or findings.unexplained):
+        lines.append("nothing missing: no library term or structure is significant")
+    before, after = findings.heldout.before, findings.heldout.after
+    rot = (
+        ""
+        if before.rot_deg is None or after.rot_deg is None
+        else f", {before.rot_deg:.3g} → {after.rot_deg:.3g} deg"
+    )
+    lines.append(f"held-out error: {before.trans_mm:.3g} → {after.trans_mm:.3g} mm{rot}")
+    return "\n".join(lines)
+
+
+# --- conversion ------------------------------------------------------------------------------
+
+
+def _pair(error: HeldoutError) -> ErrorPair:
+    return ErrorPair(trans_mm=error.translation_mm, rot_deg=error.rotation_deg)
+
+
+def _heldout(before: HeldoutError, after: HeldoutError, options: DiscoveryOptions) -> Heldout:
+    return Heldout(
+        before=_pair(before),
+        after=_pair(after),
+        protocol=PROTOCOL.format(k=options.folds, seed=options.seed),
+    )
+
+
+def _finite(values: dict[str, float]) -> dict[str, float]:
+    return {k: float(v) for k, v in values.items() if math.isfinite(v)}
+
+
+def _joint(index: int | None, names: tuple[str, ...]) -> str | None:
+    return None if index is None else names[index]
+
+
+def _finding(
+    f: solver_discovery.Finding,
+    names: tuple[str, ...],
+    options: DiscoveryOptions,
+    plot: str | None,
+) -> Finding:
+    e = f.estimate
+    return Finding(
+        effect=e.term.effect,  # type: ignore[arg-type]
+        joint=_joint(e.term.joint_index, names),
+        variant=e.term.variant,
+        parameters=_finite(e.parameters),
+        stderr=_finite(e.stderr),
+        p_value=e.p_value,
+        absorbed_fraction=e.absorbed_fraction,
+        stability=e.stability,
+        heldout=_heldout(f.heldout_before, f.heldout_after, options),
+        explanation=f.explanation,
+        plot=plot,
+    )
+
+
+def _candidate(e: TermEstimate, names: tuple[str, ...]) -> Candidate:
+    return Candidate(
+        effect=e.term.effect,  # type: ignore[arg-type]
+        joint=_joint(e.term.joint_index, names),
+        variant=e.term.variant,
+        parameters=_finite(e.parameters),
+        stderr=_finite(e.stderr),
+        p_value=e.p_value,
+        absorbed_fraction=e.absorbed_fraction,
+    )
+
+
+def _ambiguity(a: solver_discovery.Ambiguity, names: tuple[str, ...]) -> Ambiguity:
+    poses = a.poses
+    return Ambiguity(
+        candidates=[_candidate(c, names) for c in a.candidates],
+        with_geometry=a.with_geometry,
+        correlation=a.correlation,
+        kept_in_model=None if a.kept is None else describe(a.kept, names),
+        separating_poses=[]
+        if poses is None
+        else [dict(zip(names, map(float, q), strict=True)) for q in poses.configurations],
+        separation_now_sigma=None if poses is None else poses.separation_now_sigma,
+        separation_after_sigma=None if poses is None else poses.separation_after_sigma,
+        explanation=a.explanation,
+    )
+
+
+def _unexplained(u: solver_discovery.Unexplained, names: tuple[str, ...]) -> Unexplained:
+    return Unexplained(
+        joint=_joint(u.joint_index, names),
+        variable=u.variable,
+        p_value=None if math.isnan(u.p_value) else u.p_value,
+        explained_fraction=None if math.isnan(u.explained_fraction) else u.explained_fraction,
+        distance_correlation=u.distance_correlation,
+        partially_described_by=u.partial,
+        explanation=u.explanation,
+    )
+
+
+def _health(report: HealthReport, names: tuple[str, ...]) -> Health:
+    return Health(
+        n_samples=report.n_samples,
+        n_parameters=report.n_parameters,
+        sigma_translation_mm=report.sigma_translation_mm,
+        sigma_rotation_deg=report.sigma_rotation_deg,
+        rms_translation_mm=report.rms_translation_mm,
+        rms_rotation_deg=report.rms_rotation_deg,
+        chi2_per_dof=report.chi2_per_dof,
+        dependences=[
+            Dependence(
+                variable=d.variable,
+                joint=_joint(d.joint_index, names),
+                p_value=d.p_value,
+                explained_fraction=d.explained_fraction,
+                components=d.components,
+            )
+            for d in report.dependences
+        ],
+    )
+
+
+def _model(
+    result: solver_discovery.DiscoveryResult, names: tuple[str, ...], options: DiscoveryOptions
+) -> DiscoveredModel:
+    """The final model; the compliance-like part maps onto ``kincal calibrate`` options."""
+    values = {}
+    start = 0
+    for t in result.terms:
+        values[t.key] = result.params.theta[start : start + t.size]
+        start += t.size
+    compliant = list(options.compliant_joints)
+    virtual = list(options.virtual_axes_at)
+    gravity = np.asarray(options.gravity_base_m_s2, dtype=float)
+    payload = options.payload_kg
+    terms, not_carried = [], []
+    for t in result.terms:
+        params, _ = reported_parameters(t, values[t.key], np.zeros((t.size, t.size)))
+        label = describe(t, names) if t.effect != UNEXPLAINED else f"unexplained {t.variant}"
+        terms.append(
+            ModelTerm(
+                effect=t.effect,
+                joint=_joint(t.joint_index, names),
+                variant=t.variant,
+                parameters=_finite(params),
+            )
+        )
+        if t.declared:
+            continue
+        if t.effect == "joint_compliance" and t.joint_index is not None:
+            compliant.append(names[t.joint_index])
+        elif t.effect in ("base_flex", "link_bending") and t.joint_index is not None:
+            virtual.append(names[t.joint_index])
+        elif t.effect == "gravity_direction":
+            tilt = np.r_[values[t.key], 0.0]
+            gravity = lie.so3_exp(tilt) @ gravity
+        elif t.effect == "payload_mass":
+            payload += float(values[t.key][0])
+        else:
+            not_carried.append(label)
+    return DiscoveredModel(
+        terms=terms,
+        calibrate_compliant_joints=sorted(set(compliant), key=names.index),
+        calibrate_virtual_axes_at=sorted(set(virtual), key=names.index),
+        calibrate_gravity_base_m_s2=(float(gravity[0]), float(gravity[1]), float(gravity[2])),
+        calibrate_payload_kg=max(payload, 0.0),
+        not_carried=not_carried,
+    )
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9]+", "_", text).strip("_")[:60]
+
+
+# --- figures ---------------------------------------------------------------------------------
+
+
+def finding_figure(panels: list[PlotPanel], title: str, path: Path) -> Path:
+    """Residuals against the variable that drives a term: before (model without it) and after.
+
+    Angles are shown in mrad; the fitted term is the line the "before" points should follow.
+    """
+    figure = Figure(figsize=(5.2 * len(panels), 3.6), layout="constrained")
+    axes = figure.subplots(1, len(panels), squeeze=False)[0]
+    for ax, panel in zip(axes, panels, strict=True):
+        scale, unit = (1e3, "mrad") if "[rad]" in panel.value_label else (1e3, "mm / mrad")
+        order = np.argsort(panel.driver)
+        ax.scatter(
+            panel.driver,
+            panel.before * scale,
+            s=9,
+            alpha=0.55,
+            color="tab:red",
+            label="before (without the term)",
+        )
+        ax.scatter(
+            panel.driver,
+            panel.after * scale,
+            s=9,
+            alpha=0.65,
+            color="tab:blue",
+            label="after (with the term)",
+        )
+        ax.plot(
+            panel.driver[order],
+            panel.fitted[order] * scale,
+            color="black",
+            lw=1.2,
+            label="fitted term",
+        )
+        ax.set_xlabel(panel.driver_label)
+        ax.set_ylabel(
+            panel.value_label.replace("[rad]", f"[{unit}]").replace("(m / rad)", f"[{unit}]")
+        )
+        ax.axhline(0.0, color="grey", lw=0.6)
+    axes[0].legend(fontsize=7, loc="best")
+    figure.suptitle(_wrap(title, 70 * len(panels)), fontsize=8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=100)
+    return path
+
+
+def _wrap(text: str, width: int) -> str:
+    words, lines, line = text.split(), [], ""
+    for word in words:
+        if len(line) + len(word) + 1 > width:
+            lines.append(line)
+            line = word
+        else:
+            line = f"{line} {word}".strip()
+    lines.append(line)
+    return "\n".join(lines)

@@ -1,0 +1,270 @@
+"""Checks beyond the library: lack of fit, unexplained structure, random-looking effects.
+
+All are score tests (:mod:`solver.discovery.scoring`) of *generic* columns against the fitted
+model, so their size is known:
+
+* **axis functions** — a deflection about joint j's axis that is a smooth function of one
+  variable (Legendre polynomials and harmonics of q_j, or polynomials of τ_j). The library's
+  angle terms (scale, harmonics 1..3) and load terms (spring, load-sign backlash) are special
+  cases; what the generic basis explains *beyond* them is structure no library term describes.
+* **component functions** — each residual component as a smooth function of one variable
+  (joint angle, acquisition time, measured range): structure of any direction.
+* **floating deflection** — residual scatter about joint j's axis that grows where its load is
+  near zero (backlash with nothing to take it up): a permutation test on the squared
+  per-sample deflection estimates. Random, so it belongs to the covariance calibration.
+
+Distance correlation (bias-corrected, Székely & Rizzo 2014) of the whitened residual vectors
+with each joint angle is reported alongside, as a model-free effect size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.stats
+from numpy.typing import NDArray
+
+from solver.discovery.features import angle_basis, legendre_basis, load_basis
+from solver.discovery.fitting import Context, ModelFit, evaluate, orthonormal_basis, whitened
+from solver.discovery.library import Term
+from solver.discovery.scoring import NullModel, ScoreTest, holm, score_test
+
+FloatArray = NDArray[np.float64]
+
+COMPONENT_DEGREES = range(1, 4)
+
+
+@dataclass(frozen=True)
+class StructureTest:
+    """A generic-basis test: which variable, about which joint, how strong."""
+
+    kind: str  # "angle", "load", "components", "time", "range"
+    joint_index: int | None
+    p_value: float
+    explained_fraction: float  # of the whitened residual sum of squares
+    distance_correlation: float | None = None
+
+
+def unit_columns(ctx: Context, fit: ModelFit) -> dict[int, FloatArray]:
+    """Column per unit rotation about every revolute joint's axis at the fit, (n, d) each."""
+    joints = tuple((int(j), "joint") for j in np.flatnonzero(ctx.chain.is_revolute()))
+    design = evaluate(ctx, fit.terms, fit.params, fit.rows, unit_axes=joints)
+    return {j: design.unit[(j, "joint")] for j, _ in joints}
+
+
+def axis_function_columns(unit: FloatArray, basis: FloatArray, weights: FloatArray) -> FloatArray:
+    """Whitened columns (n·d, nb): rotation about an axis by ``basis`` (n, nb) per unit."""
+    cols = unit[:, :, None] * basis[:, None, :]
+    return whitened(cols, weights).reshape(-1, basis.shape[1])
+
+
+def component_columns(basis: FloatArray, d: int) -> FloatArray:
+    """Columns (n·d, d·nb): each residual component as a function ``basis`` (n, nb)."""
+    n, nb = basis.shape
+    out = np.zeros((n, d, d, nb))
+    for c in range(d):
+        out[:, c, c, :] = basis
+    return out.reshape(n * d, d * nb)
+
+
+def with_columns(null: NullModel, columns: FloatArray) -> NullModel:
+    """The null model after also fitting ``columns`` (linearised)."""
+    basis = orthonormal_basis(np.hstack([null.basis, columns]))
+    residual = null.residual - basis @ (basis.T @ null.residual)
+    return NullModel(residual, basis, null.d)
+
+
+def reweighted(fit: ModelFit, extra: list[FloatArray]) -> tuple[NullModel, FloatArray]:
+    """Null model (fit's Jacobian only) whitened with the noise the alternative leaves.
+
+    The fit's noise scale still contains whatever the model misses, and the mix of
+    translation and rotation rows with it; re-estimating it per block from the residual of the
+    linearised fit with the ``extra`` columns too gives the test its power where the signal is.
+    Returns the null model and the row scale (R,) to apply to any further columns.
+    """
+    d = fit.design.residual.shape[1]
+    stacked = np.hstack([fit.jacobian, *extra])
+    basis = orthonormal_basis(stacked)
+    residual = fit.residual_w - basis @ (basis.T @ fit.residual_w)
+    leverage = np.sum(basis**2, axis=1)
+    blocks = [slice(0, 3)] if d == 3 else [slice(0, 3), slice(3, 6)]
+    factor = np.ones(d)
+    e2 = (residual**2).reshape(-1, d)
+    room = (1.0 - leverage).reshape(-1, d)
+    for b in blocks:
+        factor[b] = 1.0 / np.sqrt(max(float(e2[:, b].sum() / max(room[:, b].sum(), 1.0)), 1e-30))
+    scale = np.tile(factor, fit.residual_w.size // d)
+    a = fit.jacobian * scale[:, None]
+    model_basis = orthonormal_basis(a)
+    r = fit.residual_w * scale
+    return NullModel(r - model_basis @ (model_basis.T @ r), model_basis, d), scale
+
+
+def lack_of_fit(
+    ctx: Context, fit: ModelFit, term: Term, units: dict[int, FloatArray]
+) -> ScoreTest | None:
+    """Does joint j need more than the whole library family of ``term`` (angle or load)?
+
+    Tests the extra generic basis about joint j's axis given the model *and* every library
+    column of that family on joint j, so two genuine library effects on one joint (e.g.
+    harmonics 1 and 2) do not count as a misfit. The noise scale is re-estimated under the
+    alternative (:func:`reweighted`).
+    """
+    j = term.joint_index
+    if j is None or j not in units or term.family not in ("angle", "load"):
+        return None
+    rows = fit.rows
+    unit = units[j]
+    if term.family == "angle":
+        q = ctx.data.joint_positions[rows, j]
+        family = angle_basis(q, library=True, extra=False)
+        extra = angle_basis(q, library=False, extra=True)
+    else:
+        tau = ctx.bank.nominal_tau(ctx.chain.joint_names[j])[rows]
+        family = load_basis(tau, library=True, extra=False)
+        extra = load_basis(tau, library=False, extra=True)
+    family_cols = axis_function_columns(unit, family, fit.weights)
+    extra_cols = axis_function_columns(unit, extra, fit.weights)
+    base, scale = reweighted(fit, [family_cols, extra_cols])
+    augmented = with_columns(base, family_cols * scale[:, None])
+    return score_test(augmented, f"lack_of_fit:{term.family}:{j}", extra_cols * scale[:, None])
+
+
+def residual_structure(
+    ctx: Context,
+    fit: ModelFit,
+    null: NullModel,
+    units: dict[int, FloatArray],
+    alpha: float,
+    skip: set[tuple[str, int]] | None = None,
+) -> list[StructureTest]:
+    """Generic-basis tests on the final model, Holm-corrected together; significant ones only."""
+    rows = fit.rows
+    d = null.d
+    tests: dict[str, tuple[str, int | None, ScoreTest]] = {}
+    whitened_residual = null.residual.reshape(-1, d)
+    for j, unit in units.items():
+        q = ctx.data.joint_positions[rows, j]
+        generic = angle_basis(q, library=True, extra=True)
+        candidates = {
+            "angle": axis_function_columns(unit, generic, fit.weights),
+            "components": component_columns(legendre_basis(q, COMPONENT_DEGREES), d),
+        }
+        tau = ctx.bank.nominal_tau(ctx.chain.joint_names[j])[rows]
+        if np.ptp(tau) > 1e-9:
+            basis = load_basis(tau, library=True, extra=True)
+            candidates["load"] = axis_function_columns(unit, basis, fit.weights)
+        for kind, columns in candidates.items():
+            if skip is not None and (kind, j) in skip:
+                continue
+            result = score_test(null, f"{kind}:{j}", columns)
+            if result is not None:
+                tests[f"{kind}:{j}"] = (kind, j, result)
+    clock = ctx.bank.clock[rows]
+    ranges = np.linalg.norm(ctx.data.measured_pose[rows, :3, 3], axis=1)
+    for kind, variable in (("time", clock), ("range", ranges)):
+        if np.ptp(variable) > 0:
+            result = score_test(
+                null, kind, component_columns(legendre_basis(variable, range(1, 5)), d)
+            )
+            if result is not None:
+                tests[kind] = (kind, None, result)
+    rejected = holm({k: v[2].p_value for k, v in tests.items()}, alpha)
+    rss = float(null.residual @ null.residual)
+    out = []
+    for key in rejected:
+        kind, joint, result = tests[key]
+        dcor = None
+        if joint is not None:
+            dcor = distance_correlation(ctx.data.joint_positions[rows, joint], whitened_residual)
+        out.append(StructureTest(kind, joint, result.p_value, result.delta_ss / rss, dcor))
+    return sorted(out, key=lambda s: -s.explained_fraction)
+
+
+@dataclass(frozen=True)
+class FloatingTest:
+    joint_index: int
+    p_value: float
+    variance_ratio: float  # scatter near zero load / scatter elsewhere
+
+
+# A floating joint multiplies the scatter many times (25-400x in the simulated 2 mrad case);
+# a chance excess in a group of ~N/10 samples rarely reaches 5x.
+MIN_FLOATING_RATIO = 5.0
+
+
+def floating_deflection(ctx: Context, fit: ModelFit, alpha: float) -> list[FloatingTest]:
+    """Joints whose deflection scatter grows where their gravity load is near zero.
+
+    Per sample, the least-squares rotation about the joint axis explaining the whitened
+    residual, standardised by its variance under the model: ``e_n = ĝ_nᵀ r_n`` with
+    ``Var(e_n) = 1 − |Q_nᵀ ĝ_n|²`` (the fit removes more of high-leverage samples). The samples
+    with the 10 % smallest |τ| are compared with the rest: a one-sided Mann–Whitney test on
+    ``e_n²`` (ranks: heavy tails and single gross outliers cannot drive it), and the median
+    scatter must grow at least :data:`MIN_FLOATING_RATIO`-fold — a floating joint is a large
+    effect, a faint trend is not one. Holm over joints.
+
+    Every sample counts, including those screened out as gross outliers: a floating joint
+    produces exactly such samples, and where they sit is the evidence.
+    """
+    rows = ctx.all_rows
+    d = ctx.data.rows
+    joints = tuple((int(j), "joint") for j in np.flatnonzero(ctx.chain.is_revolute()))
+    design = evaluate(ctx, fit.terms, fit.params, rows, unit_axes=joints)
+    residual = whitened(design.residual, fit.weights)
+    basis = orthonormal_basis(fit.jacobian)
+    basis_rows = np.zeros((rows.size, d, basis.shape[1]))
+    basis_rows[fit.rows] = basis.reshape(-1, d, basis.shape[1])
+    results: dict[str, tuple[int, float, float]] = {}
+    for j, _ in joints:
+        tau = ctx.bank.nominal_tau(ctx.chain.joint_names[j])
+        magnitude = np.abs(tau)
+        reference = float(np.quantile(magnitude, 0.1))
+        if np.ptp(tau) <= 1e-9 or reference <= 0.0:
+            continue
+        g = design.unit[(j, "joint")] * fit.weights
+        norm = np.linalg.norm(g, axis=1)
+        usable = norm > 1e-9 * max(float(norm.max()), 1e-300)
+        if usable.sum() < 20:
+            continue
+        direction = g[usable] / norm[usable, None]
+        kept = 1.0 - np.sum(np.einsum("nd,ndr->nr", direction, basis_rows[usable]) ** 2, axis=1)
+        e2 = np.einsum("nd,nd->n", direction, residual[usable]) ** 2 / np.clip(kept, 0.05, None)
+        near = magnitude[usable] <= reference
+        if near.sum() < 5 or (~near).sum() < 5:
+            continue
+        ratio = float(np.median(e2[near]) / max(float(np.median(e2[~near])), 1e-300))
+        p = float(scipy.stats.mannwhitneyu(e2[near], e2[~near], alternative="greater").pvalue)
+        results[str(j)] = (j, p if ratio >= MIN_FLOATING_RATIO else 1.0, ratio)
+    rejected = holm({k: v[1] for k, v in results.items()}, alpha)
+    return [FloatingTest(*results[k]) for k in sorted(rejected)]
+
+
+def distance_correlation(x: FloatArray, y: FloatArray) -> float:
+    """Bias-corrected distance correlation of samples x (n,) or (n, p) and y (n, q), in [−1, 1]."""
+    a = _u_centred(_distances(x))
+    b = _u_centred(_distances(y))
+    n = a.shape[0]
+    scale = 1.0 / (n * (n - 3))
+    ab = float(np.sum(a * b)) * scale
+    aa = float(np.sum(a * a)) * scale
+    bb = float(np.sum(b * b)) * scale
+    if aa <= 0 or bb <= 0:
+        return 0.0
+    return ab / np.sqrt(aa * bb)
+
+
+def _distances(x: FloatArray) -> FloatArray:
+    points = x.reshape(x.shape[0], -1)
+    return np.linalg.norm(points[:, None, :] - points[None, :, :], axis=2)
+
+
+def _u_centred(distances: FloatArray) -> FloatArray:
+    n = distances.shape[0]
+    row = distances.sum(axis=1, keepdims=True) / (n - 2)
+    col = distances.sum(axis=0, keepdims=True) / (n - 2)
+    total = distances.sum() / ((n - 1) * (n - 2))
+    out = distances - row - col + total
+    np.fill_diagonal(out, 0.0)
+    return out

@@ -1,0 +1,303 @@
+"""Per-sample driving signals ("features") of the candidate terms, and the data they act on.
+
+A deflection term is a rotation about a fixed axis whose angle is ``coefficient × feature[n]``
+(paper Eq. 6 is the case feature = gravity torque). :class:`solver.model.ComplianceAxis` with the
+feature matrix passed as ``loads_nm`` evaluates any such term exactly, Jacobian column included,
+so every feature here is a plain (N,) array in execution order:
+
+* ``tau:<axis>``      gravity moment about a joint axis or a virtual axis ⟂ to it, N·m (Eq. 6);
+* ``sign_tau:<j>``    ½·sign(τ_j): backlash taken up by the gravity load;
+* ``deadzone_tau:<j>:<τ0>``  ½·sign(τ_j) where |τ_j| > τ0, else 0: the same backlash floating
+                      (mean zero) where the load is too small to take it up;
+* ``dir:<j>``         ½·sign(q_j[n] − q_j[n−1]): backlash taken up by the approach direction
+                      (0 for the first row: its approach is unknown);
+* ``q:<j>``           q_j, rad: joint scale (gear-ratio) error;
+* ``sin<h>:<j>``, ``cos<h>:<j>``  sin(h q_j), cos(h q_j): periodic transmission error;
+* ``time:linear``     t − t_0 (s; acquisition index when no time stamps);
+* ``time:warmup:<T>`` 1 − exp(−(t − t_0)/T): warm-up drift with time constant T;
+* ``basis:<family>:<j>:<i>``  column i of the generic angle or load basis of joint j
+                      (:func:`angle_basis`, :func:`load_basis`): unexplained structure;
+* ``one``             1: gives the Jacobian column per unit angle of an axis (plots, designs).
+
+All but ``one`` are centred over the recording (see :meth:`FeatureBank.column`).
+
+Gravity moments are linear in the gravity vector and in the payload mass, so they are kept as
+a basis (unit gravity along base x, y, z; robot and 1 kg payload) and recombined for any tilted
+gravity or extra payload without new RNEA sweeps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.model import ComplianceAxis, KinematicChain, gravity_loads
+
+FloatArray = NDArray[np.float64]
+
+FLEX_LABELS = ("flex_a", "flex_b")
+ANGLE_LIBRARY_HARMONICS = (1, 2, 3)
+ANGLE_EXTRA_HARMONICS = (4, 5, 6)
+ANGLE_EXTRA_DEGREES = range(2, 6)
+LOAD_EXTRA_DEGREES = range(2, 5)
+# Floating zones of load-sign backlash tried, as quantiles of |τ| (0 = plain sign).
+DEADZONE_QUANTILES = (0.0, 0.025, 0.05, 0.1, 0.15, 0.2, 0.3)
+
+
+@dataclass(frozen=True, eq=False)
+class DiscoveryData:
+    """Recordings as solver arrays, rows in execution order.
+
+    ``joint_positions`` (N, k) rad; ``measured_pose`` (N, 4, 4) marker in the measurement frame
+    (rotation ignored when ``position_only``); ``time_s`` (N,) or None (then time features use
+    the acquisition index); ``payload_kg`` (N,) known payload; ``gravity_base`` (3,) m/s² in the
+    base frame (the user's model).
+    """
+
+    joint_positions: FloatArray
+    measured_pose: FloatArray
+    position_only: bool
+    time_s: FloatArray | None = None
+    payload_kg: FloatArray | None = None
+    gravity_base: FloatArray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.joint_positions.shape[0])
+
+    @property
+    def rows(self) -> int:
+        """Residual rows per sample: 3 (position-only) or 6."""
+        return 3 if self.position_only else 6
+
+    def payload(self) -> FloatArray:
+        if self.payload_kg is None:
+            return np.zeros(self.n_samples)
+        return np.asarray(self.payload_kg, dtype=float)
+
+    def clock(self) -> tuple[FloatArray, str]:
+        """(t − t_0, unit) — seconds, or the acquisition index when there are no time stamps."""
+        if self.time_s is None:
+            return np.arange(self.n_samples, dtype=float), "sample"
+        t = np.asarray(self.time_s, dtype=float)
+        return t - t[0], "s"
+
+
+def orthogonal_axes(axis: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Two unit axes completing ``axis`` to a right-handed basis (a, b, axis).
+
+    Same construction as :func:`solver.model.build_chain` uses for ``virtual_axes_at``, so the
+    names ``<joint>.flex_a`` / ``.flex_b`` mean the same axes everywhere (tested).
+    """
+    helper = np.eye(3)[int(np.argmin(np.abs(axis)))]
+    first = np.cross(helper, axis)
+    first /= np.linalg.norm(first)
+    return first, np.cross(axis, first)
+
+
+def axis_of(chain: KinematicChain, joint_index: int, direction: str) -> ComplianceAxis:
+    """The joint axis (``direction == "joint"``) or a virtual axis ⟂ to it (``flex_a/b``)."""
+    name = chain.joint_names[joint_index]
+    joint_axis = chain.joint_screws[joint_index, 3:].copy()
+    if direction == "joint":
+        return ComplianceAxis(name, joint_index, joint_axis, is_joint_axis=True)
+    vector = orthogonal_axes(joint_axis)[FLEX_LABELS.index(direction)]
+    return ComplianceAxis(f"{name}.{direction}", joint_index, vector, is_joint_axis=False)
+
+
+def probe_chain(chain: KinematicChain) -> KinematicChain:
+    """``chain`` with every revolute joint's axis and both virtual axes as compliance axes."""
+    axes: list[ComplianceAxis] = []
+    for i in np.flatnonzero(chain.is_revolute()):
+        axes += [axis_of(chain, int(i), d) for d in (*FLEX_LABELS, "joint")]
+    return replace(chain, compliance_axes=tuple(axes))
+
+
+@dataclass(frozen=True, eq=False)
+class GravityBasis:
+    """Gravity moments about every probe axis per unit gravity component and per kg payload.
+
+    ``robot[j]`` (N, n_axes): moments (N·m) for gravity = unit vector e_j (m/s²) in the base
+    frame; ``payload[j]`` the same for a 1 kg point mass at the payload centre.
+    """
+
+    axis_names: tuple[str, ...]
+    robot: FloatArray  # (3, N, n_axes)
+    payload: FloatArray  # (3, N, n_axes)
+
+    def moments(self, gravity_base: FloatArray, payload_kg: FloatArray) -> FloatArray:
+        """τ (N, n_axes) for a gravity vector (3,) and per-sample payload masses (N,)."""
+        robot = np.tensordot(gravity_base, self.robot, axes=1)
+        return robot + payload_kg[:, None] * np.tensordot(gravity_base, self.payload, axes=1)
+
+    def payload_moments(self, gravity_base: FloatArray) -> FloatArray:
+        """∂τ/∂m (N, n_axes): moments of 1 kg extra payload."""
+        return np.tensordot(gravity_base, self.payload, axes=1)
+
+    def column(self, name: str) -> int:
+        return self.axis_names.index(name)
+
+
+def gravity_basis(probe: KinematicChain, joint_positions: FloatArray) -> GravityBasis:
+    """Nine RNEA sweeps give every gravity-driven feature for any gravity and payload."""
+    robot, payload = [], []
+    for unit in np.eye(3):
+        bare = gravity_loads(probe, joint_positions, gravity_base=unit)
+        robot.append(bare)
+        payload.append(
+            gravity_loads(probe, joint_positions, gravity_base=unit, payload_kg=1.0) - bare
+        )
+    return GravityBasis(
+        tuple(a.name for a in probe.compliance_axes), np.array(robot), np.array(payload)
+    )
+
+
+def approach_direction(joint_positions: FloatArray) -> FloatArray:
+    """½·sign(q[n] − q[n−1]) per joint (N, k); the first row is 0 (approach unknown)."""
+    out = np.zeros_like(joint_positions, dtype=float)
+    out[1:] = 0.5 * np.sign(np.diff(joint_positions, axis=0))
+    return out
+
+
+def time_shape(clock: FloatArray, time_constant: float | None) -> FloatArray:
+    """Linear drift (``time_constant`` None) or warm-up 1 − exp(−t/T)."""
+    if time_constant is None:
+        return clock.copy()
+    return 1.0 - np.exp(-clock / time_constant)
+
+
+def legendre_basis(values: FloatArray, degrees: range) -> FloatArray:
+    """Legendre polynomials of ``values`` scaled to [−1, 1] over their observed range, (N, n)."""
+    low, high = float(values.min()), float(values.max())
+    scaled = np.zeros_like(values) if high <= low else 2.0 * (values - low) / (high - low) - 1.0
+    table = np.polynomial.legendre.legvander(scaled, max(degrees))
+    return np.asarray(table[:, list(degrees)], dtype=np.float64)
+
+
+def angle_basis(q: FloatArray, *, library: bool, extra: bool) -> FloatArray:
+    """Functions of a joint angle (N, nb): the library's (q, harmonics 1..3) and/or more
+    (Legendre degree 2..5 over the observed range, harmonics 4..6)."""
+    parts = []
+    if library:
+        parts.append(q[:, None] - q.mean())
+        parts += [np.column_stack([np.sin(h * q), np.cos(h * q)]) for h in ANGLE_LIBRARY_HARMONICS]
+    if extra:
+        parts.append(legendre_basis(q, ANGLE_EXTRA_DEGREES))
+        parts += [np.column_stack([np.sin(h * q), np.cos(h * q)]) for h in ANGLE_EXTRA_HARMONICS]
+    return np.column_stack(parts)
+
+
+def load_basis(tau: FloatArray, *, library: bool, extra: bool) -> FloatArray:
+    """Functions of a gravity torque (N, nb): the library's (τ, load-sign backlash with its
+    floating zones) and/or more (Legendre degree 2..4 over the observed range)."""
+    parts = []
+    if library:
+        parts.append(tau[:, None])
+        parts += [deadzone_sign(tau, zone)[:, None] for zone in deadzones(tau)]
+    if extra:
+        parts.append(legendre_basis(tau, LOAD_EXTRA_DEGREES))
+    return np.column_stack(parts)
+
+
+def deadzones(tau: FloatArray, quantiles: tuple[float, ...] = DEADZONE_QUANTILES) -> list[float]:
+    """Floating-zone half widths τ0 (N·m) for load-sign backlash: quantiles of |τ| (6 digits)."""
+    magnitude = np.abs(tau)
+    return sorted({float(f"{np.quantile(magnitude, f):.6g}") if f else 0.0 for f in quantiles})
+
+
+def deadzone_sign(tau: FloatArray, zone: float) -> FloatArray:
+    """½·sign(τ) where |τ| > τ0, 0 inside the floating zone."""
+    return np.where(np.abs(tau) > zone, 0.5 * np.sign(tau), 0.0)
+
+
+class FeatureBank:
+    """Feature columns by key for one whole recording; gravity features for any (g, m).
+
+    Always built on the full recording and sliced by row afterwards: approach directions, the
+    clock origin and centred joint positions must not change when a cross-validation fold or a
+    bootstrap sample picks rows.
+    """
+
+    def __init__(self, probe: KinematicChain, data: DiscoveryData) -> None:
+        self.probe = probe
+        self.data = data
+        self.basis = gravity_basis(probe, data.joint_positions)
+        self.joint_names = probe.joint_names
+        self.direction = approach_direction(data.joint_positions)
+        self.clock, self.clock_unit = data.clock()
+        nominal = self.basis.moments(data.gravity_base, data.payload())
+        self._nominal_tau = nominal
+        self._cache: dict[str, FloatArray] = {}
+
+    def tau(self, axis_name: str, gravity_base: FloatArray, extra_payload_kg: float) -> FloatArray:
+        """Gravity moment about a probe axis (N,), N·m."""
+        column = self.basis.column(axis_name)
+        gravity = np.asarray(gravity_base, dtype=float)
+        robot = np.tensordot(gravity, self.basis.robot[:, :, column], axes=1)
+        unit = np.tensordot(gravity, self.basis.payload[:, :, column], axes=1)
+        return robot + (self.data.payload() + extra_payload_kg) * unit
+
+    def generic_basis(self, family: str, joint_name: str) -> FloatArray:
+        """Library and extra basis of joint ``joint_name`` over the whole recording."""
+        if family == "angle":
+            q = self.data.joint_positions[:, self.joint_names.index(joint_name)]
+            return angle_basis(q, library=True, extra=True)
+        return load_basis(self.nominal_tau(joint_name), library=True, extra=True)
+
+    def nominal_tau(self, axis_name: str) -> FloatArray:
+        """τ under the user's gravity and payload (N,)."""
+        return self._nominal_tau[:, self.basis.column(axis_name)]
+
+    def column(self, key: str, gravity_base: FloatArray, extra_payload_kg: float) -> FloatArray:
+        """Feature ``key`` (see module docstring) as an (N,) array, centred over the recording.
+
+        Centring changes no prediction: a constant deflection about any axis is a constant
+        link rotation, which the geometry absorbs exactly. It keeps the "absorbed fraction" of
+        a term about what matters — the part of its shape geometry can mimic.
+        """
+        if key == "one":
+            return np.ones(self.data.n_samples)
+        fixed = not key.startswith(("tau:", "dtau_"))  # the rest ignore gravity and payload
+        if fixed and key in self._cache:
+            return self._cache[key]
+        values = self._raw(key, gravity_base, extra_payload_kg)
+        values = values - values.mean()
+        if fixed:
+            self._cache[key] = values
+        return values
+
+    def _raw(self, key: str, gravity_base: FloatArray, extra_payload_kg: float) -> FloatArray:
+        kind, _, rest = key.partition(":")
+        q = self.data.joint_positions
+        if kind == "tau":
+            return self.tau(rest, gravity_base, extra_payload_kg)
+        if kind == "dtau_m":  # ∂τ/∂(payload mass)
+            unit = self.basis.payload[:, :, self.basis.column(rest)]
+            return np.tensordot(np.asarray(gravity_base, dtype=float), unit, axes=1)
+        if kind in ("dtau_x", "dtau_y"):  # ∂τ/∂(base tilt about x or y): τ(e × g)
+            direction = np.eye(3)[0 if kind == "dtau_x" else 1]
+            tilted = np.cross(direction, np.asarray(gravity_base, dtype=float))
+            return self.tau(rest, tilted, extra_payload_kg)
+        if kind == "time":
+            shape, _, constant = rest.partition(":")
+            return time_shape(self.clock, float(constant) if shape == "warmup" else None)
+        if kind == "deadzone_tau":
+            name, _, zone = rest.rpartition(":")
+            return deadzone_sign(self.nominal_tau(name), float(zone))
+        if kind == "basis":
+            family, name, index = rest.split(":")
+            return self.generic_basis(family, name)[:, int(index)]
+        j = self.joint_names.index(rest)
+        if kind == "sign_tau":
+            return 0.5 * np.sign(self.nominal_tau(rest))
+        if kind == "dir":
+            return self.direction[:, j]
+        if kind == "q":
+            return q[:, j].copy()
+        if kind.startswith("sin"):
+            return np.sin(int(kind[3:]) * q[:, j])
+        if kind.startswith("cos"):
+            return np.cos(int(kind[3:]) * q[:, j])
+        raise ValueError(f"unknown feature key {key!r}")

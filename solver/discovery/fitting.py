@@ -1,0 +1,490 @@
+"""Evaluation and Gauss–Newton fit of a model = geometry + a set of library terms.
+
+The pose model extends paper Eq. (7)::
+
+    X(q) = Exp(Σ_d f_d(t) δ_d) · Π_i [ L_i · V_i · Exp(s_i (q_i + Σ_a c_a φ_a)) ] · L_{k+1}
+
+with deflection axes ``a`` (joint axis or virtual axes V_i ⟂ it) driven by features ``φ_a``
+(:mod:`solver.discovery.features`), an optional drift ``δ_d`` of the measurement frame (left,
+measurement-frame twist), and the sensor's depth reading scaled last. Gravity features depend
+on the gravity direction (base tilt) and payload mass, which are terms too.
+
+Every column is analytic: link corrections ``J_i = Ad(B_i)^-1`` and deflection axes come from
+:func:`solver.kinematics.evaluate_chain` on the chain with the term axes as compliance axes
+(zero-coefficient axes give candidate columns without changing the pose); payload and tilt
+columns are ``Σ_a c_a g_a ∂φ_a/∂θ``, obtained the same way with the derivative features; the
+drift column is ``Ad(X)^-1 f(t)``; the depth column is the EE-frame image of the position shift.
+Rows are whitened by a per-block noise scale (translation, rotation) estimated from the
+residuals with the degrees of freedom the fit used (hat-matrix trace per block).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import scipy.linalg
+from numpy.typing import NDArray
+
+from solver import lie
+from solver.calibration import initial_parameters
+from solver.discovery.features import DiscoveryData, FeatureBank, axis_of
+from solver.discovery.library import Term, drift_feature
+from solver.errors import CalibrationError
+from solver.kinematics import ChainParameters, evaluate_chain, pose_residuals
+from solver.model import ComplianceAxis, KinematicChain
+
+FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.intp]
+
+RANK_TOLERANCE = 1e-7
+
+
+@dataclass(frozen=True, eq=False)
+class Context:
+    """Everything fixed during one discovery: the probe chain, the data, the features."""
+
+    chain: KinematicChain
+    data: DiscoveryData
+    bank: FeatureBank
+
+    @classmethod
+    def build(cls, probe: KinematicChain, data: DiscoveryData) -> Context:
+        return cls(probe, data, FeatureBank(probe, data))
+
+    @property
+    def all_rows(self) -> IndexArray:
+        return np.arange(self.data.n_samples)
+
+
+@dataclass(frozen=True)
+class ModelParameters:
+    """Link placements (k+1, 4, 4) and the concatenated term coefficients θ (p,)."""
+
+    links: FloatArray
+    theta: FloatArray
+
+    def with_terms(self, terms: tuple[Term, ...], values: dict[str, FloatArray]) -> ModelParameters:
+        """θ laid out for ``terms``; coefficients taken from ``values`` by key, zero otherwise."""
+        theta = np.concatenate(
+            [np.asarray(values.get(t.key, np.zeros(t.size)), dtype=float) for t in terms]
+            or [np.zeros(0)]
+        )
+        return replace(self, theta=theta)
+
+
+def slices(terms: tuple[Term, ...]) -> list[slice]:
+    out, start = [], 0
+    for t in terms:
+        out.append(slice(start, start + t.size))
+        start += t.size
+    return out
+
+
+def by_key(terms: tuple[Term, ...], theta: FloatArray) -> dict[str, FloatArray]:
+    return {t.key: theta[s] for t, s in zip(terms, slices(terms), strict=True)}
+
+
+@dataclass(frozen=True, eq=False)
+class Design:
+    """Residuals and columns at one parameter point, for ``rows`` of the recording.
+
+    ``residual`` (n, d) unweighted, m and rad, EE frame. Columns (n, d, ·): ``links`` the 6 local
+    twist components of every L_i; ``terms`` θ in model order; ``candidates`` per key;
+    ``unit`` the column per unit angle of a requested axis (plots, pose design).
+    """
+
+    rows: IndexArray
+    pose: FloatArray
+    residual: FloatArray
+    links: FloatArray
+    terms: FloatArray
+    candidates: dict[str, FloatArray] = field(default_factory=dict)
+    unit: dict[tuple[int, str], FloatArray] = field(default_factory=dict)
+
+
+def _globals(
+    terms: tuple[Term, ...], theta: FloatArray, data: DiscoveryData
+) -> tuple[FloatArray, float]:
+    """Gravity vector (base frame) and extra payload implied by the model's global terms."""
+    gravity = np.asarray(data.gravity_base, dtype=float)
+    payload = 0.0
+    for t, s in zip(terms, slices(terms), strict=True):
+        if t.effect == "gravity_direction":
+            tilt = np.r_[theta[s], 0.0]
+            gravity = lie.so3_exp(tilt) @ gravity
+        elif t.effect == "payload_mass":
+            payload += float(theta[s][0])
+    return gravity, payload
+
+
+def evaluate(
+    ctx: Context,
+    terms: tuple[Term, ...],
+    params: ModelParameters,
+    rows: IndexArray,
+    candidates: tuple[Term, ...] = (),
+    unit_axes: tuple[tuple[int, str], ...] = (),
+) -> Design:
+    """Residuals and all columns (see module docstring) in one chain sweep."""
+    data, bank, chain = ctx.data, ctx.bank, ctx.chain
+    d = data.rows
+    gravity, extra_payload = _globals(terms, params.theta, data)
+    axes: list[ComplianceAxis] = []
+    coefficients: list[float] = []
+    features: list[FloatArray] = []
+
+    def add(joint: int, direction: str, feature: str, coefficient: float) -> int:
+        axes.append(axis_of(chain, joint, direction))
+        coefficients.append(coefficient)
+        features.append(bank.column(feature, gravity, extra_payload)[rows])
+        return len(axes) - 1
+
+    term_axes: list[list[int]] = []
+    gravity_axes: list[tuple[int, float, str]] = []  # (axis index, coefficient, probe axis name)
+    for t, s in zip(terms, slices(terms), strict=True):
+        indices = []
+        for spec, value in zip(t.axes, params.theta[s], strict=False):
+            indices.append(add(spec.joint_index, spec.direction, spec.feature, float(value)))
+            if spec.gravity_driven:
+                gravity_axes.append((indices[-1], float(value), spec.feature[4:]))
+        term_axes.append(indices)
+    wants_derivatives = any(
+        t.effect in ("payload_mass", "gravity_direction") for t in (*terms, *candidates)
+    )
+    derivative_axes: dict[str, list[tuple[int, float]]] = {"m": [], "x": [], "y": []}
+    if wants_derivatives:
+        for index, value, name in gravity_axes:
+            axis = axes[index]
+            direction = "joint" if axis.is_joint_axis else name.split(".")[-1]
+            for label in derivative_axes:
+                derivative_axes[label].append(
+                    (add(axis.joint_index, direction, f"dtau_{label}:{name}", 0.0), value)
+                )
+    candidate_axes = {
+        c.key: [add(s.joint_index, s.direction, s.feature, 0.0) for s in c.axes]
+        for c in candidates
+        if c.axes
+    }
+    unit_index = {u: add(u[0], u[1], "one", 0.0) for u in unit_axes}
+
+    augmented = replace(chain, compliance_axes=tuple(axes))
+    q = data.joint_positions[rows]
+    loads = np.column_stack(features) if features else np.zeros((rows.size, 0))
+    evaluation = evaluate_chain(
+        augmented, ChainParameters(params.links, np.array(coefficients)), q, loads
+    )
+    comp = evaluation.compliance_jacobians[:, :, :d]  # (n, n_axes, d)
+    pose = evaluation.pose
+
+    drift = np.zeros((rows.size, 6))
+    for t, s in zip(terms, slices(terms), strict=True):
+        if t.effect == "thermal_drift" and t.joint_index is None:
+            drift += (
+                bank.column(drift_feature(t), gravity, extra_payload)[rows, None] * params.theta[s]
+            )
+    if np.any(drift):
+        pose = lie.se3_exp(drift) @ pose
+    before_depth = pose
+    depth_shift = np.zeros((rows.size, 3))
+    for t, s in zip(terms, slices(terms), strict=True):
+        if t.effect == "depth_scale":
+            depth_shift += float(params.theta[s][0]) * _depth_direction(before_depth, t.variant)
+    if np.any(depth_shift):
+        pose = pose.copy()
+        pose[:, :3, 3] += depth_shift
+
+    def global_columns(t: Term) -> FloatArray:
+        if t.effect == "payload_mass":
+            return _weighted_sum(comp, derivative_axes["m"])[..., None]
+        if t.effect == "gravity_direction":
+            return np.stack([_weighted_sum(comp, derivative_axes[a]) for a in ("x", "y")], axis=-1)
+        if t.effect == "depth_scale":
+            shift = _depth_direction(before_depth, t.variant)
+            local = np.einsum("nji,nj->ni", before_depth[:, :3, :3], shift)
+            column = np.zeros((rows.size, 6))
+            column[:, :3] = local
+            return column[:, :d, None]
+        if t.effect == "thermal_drift" and t.joint_index is None:
+            shape = bank.column(drift_feature(t), gravity, extra_payload)[rows]
+            return (lie.adjoint_inverse(before_depth) * shape[:, None, None])[:, :d, :]
+        raise ValueError(f"term {t.key} has no global columns")
+
+    def columns_of(t: Term, indices: list[int] | None) -> FloatArray:
+        if t.axes:
+            assert indices is not None
+            return np.stack([comp[:, i] for i in indices], axis=-1)
+        return global_columns(t)
+
+    n_links = params.links.shape[0]
+    link_cols = evaluation.link_jacobians[:, :, :d, :].transpose(0, 2, 1, 3)
+    link_cols = link_cols.reshape(rows.size, d, 6 * n_links)
+    term_cols = [columns_of(t, idx) for t, idx in zip(terms, term_axes, strict=True)]
+    return Design(
+        rows=rows,
+        pose=pose,
+        residual=pose_residuals(pose, data.measured_pose[rows], position_only=data.position_only),
+        links=link_cols,
+        terms=np.concatenate(term_cols, axis=2) if term_cols else np.zeros((rows.size, d, 0)),
+        candidates={c.key: columns_of(c, candidate_axes.get(c.key)) for c in candidates},
+        unit={u: comp[:, i] for u, i in unit_index.items()},
+    )
+
+
+def _weighted_sum(comp: FloatArray, pairs: list[tuple[int, float]]) -> FloatArray:
+    out = np.zeros((comp.shape[0], comp.shape[2]))
+    for index, coefficient in pairs:
+        out += coefficient * comp[:, index]
+    return out
+
+
+def _depth_direction(pose: FloatArray, variant: str) -> FloatArray:
+    """Position shift (n, 3), measurement frame, per unit depth scale.
+
+    ``measurement_z``: the depth along the measurement frame's z (a fixed camera) is scaled.
+    ``marker_z``: the depth along the marker frame's z (a camera on the flange looking at a
+    fixed target, which is then the measurement frame) is scaled.
+    """
+    p, rotation = pose[:, :3, 3], pose[:, :3, :3]
+    if variant == "measurement_z":
+        shift = np.zeros_like(p)
+        shift[:, 2] = p[:, 2]
+        return shift
+    depth = np.einsum("nji,nj->ni", rotation, p)[:, 2]
+    return depth[:, None] * rotation[:, :, 2]
+
+
+# --- fitting -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ModelFit:
+    """A converged fit of ``terms`` on ``rows``.
+
+    ``weights`` (d,) multiply residual components (1/σ per block); ``jacobian`` (n·d, p) the
+    whitened columns estimated (kept links, then θ); ``covariance`` (p_θ, p_θ) of θ, the larger
+    (per entry) of the classical and the per-sample cluster-robust sandwich estimate.
+    """
+
+    terms: tuple[Term, ...]
+    params: ModelParameters
+    rows: IndexArray
+    weights: FloatArray
+    design: Design
+    kept_links: IndexArray
+    jacobian: FloatArray
+    residual_w: FloatArray
+    rank: int
+    cost: float
+    iterations: int
+    converged: bool
+    covariance: FloatArray
+
+    @property
+    def dof(self) -> int:
+        return int(self.residual_w.size - self.rank)
+
+    def stderr(self) -> dict[str, FloatArray]:
+        errors = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+        return by_key(self.terms, errors)
+
+    def values(self) -> dict[str, FloatArray]:
+        return by_key(self.terms, self.params.theta)
+
+
+def whitened(values: FloatArray, weights: FloatArray) -> FloatArray:
+    """Scale residual rows (axis 1) by ``weights`` (d,)."""
+    return values * weights.reshape((1, -1) + (1,) * (values.ndim - 2))
+
+
+def start_parameters(ctx: Context) -> ModelParameters:
+    """Closed-form measurement frame and tool on the nominal geometry (solver.alignment)."""
+    data = ctx.data
+    start = initial_parameters(
+        ctx.chain, data.joint_positions, data.measured_pose, position_only=data.position_only
+    )
+    return ModelParameters(start.links, np.zeros(0))
+
+
+def _kept_links(links_w: FloatArray, terms_w: FloatArray) -> IndexArray:
+    """Link columns the data can identify once the term columns are in (terms take priority).
+
+    Column-pivoted QR of the unit-norm link columns after projecting out the term columns;
+    the POE redundancies (and geometry that a term explains exactly) drop out by name.
+    """
+    norms = np.linalg.norm(links_w, axis=0)
+    nonzero = np.flatnonzero(norms > 1e-12 * max(norms.max(), 1e-300))
+    a = links_w[:, nonzero] / norms[nonzero]
+    if terms_w.shape[1]:
+        basis = orthonormal_basis(terms_w)
+        a = a - basis @ (basis.T @ a)
+    _, r, pivots = scipy.linalg.qr(a, mode="economic", pivoting=True)
+    diagonal = np.abs(np.diag(r))
+    rank = int(np.sum(diagonal > RANK_TOLERANCE * max(diagonal[0], 1e-300)))
+    return np.sort(nonzero[pivots[:rank]])
+
+
+def orthonormal_basis(matrix: FloatArray, tolerance: float = RANK_TOLERANCE) -> FloatArray:
+    """Orthonormal basis of the column space (rank-revealing SVD, unit-norm columns first)."""
+    norms = np.linalg.norm(matrix, axis=0)
+    scaled = matrix[:, norms > 0] / norms[norms > 0]
+    if scaled.shape[1] == 0:
+        return np.zeros((matrix.shape[0], 0))
+    u, s, _ = np.linalg.svd(scaled, full_matrices=False)
+    return u[:, s > tolerance * s[0]]
+
+
+def fit_model(
+    ctx: Context,
+    terms: tuple[Term, ...],
+    start: ModelParameters,
+    rows: IndexArray,
+    weights: FloatArray,
+    *,
+    max_iterations: int = 40,
+    tolerance: float = 1e-10,
+) -> ModelFit:
+    """Gauss–Newton on the whitened residuals (Eq. 10 with the extra term columns)."""
+    d = ctx.data.rows
+    params = start
+    design = evaluate(ctx, terms, params, rows)
+    p_terms = design.terms.shape[2]
+    if start.theta.size != p_terms:
+        raise ValueError("start parameters do not match the terms")
+
+    def stacked(des: Design) -> tuple[FloatArray, FloatArray, FloatArray]:
+        n = des.rows.size
+        return (
+            whitened(des.residual, weights).reshape(-1),
+            whitened(des.links, weights).reshape(n * d, -1),
+            whitened(des.terms, weights).reshape(n * d, -1),
+        )
+
+    r, links_w, terms_w = stacked(design)
+    kept = _kept_links(links_w, terms_w)
+    if r.size <= kept.size + p_terms:
+        raise CalibrationError(
+            f"{rows.size} samples give {r.size} equations for {kept.size + p_terms} parameters; "
+            "record more configurations"
+        )
+    cost = float(r @ r)
+    converged, iterations = False, 0
+    while iterations < max_iterations:
+        iterations += 1
+        a = np.hstack([links_w[:, kept], terms_w])
+        step = np.asarray(np.linalg.lstsq(a, r, rcond=None)[0], dtype=np.float64)
+        predicted = a @ step
+        if float(predicted @ predicted) <= tolerance * max(cost, 1e-300):
+            converged = True  # Gauss–Newton cannot lower the cost any further
+            break
+        scale = 1.0
+        for _ in range(20):
+            candidate = _apply(params, scale * step, kept)
+            trial = evaluate(ctx, terms, candidate, rows)
+            r_new, links_new, terms_new = stacked(trial)
+            new_cost = float(r_new @ r_new)
+            if new_cost <= cost:
+                break
+            scale *= 0.5
+        else:
+            converged = True
+            break
+        params, design, r, links_w, terms_w = candidate, trial, r_new, links_new, terms_new
+        change = cost - new_cost
+        cost = new_cost
+        if change <= tolerance * max(cost, 1e-300):
+            converged = True
+            break
+    a = np.hstack([links_w[:, kept], terms_w])
+    basis = orthonormal_basis(a)
+    return ModelFit(
+        terms=terms,
+        params=params,
+        rows=rows,
+        weights=weights,
+        design=design,
+        kept_links=kept,
+        jacobian=a,
+        residual_w=r,
+        rank=basis.shape[1],
+        cost=cost,
+        iterations=iterations,
+        converged=converged,
+        covariance=_theta_covariance(a, r, kept.size, d, basis),
+    )
+
+
+def _apply(params: ModelParameters, step: FloatArray, kept: IndexArray) -> ModelParameters:
+    n_links = params.links.shape[0]
+    twists = np.zeros(6 * n_links)
+    twists[kept] = step[: kept.size]
+    links = params.links @ lie.se3_exp(twists.reshape(n_links, 6))
+    return ModelParameters(links, params.theta + step[kept.size :])
+
+
+def _theta_covariance(
+    a: FloatArray, r: FloatArray, n_link_cols: int, d: int, basis: FloatArray
+) -> FloatArray:
+    """Covariance of θ: max of classical s²(AᵀA)⁻¹ and the per-sample cluster sandwich."""
+    p_terms = a.shape[1] - n_link_cols
+    if p_terms == 0:
+        return np.zeros((0, 0))
+    dof = max(r.size - basis.shape[1], 1)
+    bread = np.linalg.pinv(a.T @ a)
+    classical = float(r @ r) / dof * bread
+    leverage = np.sum(basis**2, axis=1).reshape(-1, d).mean(axis=1)
+    adjusted = r.reshape(-1, d) / np.sqrt(np.clip(1.0 - leverage, 0.05, None))[:, None]
+    scores = np.einsum("nrp,nr->np", a.reshape(-1, d, a.shape[1]), adjusted)
+    robust = bread @ (scores.T @ scores) @ bread
+    block = slice(n_link_cols, None)
+    c, rb = classical[block, block], robust[block, block]
+    classical_var, robust_var = np.diag(c), np.diag(rb)
+    ratio = np.divide(
+        robust_var, classical_var, out=np.ones_like(robust_var), where=classical_var > 0
+    )
+    scale = np.sqrt(np.maximum(ratio, 1.0))
+    return c * np.outer(scale, scale)
+
+
+def noise_weights(fit: ModelFit, position_only: bool) -> FloatArray:
+    """New weights 1/σ (d,) from the fit's residuals, per block, with the hat-matrix dof.
+
+    σ_b² = Σ_{rows in b} r² / Σ_{rows in b} (1 − h), h the leverages of the whitened design.
+    """
+    d = 3 if position_only else 6
+    basis = orthonormal_basis(fit.jacobian)
+    leverage = np.sum(basis**2, axis=1).reshape(-1, d)
+    residual = fit.design.residual
+    blocks = [slice(0, 3)] if position_only else [slice(0, 3), slice(3, 6)]
+    weights = np.empty(d)
+    for b in blocks:
+        sigma2 = float(np.sum(residual[:, b] ** 2) / max(np.sum(1.0 - leverage[:, b]), 1.0))
+        weights[b] = 1.0 / np.sqrt(max(sigma2, 1e-30))
+    return weights
+
+
+def fit_with_noise(
+    ctx: Context,
+    terms: tuple[Term, ...],
+    start: ModelParameters,
+    rows: IndexArray,
+    weights: FloatArray | None = None,
+    rounds: int = 2,
+) -> ModelFit:
+    """Fit, re-estimate the per-block noise scale, refit (``rounds`` times)."""
+    w = np.ones(ctx.data.rows) if weights is None else weights
+    fit = fit_model(ctx, terms, start, rows, w)
+    for _ in range(rounds):
+        w = noise_weights(fit, ctx.data.position_only)
+        fit = fit_model(ctx, terms, fit.params, rows, w)
+    return fit
+
+
+def extend(
+    params: ModelParameters, terms: tuple[Term, ...], new: Term, value: FloatArray | None = None
+) -> tuple[tuple[Term, ...], ModelParameters]:
+    """Add ``new`` to the model (coefficients start at ``value`` or zero)."""
+    values = by_key(terms, params.theta)
+    values[new.key] = np.zeros(new.size) if value is None else value
+    extended = (*terms, new)
+    return extended, params.with_terms(extended, values)

@@ -1,0 +1,540 @@
+"""The discovery loop: locate, hypothesise, test, model, confirm (issue 5).
+
+1. Fit the user's model (rigid geometry + declared terms, measurement frame and tool always
+   estimated) with the per-block noise scale; screen gross outliers; residual health report.
+2. Score-test every library candidate against the fit (no refit per candidate); Holm at
+   ``alpha`` over the family. Nothing significant → stop.
+3. For the strongest candidate (smallest p): if it is a joint-angle or load term, check that
+   joint's lack of fit beyond the whole library family, and that its sign is physical — if not,
+   the joint's structure is reported as unexplained (kept in the model as an unnamed function)
+   instead of being named. Find rivals (nearly collinear candidates with nearly as much
+   evidence, or bootstrap replicates that prefer them) and how much of it the rest of the
+   model absorbs: either makes the step *ambiguous*.
+4. Add it, refit the full nonlinear model (refining warm-up time constants and backlash
+   floating zones), and compare K-fold held-out error with the model before; keep it only if
+   the held-out error drops significantly (paired test over samples). Repeat.
+5. On the final model: unexplained structure (generic smooth functions of each joint angle,
+   load, time, range) and random-looking effects (scatter about a joint growing where its load
+   is near zero) for the covariance stage.
+
+Deterministic for a given ``seed`` (folds, bootstrap and pose pool draw from one generator).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.discovery.checks import (
+    floating_deflection,
+    lack_of_fit,
+    residual_structure,
+    reweighted,
+    unit_columns,
+)
+from solver.discovery.explain import describe, explanation, reported_parameters
+from solver.discovery.features import DiscoveryData, probe_chain
+from solver.discovery.fitting import (
+    Context,
+    ModelFit,
+    evaluate,
+    extend,
+    fit_with_noise,
+    orthonormal_basis,
+    slices,
+    start_parameters,
+    whitened,
+)
+from solver.discovery.health import health_report
+from solver.discovery.library import (
+    EFFECTS,
+    Term,
+    candidate_library,
+    declared_terms,
+    generic_term,
+    same_mechanism,
+    unphysical,
+)
+from solver.discovery.panels import term_panels
+from solver.discovery.refine import refine_deadzone, refine_time_constant
+from solver.discovery.report import (
+    Misfit,
+    ambiguity_entry,
+    sign_note,
+    term_covariances,
+    unexplained_entries,
+)
+from solver.discovery.results import (
+    Ambiguity,
+    DiscoveryResult,
+    Finding,
+    HeldoutError,
+    RandomEffect,
+    Step,
+    TermEstimate,
+    Unexplained,
+)
+from solver.discovery.scoring import (
+    NullModel,
+    ScoreTest,
+    bootstrap_winners,
+    canonical_correlation,
+    holm,
+    score_test,
+)
+from solver.discovery.validation import cross_validate, kfold, screen_outliers
+from solver.errors import CalibrationError
+from solver.model import KinematicChain
+
+FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.intp]
+
+
+@dataclass(frozen=True)
+class DiscoveryOptions:
+    """Settings of :func:`discover`.
+
+    ``alpha``: family-wise error rate of each step's tests (Holm) and of the final checks.
+    ``rival_correlation`` / ``rival_evidence``: a significant candidate whose unexplained part
+    correlates with the best one's at least this much and whose explained whitened sum of
+    squares is within ``rival_evidence`` (= 2 ln of a likelihood ratio; default ratio 100)
+    is a rival; so is one that wins at least ``rival_frequency`` of the bootstrap replicates.
+    ``absorbed_limit``: a term whose estimated signature the rest of the model reproduces to
+    this fraction is ambiguous with it. ``sensor_sigma``: (m, rad) for χ²/dof.
+    ``heldout_level``: a term is kept only if it lowers the K-fold held-out error with a
+    one-sided paired t-test over samples significant at this level.
+    ``outlier_level``: probability that screening drops any sample of a recording that fits
+    the current model (:func:`solver.discovery.validation.screen_outliers`); None keeps all.
+    """
+
+    alpha: float = 0.01
+    seed: int = 0
+    outlier_level: float | None = 1e-3
+    heldout_level: float = 0.05
+    max_terms: int = 6
+    max_rejections: int = 4
+    folds: int = 5
+    bootstrap: int = 50
+    effects: tuple[str, ...] = EFFECTS
+    rival_correlation: float = 0.7
+    rival_evidence: float = 2.0 * math.log(100.0)
+    rival_frequency: float = 0.2
+    absorbed_limit: float = 0.97
+    sensor_sigma: tuple[float, float] | None = None
+    separating_poses: int = 6
+    pose_pool: int = 400
+
+
+def discover(
+    chain: KinematicChain, data: DiscoveryData, options: DiscoveryOptions = DiscoveryOptions()
+) -> DiscoveryResult:
+    """Find, name and model what the user's model (``chain``'s compliance axes) leaves out."""
+    return _Search(chain, data, options).run()
+
+
+@dataclass
+class _Accepted:
+    term: Term
+    step: int
+    test: ScoreTest
+    stability: float
+    before: HeldoutError
+    after: HeldoutError
+    previous: ModelFit
+
+
+@dataclass
+class _Candidates:
+    """One step's library, score tests (by key) and whitened columns (by key)."""
+
+    library: list[Term]
+    tests: dict[str, ScoreTest]
+    columns: dict[str, FloatArray]
+    ranked: list[str]  # significant keys, strongest first
+
+    @property
+    def by_key(self) -> dict[str, Term]:
+        return {t.key: t for t in self.library}
+
+
+class _Search:
+    """State of one discovery run; :meth:`run` is the loop of the module docstring."""
+
+    def __init__(self, chain: KinematicChain, data: DiscoveryData, options: DiscoveryOptions):
+        self.options = options
+        self.rng = np.random.default_rng(options.seed)
+        self.names = chain.joint_names
+        self.ctx = Context.build(probe_chain(chain), data)
+        self.terms = declared_terms(chain)
+        start = start_parameters(self.ctx).with_terms(self.terms, {})
+        fit = fit_with_noise(self.ctx, self.terms, start, self.ctx.all_rows)
+        self.fit = screen_outliers(self.ctx, self.terms, fit, options.outlier_level)
+        self.first_terms, self.first_fit = self.terms, self.fit
+        self.folds = kfold(data.n_samples, options.folds, self.rng)
+        self.health_before = health_report(self.ctx, self.fit, options.sensor_sigma)
+        self.excluded: set[str] = set()
+        self.accepted: list[_Accepted] = []
+        self.ambiguous: list[Ambiguity] = []
+        self.misfits: dict[tuple[str, int], Misfit] = {}
+        self.steps: list[Step] = []
+        self.n_candidates = 0
+        self.declared_notes = self._declared_checks()
+
+    def run(self) -> DiscoveryResult:
+        options = self.options
+        step = 0
+        while (
+            len(self.accepted) < options.max_terms
+            and step < options.max_terms + options.max_rejections
+        ):
+            candidates = self._candidates()
+            if not candidates.ranked:
+                break
+            step += 1
+            self._step(step, candidates)
+        return self._result()
+
+    # --- one step -------------------------------------------------------------------------
+
+    def _candidates(self) -> _Candidates:
+        library = [
+            t
+            for t in candidate_library(
+                self.ctx.chain, self.ctx.bank, self.terms, self.options.effects
+            )
+            if t.key not in self.excluded
+        ]
+        design = evaluate(
+            self.ctx, self.fit.terms, self.fit.params, self.fit.rows, candidates=tuple(library)
+        )
+        null = NullModel.from_fit(self.fit)
+        tests, columns = {}, {}
+        for term in library:
+            cols = whitened(design.candidates[term.key], self.fit.weights).reshape(-1, term.size)
+            result = score_test(null, term.key, cols)
+            if result is not None:
+                tests[term.key], columns[term.key] = result, cols
+        self.n_candidates = self.n_candidates or len(tests)
+        significant = holm({k: t.p_value for k, t in tests.items()}, self.options.alpha)
+        ranked = sorted(significant, key=lambda k: tests[k].log_p)
+        return _Candidates(library, tests, columns, ranked)
+
+    def _step(self, step: int, candidates: _Candidates) -> None:
+        key = candidates.ranked[0]
+        best, test = candidates.by_key[key], candidates.tests[key]
+        misfit = lack_of_fit(self.ctx, self.fit, best, unit_columns(self.ctx, self.fit))
+        wrong_sign = unphysical(best, test.estimate, test.stderr)
+        if wrong_sign or (misfit is not None and misfit.p_value < self.options.alpha):
+            p_value = test.p_value if misfit is None or wrong_sign else misfit.p_value
+            self.steps.append(Step(step, key, "unexplained", p_value))
+            self._unexplained_joint(best, test, candidates, p_value, wrong_sign)
+            return
+        null = NullModel.from_fit(self.fit)
+        plausible = sorted(
+            (k for k, t in candidates.tests.items() if t.p_classical < 0.05),
+            key=lambda k: candidates.tests[k].log_p,
+        )[:8]
+        wins = bootstrap_winners(
+            self.fit.jacobian,
+            self.fit.residual_w,
+            null.d,
+            {k: candidates.columns[k] for k in plausible},
+            self.options.bootstrap,
+            self.rng,
+        )
+        rivals = self._rivals(null, candidates, wins, plausible)
+        added = self._add(best, test)
+        if added is None:
+            self.excluded.add(key)
+            return
+        term, new_terms, new_fit = added
+        candidates.columns[term.key] = candidates.columns[key]  # refined shapes: same columns
+        before = cross_validate(self.ctx, self.terms, self.fit, self.folds, self.fit.weights)
+        after = cross_validate(self.ctx, new_terms, new_fit, self.folds, self.fit.weights)
+        if not before.improved_by(after, self.options.heldout_level):
+            self.steps.append(
+                Step(
+                    step,
+                    term.key,
+                    "rejected_heldout",
+                    test.p_value,
+                    before.translation_mm,
+                    after.translation_mm,
+                )
+            )
+            self.excluded.update({key, term.key})
+            return
+        ambiguous = bool(rivals) or test.absorbed_fraction >= self.options.absorbed_limit
+        self.steps.append(
+            Step(
+                step,
+                term.key,
+                "ambiguous" if ambiguous else "accepted",
+                test.p_value,
+                before.translation_mm,
+                after.translation_mm,
+            )
+        )
+        if ambiguous:
+            pairs = [(term, test)] + [(candidates.by_key[k], candidates.tests[k]) for k in rivals]
+            self.ambiguous.append(
+                ambiguity_entry(
+                    self.ctx,
+                    self.fit,
+                    new_fit.weights,
+                    null,
+                    pairs,
+                    candidates.columns,
+                    step,
+                    self.options.separating_poses,
+                    self.options.pose_pool,
+                    self.rng,
+                    self.names,
+                )
+            )
+            self.excluded.update(rivals)
+        else:
+            self.accepted.append(
+                _Accepted(term, step, test, wins.get(key, 0.0), before, after, self.fit)
+            )
+        self.terms = new_terms
+        self.fit = screen_outliers(self.ctx, new_terms, new_fit, self.options.outlier_level)
+
+    def _add(self, best: Term, test: ScoreTest) -> tuple[Term, tuple[Term, ...], ModelFit] | None:
+        """Refit with ``best`` added (shape refined); None if the fit cannot be done."""
+        new_terms, start = extend(self.fit.params, self.terms, best, test.estimate)
+        try:
+            new_fit = fit_with_noise(
+                self.ctx, new_terms, start, self.fit.rows, self.fit.weights, rounds=1
+            )
+            if best.time_constant() is not None:
+                best, new_terms, new_fit = refine_time_constant(self.ctx, new_terms, new_fit)
+            if best.deadzone() is not None:
+                best, new_terms, new_fit = refine_deadzone(self.ctx, new_terms, new_fit)
+        except CalibrationError:
+            return None
+        return best, new_terms, new_fit
+
+    def _rivals(
+        self,
+        null: NullModel,
+        candidates: _Candidates,
+        wins: dict[str, float],
+        plausible: list[str],
+    ) -> list[str]:
+        """Candidates the data cannot tell from the best one (see :class:`DiscoveryOptions`).
+
+        The evidence gap is measured with the noise scale re-estimated with the best candidate
+        fitted: under the null fit's scale, which still contains the effect, a large effect
+        makes every correlated candidate look "close". Shapes of the same mechanism on the same
+        joint (drift time constants, backlash floating zones) are refinements, not rivals.
+        """
+        by_key, columns = candidates.by_key, candidates.columns
+        best = candidates.ranked[0]
+        others = [k for k in candidates.ranked[1:] if not same_mechanism(by_key[best], by_key[k])]
+        alternative, scale = reweighted(self.fit, [columns[best]])
+        explained = {}
+        for key in [best, *others]:
+            result = score_test(alternative, key, columns[key] * scale[:, None])
+            explained[key] = 0.0 if result is None else result.delta_ss
+        out = [
+            key
+            for key in others
+            if explained[key] >= explained[best] - self.options.rival_evidence
+            and canonical_correlation(null, columns[best], columns[key])
+            >= self.options.rival_correlation
+        ]
+        out += [
+            k
+            for k in plausible
+            if k != best
+            and k not in out
+            and wins.get(k, 0.0) >= self.options.rival_frequency
+            and not same_mechanism(by_key[best], by_key[k])
+        ]
+        return out
+
+    def _unexplained_joint(
+        self,
+        best: Term,
+        test: ScoreTest,
+        candidates: _Candidates,
+        p_value: float,
+        wrong_sign: bool,
+    ) -> None:
+        """The joint's structure in ``best``'s family is beyond the library (or unphysical):
+        record it, demote earlier findings of that family there, model it unnamed."""
+        if best.joint_index is None:
+            self.excluded.add(best.key)
+            return
+        joint = best.joint_index
+        family = [
+            t for t in candidates.library if (t.joint_index, t.family) == (joint, best.family)
+        ]
+        self.excluded.update(t.key for t in family)
+        entry = self.misfits.setdefault(
+            (best.family, joint), Misfit(joint, best.family, p_value, [])
+        )
+        entry.p_value = min(entry.p_value, p_value)
+        if wrong_sign:
+            entry.wrong_sign.append(sign_note(best, test, self.names))
+        for done in [
+            a for a in self.accepted if (a.term.joint_index, a.term.family) == (joint, best.family)
+        ]:
+            self.accepted.remove(done)
+            entry.partial.append(describe(done.term, self.names))
+        if best.family not in ("angle", "load"):
+            return
+        # Keep the structure in the model, unnamed, so it cannot leak into other terms.
+        generic = generic_term(self.ctx.chain, self.ctx.bank, joint, best.family)
+        new_terms, start = extend(self.fit.params, self.terms, generic)
+        try:
+            new_fit = fit_with_noise(
+                self.ctx, new_terms, start, self.fit.rows, self.fit.weights, rounds=1
+            )
+        except CalibrationError:
+            return
+        before = cross_validate(self.ctx, self.terms, self.fit, self.folds, self.fit.weights)
+        after = cross_validate(self.ctx, new_terms, new_fit, self.folds, self.fit.weights)
+        if before.improved_by(after, self.options.heldout_level):
+            self.terms, self.fit = new_terms, new_fit
+            entry.modelled = True
+
+    def _declared_checks(self) -> list[Unexplained]:
+        """Declared compliance/flex that fits with an unphysical sign, and what else its
+        signature looks like: the user's model is then absorbing something else."""
+        fit, ctx = self.fit, self.ctx
+        values, errors = fit.values(), fit.stderr()
+        suspect = [
+            t for t in fit.terms if t.declared and unphysical(t, values[t.key], errors[t.key])
+        ]
+        if not suspect:
+            return []
+        library = [
+            t
+            for t in candidate_library(ctx.chain, ctx.bank, (), self.options.effects)
+            if t.key not in {s.key for s in fit.terms}
+        ]
+        design = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates=tuple(library))
+        n_links = fit.kept_links.size
+        notes = []
+        for term, where in zip(fit.terms, slices(fit.terms), strict=True):
+            if term not in suspect:
+                continue
+            own = slice(n_links + where.start, n_links + where.stop)
+            others = np.delete(fit.jacobian, np.arange(own.start, own.stop), axis=1)
+            null = NullModel(fit.residual_w, orthonormal_basis(others), ctx.data.rows)
+            similar = sorted(
+                (
+                    (
+                        canonical_correlation(
+                            null,
+                            fit.jacobian[:, own],
+                            whitened(design.candidates[c.key], fit.weights).reshape(-1, c.size),
+                        ),
+                        describe(c, self.names),
+                    )
+                    for c in library
+                ),
+                reverse=True,
+            )[:3]
+            params, errs = reported_parameters(
+                term, values[term.key], np.diag(errors[term.key] ** 2)
+            )
+            shown = ", ".join(f"{k} = {v:.3g} ± {errs[k]:.2g}" for k, v in params.items())
+            alike = ", ".join(f"{label} ({c:.2f})" for c, label in similar if c >= 0.5)
+            notes.append(
+                Unexplained(
+                    joint_index=term.joint_index,
+                    variable="declared",
+                    p_value=float("nan"),
+                    explained_fraction=float("nan"),
+                    distance_correlation=None,
+                    partial=[describe(term, self.names)],
+                    explanation=(
+                        f"the declared {describe(term, self.names)} fits with the wrong sign "
+                        f"({shown}), which no spring does: the model uses it to absorb another "
+                        "load-driven effect"
+                        + (f"; its signature is nearly that of {alike}" if alike else "")
+                        + " (canonical correlations once the geometry is fitted)."
+                    ),
+                )
+            )
+        return notes
+
+    # --- the report -----------------------------------------------------------------------
+
+    def _result(self) -> DiscoveryResult:
+        ctx, final, options = self.ctx, self.fit, self.options
+        covariances = term_covariances(final)
+        values = final.values()
+        findings = []
+        for a in self.accepted:
+            params, errors = reported_parameters(
+                a.term, values[a.term.key], covariances[a.term.key]
+            )
+            findings.append(
+                Finding(
+                    estimate=TermEstimate(
+                        a.term,
+                        params,
+                        errors,
+                        a.test.p_value,
+                        a.test.absorbed_fraction,
+                        a.stability,
+                    ),
+                    step=a.step,
+                    heldout_before=a.before,
+                    heldout_after=a.after,
+                    explanation=explanation(
+                        a.term,
+                        self.names,
+                        params,
+                        errors,
+                        (a.before.translation_mm, a.after.translation_mm),
+                        ctx.bank.clock_unit,
+                    ),
+                    panels=term_panels(ctx, a.term, a.previous, final),
+                )
+            )
+        null = NullModel.from_fit(final)
+        skip = {(m.family, m.joint_index) for m in self.misfits.values()}
+        structure = residual_structure(
+            ctx, final, null, unit_columns(ctx, final), options.alpha, skip
+        )
+        weights = self.first_fit.weights
+        return DiscoveryResult(
+            findings=findings,
+            ambiguous=self.ambiguous,
+            unexplained=self.declared_notes
+            + unexplained_entries(list(self.misfits.values()), structure, self.names),
+            random_effects=[
+                RandomEffect(
+                    f.joint_index,
+                    f.p_value,
+                    f.variance_ratio,
+                    f"{self.names[f.joint_index]}: the scatter about its axis is "
+                    f"{f.variance_ratio:.2g}× larger (median) where its gravity load is near "
+                    f"zero (p = {f.p_value:.2g}) — backlash floating with nothing to take it "
+                    "up; a random effect for the covariance calibration, not a deterministic "
+                    "term.",
+                )
+                for f in floating_deflection(ctx, final, options.alpha)
+            ],
+            steps=self.steps,
+            heldout_before=cross_validate(
+                ctx, self.first_terms, self.first_fit, self.folds, weights, final.rows
+            ),
+            heldout_after=cross_validate(ctx, self.terms, final, self.folds, weights),
+            health_before=self.health_before,
+            health_after=health_report(ctx, final, options.sensor_sigma),
+            terms=self.terms,
+            params=final.params,
+            joint_names=self.names,
+            n_candidates=self.n_candidates,
+            clock_unit=ctx.bank.clock_unit,
+            outlier_rows=np.setdiff1d(ctx.all_rows, final.rows),
+        )

@@ -1,0 +1,150 @@
+"""What discovery returns (solver side; :mod:`schemas.discovery` is the JSON form)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.stats
+from numpy.typing import NDArray
+
+from solver.discovery.design import SeparatingPoses
+from solver.discovery.fitting import ModelParameters
+from solver.discovery.health import HealthReport
+from solver.discovery.library import Term
+
+FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.intp]
+
+
+@dataclass(frozen=True)
+class HeldoutError:
+    """Mean held-out error over all K-fold test samples, and the whitened test SSE.
+
+    ``per_sample`` (n,) whitened test SSE of each sample, in sample order (for paired tests).
+    """
+
+    translation_mm: float
+    rotation_deg: float | None
+    whitened_sse: float
+    per_sample: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False, compare=False)
+
+    def improved_by(self, other: HeldoutError, level: float) -> bool:
+        """``other`` predicts held-out samples better: lower total whitened error, and a
+        one-sided paired t-test over samples significant at ``level``."""
+        if other.whitened_sse >= self.whitened_sse:
+            return False
+        gain = self.per_sample - other.per_sample
+        if gain.size < 3 or float(np.std(gain)) == 0.0:
+            return True
+        t = float(gain.mean() / (gain.std(ddof=1) / np.sqrt(gain.size)))
+        return float(scipy.stats.t.sf(t, gain.size - 1)) < level
+
+
+@dataclass(frozen=True)
+class TermEstimate:
+    """A term with its reported parameters and standard errors (see explain.py)."""
+
+    term: Term
+    parameters: dict[str, float]
+    stderr: dict[str, float]
+    p_value: float
+    absorbed_fraction: float
+    stability: float | None = None
+
+
+@dataclass(frozen=True)
+class PlotPanel:
+    """Before/after residuals against the variable that drives a term (display units)."""
+
+    driver: FloatArray
+    driver_label: str
+    before: FloatArray
+    after: FloatArray
+    fitted: FloatArray
+    value_label: str
+
+
+@dataclass(frozen=True)
+class Finding:
+    """A named effect with its final-model estimate and the held-out errors when it entered."""
+
+    estimate: TermEstimate
+    step: int
+    heldout_before: HeldoutError
+    heldout_after: HeldoutError
+    explanation: str
+    panels: list[PlotPanel] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Ambiguity:
+    """Terms the data cannot tell apart (``with_geometry``: one term vs the geometry).
+
+    ``kept`` is the term added to the model (it improves the held-out error whichever label is
+    right), or None. ``poses`` would separate them.
+    """
+
+    candidates: list[TermEstimate]
+    with_geometry: bool
+    correlation: float
+    step: int
+    kept: Term | None
+    poses: SeparatingPoses | None
+    explanation: str
+
+
+@dataclass(frozen=True)
+class Unexplained:
+    """Structure no library term describes, by joint (None: time or range)."""
+
+    joint_index: int | None
+    variable: str
+    p_value: float
+    explained_fraction: float
+    distance_correlation: float | None
+    partial: list[str]
+    explanation: str
+
+
+@dataclass(frozen=True)
+class RandomEffect:
+    """A random-looking effect for the covariance calibration (floating backlash)."""
+
+    joint_index: int
+    p_value: float
+    variance_ratio: float
+    explanation: str
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step of the loop: the best candidate and what happened to it."""
+
+    step: int
+    candidate: str
+    action: str  # accepted, ambiguous, rejected_heldout, unexplained
+    p_value: float
+    heldout_before_mm: float | None = None
+    heldout_after_mm: float | None = None
+
+
+@dataclass(frozen=True)
+class DiscoveryResult:
+    """Findings, ambiguities, unexplained structure and random effects, with the evidence."""
+
+    findings: list[Finding]
+    ambiguous: list[Ambiguity]
+    unexplained: list[Unexplained]
+    random_effects: list[RandomEffect]
+    steps: list[Step]
+    heldout_before: HeldoutError
+    heldout_after: HeldoutError
+    health_before: HealthReport
+    health_after: HealthReport
+    terms: tuple[Term, ...]
+    params: ModelParameters
+    joint_names: tuple[str, ...]
+    n_candidates: int
+    clock_unit: str
+    outlier_rows: IndexArray  # 0-based samples left out as gross outliers of the final model
