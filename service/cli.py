@@ -211,6 +211,145 @@ def predict(
 
 
 @app.command()
+def rank(
+    result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result with covariance.")],
+    output: OutputOpt,
+    configs: Annotated[
+        Path | None,
+        typer.Argument(metavar="CONFIGS", help="Configurations: joint columns (+ payload_kg)."),
+    ] = None,
+    weights: Annotated[
+        str | None, typer.Option(help="W diagonal for vx,vy,vz,wx,wy,wz [0.4,0.4,0,0.1,0.1,0].")
+    ] = None,
+    weight_matrix: Annotated[
+        Path | None, typer.Option(help="Full 6×6 W: JSON, or 6 rows of 6 numbers.")
+    ] = None,
+    rotation_scale: Annotated[float, typer.Option(help="Metres that 1 rad counts as.")] = 1.0,
+    task_point: Annotated[
+        str | None, typer.Option(help="Score the position of this EE-frame point x,y,z (m).")
+    ] = None,
+    task_weights: Annotated[str | None, typer.Option(help="Task point weights wx,wy,wz.")] = None,
+    include_noise: Annotated[bool, typer.Option(help="Add the measurement noise Σ_n.")] = False,
+    target: Annotated[
+        str | None, typer.Option(help="Rank IK candidates for x,y,z,qx,qy,qz,qw instead.")
+    ] = None,
+    n_candidates: Annotated[int, typer.Option(help="IK candidates wanted.")] = 16,
+    seed: Annotated[int, typer.Option(help="IK random seed.")] = 0,
+    free_axis: Annotated[str, typer.Option(help="IK: auto, x, y, z or none.")] = "auto",
+    payload_kg: Annotated[float | None, typer.Option(help="Payload (default: result's).")] = None,
+    top: Annotated[int | None, typer.Option(help="Keep only the best N entries.")] = None,
+) -> None:
+    """Rank configurations by predicted task uncertainty tr(W Σ_E Wᵀ), best first (Eq. 22–23)."""
+    from service import ranking
+
+    result = read_result(result_path)
+    if result.covariance is None:
+        raise KincalError(f"{result_path} {ranking.NO_COVARIANCE}")
+    if (configs is None) == (target is None):
+        raise KincalError("give exactly one of CONFIGS (a configurations file) and --target")
+    options = ranking.options_from_flags(
+        weights=weights,
+        weight_matrix=weight_matrix,
+        rotation_scale_m_per_rad=rotation_scale,
+        task_point=task_point,
+        task_weights=task_weights,
+        include_noise=include_noise,
+        top=top,
+    )
+    model = ranking.uncertainty_model(result)
+    if configs is not None:
+        chain = model.chain
+        configurations = read_configurations(
+            configs, chain.joint_names, other_joint_names=chain.other_joint_names
+        )
+        payload = configurations.payload_kg if payload_kg is None else payload_kg
+        out = ranking.rank_configurations(
+            result, configurations.joint_positions, options, payload_kg=payload, model=model
+        )
+    else:
+        request = ranking.target_request(
+            target or "",
+            options,
+            n_candidates=n_candidates,
+            seed=seed,
+            free_axis=free_axis,
+            payload_kg=result.options.payload_kg if payload_kg is None else payload_kg,
+        )
+        out = ranking.rank_target(result, request, model=model)
+        if not out.ranking:
+            raise KincalError(ranking.NO_IK_SOLUTION)
+    _write_json(output, out.model_dump_json(indent=1))
+    typer.echo(ranking.summary(out))
+
+
+@app.command()
+def discover(
+    data: Annotated[Path, typer.Argument(help="Dataset: CSV, Parquet or JSON.")],
+    output: OutputOpt,
+    robot: RobotOpt = None,
+    urdf: UrdfOpt = None,
+    base: BaseOpt = None,
+    tip: TipOpt = None,
+    compliant_joints: Annotated[
+        str | None, typer.Option(help="Joints your model already treats as elastic.")
+    ] = None,
+    virtual_axes: Annotated[
+        str | None, typer.Option(help="Joints your model already gives virtual flex axes.")
+    ] = None,
+    gravity: Annotated[str, typer.Option(help="Gravity in the base frame, m/s².")] = "0,0,-9.81",
+    payload_kg: Annotated[float, typer.Option(min=0.0, help="Payload if not in the data.")] = 0.0,
+    payload_com: Annotated[str, typer.Option(help="Payload centre in the tip frame, m.")] = "0,0,0",
+    alpha: Annotated[float, typer.Option(help="Family-wise error rate per step.")] = 0.01,
+    seed: Annotated[int, typer.Option(min=0, help="Folds, bootstrap, pose pool.")] = 0,
+    max_terms: Annotated[int, typer.Option(min=0, help="At most this many terms.")] = 6,
+    effects: Annotated[
+        str | None, typer.Option(help="Comma-separated library effects (default: all).")
+    ] = None,
+    folds: Annotated[int, typer.Option(help="K of the held-out check.")] = 5,
+    bootstrap: Annotated[int, typer.Option(min=0, help="Bootstrap replicates.")] = 50,
+    noise_mm: Annotated[float | None, typer.Option(help="Sensor noise σ (mm), for χ².")] = None,
+    noise_deg: Annotated[float | None, typer.Option(help="Sensor noise σ (deg).")] = None,
+    marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
+    plots: Annotated[bool, typer.Option(help="Write a PNG per finding next to -o.")] = True,
+) -> None:
+    """Find what the model leaves out, name the physics, model it, show the held-out gain."""
+    from schemas.discovery import DiscoveryOptions
+    from service import discovery
+
+    description = _robot(robot, urdf, base, tip)
+    try:
+        options = DiscoveryOptions(
+            compliant_joints=_names(compliant_joints) or [],
+            virtual_axes_at=_names(virtual_axes) or [],
+            gravity_base_m_s2=_vector3(gravity, "--gravity"),
+            payload_kg=payload_kg,
+            payload_com_m=_vector3(payload_com, "--payload-com"),
+            alpha=alpha,
+            seed=seed,
+            max_terms=max_terms,
+            effects=_names(effects) or list(discovery.EFFECTS),  # type: ignore[arg-type]
+            folds=folds,
+            bootstrap=bootstrap,
+            sensor_sigma_mm=noise_mm,
+            sensor_sigma_deg=noise_deg,
+        )
+    except pydantic.ValidationError as exc:
+        first = exc.errors()[0]
+        raise KincalError(
+            f"option {first['loc'][0]}: {first['msg']} (got {first.get('input')!r})"
+        ) from exc
+    chain = discovery.chain_for(description, options)
+    dataset = read_dataset(
+        data, chain.joint_names, other_joint_names=chain.other_joint_names, marker=marker
+    )
+    plot_dir = output.resolve().parent if plots else None
+    findings = discovery.discover(dataset, description, options, plot_dir, output.stem)
+    _write_json(output, findings.model_dump_json(indent=1))
+    typer.echo(discovery.summary(findings))
+    typer.echo(f"\nfindings written to {output}")
+
+
+@app.command()
 def demo(
     output_dir: Annotated[Path, typer.Option(help="Where the demo writes its files.")] = Path(
         "out/demo"
@@ -220,6 +359,45 @@ def demo(
     from service.demo import run_demo
 
     run_demo(output_dir, echo=typer.echo)
+
+
+@app.command()
+def serve(
+    host: Annotated[
+        str | None, typer.Option(help="Interface [127.0.0.1; keyless only on loopback].")
+    ] = None,
+    port: Annotated[int | None, typer.Option(min=1, max=65535, help="Port [8000].")] = None,
+) -> None:
+    """Run the HTTP service (other settings: KINCAL_* environment variables)."""
+    from service.api.server import run_server
+
+    run_server(host=host, port=port)
+
+
+keys_app = typer.Typer(no_args_is_help=True, help="API keys of the HTTP service.")
+app.add_typer(keys_app, name="keys")
+
+
+@keys_app.command("create")
+def keys_create(
+    tenant: Annotated[str, typer.Option(help="Tenant the key acts for (created if new).")],
+) -> None:
+    """Create an API key: printed once, only its SHA-256 is stored."""
+    from service.api.server import create_key
+
+    key_id, key = create_key(tenant)
+    typer.echo(key)
+    typer.echo(f"key {key_id} for tenant {tenant}; it is not shown again", err=True)
+
+
+@keys_app.command("revoke")
+def keys_revoke(key_id: Annotated[str, typer.Argument(help="The key id (kc_<id>_...).")]) -> None:
+    """Revoke an API key (services stop accepting it within KINCAL_API_KEY_CACHE_S)."""
+    from service.api.server import revoke_key
+
+    if not revoke_key(key_id):
+        raise KincalError(f"no active key with id {key_id!r}")
+    typer.echo(f"revoked key {key_id}")
 
 
 def main() -> None:

@@ -55,6 +55,14 @@ FloatArray = NDArray[np.float64]
 BEFORE = "before"
 CALIBRATED = "calibrated"
 
+Progress = Callable[[str, int, int], None]
+"""``progress(stage, done, total)``, called after each solver run of a stage ("fit", "baseline",
+"heldout"); the HTTP job runner turns it into job progress."""
+
+
+def _no_progress(stage: str, done: int, total: int) -> None:
+    return None
+
 
 @dataclass(frozen=True)
 class PreparedData:
@@ -130,7 +138,10 @@ def _fit(data: PreparedData, rows: NDArray[np.intp], options: FitOptions) -> Det
 
 
 def calibrate(
-    dataset: PoseDataset, robot: RobotDescription, options: CalibrationOptions
+    dataset: PoseDataset,
+    robot: RobotDescription,
+    options: CalibrationOptions,
+    progress: Progress = _no_progress,
 ) -> CalibrationResult:
     """Deterministic calibration (Eq. 8–10) with outlier removal (§V-A) and held-out scores."""
     chain = chain_for(robot, options)
@@ -138,12 +149,14 @@ def calibrate(
     everything = np.arange(dataset.n_samples)
     full = fit_options(options)
     first = _fit(data, everything, full)
+    progress("fit", 1, 1)
     used = everything
     if options.outlier_sigma is not None:
         used = everything[outlier_mask(first.residuals, options.outlier_sigma)]
     fit = first if used.size == everything.size else _fit(data, used, full)
     baseline = _fit(data, used, fit_options(options, baseline=True, n_links=chain.n_links))
-    splits = heldout_splits(data, used, options) if options.heldout else []
+    progress("baseline", 1, 1)
+    splits = heldout_splits(data, used, options, progress) if options.heldout else []
     return CalibrationResult(
         kincal_version=kincal_version(),
         created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -208,16 +221,22 @@ def calibrate(
 
 
 def heldout_splits(
-    data: PreparedData, used: NDArray[np.intp], options: CalibrationOptions
+    data: PreparedData,
+    used: NDArray[np.intp],
+    options: CalibrationOptions,
+    progress: Progress = _no_progress,
 ) -> list[SplitError]:
     """DESIGN.md §4: nominal robot (frame + tool fitted) vs calibrated, on identical splits."""
     n_links = data.chain.n_links
+    total, done = 2 * len(options.seeds), [0]
 
     def method(baseline: bool) -> Callable[[NDArray[np.intp], NDArray[np.intp]], FloatArray]:
         settings = fit_options(options, baseline=baseline, n_links=n_links)
 
         def predict_test(train: NDArray[np.intp], test: NDArray[np.intp]) -> FloatArray:
             params = _fit(data, used[train], settings).params
+            done[0] += 1
+            progress("heldout", done[0], total)
             rows = used[test]
             return forward_kinematics(
                 data.chain, params, data.joint_positions[rows], data.loads_nm[rows]

@@ -1,0 +1,168 @@
+"""Request and response bodies of the HTTP API (``/api/v1``), one family per resource.
+
+``*Create``: what a client sends; ``*Public``: what it gets back; ``*sPublic``: a page of a list.
+Errors are :class:`Problem` documents (RFC 9457, ``application/problem+json``).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas.calibration import CalibrationOptions
+
+JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+
+
+class _In(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ProblemFieldError(BaseModel):
+    location: str = Field(description="Where: e.g. 'body.options.max_iterations'.")
+    pointer: str | None = Field(None, description="JSON pointer into the request body.")
+    detail: str
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details. ``detail`` names the offending field and how to fix it."""
+
+    model_config = ConfigDict(extra="allow")
+
+    type: str = Field("about:blank", description="URI identifying the problem type.")
+    title: str
+    status: int
+    detail: str | None = None
+    instance: str | None = Field(None, description="The request path.")
+    request_id: str | None = None
+    errors: list[ProblemFieldError] | None = None
+
+
+class Page(BaseModel):
+    count: int = Field(description="Total number of items (all pages).")
+    offset: int
+    limit: int
+
+
+# --- robots ------------------------------------------------------------------------------------
+
+
+class RobotCreate(_In):
+    """A URDF to upload, and the chain (base -> tip frames) to calibrate in it."""
+
+    name: str = Field(pattern=NAME_PATTERN, description="Short name shown in results.")
+    base_frame: str = Field(min_length=1, max_length=200)
+    tip_frame: str = Field(min_length=1, max_length=200)
+    urdf: str = Field(min_length=1, description="The URDF XML text (size-limited).")
+
+
+class RobotPublic(BaseModel):
+    id: str = Field(description="Built-in robot name, or the id of an uploaded URDF.")
+    name: str
+    builtin: bool
+    base_frame: str
+    tip_frame: str
+    joint_names: list[str]
+    urdf_sha256: str
+    created_at: dt.datetime | None = None
+
+
+class RobotsPublic(BaseModel):
+    data: list[RobotPublic]
+    count: int
+
+
+# --- datasets ----------------------------------------------------------------------------------
+
+
+class DatasetCreate(_In):
+    """A dataset as JSON rows (same columns as the CSV contract of DESIGN.md §3)."""
+
+    robot: str = Field(description="Built-in robot name or uploaded robot id.")
+    base_frame: str | None = Field(None, description="Override the robot's base frame.")
+    tip_frame: str | None = Field(None, description="Override the robot's tip frame.")
+    name: str = Field("rows.json", min_length=1, max_length=200)
+    rows: list[dict[str, Any]] = Field(
+        min_length=1,
+        description="One object per measurement: joint columns, x,y,z[,qx,qy,qz,qw], optional "
+        "sample_id, t, temperature_c, payload_kg.",
+    )
+
+
+class DatasetPublic(BaseModel):
+    id: str
+    name: str
+    robot: str
+    robot_id: str | None = Field(description="Set when the robot is an uploaded URDF.")
+    base_frame: str
+    tip_frame: str
+    joint_names: list[str]
+    n_samples: int
+    position_only: bool
+    time_start_s: float | None
+    time_end_s: float | None
+    content_sha256: str = Field(description="SHA-256 of the robot reference and the data.")
+    size_bytes: int
+    created_at: dt.datetime
+
+
+class DatasetsPublic(Page):
+    data: list[DatasetPublic]
+
+
+# --- jobs and calibrations ---------------------------------------------------------------------
+
+
+class JobStatus(BaseModel):
+    state: JobState
+    stage: str | None = Field(None, description="What the job is doing now.")
+    fraction: float = Field(ge=0.0, le=1.0, description="Overall progress.")
+    iteration: int | None = Field(None, description="Step within the stage.")
+    attempts: int = Field(description="Times a worker started it (>1 after a crash/restart).")
+    cancel_requested: bool
+    error: str | None = Field(None, description="Why it failed (one line).")
+    created_at: dt.datetime
+    started_at: dt.datetime | None
+    finished_at: dt.datetime | None
+
+
+class CalibrationCreate(_In):
+    dataset_id: str = Field(min_length=1, max_length=64)
+    options: CalibrationOptions = Field(default_factory=CalibrationOptions)
+
+
+class CalibrationLinks(BaseModel):
+    self: str
+    result: str
+    report: str
+    urdf: str
+    cancel: str
+
+
+class CalibrationPublic(BaseModel):
+    id: str
+    dataset_id: str | None
+    status: JobStatus
+    options: CalibrationOptions
+    links: CalibrationLinks
+
+
+class CalibrationsPublic(Page):
+    data: list[CalibrationPublic]
+
+
+# --- health ------------------------------------------------------------------------------------
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+
+
+class Readiness(BaseModel):
+    status: Literal["ready", "not ready"]
+    checks: dict[str, bool]
+    workers_alive: int
+    workers_configured: int

@@ -1,0 +1,124 @@
+"""The FastAPI application factory.
+
+``create_app(settings)`` builds the app (it only creates the data folder); starting it (the
+ASGI lifespan) migrates the database, creates tenant 'local' in keyless mode and starts the
+job runner; stopping it lets running jobs finish for ``shutdown_grace_s`` and re-queues the
+rest.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from starlette.concurrency import run_in_threadpool
+
+from service.api import calibrations, datasets, health, robots
+from service.api.deps import ServiceState
+from service.api.metrics import Metrics
+from service.api.middleware import RequestContextMiddleware
+from service.api.problems import install_problem_handlers
+from service.api.results import ResultCache
+from service.jobs import JobRegistry, JobRunner, default_registry
+from service.pipeline import kincal_version
+from service.security import LOCAL_TENANT, KeyVerifier, Principal
+from service.settings import Settings
+from service.storage import repository
+from service.storage.db import Database
+from service.storage.files import FileStore
+
+log = logging.getLogger("kincal.service")
+
+DESCRIPTION = """Calibrate robot kinematics, including the randomness inside the chain.
+
+Upload a recording (`/datasets`), start a calibration job (`/calibrations`), poll it, then read
+its result, HTML report and calibrated URDF. Every error is `application/problem+json`
+(RFC 9457). Authenticate with `X-API-Key` (not needed when the service is bound to 127.0.0.1).
+"""
+
+
+def build_state(settings: Settings, registry: JobRegistry) -> ServiceState:
+    database = Database(settings.resolved_database_url)
+    files = FileStore(settings.data_dir)
+    metrics = Metrics(database, registry.names, lambda: runner.workers_alive())
+    runner = JobRunner(settings, database, files, registry, on_finished=metrics.observe_job)
+    return ServiceState(
+        settings=settings,
+        database=database,
+        files=files,
+        registry=registry,
+        runner=runner,
+        verifier=KeyVerifier(database, settings.api_key_cache_s),
+        metrics=metrics,
+        results=ResultCache(files, settings.result_cache_size),
+    )
+
+
+def _start(state: ServiceState) -> None:
+    settings = state.settings
+    state.database.migrate()
+    if settings.keyless:
+        with state.database.session() as session:
+            tenant = repository.ensure_tenant(session, LOCAL_TENANT)
+            state.local_tenant = Principal(tenant.id, tenant.name, None)
+        log.warning(
+            "keyless mode: bound to loopback address %s, requests without X-API-Key act as "
+            "tenant '%s' (set KINCAL_ALLOW_KEYLESS_LOCALHOST=false to require keys)",
+            settings.host,
+            LOCAL_TENANT,
+        )
+    else:
+        log.info("API keys required (bound to %s)", settings.host)
+    state.runner.start()
+    log.info(
+        "kincal service started",
+        extra={
+            "version": kincal_version(),
+            "database": state.database.backend,
+            "data_dir": str(settings.data_dir),
+            "workers": settings.workers,
+        },
+    )
+
+
+def _stop(state: ServiceState) -> None:
+    log.info(
+        "shutting down: waiting up to %.0f s for running jobs", state.settings.shutdown_grace_s
+    )
+    state.runner.stop()
+    state.database.dispose()
+    log.info("kincal service stopped")
+
+
+def create_app(settings: Settings | None = None, *, registry: JobRegistry | None = None) -> FastAPI:
+    """The kincal HTTP service for ``settings`` (default: from the environment)."""
+    settings = settings or Settings()
+    state = build_state(settings, registry or default_registry())
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        await run_in_threadpool(_start, state)
+        try:
+            yield
+        finally:
+            await run_in_threadpool(_stop, state)
+
+    app = FastAPI(
+        title="kincal",
+        version=kincal_version(),
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        docs_url="/docs",
+        openapi_url="/openapi.json",
+        redoc_url=None,
+    )
+    app.state.kincal = state
+    install_problem_handlers(app)
+    app.add_middleware(
+        RequestContextMiddleware, metrics=state.metrics, max_body_bytes=settings.max_request_bytes
+    )
+    for module in (robots, datasets, calibrations, health):
+        app.include_router(module.router)
+    return app

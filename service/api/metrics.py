@@ -1,0 +1,95 @@
+"""Prometheus metrics of one app instance (own registry, so several apps can coexist in tests).
+
+* ``kincal_http_requests_total{method,route,status}`` and
+  ``kincal_http_request_duration_seconds{method,route}``: route is the path template
+  (``/api/v1/calibrations/{calibration_id}``), never the raw path, to bound cardinality;
+* ``kincal_jobs{kind,state}``: jobs in the database per state, read at scrape time;
+* ``kincal_job_duration_seconds{kind,state}``: start to finish of jobs run by this instance;
+* ``kincal_workers_alive``: worker processes alive.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+from prometheus_client import (
+    CollectorRegistry,
+    Counter,
+    Histogram,
+    disable_created_metrics,
+    generate_latest,
+)
+from prometheus_client.core import GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+from service.storage import repository
+from service.storage.db import Database
+from service.storage.models import Job
+
+disable_created_metrics()  # no *_created series: they double the output and nobody reads them
+
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+JOB_BUCKETS_S = (0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 900.0, 3600.0)
+
+
+class _JobCollector(Collector):
+    def __init__(
+        self, database: Database, kinds: Callable[[], list[str]], alive: Callable[[], int]
+    ) -> None:
+        self._database = database
+        self._kinds = kinds
+        self._alive = alive
+
+    def collect(self) -> Iterator[Metric]:
+        jobs = GaugeMetricFamily("kincal_jobs", "Jobs by kind and state.", labels=["kind", "state"])
+        with self._database.session() as session:
+            counts = repository.count_jobs_by_state(session)
+        kinds = sorted(set(self._kinds()) | {kind for kind, _ in counts})
+        for kind in kinds:
+            for state in repository.JOB_STATES:
+                jobs.add_metric([kind, state], counts.get((kind, state), 0))
+        yield jobs
+        workers = GaugeMetricFamily("kincal_workers_alive", "Worker processes alive.")
+        workers.add_metric([], self._alive())
+        yield workers
+
+
+class Metrics:
+    def __init__(
+        self, database: Database, kinds: Callable[[], list[str]], alive: Callable[[], int]
+    ) -> None:
+        self.registry = CollectorRegistry()
+        self.requests = Counter(
+            "kincal_http_requests",
+            "HTTP requests by route template and status.",
+            ["method", "route", "status"],
+            registry=self.registry,
+        )
+        self.latency = Histogram(
+            "kincal_http_request_duration_seconds",
+            "HTTP request latency by route template.",
+            ["method", "route"],
+            buckets=LATENCY_BUCKETS_S,
+            registry=self.registry,
+        )
+        self.job_duration = Histogram(
+            "kincal_job_duration_seconds",
+            "Job run time (start to finish) by kind and final state.",
+            ["kind", "state"],
+            buckets=JOB_BUCKETS_S,
+            registry=self.registry,
+        )
+        self.registry.register(_JobCollector(database, kinds, alive))
+
+    def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
+        self.requests.labels(method, route, str(status)).inc()
+        self.latency.labels(method, route).observe(seconds)
+
+    def observe_job(self, job: Job) -> None:
+        if job.started_at is not None and job.finished_at is not None:
+            seconds = (job.finished_at - job.started_at).total_seconds()
+            self.job_duration.labels(job.kind, job.state).observe(max(seconds, 0.0))
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)

@@ -1,0 +1,240 @@
+"""A small Python client of the kincal HTTP service, for planners and lab tools.
+
+>>> client = KincalClient("http://127.0.0.1:8000", api_key="kc_...")      # doctest: +SKIP
+>>> dataset = client.upload_dataset("recording.csv", robot="panda")        # doctest: +SKIP
+>>> calibration = client.start_calibration(dataset["id"])                   # doctest: +SKIP
+>>> client.wait(calibration["id"], on_progress=print)                       # doctest: +SKIP
+>>> result = client.result(calibration["id"])   # schemas.calibration.CalibrationResult
+
+Every non-2xx answer raises :class:`KincalAPIError` carrying the problem document.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from schemas.calibration import CalibrationOptions, CalibrationResult
+
+API = "/api/v1"
+TERMINAL = ("succeeded", "failed", "cancelled")
+MEDIA_TYPES = {
+    ".csv": "text/csv",
+    ".json": "application/json",
+    ".parquet": "application/vnd.apache.parquet",
+}
+
+
+class KincalAPIError(Exception):
+    """An error answer of the service; ``problem`` is its RFC 9457 document."""
+
+    def __init__(self, status: int, problem: dict[str, Any]) -> None:
+        self.status = status
+        self.problem = problem
+        super().__init__(f"HTTP {status}: {problem.get('detail') or problem.get('title')}")
+
+
+class CalibrationFailed(Exception):
+    """The calibration job ended failed or cancelled; ``status`` is its last status."""
+
+    def __init__(self, calibration_id: str, status: dict[str, Any]) -> None:
+        self.calibration_id = calibration_id
+        self.status = status
+        super().__init__(f"calibration {calibration_id} {status['state']}: {status.get('error')}")
+
+
+class KincalClient:
+    """Synchronous client. Pass ``client`` to reuse an ``httpx.Client`` (e.g. a TestClient)."""
+
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        *,
+        api_key: str | None = None,
+        timeout_s: float = 60.0,
+        client: httpx.Client | None = None,
+    ) -> None:
+        headers = {"X-API-Key": api_key} if api_key else {}
+        self._http = client or httpx.Client(base_url=base_url, timeout=timeout_s)
+        self._headers = headers
+        self._owns_client = client is None
+
+    def close(self) -> None:
+        if self._owns_client:
+            self._http.close()
+
+    def __enter__(self) -> KincalClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # plumbing
+
+    def _request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        headers = {**self._headers, **kwargs.pop("headers", {})}
+        response = self._http.request(method, path, headers=headers, **kwargs)
+        if response.status_code >= 400:
+            try:
+                problem = response.json()
+            except ValueError:
+                problem = {"title": response.reason_phrase, "detail": response.text[:500]}
+            raise KincalAPIError(response.status_code, problem)
+        return response
+
+    @staticmethod
+    def _idempotency(key: str | None) -> dict[str, str]:
+        return {"Idempotency-Key": key or str(uuid.uuid4())}
+
+    # robots and datasets
+
+    def robots(self) -> list[dict[str, Any]]:
+        return list(self._request("GET", f"{API}/robots").json()["data"])
+
+    def upload_robot(
+        self, urdf: str | Path, *, name: str, base_frame: str, tip_frame: str
+    ) -> dict[str, Any]:
+        """Upload a URDF (text or file path); returns the robot, whose ``id`` datasets use."""
+        text = Path(urdf).read_text(encoding="utf-8") if isinstance(urdf, Path) else urdf
+        body = {"name": name, "base_frame": base_frame, "tip_frame": tip_frame, "urdf": text}
+        return dict(
+            self._request(
+                "POST", f"{API}/robots", json=body, headers=self._idempotency(None)
+            ).json()
+        )
+
+    def upload_dataset(
+        self,
+        path: str | Path,
+        *,
+        robot: str,
+        base_frame: str | None = None,
+        tip_frame: str | None = None,
+        name: str | None = None,
+        idempotency_key: str | None = None,
+    ) -> dict[str, Any]:
+        """Upload a CSV / Parquet / JSON recording; returns the dataset (the existing one if a
+        duplicate)."""
+        path = Path(path)
+        fields = {"robot": robot, "base_frame": base_frame, "tip_frame": tip_frame, "name": name}
+        data = {k: v for k, v in fields.items() if v is not None}
+        media = MEDIA_TYPES.get(path.suffix.lower(), "application/octet-stream")
+        with path.open("rb") as handle:
+            response = self._request(
+                "POST",
+                f"{API}/datasets",
+                files={"file": (path.name, handle, media)},
+                data=data,
+                headers=self._idempotency(idempotency_key),
+            )
+        return dict(response.json())
+
+    def upload_rows(
+        self, rows: Sequence[Mapping[str, Any]], *, robot: str, name: str = "rows.json"
+    ) -> dict[str, Any]:
+        body = {"robot": robot, "name": name, "rows": list(rows)}
+        return dict(self._request("POST", f"{API}/datasets", json=body).json())
+
+    def datasets(self, *, offset: int = 0, limit: int = 50) -> dict[str, Any]:
+        params = {"offset": offset, "limit": limit}
+        return dict(self._request("GET", f"{API}/datasets", params=params).json())
+
+    def dataset(self, dataset_id: str) -> dict[str, Any]:
+        return dict(self._request("GET", f"{API}/datasets/{dataset_id}").json())
+
+    def delete_dataset(self, dataset_id: str) -> None:
+        self._request("DELETE", f"{API}/datasets/{dataset_id}")
+
+    # calibrations
+
+    def start_calibration(
+        self,
+        dataset_id: str,
+        options: CalibrationOptions | Mapping[str, Any] | None = None,
+        *,
+        idempotency_key: str | None = None,
+    ) -> dict[str, Any]:
+        """Queue a calibration job; retrying with the same ``idempotency_key`` is safe."""
+        if isinstance(options, CalibrationOptions):
+            options = options.model_dump(mode="json", exclude_defaults=True)
+        body = {"dataset_id": dataset_id, "options": dict(options or {})}
+        headers = self._idempotency(idempotency_key)
+        return dict(self._request("POST", f"{API}/calibrations", json=body, headers=headers).json())
+
+    def status(self, calibration_id: str) -> dict[str, Any]:
+        """The calibration with ``status``: state, stage, fraction, iteration, error."""
+        return dict(self._request("GET", f"{API}/calibrations/{calibration_id}").json())
+
+    def wait(
+        self,
+        calibration_id: str,
+        *,
+        timeout_s: float = 900.0,
+        poll_s: float = 0.25,
+        on_progress: Callable[[dict[str, Any]], None] | None = None,
+    ) -> dict[str, Any]:
+        """Poll until the calibration ends; :class:`CalibrationFailed` unless it succeeded."""
+        deadline = time.monotonic() + timeout_s
+        last: tuple[Any, ...] | None = None
+        while True:
+            status = self.status(calibration_id)["status"]
+            seen = (status["state"], status["stage"], status["fraction"], status["iteration"])
+            if on_progress is not None and seen != last:
+                on_progress(status)
+            last = seen
+            if status["state"] in TERMINAL:
+                if status["state"] != "succeeded":
+                    raise CalibrationFailed(calibration_id, status)
+                return status
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"calibration {calibration_id} still {status['state']}")
+            time.sleep(poll_s)
+
+    def result(self, calibration_id: str) -> CalibrationResult:
+        response = self._request("GET", f"{API}/calibrations/{calibration_id}/result")
+        return CalibrationResult.model_validate_json(response.content)
+
+    def report(self, calibration_id: str) -> str:
+        return self._request("GET", f"{API}/calibrations/{calibration_id}/report").text
+
+    def urdf(self, calibration_id: str) -> str:
+        return self._request("GET", f"{API}/calibrations/{calibration_id}/urdf").text
+
+    def cancel(self, calibration_id: str) -> dict[str, Any]:
+        return dict(self._request("POST", f"{API}/calibrations/{calibration_id}/cancel").json())
+
+    def calibrate(
+        self,
+        path: str | Path,
+        *,
+        robot: str,
+        options: CalibrationOptions | Mapping[str, Any] | None = None,
+        on_progress: Callable[[dict[str, Any]], None] | None = None,
+    ) -> CalibrationResult:
+        """Upload, calibrate, wait and return the result in one call."""
+        dataset = self.upload_dataset(path, robot=robot)
+        calibration = self.start_calibration(dataset["id"], options)
+        self.wait(calibration["id"], on_progress=on_progress)
+        return self.result(calibration["id"])
+
+    # rankings (synchronous): the body is schemas.ranking.ConfigurationRankingRequest plus the
+    # calibration id; ``fields`` passes ``options`` / ``payload_kg`` through unchanged.
+
+    def rank(
+        self,
+        calibration_id: str,
+        joint_positions_rad: Sequence[Sequence[float]],
+        **fields: Any,
+    ) -> dict[str, Any]:
+        """Score candidate joint configurations (lower = less task-relevant uncertainty)."""
+        body = {
+            "calibration_id": calibration_id,
+            "joint_positions_rad": [list(map(float, q)) for q in joint_positions_rad],
+            **fields,
+        }
+        return dict(self._request("POST", f"{API}/rankings", json=body).json())

@@ -1,0 +1,219 @@
+"""The calibration report as one self-contained HTML page (figures embedded as PNG data URIs).
+
+Sections: fit statistics (before / after, train / held-out), residual distributions before and
+after calibration (paper Fig. 4a), identifiability warnings (parameters removed by name,
+compliance that is not significant), random effects as σ per frame (paper Fig. 4b) when the
+result has covariances, and the held-out table (paper Table II layout).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from schemas.calibration import CalibrationResult, CovarianceResult, ErrorStats
+from schemas.dataset import PoseDataset
+from service import pipeline
+from service.plots import residual_histograms
+from service.report import table_ii
+
+_STYLE = """
+body { font: 14px/1.45 system-ui, sans-serif; margin: 2rem auto; max-width: 72rem; color: #222; }
+h1 { font-size: 1.5rem; } h2 { font-size: 1.15rem; margin-top: 2rem; }
+table { border-collapse: collapse; margin: .5rem 0; }
+th, td { border: 1px solid #ccc; padding: .25rem .6rem; text-align: right; }
+th:first-child, td:first-child { text-align: left; }
+.warn { background: #fff4e0; border-left: 4px solid #e69500; padding: .4rem .8rem; }
+.ok { background: #eaf6ea; border-left: 4px solid #3a3; padding: .4rem .8rem; }
+img { max-width: 100%; } pre { background: #f6f6f6; padding: .6rem; overflow-x: auto; }
+code { background: #f2f2f2; padding: 0 .2rem; }
+"""
+
+
+def render_report(result: CalibrationResult, dataset: PoseDataset) -> str:
+    """The HTML report of ``result``; ``dataset`` is the recording it was calibrated on."""
+    e = html.escape
+    sections = [
+        f"<h1>kincal calibration report: {e(result.robot.name)}</h1>",
+        _overview(result),
+        "<h2>Fit (mean and RMS error)</h2>",
+        _fit_table(result),
+        "<h2>Residuals before and after calibration (paper Fig. 4a)</h2>",
+        _residual_figure(result, dataset),
+        "<h2>Identifiability</h2>",
+        _identifiability(result),
+        "<h2>Joint compliance</h2>",
+        _compliance(result),
+        "<h2>Random effects: standard deviation per frame (paper Fig. 4b)</h2>",
+        _random_effects(result.covariance),
+    ]
+    if result.evaluation is not None:
+        table = table_ii(result.evaluation.splits, position_only=result.dataset.position_only)
+        sections += [
+            "<h2>Held-out evaluation (paper Table II layout)</h2>",
+            f"<p>{e(result.evaluation.protocol)}</p><pre>{e(table)}</pre>",
+        ]
+    return (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        f"<title>kincal report: {e(result.robot.name)}</title><style>{_STYLE}</style></head>"
+        f"<body>{''.join(sections)}</body></html>\n"
+    )
+
+
+def _overview(result: CalibrationResult) -> str:
+    e = html.escape
+    robot, outliers, solver = result.robot, result.outliers, result.solver
+    rows = [
+        (
+            "Robot",
+            f"{robot.name} ({robot.base_frame} → {robot.tip_frame}), "
+            f"{len(robot.joint_names)} joints, URDF sha256 {robot.urdf_sha256[:12]}…",
+        ),
+        (
+            "Dataset",
+            f"{result.dataset.source}: {result.dataset.n_samples} samples, "
+            f"{'position only' if result.dataset.position_only else 'full pose'}",
+        ),
+        (
+            "Outliers",
+            f"{len(outliers.removed_rows)} removed by the {outliers.sigma}σ rule, "
+            f"{outliers.n_used} used"
+            if outliers.sigma
+            else "rule disabled",
+        ),
+        (
+            "Solver",
+            f"{solver.name}: {solver.status} after {solver.iterations} iterations "
+            f"({solver.time_s:.2f} s)",
+        ),
+        ("Created", f"{result.created_utc} by kincal {result.kincal_version}"),
+    ]
+    body = "".join(f"<tr><th>{e(k)}</th><td>{e(v)}</td></tr>" for k, v in rows)
+    return f"<table>{body}</table>"
+
+
+def _fit_table(result: CalibrationResult) -> str:
+    header = (
+        "<tr><th>model</th><th>data</th><th>samples</th><th>mean mm</th><th>RMS mm</th>"
+        "<th>mean deg</th><th>RMS deg</th></tr>"
+    )
+    rows = []
+    for model, phase in (("before", result.fit.before), ("calibrated", result.fit.after)):
+        for split, stats in (("train", phase.train), ("held-out", phase.heldout)):
+            if stats is not None:
+                rows.append(_stats_row(model, split, stats))
+    return f"<table>{header}{''.join(rows)}</table>"
+
+
+def _stats_row(model: str, split: str, stats: ErrorStats) -> str:
+    def cell(value: float | None, digits: int) -> str:
+        return "–" if value is None else f"{value:.{digits}f}"
+
+    return (
+        f"<tr><td>{model}</td><td>{split}</td><td>{stats.n_samples}</td>"
+        f"<td>{cell(stats.translation_mean_mm, 3)}</td><td>{cell(stats.translation_rms_mm, 3)}</td>"
+        f"<td>{cell(stats.rotation_mean_deg, 4)}</td><td>{cell(stats.rotation_rms_deg, 4)}</td>"
+        "</tr>"
+    )
+
+
+def _residual_figure(result: CalibrationResult, dataset: PoseDataset) -> str:
+    removed = np.array(result.outliers.removed_rows, dtype=np.intp) - 1
+    kept = dataset.subset(np.setdiff1d(np.arange(dataset.n_samples), removed))
+    before = pipeline.residuals(result, kept, baseline=True)
+    after = pipeline.residuals(result, kept)
+    with tempfile.TemporaryDirectory() as folder:
+        path = residual_histograms(
+            before,
+            after,
+            Path(folder) / "residuals.png",
+            title=f"End-effector-frame residuals of the {kept.n_samples} samples used: "
+            "nominal robot (frame and tool fitted) vs calibrated",
+        )
+        png = path.read_bytes()
+    return _img(png, "Histograms of residual components before and after calibration")
+
+
+def _identifiability(result: CalibrationResult) -> str:
+    ident = result.identifiability
+    e = html.escape
+    summary = (
+        f"<p>Rank {ident.rank} of {ident.n_parameters} parameters, condition number "
+        f"{ident.condition_number:.3g}.</p>"
+    )
+    if not ident.removed:
+        return summary + '<p class="ok">Every parameter was identifiable from this data.</p>'
+    names = ", ".join(f"<code>{e(name)}</code>" for name in ident.removed)
+    return summary + (
+        f'<p class="warn">{len(ident.removed)} parameter(s) could not be identified from this '
+        f"data and were kept at their nominal values: {names}. Some are redundant by "
+        "construction (e.g. the compliance of a vertical joint, which gravity never loads); "
+        "others need configurations that excite them.</p>"
+    )
+
+
+def _compliance(result: CalibrationResult) -> str:
+    e = html.escape
+    if not result.compliance:
+        return "<p>No compliant axes in this model.</p>"
+    rows = []
+    for c in result.compliance:
+        if not c.estimated:
+            verdict = "not identifiable"
+        elif c.significant:
+            verdict = "significant"
+        else:
+            verdict = '<span class="warn">not significant (within 2σ of 0)</span>'
+        stderr = "–" if c.stderr_rad_per_nm is None else f"{c.stderr_rad_per_nm:.2e}"
+        rows.append(
+            f"<tr><td>{e(c.axis)}</td><td>{c.kind}</td><td>{c.value_rad_per_nm:.3e}</td>"
+            f"<td>{stderr}</td><td>{verdict}</td></tr>"
+        )
+    header = "<tr><th>axis</th><th>kind</th><th>rad/Nm</th><th>± std. err.</th><th></th></tr>"
+    return f"<table>{header}{''.join(rows)}</table>"
+
+
+def _random_effects(covariance: CovarianceResult | None) -> str:
+    if covariance is None:
+        return "<p>This result has no random-effect covariances (that stage did not run).</p>"
+    e = html.escape
+    frames = [*covariance.frames, covariance.noise]
+    names = [frame.name for frame in frames]
+    std = np.array([frame.std for frame in frames], dtype=float)  # (frames, 6) m and rad
+    figure = Figure(figsize=(max(6.0, 0.9 * len(frames) + 2), 5.0), layout="constrained")
+    top, bottom = figure.subplots(2, 1, sharex=True)
+    x = np.arange(len(frames))
+    for axis, block, unit, scale, labels in (
+        (top, std[:, :3], "mm", 1e3, ("tx", "ty", "tz")),
+        (bottom, std[:, 3:], "mrad", 1e3, ("rx", "ry", "rz")),
+    ):
+        for j, label in enumerate(labels):
+            axis.bar(x + (j - 1) * 0.27, block[:, j] * scale, width=0.27, label=label)
+        axis.set_ylabel(f"σ [{unit}]")
+        axis.legend(fontsize=8, ncols=3)
+    bottom.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
+    figure.suptitle(
+        f"Standard deviation of each frame's random twist ({covariance.structure} Σ, "
+        f"{covariance.estimator})",
+        fontsize=10,
+    )
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110)
+    warnings = "".join(f'<p class="warn">{e(w)}</p>' for w in covariance.identifiability.warnings)
+    fixed = ", ".join(e(f) for f in covariance.identifiability.fixed)
+    return (
+        _img(buffer.getvalue(), "Standard deviation per frame")
+        + (f"<p>Fixed entries: {fixed}</p>" if fixed else "")
+        + warnings
+    )
+
+
+def _img(png: bytes, alt: str) -> str:
+    encoded = base64.b64encode(png).decode("ascii")
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{encoded}">'

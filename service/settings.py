@@ -1,0 +1,113 @@
+"""Service settings: one class, read from the environment (prefix ``KINCAL_``).
+
+Every field can be set as ``KINCAL_<FIELD>`` (e.g. ``KINCAL_DATABASE_URL``,
+``KINCAL_MAX_REQUEST_BYTES``). Defaults give a single-user service on 127.0.0.1 with SQLite in the
+user's data folder.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import socket
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+MiB = 1024 * 1024
+
+
+def default_data_dir() -> Path:
+    """``$XDG_DATA_HOME/kincal`` (``~/.local/share/kincal``)."""
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "kincal"
+
+
+class Settings(BaseSettings):
+    """Everything the HTTP service, its job runner and ``kincal keys`` are configured with."""
+
+    model_config = SettingsConfigDict(env_prefix="KINCAL_", extra="ignore")
+
+    host: str = Field("127.0.0.1", description="Interface to bind; keyless mode only on loopback.")
+    port: int = Field(8000, ge=1, le=65535)
+    data_dir: Path = Field(
+        default_factory=default_data_dir,
+        description="Uploaded datasets/URDFs and job artifacts (and the SQLite file by default).",
+    )
+    database_url: str | None = Field(
+        None,
+        description="SQLAlchemy URL, e.g. postgresql+psycopg://user:pw@host/db; "
+        "default sqlite:///<data_dir>/kincal.db (WAL mode).",
+    )
+    allow_keyless_localhost: bool = Field(
+        True,
+        description="When bound to a loopback address, requests without X-API-Key act as "
+        "tenant 'local'. Never applies on any other address.",
+    )
+    workers: int = Field(
+        1, ge=0, le=64, description="Job worker processes (0: accept jobs but run none here)."
+    )
+    worker_start_method: Literal["forkserver", "spawn"] = Field(
+        "forkserver",
+        description="How worker processes start: forkserver (imports paid once, fast restarts) "
+        "or spawn (each worker imports everything itself).",
+    )
+    instance_name: str = Field(
+        default_factory=socket.gethostname,
+        description="Identifies this service instance in job leases; unique per instance that "
+        "shares a database.",
+    )
+    job_max_attempts: int = Field(
+        3, ge=1, description="A job whose worker died this many times is marked failed."
+    )
+    job_lease_s: float = Field(
+        30.0,
+        gt=0,
+        description="Running jobs of another instance without a heartbeat for this "
+        "long are re-queued.",
+    )
+    job_heartbeat_s: float = Field(5.0, gt=0)
+    job_poll_s: float = Field(0.5, gt=0, description="How often idle workers look for jobs.")
+    shutdown_grace_s: float = Field(
+        10.0,
+        ge=0,
+        description="On shutdown, running jobs get this long to finish; the rest are re-queued.",
+    )
+    max_request_bytes: int = Field(16 * MiB, ge=1024, description="Largest request body.")
+    max_rows: int = Field(100_000, ge=1, description="Most samples in one dataset.")
+    max_joints: int = Field(32, ge=1, description="Most joints in a calibrated chain.")
+    max_urdf_bytes: int = Field(2 * MiB, ge=1024, description="Largest uploaded URDF.")
+    result_cache_size: int = Field(64, ge=1, description="Calibration results kept in memory.")
+    api_key_cache_s: float = Field(
+        30.0,
+        ge=0,
+        description="How long a verified API key is trusted without a DB lookup "
+        "(upper bound on how long a revoked key keeps working).",
+    )
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    log_format: Literal["json", "text"] = "json"
+
+    @field_validator("data_dir")
+    @classmethod
+    def _absolute(cls, value: Path) -> Path:
+        return value.expanduser().resolve()
+
+    @property
+    def resolved_database_url(self) -> str:
+        return self.database_url or f"sqlite:///{self.data_dir / 'kincal.db'}"
+
+    @property
+    def bound_to_loopback(self) -> bool:
+        if self.host == "localhost":
+            return True
+        try:
+            return ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            return False
+
+    @property
+    def keyless(self) -> bool:
+        """Requests without a key are accepted (as tenant 'local')."""
+        return self.allow_keyless_localhost and self.bound_to_loopback

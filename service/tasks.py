@@ -1,0 +1,105 @@
+"""Job functions run by the worker processes of :mod:`service.jobs` (no HTTP, no database).
+
+A job function reads its inputs from ``ctx.params`` and the data folder, calls the pipeline
+(the same one as the CLI), reports progress and writes its outputs as artifacts.
+"""
+
+from __future__ import annotations
+
+import functools
+
+from pydantic import BaseModel, ConfigDict
+
+from schemas.calibration import CalibrationOptions
+from schemas.dataset import read_dataset
+from service import pipeline
+from service.report_html import render_report
+from service.robots import RobotDescription, load_robot
+from service.storage.files import FileStore
+from service.urdf_export import export_urdf
+from service.worker import JobContext
+
+
+class RobotRef(BaseModel):
+    """A built-in robot (``robot_id`` None) or an uploaded URDF, with the calibrated chain."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str
+    robot_id: str | None = None
+    urdf_path: str | None = None
+    base_frame: str
+    tip_frame: str
+
+
+class DatasetRef(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    id: str
+    name: str
+    data_path: str
+
+
+class CalibrationJobParams(BaseModel):
+    """``jobs.params`` of a calibration: everything resolved when the job was accepted."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    dataset: DatasetRef
+    robot: RobotRef
+    options: CalibrationOptions
+
+
+@functools.lru_cache(maxsize=16)
+def _builtin(name: str, base_frame: str, tip_frame: str) -> RobotDescription:
+    return load_robot(name, base_frame=base_frame, tip_frame=tip_frame)
+
+
+def robot_description(ref: RobotRef, files: FileStore) -> RobotDescription:
+    """The URDF and chain a robot reference stands for."""
+    if ref.robot_id is None:
+        return _builtin(ref.name, ref.base_frame, ref.tip_frame)
+    assert ref.urdf_path is not None
+    xml = files.read(ref.urdf_path).decode("utf-8")
+    return RobotDescription(ref.name, xml, ref.base_frame, ref.tip_frame)
+
+
+# Overall fraction reached at the end of each pipeline stage, (with, without) held-out splits.
+_STAGE_END = {"fit": (0.15, 0.5), "baseline": (0.2, 0.85), "heldout": (0.9, 0.9)}
+_STAGE_START = {"fit": (0.05, 0.05), "baseline": (0.15, 0.5), "heldout": (0.2, 0.85)}
+REPORT_FRACTION = 0.92
+
+
+def _progress(ctx: JobContext, heldout: bool) -> pipeline.Progress:
+    column = 0 if heldout else 1
+
+    def report(stage: str, done: int, total: int) -> None:
+        if stage not in _STAGE_END:  # a stage this mapping does not know yet
+            ctx.progress(stage, None, done)
+            return
+        start, end = _STAGE_START[stage][column], _STAGE_END[stage][column]
+        ctx.progress(stage, start + (end - start) * done / max(total, 1), done)
+
+    return report
+
+
+def calibration_job(ctx: JobContext) -> None:
+    """Calibrate a stored dataset; artifacts: result JSON, HTML report, calibrated URDF."""
+    ctx.progress("loading", 0.0)
+    params = CalibrationJobParams.model_validate(ctx.params)
+    robot = robot_description(params.robot, ctx.files)
+    chain = pipeline.chain_for(robot, params.options)
+    dataset = read_dataset(
+        ctx.files.path(params.dataset.data_path),
+        chain.joint_names,
+        other_joint_names=chain.other_joint_names,
+        source=params.dataset.name,
+    )
+    ctx.progress("fit", 0.05)
+    result = pipeline.calibrate(
+        dataset, robot, params.options, _progress(ctx, params.options.heldout)
+    )
+    ctx.progress("report", REPORT_FRACTION)
+    ctx.write_artifact("result", "result.json", result.model_dump_json(indent=1).encode())
+    ctx.write_artifact("urdf", "calibrated.urdf", export_urdf(result).encode())
+    ctx.write_artifact("report", "report.html", render_report(result, dataset).encode())

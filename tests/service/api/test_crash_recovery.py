@@ -1,0 +1,149 @@
+"""``kincal serve`` as a real process on 127.0.0.1: kill -9 during a job, restart, same result.
+
+(Named to sort first: it is the longest test, so xdist should start it early.)"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from schemas.calibration import CalibrationOptions
+from service import pipeline
+from service.client import KincalClient
+from service.storage.db import Database
+from service.storage.models import Job
+from tests.conftest import robot
+from tests.service.api.conftest import fresh_database_url, recording, recording_bytes
+from tests.service.api.test_jobs import comparable
+
+OPTIONS = CalibrationOptions(seeds=list(range(1, 13)))  # 24 held-out fits: about 1 s
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+class Server:
+    """``kincal serve`` in its own process group, logging JSON lines to a file."""
+
+    def __init__(self, env: dict[str, str], log_path: Path) -> None:
+        self.port = _free_port()
+        self.log_path = log_path
+        self._log = log_path.open("ab")
+        command = [sys.executable, "-c", "from service.cli import main; main()", "serve"]
+        self.process = subprocess.Popen(
+            [*command, "--port", str(self.port)],
+            env=env,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        self.url = f"http://127.0.0.1:{self.port}"
+
+    def wait_live(self, timeout_s: float = 60.0) -> None:
+        import httpx
+
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            assert self.process.poll() is None, self.log_path.read_text()
+            try:
+                if httpx.get(f"{self.url}/healthz", timeout=1.0).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        raise AssertionError(f"server not ready:\n{self.log_path.read_text()}")
+
+    def worker_pids(self) -> list[int]:
+        pids = []
+        for line in self.log_path.read_text().splitlines():
+            if line.startswith("{") and '"worker process started"' in line:
+                pids.append(int(json.loads(line)["pid"]))
+        return pids
+
+    def stop(self, sig: int = signal.SIGTERM) -> int:
+        if self.process.poll() is None:
+            self.process.send_signal(sig)
+        code = self.process.wait(timeout=30)
+        self._log.close()
+        return code
+
+
+def _gone(pid: int) -> bool:
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return True
+    return "\nState:\tZ" in status
+
+
+@pytest.fixture
+def env(tmp_path: Path) -> Iterator[dict[str, str]]:
+    with fresh_database_url(tmp_path) as url:
+        yield {
+            **os.environ,
+            "KINCAL_DATA_DIR": str(tmp_path / "data"),
+            "KINCAL_DATABASE_URL": url,
+            "KINCAL_INSTANCE_NAME": "kill9-test",
+            "KINCAL_JOB_HEARTBEAT_S": "0.5",
+            "KINCAL_LOG_FORMAT": "json",
+        }
+
+
+def test_kill_9_during_a_job_then_restart_completes_it_with_the_same_result(
+    env: dict[str, str], tmp_path: Path
+) -> None:
+    first = Server(env, tmp_path / "first.log")
+    try:
+        first.wait_live()
+        api = KincalClient(first.url)
+        csv = tmp_path / "recording.csv"
+        csv.write_bytes(recording_bytes())
+        dataset = api.upload_dataset(csv, robot="ur10")
+        calibration = api.start_calibration(dataset["id"], OPTIONS)
+        deadline = time.monotonic() + 60
+        while True:
+            status = api.status(calibration["id"])["status"]
+            if status["stage"] == "heldout" and (status["iteration"] or 0) >= 4:
+                break
+            assert status["state"] in ("queued", "running") and time.monotonic() < deadline
+            time.sleep(0.02)
+        workers = first.worker_pids()
+    finally:
+        first.stop(signal.SIGKILL)
+    assert workers and all(pid != first.process.pid for pid in workers)
+
+    database = Database(env["KINCAL_DATABASE_URL"])
+    with database.sessions() as session:
+        job = session.get(Job, calibration["id"])
+        assert job is not None and job.state == "running" and job.attempts == 1
+    database.dispose()
+    deadline = time.monotonic() + 10
+    while not all(_gone(pid) for pid in workers):  # orphaned workers notice and exit
+        assert time.monotonic() < deadline, "worker outlived the killed service"
+        time.sleep(0.1)
+
+    second = Server(env, tmp_path / "second.log")
+    try:
+        second.wait_live()
+        undisturbed = pipeline.calibrate(recording(), robot("ur10"), OPTIONS)
+        api = KincalClient(second.url)
+        final = api.wait(calibration["id"], timeout_s=120)
+        assert final["attempts"] == 2
+        assert comparable(api.result(calibration["id"])) == comparable(undisturbed)
+        assert "re-queued 1 job(s)" in second.log_path.read_text()
+    finally:
+        # uvicorn re-raises the signal after a graceful shutdown, so the exit status shows it.
+        assert second.stop(signal.SIGTERM) in (0, -signal.SIGTERM)
+    assert "kincal service stopped" in second.log_path.read_text()

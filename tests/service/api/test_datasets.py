@@ -1,0 +1,195 @@
+"""Datasets over HTTP: validated by the CLI's readers, stored exactly, deduplicated, limited."""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pandas as pd
+from fastapi.testclient import TestClient
+
+from schemas.dataset import read_dataset
+from tests.service.api.conftest import (
+    AppFactory,
+    assert_problem,
+    recording,
+    recording_bytes,
+    settings_of,
+    upload_csv,
+)
+
+
+def _csv_with(edit: dict[tuple[int, str], object], drop: list[str] | None = None) -> bytes:
+    frame = pd.read_csv(io.BytesIO(recording_bytes()))
+    for (row, column), value in edit.items():
+        frame.loc[row, column] = value
+    if drop:
+        frame = frame.drop(columns=drop)
+    return frame.to_csv(index=False).encode()
+
+
+def test_csv_upload_is_validated_stored_exactly_and_summarised(client: TestClient) -> None:
+    response = upload_csv(client)
+    assert response.status_code == 201, response.text
+    body = response.json()
+    assert response.headers["location"] == f"/api/v1/datasets/{body['id']}"
+    expected = recording()
+    assert body["n_samples"] == expected.n_samples
+    assert body["joint_names"] == list(expected.joint_names)
+    assert body["position_only"] is False
+    assert expected.time_s is not None
+    assert body["time_start_s"] == expected.time_s[0]
+    assert body["time_end_s"] == expected.time_s[-1]
+    assert client.get(response.headers["location"]).json() == body
+
+    state = client.app.state.kincal  # type: ignore[attr-defined]
+    with state.database.sessions() as session:
+        from service.storage import repository
+
+        row = repository.get_dataset(session, state.local_tenant.tenant_id, body["id"])
+    assert row is not None
+    stored = read_dataset(state.files.path(row.data_path), expected.joint_names)
+    np.testing.assert_array_equal(stored.joint_positions, expected.joint_positions)
+    np.testing.assert_array_equal(stored.position_m, expected.position_m)
+    np.testing.assert_array_equal(stored.quaternion_xyzw, expected.quaternion_xyzw)
+
+
+def test_same_data_uploaded_again_in_any_format_returns_the_existing_dataset(
+    client: TestClient,
+) -> None:
+    first = upload_csv(client)
+    assert first.status_code == 201
+    again = upload_csv(client, filename="copy.csv")
+    parquet = upload_csv(
+        client, recording_bytes(".parquet"), filename="r.parquet", media="application/x-parquet"
+    )
+    rows = pd.read_csv(io.BytesIO(recording_bytes())).to_dict(orient="records")
+    as_json = client.post("/api/v1/datasets", json={"robot": "ur10", "rows": rows})
+    for response in (again, parquet, as_json):
+        assert response.status_code == 200, response.text
+        assert response.json()["id"] == first.json()["id"]
+    assert client.get("/api/v1/datasets").json()["count"] == 1
+
+
+def test_different_data_or_robot_frames_make_a_new_dataset(client: TestClient) -> None:
+    first = upload_csv(client).json()
+    other = upload_csv(client, recording_bytes(".csv", 40, 3))
+    assert other.status_code == 201 and other.json()["id"] != first["id"]
+    assert other.json()["content_sha256"] != first["content_sha256"]
+
+
+def test_json_rows_are_validated_like_files(client: TestClient) -> None:
+    rows = pd.read_csv(io.BytesIO(recording_bytes())).to_dict(orient="records")
+    rows[4]["elbow_joint"] = None
+    response = client.post("/api/v1/datasets", json={"robot": "ur10", "rows": rows})
+    assert_problem(response, 422, "data row 5", "elbow_joint")
+
+
+def test_missing_value_is_422_naming_row_and_column(client: TestClient) -> None:
+    response = upload_csv(client, _csv_with({(4, "elbow_joint"): math.nan}))
+    body = assert_problem(response, 422, "recording.csv", "data row 5", "column elbow_joint")
+    assert body["type"].endswith("invalid-dataset")
+
+
+def test_non_unit_quaternion_is_422(client: TestClient) -> None:
+    response = upload_csv(client, _csv_with({(6, "qw"): 3.0}))
+    assert_problem(response, 422, "data row 7", "quaternion is not unit-norm")
+
+
+def test_unknown_column_is_422_naming_it(client: TestClient) -> None:
+    frame = pd.read_csv(io.BytesIO(recording_bytes()))
+    frame["gripper_joint"] = 0.0
+    response = upload_csv(client, frame.to_csv(index=False).encode())
+    assert_problem(response, 422, "gripper_joint")
+
+
+def test_missing_joint_column_is_422(client: TestClient) -> None:
+    response = upload_csv(client, _csv_with({}, drop=["wrist_3_joint"]))
+    assert_problem(response, 422, "missing joint column", "wrist_3_joint")
+
+
+def test_garbage_file_is_422_not_500(client: TestClient) -> None:
+    response = upload_csv(client, b"\x00\xff\x00garbage\n\x01", filename="r.parquet")
+    assert_problem(response, 422, "r.parquet")
+
+
+def test_unknown_robot_is_422(client: TestClient) -> None:
+    response = upload_csv(client, robot_name="r2d2")
+    assert_problem(response, 422, "r2d2", "kinova")
+
+
+def test_wrong_content_type_is_415(client: TestClient) -> None:
+    response = client.post(
+        "/api/v1/datasets", content=recording_bytes(), headers={"content-type": "text/csv"}
+    )
+    assert_problem(response, 415, "text/csv", "multipart/form-data")
+
+
+def test_unrecognised_file_format_is_415(client: TestClient) -> None:
+    response = upload_csv(
+        client, b"a,b\n1,2\n", filename="data.xlsx", media="application/vnd.ms-excel"
+    )
+    assert_problem(response, 415, "data.xlsx", ".csv")
+
+
+def test_missing_form_fields_are_422(client: TestClient) -> None:
+    no_file = client.post("/api/v1/datasets", data={"robot": "ur10"}, files={"x": ("a", b"1")})
+    assert_problem(no_file, 422, "file")
+    no_robot = client.post(
+        "/api/v1/datasets", files={"file": ("r.csv", recording_bytes(), "text/csv")}
+    )
+    assert_problem(no_robot, 422, "robot")
+
+
+def test_body_over_the_limit_is_413_whether_declared_or_streamed(
+    make_client: AppFactory,
+) -> None:
+    client = make_client(max_request_bytes=64 * 1024)
+    big = b"x" * (100 * 1024)
+    declared = upload_csv(client, big)
+    assert_problem(declared, 413, "65536")
+
+    def chunks() -> object:
+        for _ in range(100):
+            yield b"y" * 1024
+
+    streamed = client.post(
+        "/api/v1/datasets", content=chunks(), headers={"content-type": "application/json"}
+    )
+    assert_problem(streamed, 413, "65536")
+    assert client.get("/healthz").status_code == 200
+
+
+def test_more_rows_than_the_limit_is_413(make_client: AppFactory) -> None:
+    client = make_client(max_rows=10)
+    assert_problem(upload_csv(client), 413, "40 samples", "10")
+
+
+def test_list_is_paginated_newest_first(client: TestClient) -> None:
+    ids = [upload_csv(client, recording_bytes(".csv", 40, seed)).json()["id"] for seed in (5, 6, 7)]
+    page = client.get("/api/v1/datasets", params={"limit": 2}).json()
+    assert page["count"] == 3 and page["limit"] == 2 and page["offset"] == 0
+    assert [d["id"] for d in page["data"]] == ids[::-1][:2]
+    rest = client.get("/api/v1/datasets", params={"limit": 2, "offset": 2}).json()
+    assert [d["id"] for d in rest["data"]] == ids[:1]
+    assert_problem(client.get("/api/v1/datasets", params={"limit": 0}), 422, "query.limit")
+
+
+def test_delete_removes_row_and_file(client: TestClient) -> None:
+    body = upload_csv(client).json()
+    state = client.app.state.kincal  # type: ignore[attr-defined]
+    files = list((settings_of(client).data_dir / "tenants").rglob("*.parquet"))
+    assert len(files) == 1
+    assert client.delete(f"/api/v1/datasets/{body['id']}").status_code == 204
+    assert_problem(client.get(f"/api/v1/datasets/{body['id']}"), 404, body["id"])
+    assert not files[0].exists()
+    assert_problem(client.delete(f"/api/v1/datasets/{body['id']}"), 404)
+    assert state.files.writable()
+
+
+def test_dataset_in_use_by_a_queued_job_cannot_be_deleted(client: TestClient) -> None:
+    dataset = upload_csv(client).json()
+    created = client.post("/api/v1/calibrations", json={"dataset_id": dataset["id"]})
+    assert created.status_code == 202
+    assert_problem(client.delete(f"/api/v1/datasets/{dataset['id']}"), 409, "job")

@@ -1,0 +1,87 @@
+"""Operations: liveness, readiness, Prometheus metrics, request ids, structured logs."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import pytest
+from alembic import command
+from fastapi.testclient import TestClient
+
+from service import logs
+from service.storage.db import alembic_config
+from tests.service.api.conftest import database_of, upload_csv
+
+
+def test_liveness_and_readiness(client: TestClient) -> None:
+    assert client.get("/healthz").json() == {"status": "ok"}
+    ready = client.get("/readyz")
+    assert ready.status_code == 200
+    assert ready.json()["checks"] == {
+        "database": True,
+        "migrations": True,
+        "workers": True,
+        "storage": True,
+    }
+
+
+def test_not_ready_when_migrations_are_missing(client: TestClient) -> None:
+    database = database_of(client)
+    config = alembic_config(database.url)
+    with database.engine.begin() as connection:
+        config.attributes["connection"] = connection
+        command.downgrade(config, "base")
+    response = client.get("/readyz")
+    assert response.status_code == 503
+    assert response.json()["checks"]["migrations"] is False
+    assert response.json()["status"] == "not ready"
+
+
+def test_metrics_count_requests_by_route_template_and_status(client: TestClient) -> None:
+    for _ in range(3):
+        client.get("/api/v1/datasets/ds_nope")
+    upload_csv(client)
+    text = client.get("/metrics").text
+    assert (
+        'kincal_http_requests_total{method="GET",route="/api/v1/datasets/{dataset_id}",'
+        'status="404"} 3.0' in text
+    )
+    assert 'route="/api/v1/datasets",status="201"} 1.0' in text
+    assert 'kincal_http_request_duration_seconds_bucket{le="0.02",method="POST"' in text
+    assert 'kincal_jobs{kind="calibration",state="queued"} 0.0' in text
+    assert "ds_nope" not in text  # raw paths never become labels
+
+
+def test_request_id_is_echoed_and_logged(
+    client: TestClient, caplog: pytest.LogCaptureFixture
+) -> None:
+    with caplog.at_level(logging.INFO, logger="kincal.http"):
+        response = client.get("/api/v1/datasets", headers={"X-Request-ID": "trace-42"})
+    assert response.headers["x-request-id"] == "trace-42"
+    generated = client.get("/healthz").headers["x-request-id"]
+    assert len(generated) == 32
+    assert (
+        client.get("/healthz", headers={"X-Request-ID": "bad id!"}).headers["x-request-id"]
+        != "bad id!"
+    )
+    access = [r for r in caplog.records if r.getMessage() == "GET /api/v1/datasets 200"]
+    assert [getattr(r, "request_id", None) for r in access] == ["trace-42"]
+
+
+def test_json_log_lines_carry_request_and_job_ids() -> None:
+    formatter = logs.JsonFormatter()
+    record = logging.makeLogRecord(
+        {"name": "kincal.jobs", "levelname": "INFO", "msg": "job %s", "args": ("started",)}
+    )
+    record.kind = "calibration"
+    request_token = logs.request_id.set("req-1")
+    job_token = logs.job_id.set("cal_1")
+    try:
+        line = json.loads(formatter.format(record))
+    finally:
+        logs.request_id.reset(request_token)
+        logs.job_id.reset(job_token)
+    assert line["msg"] == "job started" and line["level"] == "info"
+    assert line["request_id"] == "req-1" and line["job_id"] == "cal_1"
+    assert line["kind"] == "calibration" and line["ts"].endswith("+00:00")
