@@ -16,6 +16,8 @@ RESULT_FORMAT: Literal["kincal.calibration/1"] = "kincal.calibration/1"
 
 Vector3 = tuple[float, float, float]
 Matrix4 = Annotated[list[list[float]], Field(min_length=4, max_length=4)]
+Matrix6 = Annotated[list[list[float]], Field(min_length=6, max_length=6)]
+Vector6 = tuple[float, float, float, float, float, float]
 
 
 class _Model(BaseModel):
@@ -48,6 +50,30 @@ class CalibrationOptions(_Model):
     heldout: bool = Field(True, description="Run the 10-split held-out evaluation.")
     seeds: list[int] = Field(default_factory=lambda: list(range(1, 11)), min_length=1)
     train_fraction: float = Field(0.9, gt=0.0, lt=1.0)
+    covariance: Literal["diag", "full", "none"] = Field(
+        "diag",
+        description="Structure of the random-effect covariances Σ_n, Σ_1..Σ_k (paper §IV-C); "
+        "'none' skips the covariance calibration.",
+    )
+    covariance_solver: Literal["clarabel", "pgd", "nnls"] = Field(
+        "clarabel",
+        description="Solver of the moment problem (Eq. 14): clarabel (cvxpy, PSD cones), pgd "
+        "(paper Eq. 15, stable step) or nnls (diagonal only).",
+    )
+    covariance_estimator: Literal["moment", "ml", "reml"] = Field(
+        "reml",
+        description="moment matching (paper Eq. 14), maximum likelihood (Eq. 16-17) or "
+        "restricted ML, which accounts for the parameters the deterministic fit used "
+        "(default: most accurate in tests/solver/test_covariance_recovery.py).",
+    )
+    covariance_frames: list[str] | None = Field(
+        None, description="Joints whose frame carries a random perturbation; None = every joint."
+    )
+    noise_std: Vector6 | None = Field(
+        None,
+        description="Known measurement-noise standard deviations (x,y,z m; rx,ry,rz rad) in the "
+        "end-effector frame; None = estimate Σ_n with the rest.",
+    )
 
 
 class Transform(_Model):
@@ -152,14 +178,12 @@ class OutlierReport(_Model):
 
 class SolverReport(_Model):
     name: str
-    status: Literal["optimal", "optimal_inaccurate", "iteration_limit", "diverged", "error"]
+    status: Literal[
+        "optimal", "optimal_inaccurate", "stopped_early", "iteration_limit", "diverged", "error"
+    ] = Field(description="stopped_early: the paper's PGD stopping rule fired before optimality.")
     iterations: int
     time_s: float
     objective: float
-
-
-Matrix6 = Annotated[list[list[float]], Field(min_length=6, max_length=6)]
-Vector6 = tuple[float, float, float, float, float, float]
 
 
 class CovarianceFrame(_Model):
@@ -177,6 +201,17 @@ class CovarianceFrame(_Model):
     std_stderr: tuple[float | None, ...] | None = Field(
         None, description="Standard error of each std entry (None where not identifiable)."
     )
+    std_ci_low: tuple[float | None, ...] | None = Field(
+        None, description="Lower end of the confidence interval of each std (None: unknown)."
+    )
+    std_ci_high: tuple[float | None, ...] | None = Field(
+        None, description="Upper end of the confidence interval of each std (None: unknown)."
+    )
+    identifiable: tuple[bool, ...] | None = Field(
+        None,
+        description="Per axis: determined by the data on its own (False: only a combination "
+        "with other frames is, see identifiability.null_directions).",
+    )
 
 
 class CovarianceIdentifiability(_Model):
@@ -193,6 +228,9 @@ class CovarianceResult(_Model):
 
     structure: Literal["diag", "full"]
     estimator: str
+    n_samples: int | None = Field(None, description="Residuals the covariances came from.")
+    confidence: float = Field(0.95, description="Level of the std confidence intervals.")
+    stderr_method: str | None = Field(None, description="How standard errors were computed.")
     solver: SolverReport
     noise: CovarianceFrame
     frames: list[CovarianceFrame]

@@ -16,6 +16,7 @@ import typer
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import read_configurations, read_dataset, write_dataset
 from service import pipeline, scenarios
+from service.flags import numbers
 from service.report import summary
 from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
 from service.urdf_export import export_urdf
@@ -50,13 +51,8 @@ def _names(text: str | None) -> list[str] | None:
 
 
 def _vector3(text: str, option: str) -> tuple[float, float, float]:
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3:
-        raise KincalError(f"{option} takes three comma-separated numbers, e.g. 0,0,-9.81")
-    return values[0], values[1], values[2]
+    x, y, z = numbers(text, option, 3)
+    return x, y, z
 
 
 def _write_json(path: Path, document: str) -> None:
@@ -150,11 +146,32 @@ def calibrate(
     marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
     heldout: Annotated[bool, typer.Option(help="Run the 10-split held-out evaluation.")] = True,
     max_iterations: Annotated[int, typer.Option(min=1)] = 50,
+    covariance: Annotated[
+        str, typer.Option(help="Random-effect covariances: diag, full or none (§IV-C).")
+    ] = "diag",
+    solver: Annotated[
+        str, typer.Option(help="Covariance solver: clarabel, pgd (paper Eq. 15) or nnls.")
+    ] = "clarabel",
+    estimator: Annotated[
+        str, typer.Option(help="Covariance estimator: reml (default), ml or moment (paper).")
+    ] = "reml",
+    covariance_frames: Annotated[
+        str | None,
+        typer.Option(help="Comma-separated joints whose frame is perturbed (default: all)."),
+    ] = None,
+    noise_std: Annotated[
+        str | None,
+        typer.Option(
+            help="Known measurement-noise std x,y,z (m),rx,ry,rz (rad) in the EE frame; "
+            "default: estimated."
+        ),
+    ] = None,
     export_urdf_to: Annotated[
         Path | None, typer.Option("--export-urdf", help="Also write the calibrated URDF.")
     ] = None,
 ) -> None:
-    """Calibrate geometry and joint compliance from recorded poses (paper Eq. 8–10)."""
+    """Calibrate geometry, joint compliance (paper Eq. 8–10) and the covariances of the random
+    perturbations (Eq. 13–17) from recorded poses."""
     description = _robot(robot, urdf, base, tip)
     options = _options(
         compliant_joints=[] if rigid else _names(compliant_joints),
@@ -166,6 +183,11 @@ def calibrate(
         payload_com_m=_vector3(payload_com, "--payload-com"),
         heldout=heldout,
         max_iterations=max_iterations,
+        covariance=covariance,
+        covariance_solver=solver,
+        covariance_estimator=estimator,
+        covariance_frames=_names(covariance_frames),
+        noise_std=None if noise_std is None else tuple(numbers(noise_std, "--noise-std", 6)),
     )
     chain = pipeline.chain_for(description, options)
     dataset = read_dataset(
@@ -193,8 +215,17 @@ def predict(
     result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result JSON.")],
     configs: Annotated[Path, typer.Argument(help="Configurations: joint columns (+ payload_kg).")],
     output: OutputOpt,
+    noise: Annotated[
+        bool,
+        typer.Option(
+            "--noise/--no-noise",
+            help="Include the measurement noise Σ_n in the predicted covariance.",
+        ),
+    ] = True,
 ) -> None:
-    """Predicted marker pose (x,y,z,qx,qy,qz,qw; measurement frame) per configuration."""
+    """Predicted marker pose (x,y,z,qx,qy,qz,qw; measurement frame) per configuration and,
+    when the result has covariances, the predicted 6×6 EE covariance (cov_00..cov_55, row-major,
+    EE frame, [v; w], m and rad; Eq. 12)."""
     result = read_result(result_path)
     chain, _ = pipeline.result_chain(result)
     configurations = read_configurations(
@@ -203,11 +234,23 @@ def predict(
     pose = pipeline.predict_poses(result, configurations.joint_positions, configurations.payload_kg)
     frame = pd.DataFrame(pose[:, :3, 3], columns=["x", "y", "z"])
     frame[["qx", "qy", "qz", "qw"]] = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
+    if result.covariance is not None:
+        from service import ranking  # lazy: pulls in scikit-learn
+
+        covariance = ranking.predict_covariances(
+            result,
+            configurations.joint_positions,
+            configurations.payload_kg,
+            include_noise=noise,
+        )
+        names = [f"cov_{i}{j}" for i in range(6) for j in range(6)]
+        frame[names] = covariance.reshape(len(frame), 36)
     if configurations.sample_id is not None:
         frame.insert(0, "sample_id", configurations.sample_id)
     output.parent.mkdir(parents=True, exist_ok=True)
     frame.to_csv(output, index=False, float_format="%.17g")
-    typer.echo(f"wrote {len(frame)} predicted poses to {output}")
+    extra = " with covariances" if result.covariance is not None else ""
+    typer.echo(f"wrote {len(frame)} predicted poses{extra} to {output}")
 
 
 @app.command()

@@ -18,6 +18,9 @@ from schemas.calibration import (
     CalibrationOptions,
     CalibrationResult,
     ComplianceCalibration,
+    CovarianceFrame,
+    CovarianceIdentifiability,
+    CovarianceResult,
     DatasetInfo,
     ErrorStats,
     Evaluation,
@@ -41,9 +44,12 @@ from solver.calibration import (
     outlier_mask,
     pose_errors,
 )
+from solver.covariance.estimate import CovarianceEstimate, FrameCovariance, estimate_covariances
+from solver.errors import KincalError
 from solver.evaluation import SplitError, cross_validate
 from solver.kinematics import (
     ChainParameters,
+    evaluate_chain,
     forward_kinematics,
     parameter_names,
     pose_residuals,
@@ -156,6 +162,8 @@ def calibrate(
     fit = first if used.size == everything.size else _fit(data, used, full)
     baseline = _fit(data, used, fit_options(options, baseline=True, n_links=chain.n_links))
     progress("baseline", 1, 1)
+    covariance = covariance_stage(data, used, fit, options)
+    progress("covariance", 1, 1)
     splits = heldout_splits(data, used, options, progress) if options.heldout else []
     return CalibrationResult(
         kincal_version=kincal_version(),
@@ -203,6 +211,7 @@ def calibrate(
                 heldout=_heldout_stats(splits, CALIBRATED, data.position_only),
             ),
         ),
+        covariance=covariance,
         evaluation=_evaluation(splits, options) if splits else None,
         outliers=OutlierReport(
             sigma=options.outlier_sigma,
@@ -218,6 +227,52 @@ def calibrate(
             objective=fit.cost_history[-1],
         ),
     )
+
+
+def covariance_stage(
+    data: PreparedData, used: NDArray[np.intp], fit: DeterministicFit, options: CalibrationOptions
+) -> CovarianceResult | None:
+    """Covariances of the random perturbations (paper §IV-C) from the calibrated fit's residuals.
+
+    Residuals are end-effector-frame (``fit.residuals``, outliers removed); the perturbation of
+    joint j enters through its frame Jacobian ``J_j = Ad_{B_j}^-1`` at the calibrated geometry
+    (Eq. 12); REML gets the deterministic fit's Jacobian with the rotation weighting undone so
+    its column space is in residual units.
+    """
+    if options.covariance == "none":
+        return None
+    chain = data.chain
+    names = list(chain.joint_names)
+    chosen = options.covariance_frames if options.covariance_frames is not None else names
+    unknown = [name for name in chosen if name not in names]
+    if unknown or len(set(chosen)) != len(chosen):
+        raise KincalError(
+            f"covariance_frames: {unknown or 'duplicates'} "
+            f"{'are not joints of the chain' if unknown else 'given twice'}; "
+            f"choose among {', '.join(names)}"
+        )
+    index = [names.index(name) for name in chosen]
+    rows = 3 if data.position_only else 6
+    evaluation = evaluate_chain(chain, fit.params, data.joint_positions[used], data.loads_nm[used])
+    frame_jacobians = evaluation.link_jacobians[:, index, :rows, :]
+    unweight = np.ones(rows)
+    if not data.position_only:
+        unweight[3:] = 1.0 / options.rotation_weight_m_per_rad
+    fit_jacobian = fit.jacobian * unweight[None, :, None]
+    noise = None
+    if options.noise_std is not None:
+        noise = np.diag(np.square(np.asarray(options.noise_std, dtype=float)))
+    estimate = estimate_covariances(
+        fit.residuals,
+        frame_jacobians,
+        chosen,
+        structure=options.covariance,
+        estimator=options.covariance_estimator,
+        solver=options.covariance_solver,
+        fit_jacobian=fit_jacobian,
+        noise_covariance=noise,
+    )
+    return _covariance_result(estimate, index)
 
 
 def heldout_splits(
@@ -374,6 +429,64 @@ def _compliance(chain: KinematicChain, fit: DeterministicFit) -> list[Compliance
             )
         )
     return out
+
+
+def _covariance_result(estimate: CovarianceEstimate, joint_index: list[int]) -> CovarianceResult:
+    solution, moment = estimate.solution, estimate.moment_solution
+    extra_time = moment.wall_time_s if solution is not moment else 0.0
+    report = estimate.identifiability
+    fixed = [
+        f"{label}: no effect on the data, fixed at 0"
+        for label, silent in zip(report.labels, report.silent, strict=True)
+        if silent
+    ]
+    if report.statements:
+        fixed.append(f"rule for the unidentifiable combinations: {report.rule}")
+    assert estimate.noise is not None  # estimated, or the known one (fixed)
+    return CovarianceResult(
+        structure=estimate.structure,
+        estimator=estimate.estimator,
+        n_samples=estimate.n_samples,
+        confidence=estimate.uncertainty.confidence if estimate.uncertainty else 0.95,
+        stderr_method=estimate.uncertainty.method if estimate.uncertainty else None,
+        solver=SolverReport(
+            name=f"{estimate.solver}+{estimate.estimator}",
+            status=solution.status,
+            iterations=moment.iterations + (solution.iterations if solution is not moment else 0),
+            time_s=solution.wall_time_s + extra_time,
+            objective=solution.objective,
+        ),
+        noise=_covariance_frame(estimate.noise, None),
+        frames=[
+            _covariance_frame(frame, j)
+            for frame, j in zip(estimate.frames, joint_index, strict=True)
+        ],
+        identifiability=CovarianceIdentifiability(
+            rank=report.rank,
+            n_parameters=report.n_params,
+            condition_number=report.condition_number,
+            null_directions=list(report.statements)
+            + [f"weakly identified: {s}" for s in report.weak_statements],
+            fixed=fixed,
+            warnings=list(estimate.warnings),
+        ),
+    )
+
+
+def _covariance_frame(frame: FrameCovariance, joint_index: int | None) -> CovarianceFrame:
+    def optional(values: FloatArray) -> tuple[float | None, ...]:
+        return tuple(float(v) if np.isfinite(v) else None for v in values)
+
+    return CovarianceFrame(
+        name=frame.name,
+        joint_index=joint_index,
+        matrix=frame.covariance.tolist(),
+        std=tuple(float(v) for v in frame.std),  # type: ignore[arg-type]
+        std_stderr=optional(frame.std_se),
+        std_ci_low=optional(frame.std_ci_low),
+        std_ci_high=optional(frame.std_ci_high),
+        identifiable=tuple(bool(v) for v in frame.identifiable),
+    )
 
 
 def _stats(data: PreparedData, rows: NDArray[np.intp], params: ChainParameters) -> ErrorStats:

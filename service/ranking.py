@@ -28,6 +28,7 @@ from schemas.ranking import (
     TaskWeights,
 )
 from service import pipeline
+from service.flags import numbers
 from solver import lie
 from solver.calibration import fit_deterministic
 from solver.errors import KincalError, SolverError
@@ -41,6 +42,7 @@ from solver.ranking import (
     RandomEffects,
     TaskMetric,
     UncertaintyModel,
+    ee_covariance,
     score_configurations,
 )
 
@@ -85,6 +87,23 @@ def uncertainty_model(result: CalibrationResult) -> UncertaintyModel:
     return UncertaintyModel.build(
         chain, params, effects, np.asarray(result.options.gravity_base_m_s2, dtype=float)
     )
+
+
+def predict_covariances(
+    result: CalibrationResult,
+    joint_positions: FloatArray,
+    payload_kg: FloatArray | None = None,
+    *,
+    include_noise: bool = True,
+) -> FloatArray:
+    """Predicted end-effector covariance Σ_E(q) (Eq. 12), (N, 6, 6), EE frame, [v; w], m/rad.
+
+    Includes the measurement noise Σ_n unless ``include_noise`` is False (then it is the robot's
+    own spread). ``payload_kg`` (N,) or None for the result's default payload.
+    """
+    model = uncertainty_model(result)
+    payload = payload_kg if payload_kg is not None else result.options.payload_kg
+    return ee_covariance(model, joint_positions, payload_kg=payload, include_noise=include_noise)
 
 
 def task_metric(options: RankingOptions) -> TaskMetric:
@@ -317,20 +336,6 @@ def gp_calibration_method(
 
 
 # --- command-line flags -> request models (``kincal rank``) ---------------------------------
-
-
-def numbers(text: str, option: str, count: int | None = None) -> list[float]:
-    """Comma-separated numbers of a flag, with a one-line error naming the flag."""
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if not values or (count is not None and len(values) != count):
-        expected = f"{count} comma-separated numbers" if count else "comma-separated numbers"
-        raise KincalError(f"{option} takes {expected}, got {text!r}")
-    if not all(np.isfinite(values)):
-        raise KincalError(f"{option} must be finite numbers, got {text!r}")
-    return values
 
 
 def read_weight_matrix(path: Path) -> list[list[float]]:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from schemas.calibration import CalibrationResult, HeldoutSplit
+from schemas.calibration import CalibrationResult, CovarianceResult, HeldoutSplit
 
 METHOD_LABELS = {"before": "Init.", "calibrated": "Cal. Ours", "gp": "Cal. GP"}
 
@@ -59,9 +59,36 @@ def summary(result: CalibrationResult) -> str:
             + ("" if c.significant else "   not significant (within 2 standard errors of 0)")
             for c in estimated
         ]
+    if result.covariance is not None:
+        lines += ["", *covariance_table(result.covariance)]
     if result.evaluation is not None:
         lines += [
             "",
             table_ii(result.evaluation.splits, position_only=result.dataset.position_only),
         ]
     return "\n".join(lines)
+
+
+def covariance_table(covariance: CovarianceResult) -> list[str]:
+    """σ per frame and axis (paper Fig. 4b as text): mm and mrad, '*' = not identifiable alone."""
+    solver = covariance.solver
+    lines = [
+        f"random perturbations, σ per frame ({covariance.estimator}, {solver.name}: "
+        f"{solver.status}, {solver.time_s:.2f} s; mm and mrad; * = only a sum with other "
+        "frames is identifiable):",
+        f"  {'frame':<28}" + "".join(f"{axis:>9}" for axis in ("x", "y", "z", "rx", "ry", "rz")),
+    ]
+    for frame in [*covariance.frames, covariance.noise]:
+        flags = frame.identifiable or (True,) * 6
+        cells = [
+            f"{1e3 * std:8.3f}{' ' if ok else '*'}"
+            for std, ok in zip(frame.std, flags, strict=True)
+        ]
+        lines.append(f"  {frame.name:<28}" + "".join(cells))
+    identifiability = covariance.identifiability
+    lines.append(
+        f"  identifiable covariance entries: rank {identifiability.rank} of "
+        f"{identifiability.n_parameters}, condition number {identifiability.condition_number:.3g}"
+    )
+    lines += [f"  note: {text}" for text in identifiability.warnings]
+    return lines

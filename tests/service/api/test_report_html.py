@@ -66,16 +66,23 @@ def _images(page: str) -> list[bytes]:
 
 
 def test_report_embeds_residual_histograms_and_fit_table() -> None:
-    result = _result()
+    result = _result().model_copy(update={"covariance": None})
     page = render_report(result, recording())
     images = _images(page)
     assert len(images) == 1 and images[0].startswith(PNG_SIGNATURE)
     assert f"{result.fit.before.train.translation_mean_mm:.3f}" in page
     assert f"{result.fit.after.train.translation_mean_mm:.3f}" in page
-    assert "did not run" in page  # no covariance stage yet
+    assert "did not run" in page  # covariance stage switched off
     for name in result.identifiability.removed:
         assert name in page
     assert "<script" not in page
+
+
+def test_calibrate_fills_the_covariance_and_the_report_shows_it() -> None:
+    result = _result()
+    assert result.covariance is not None
+    page = render_report(result, recording())
+    assert len(_images(page)) == 2 and "did not run" not in page
 
 
 def test_sigma_per_frame_chart_appears_with_covariances() -> None:

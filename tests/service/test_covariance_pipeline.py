@@ -1,0 +1,215 @@
+"""The covariance stage of ``kincal calibrate`` (paper §IV-C) end to end: simulated recording with
+known random perturbations -> result JSON -> predicted EE covariance (Eq. 12) vs the truth."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from schemas.calibration import CalibrationOptions, CalibrationResult
+from service import cli, pipeline, ranking, scenarios
+from solver.errors import KincalError
+from solver.kinematics import evaluate_chain
+from solver.model import sample_configurations
+from tests.conftest import robot
+
+EFFECTS = ("geometry", "compliance", "random", "camera", "marker")
+TASK_WEIGHTS = np.array([0.4, 0.4, 0.0, 0.1, 0.1, 0.0])
+
+
+@functools.cache
+def _simulated(n_samples: int, position_only: bool = False):  # type: ignore[no-untyped-def]
+    scn, recording = scenarios.simulate(
+        robot("kinova"), n_samples=n_samples, seed=11, effects=EFFECTS
+    )
+    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=position_only)
+    return scn, recording, dataset
+
+
+@functools.cache
+def _calibrated(n_samples: int, **options: object) -> CalibrationResult:
+    _, recording, dataset = _simulated(n_samples)
+    known = tuple(float(s) for s in recording.noise_sigma)
+    settings = CalibrationOptions(heldout=False, outlier_sigma=None, noise_std=known, **options)  # type: ignore[arg-type]
+    return pipeline.calibrate(dataset, robot("kinova"), settings)
+
+
+def _true_ee_covariance(n_samples: int, q: np.ndarray) -> np.ndarray:
+    """Eq. (12) on the TRUE robot with the true Σ_j (no noise)."""
+    scn, recording, _ = _simulated(n_samples)
+    loads = np.zeros((q.shape[0], len(scn.chain.compliance_axes)))
+    jac = evaluate_chain(scn.chain, recording.true_params, q, loads).link_jacobians[:, :-1]
+    sigma = np.einsum("ja,jb->jab", recording.perturbation_sigma, recording.perturbation_sigma)
+    sigma = sigma * np.eye(6)
+    return np.einsum("njab,jbc,njdc->nad", jac, sigma, jac)
+
+
+def _task_score(cov: np.ndarray) -> np.ndarray:
+    return np.einsum("a,nab,b->n", TASK_WEIGHTS, cov, TASK_WEIGHTS)
+
+
+def test_calibrate_recovers_the_task_score_of_held_out_configurations() -> None:
+    """With Σ_n known, N=800: the predicted weighted-trace score (Eq. 22) of new configurations
+    is within 10 % (median) of the true robot's — wrong frames or residuals would miss by far."""
+    result = _calibrated(800)
+    assert result.covariance is not None
+    assert [f.name for f in result.covariance.frames] == result.robot.joint_names
+    assert result.covariance.noise.std == pytest.approx(_simulated(800)[1].noise_sigma)
+    chain, _ = pipeline.result_chain(result)
+    q = sample_configurations(chain, 200, np.random.default_rng(3), range_fraction=0.8)
+    predicted = ranking.predict_covariances(result, q, include_noise=False)
+    truth = _true_ee_covariance(800, q)
+    error = np.abs(_task_score(predicted) / _task_score(truth) - 1.0)
+    assert np.median(error) < 0.10, np.median(error)
+
+
+def test_every_returned_covariance_is_symmetric_psd_and_named() -> None:
+    result = _calibrated(800)
+    assert result.covariance is not None
+    for frame in [*result.covariance.frames, result.covariance.noise]:
+        matrix = np.array(frame.matrix)
+        np.testing.assert_allclose(matrix, matrix.T, atol=1e-15)
+        assert np.linalg.eigvalsh(matrix).min() > -1e-12
+        np.testing.assert_allclose(frame.std, np.sqrt(np.diag(matrix)))
+    statements = " ".join(result.covariance.identifiability.null_directions)
+    assert "isotropic translational variance" in statements
+
+
+def test_frames_subset_and_none() -> None:
+    _, _, dataset = _simulated(200)
+    chosen = ["j2s6s200_joint_2", "j2s6s200_joint_5"]
+    options = CalibrationOptions(heldout=False, covariance_frames=chosen)
+    result = pipeline.calibrate(dataset, robot("kinova"), options)
+    assert result.covariance is not None
+    assert [f.name for f in result.covariance.frames] == chosen
+    assert [f.joint_index for f in result.covariance.frames] == [1, 4]
+    none = pipeline.calibrate(
+        dataset, robot("kinova"), options.model_copy(update={"covariance": "none"})
+    )
+    assert none.covariance is None
+
+
+def test_position_only_recording_gets_covariances() -> None:
+    _, _, dataset = _simulated(300, position_only=True)
+    result = pipeline.calibrate(dataset, robot("kinova"), CalibrationOptions(heldout=False))
+    assert result.covariance is not None
+    assert np.all(np.isfinite([f.std for f in result.covariance.frames]))
+
+
+def test_unknown_covariance_frame_is_a_clear_error() -> None:
+    _, _, dataset = _simulated(200)
+    options = CalibrationOptions(heldout=False, covariance_frames=["elbow"])
+    with pytest.raises(KincalError, match="covariance_frames.*elbow.*choose among"):
+        pipeline.calibrate(dataset, robot("kinova"), options)
+
+
+def _run(args: list[str], capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch):  # type: ignore[no-untyped-def]
+    monkeypatch.setattr(sys, "argv", ["kincal", *args])
+    try:
+        cli.main()
+        code = 0
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_cli_calibrate_and_predict_covariance_columns(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    scn, recording, _ = _simulated(200)
+    data = tmp_path / "data.csv"
+    frame = pd.DataFrame(recording.joint_positions, columns=list(scn.chain.joint_names))
+    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
+    frame[["x", "y", "z"]] = dataset.position_m
+    frame[["qx", "qy", "qz", "qw"]] = dataset.quaternion_xyzw
+    frame.to_csv(data, index=False)
+    out = tmp_path / "result.json"
+    code, stdout, _ = _run(
+        [
+            "calibrate",
+            str(data),
+            "--robot",
+            "kinova",
+            "--no-heldout",
+            "--solver",
+            "nnls",
+            "--estimator",
+            "moment",
+            "-o",
+            str(out),
+        ],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 0 and "σ per frame" in stdout
+    result = CalibrationResult.model_validate_json(out.read_text())
+    assert result.covariance is not None and result.covariance.solver.name == "nnls+moment"
+
+    configs = tmp_path / "configs.csv"
+    frame[list(scn.chain.joint_names)].head(5).to_csv(configs, index=False)
+    with_noise, without = tmp_path / "with.csv", tmp_path / "without.csv"
+    assert (
+        _run(["predict", str(out), str(configs), "-o", str(with_noise)], capsys, monkeypatch)[0]
+        == 0
+    )
+    assert (
+        _run(
+            ["predict", str(out), str(configs), "-o", str(without), "--no-noise"],
+            capsys,
+            monkeypatch,
+        )[0]
+        == 0
+    )
+    names = [f"cov_{i}{j}" for i in range(6) for j in range(6)]
+    a = pd.read_csv(with_noise)[names].to_numpy().reshape(-1, 6, 6)
+    b = pd.read_csv(without)[names].to_numpy().reshape(-1, 6, 6)
+    np.testing.assert_allclose(
+        a - b, np.broadcast_to(np.array(result.covariance.noise.matrix), a.shape), atol=1e-18
+    )
+    np.testing.assert_allclose(a, np.transpose(a, (0, 2, 1)), atol=1e-18)
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--covariance", "triangular"], "covariance"),
+        (["--solver", "adam"], "covariance_solver"),
+        (["--covariance", "full", "--solver", "nnls"], "nnls"),
+        (["--noise-std", "1,2"], "--noise-std takes 6 comma-separated numbers"),
+        (["--covariance-frames", "elbow"], "covariance_frames"),
+    ],
+)
+def test_bad_covariance_options_are_one_line_errors(
+    extra: list[str],
+    message: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    scn, recording, dataset = _simulated(200)
+    data = tmp_path / "data.csv"
+    frame = pd.DataFrame(recording.joint_positions, columns=list(scn.chain.joint_names))
+    frame[["x", "y", "z"]] = dataset.position_m
+    frame.to_csv(data, index=False)
+    code, _, stderr = _run(
+        [
+            "calibrate",
+            str(data),
+            "--robot",
+            "kinova",
+            "--no-heldout",
+            "-o",
+            str(tmp_path / "r.json"),
+            *extra,
+        ],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 2 and message in stderr and "Traceback" not in stderr
+    assert len(stderr.strip().splitlines()) == 1
