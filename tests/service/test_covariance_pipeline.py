@@ -104,7 +104,7 @@ def test_position_only_recording_gets_covariances() -> None:
 def test_unknown_covariance_frame_is_a_clear_error() -> None:
     _, _, dataset = _simulated(200)
     options = CalibrationOptions(heldout=False, covariance_frames=["elbow"])
-    with pytest.raises(KincalError, match="covariance_frames.*elbow.*choose among"):
+    with pytest.raises(KincalError, match=r"covariance_frames.*elbow.*choose among"):
         pipeline.calibrate(dataset, robot("kinova"), options)
 
 
