@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -18,20 +14,7 @@ from solver.covariance import (
     resolve_null_space,
     solve_clarabel,
 )
-
-
-def _load_support():
-    name = "kincal_covariance_test_support"
-    if name not in sys.modules:
-        path = Path(__file__).with_name("test_covariance_support.py")
-        spec = importlib.util.spec_from_file_location(name, path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-S = _load_support()
+from tests.solver import covariance_support as S
 
 
 def random_case(names, n=200, seed=0, residual_dim=6, constant=()):

@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -23,20 +19,7 @@ from solver.covariance import (
 )
 from solver.covariance.layout import block_diagonal
 from solver.errors import CalibrationError
-
-
-def _load_support():
-    name = "kincal_covariance_test_support"
-    if name not in sys.modules:
-        path = Path(__file__).with_name("test_covariance_support.py")
-        spec = importlib.util.spec_from_file_location(name, path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-S = _load_support()
+from tests.solver import covariance_support as S
 
 
 def case(structure, residual_dim, known, seed=0, n=15, n_frames=2):

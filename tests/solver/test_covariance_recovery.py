@@ -1,6 +1,6 @@
 """Recovery on simulated Jaco data: task-score error of each estimator, calibrated intervals.
 
-Truth (test_covariance_support): rotational σ 0.5–3 mrad on the six joint frames, no
+Truth (covariance_support): rotational σ 0.5–3 mrad on the six joint frames, no
 translational randomness, noise σ 0.3 mm / 2 mrad. Residuals are left after an OLS fit of the
 link corrections (42 columns), so the deterministic fit absorbs part of the random error as in
 Eq. (10). The noise covariance is passed as known (measured separately, paper §V-B): with the
@@ -13,32 +13,18 @@ configurations; error = mean relative error over them, then the median over 10 s
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from functools import cache
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from schemas.calibration import CalibrationOptions
 from solver.covariance import ee_covariance_batch, estimate_covariances
+from tests.solver import covariance_support as S
 
 DEFAULT = CalibrationOptions().covariance_estimator  # what `kincal calibrate` uses
 
 
-def _load_support():
-    name = "kincal_covariance_test_support"
-    if name not in sys.modules:
-        path = Path(__file__).with_name("test_covariance_support.py")
-        spec = importlib.util.spec_from_file_location(name, path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-S = _load_support()
 ESTIMATORS = ("moment", "ml", "reml")
 SEEDS = range(1, 11)
 

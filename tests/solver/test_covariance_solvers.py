@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,20 +23,8 @@ from solver.covariance import (
 )
 from solver.covariance.solvers import _CVXPY_STATUS
 from solver.errors import SolverError
+from tests.solver import covariance_support as S
 
-
-def _load_support():
-    name = "kincal_covariance_test_support"
-    if name not in sys.modules:
-        path = Path(__file__).with_name("test_covariance_support.py")
-        spec = importlib.util.spec_from_file_location(name, path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-S = _load_support()
 ROTATION_ONLY = ("w_x", "w_y", "w_z")
 
 

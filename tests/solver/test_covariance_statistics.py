@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,20 +17,7 @@ from solver.covariance import (
     moment_residual_norm,
 )
 from solver.errors import SolverError
-
-
-def _load_support():
-    name = "kincal_covariance_test_support"
-    if name not in sys.modules:
-        path = Path(__file__).with_name("test_covariance_support.py")
-        spec = importlib.util.spec_from_file_location(name, path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-S = _load_support()
+from tests.solver import covariance_support as S
 
 
 def paper_design(frame_jacobians, layout):

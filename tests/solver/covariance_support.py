@@ -6,9 +6,9 @@ before the joint rotation, i.e. in the frame ``oM_parent · jointPlacement_j``. 
 ``B_j = (oM_parent · jointPlacement_j)^-1 · oMe`` its end-effector-frame Jacobian is
 ``A_j = Ad_{B_j}^-1`` (DESIGN.md §2), [v; w] order. Residuals are drawn from N(0, Σ_E(q)) (Eq. 12).
 
-Sibling test modules load this file by path under one ``sys.modules`` name (the tests tree is
-not a package and pytest runs with ``--import-mode=importlib``). To use the real model later,
-replace :func:`jaco_frame_jacobians`.
+Test modules import it as ``from tests.solver import covariance_support as S``; its name does
+not start with ``test_`` so pytest does not collect it. tests/service/test_covariance_pipeline.py
+checks the same estimator through kincal's own model and simulator.
 """
 
 from __future__ import annotations
