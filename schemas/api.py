@@ -7,11 +7,13 @@ Errors are :class:`Problem` documents (RFC 9457, ``application/problem+json``).
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.calibration import CalibrationOptions
+from schemas.discovery import DiscoveryOptions
+from schemas.ranking import RankingOptions, TargetPose
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
@@ -152,6 +154,85 @@ class CalibrationPublic(BaseModel):
 
 class CalibrationsPublic(Page):
     data: list[CalibrationPublic]
+
+
+# --- rankings ----------------------------------------------------------------------------------
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+NonNegativeFloat = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+
+
+class RankingCreate(_In):
+    """Rank candidates for a task by a succeeded calibration's predicted end-effector
+    uncertainty (paper Eq. 22–23; lower score is better). Give exactly one of
+    ``joint_positions_rad`` (rows in chain order), ``configurations`` (objects keyed by joint
+    name) or ``target`` (a pose whose inverse-kinematics solutions are found and ranked)."""
+
+    calibration_id: str = Field(min_length=1, max_length=64)
+    joint_positions_rad: list[list[FiniteFloat]] | None = Field(
+        None, min_length=1, description="Candidate configurations, rad, joints in chain order."
+    )
+    configurations: list[dict[str, FiniteFloat]] | None = Field(
+        None, min_length=1, description="Candidate configurations as {joint name: rad}."
+    )
+    target: TargetPose | None = Field(
+        None, description="End-effector pose in the calibration's measurement frame."
+    )
+    n_candidates: int = Field(16, ge=1, le=512, description="Target only: IK restarts.")
+    seed: int = Field(0, description="Target only: seed of the IK restarts.")
+    free_axis: Literal["auto", "x", "y", "z", "none"] = Field(
+        "auto", description="Target only: end-effector axis the task lets the target turn about."
+    )
+    n_free_rotations: int = Field(12, ge=1, le=360, description="Target only.")
+    payload_kg: NonNegativeFloat | list[NonNegativeFloat] | None = Field(
+        None,
+        description="Payload (one value, or one per configuration); default: the "
+        "calibration's payload option.",
+    )
+    options: RankingOptions = Field(default_factory=RankingOptions)
+
+    @model_validator(mode="after")
+    def _one_kind_of_candidates(self) -> RankingCreate:
+        given = [
+            name
+            for name in ("joint_positions_rad", "configurations", "target")
+            if getattr(self, name) is not None
+        ]
+        if len(given) != 1:
+            raise ValueError(
+                "give exactly one of joint_positions_rad, configurations or target"
+                + (f" (got {', '.join(given)})" if given else "")
+            )
+        if isinstance(self.payload_kg, list) and self.target is not None:
+            raise ValueError("payload_kg: a target ranking takes one payload value, not a list")
+        return self
+
+
+# --- discoveries -------------------------------------------------------------------------------
+
+
+class DiscoveryCreate(_In):
+    dataset_id: str = Field(min_length=1, max_length=64)
+    options: DiscoveryOptions = Field(default_factory=DiscoveryOptions)
+
+
+class DiscoveryLinks(BaseModel):
+    self: str
+    result: str
+    report: str
+    cancel: str
+
+
+class DiscoveryPublic(BaseModel):
+    id: str
+    dataset_id: str | None
+    status: JobStatus
+    options: DiscoveryOptions
+    links: DiscoveryLinks
+
+
+class DiscoveriesPublic(Page):
+    data: list[DiscoveryPublic]
 
 
 # --- health ------------------------------------------------------------------------------------

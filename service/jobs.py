@@ -110,6 +110,7 @@ def default_registry() -> JobRegistry:
     """The job kinds the service ships with."""
     registry = JobRegistry()
     registry.register("calibration", "service.tasks:calibration_job", id_prefix="cal")
+    registry.register("discovery", "service.tasks:discovery_job", id_prefix="dis")
     return registry
 
 

@@ -59,9 +59,14 @@ def render_report(result: CalibrationResult, dataset: PoseDataset) -> str:
             "<h2>Held-out evaluation (paper Table II layout)</h2>",
             f"<p>{e(result.evaluation.protocol)}</p><pre>{e(table)}</pre>",
         ]
+    return html_page(f"kincal report: {result.robot.name}", sections)
+
+
+def html_page(title: str, sections: list[str]) -> str:
+    """A self-contained HTML page (inline style, no scripts) from HTML ``sections``."""
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
-        f"<title>kincal report: {e(result.robot.name)}</title><style>{_STYLE}</style></head>"
+        f"<title>{html.escape(title)}</title><style>{_STYLE}</style></head>"
         f"<body>{''.join(sections)}</body></html>\n"
     )
 
@@ -137,7 +142,7 @@ def _residual_figure(result: CalibrationResult, dataset: PoseDataset) -> str:
             "nominal robot (frame and tool fitted) vs calibrated",
         )
         png = path.read_bytes()
-    return _img(png, "Histograms of residual components before and after calibration")
+    return png_img(png, "Histograms of residual components before and after calibration")
 
 
 def _identifiability(result: CalibrationResult) -> str:
@@ -208,12 +213,12 @@ def _random_effects(covariance: CovarianceResult | None) -> str:
     warnings = "".join(f'<p class="warn">{e(w)}</p>' for w in covariance.identifiability.warnings)
     fixed = ", ".join(e(f) for f in covariance.identifiability.fixed)
     return (
-        _img(buffer.getvalue(), "Standard deviation per frame")
+        png_img(buffer.getvalue(), "Standard deviation per frame")
         + (f"<p>Fixed entries: {fixed}</p>" if fixed else "")
         + warnings
     )
 
 
-def _img(png: bytes, alt: str) -> str:
+def png_img(png: bytes, alt: str) -> str:
     encoded = base64.b64encode(png).decode("ascii")
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{encoded}">'

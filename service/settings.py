@@ -79,6 +79,9 @@ class Settings(BaseSettings):
     max_rows: int = Field(100_000, ge=1, description="Most samples in one dataset.")
     max_joints: int = Field(32, ge=1, description="Most joints in a calibrated chain.")
     max_urdf_bytes: int = Field(2 * MiB, ge=1024, description="Largest uploaded URDF.")
+    max_ranking_candidates: int = Field(
+        10_000, ge=1, description="Most configurations scored by one ranking request."
+    )
     result_cache_size: int = Field(64, ge=1, description="Calibration results kept in memory.")
     api_key_cache_s: float = Field(
         30.0,

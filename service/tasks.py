@@ -7,12 +7,16 @@ A job function reads its inputs from ``ctx.params`` and the data folder, calls t
 from __future__ import annotations
 
 import functools
+import tempfile
+from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict
 
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import read_dataset
-from service import pipeline
+from schemas.discovery import DiscoveryOptions
+from service import discovery, pipeline
+from service.discovery_html import render_discovery_report
 from service.report_html import render_report
 from service.robots import RobotDescription, load_robot
 from service.storage.files import FileStore
@@ -48,6 +52,16 @@ class CalibrationJobParams(BaseModel):
     dataset: DatasetRef
     robot: RobotRef
     options: CalibrationOptions
+
+
+class DiscoveryJobParams(BaseModel):
+    """``jobs.params`` of a discovery: everything resolved when the job was accepted."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    dataset: DatasetRef
+    robot: RobotRef
+    options: DiscoveryOptions
 
 
 @functools.lru_cache(maxsize=16)
@@ -103,3 +117,30 @@ def calibration_job(ctx: JobContext) -> None:
     ctx.write_artifact("result", "result.json", result.model_dump_json(indent=1).encode())
     ctx.write_artifact("urdf", "calibrated.urdf", export_urdf(result).encode())
     ctx.write_artifact("report", "report.html", render_report(result, dataset).encode())
+
+
+DISCOVERY_FRACTION = 0.1
+DISCOVERY_REPORT_FRACTION = 0.9
+
+
+def discovery_job(ctx: JobContext) -> None:
+    """Look for missing physics in a stored dataset; artifacts: findings JSON, HTML report
+    (with each finding's before/after residual plot)."""
+    ctx.progress("loading", 0.0)
+    params = DiscoveryJobParams.model_validate(ctx.params)
+    robot = robot_description(params.robot, ctx.files)
+    chain = discovery.chain_for(robot, params.options)
+    dataset = read_dataset(
+        ctx.files.path(params.dataset.data_path),
+        chain.joint_names,
+        other_joint_names=chain.other_joint_names,
+        source=params.dataset.name,
+    )
+    ctx.progress("discover", DISCOVERY_FRACTION)
+    with tempfile.TemporaryDirectory(prefix="kincal-discovery-") as folder:
+        plot_dir = Path(folder)
+        findings = discovery.discover(dataset, robot, params.options, plot_dir, "finding")
+        ctx.progress("report", DISCOVERY_REPORT_FRACTION)
+        plots = {name: (plot_dir / name).read_bytes() for name in findings.plots}
+    ctx.write_artifact("result", "findings.json", findings.model_dump_json(indent=1).encode())
+    ctx.write_artifact("report", "report.html", render_discovery_report(findings, plots).encode())

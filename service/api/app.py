@@ -15,7 +15,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from starlette.concurrency import run_in_threadpool
 
-from service.api import calibrations, datasets, health, robots
+from service.api import calibrations, datasets, discoveries, health, rankings, robots
 from service.api.deps import ServiceState
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContextMiddleware
@@ -119,6 +119,6 @@ def create_app(settings: Settings | None = None, *, registry: JobRegistry | None
     app.add_middleware(
         RequestContextMiddleware, metrics=state.metrics, max_body_bytes=settings.max_request_bytes
     )
-    for module in (robots, datasets, calibrations, health):
+    for module in (robots, datasets, calibrations, rankings, discoveries, health):
         app.include_router(module.router)
     return app

@@ -24,10 +24,9 @@ from service.api.idempotency import Idempotency, fingerprint
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.results import CachedResult
-from service.api.robots import one_line, resolve_robot
-from service.storage import repository
+from service.api.robots import one_line
 from service.storage.models import Job
-from service.tasks import CalibrationJobParams, DatasetRef
+from service.tasks import CalibrationJobParams
 from solver.errors import ModelError
 
 PREFIX = f"{API_PREFIX}/calibrations"
@@ -109,34 +108,14 @@ def create_calibration(
     )
 
     def create() -> Response:
-        with state.database.sessions() as session:
-            dataset = repository.get_dataset(session, principal.tenant_id, body.dataset_id)
-            if dataset is None:
-                raise ProblemException(
-                    404,
-                    f"dataset_id: dataset {body.dataset_id!r} not found; upload it with "
-                    "POST /api/v1/datasets or list yours with GET /api/v1/datasets",
-                    slug="not-found",
-                )
-            robot = resolve_robot(
-                state,
-                session,
-                principal.tenant_id,
-                dataset.robot_id or dataset.robot,
-                dataset.base_frame,
-                dataset.tip_frame,
-            )
+        dataset, robot = jobs_common.dataset_for_job(state, principal.tenant_id, body.dataset_id)
         try:  # options naming unknown joints: a 422 now rather than a failed job later
             pipeline.chain_for(robot.description, body.options)
         except ModelError as exc:
             raise ProblemException(
                 422, f"options: {one_line(exc)}", slug="invalid-options"
             ) from exc
-        params = CalibrationJobParams(
-            dataset=DatasetRef(id=dataset.id, name=dataset.name, data_path=dataset.data_path),
-            robot=robot.ref,
-            options=body.options,
-        )
+        params = CalibrationJobParams(dataset=dataset, robot=robot.ref, options=body.options)
         job = jobs_common.submit_job(
             state,
             principal.tenant_id,
@@ -144,12 +123,7 @@ def create_calibration(
             params.model_dump(mode="json"),
             dataset_id=dataset.id,
         )
-        return jobs_common.json_response(
-            public(job).model_dump_json(),
-            202,
-            location=f"{PREFIX}/{job.id}",
-            headers=jobs_common.poll_headers(job),
-        )
+        return RESOURCE.accepted(job)
 
     return idempotency.run(lambda: fingerprint(body.model_dump(mode="json")), create)
 

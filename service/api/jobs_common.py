@@ -18,8 +18,10 @@ from schemas.api import JobStatus
 from service.api.deps import PrincipalDep, ServiceState, StateDep
 from service.api.idempotency import Idempotency
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
+from service.api.robots import ResolvedRobot, resolve_robot
 from service.storage import repository
 from service.storage.models import Job
+from service.tasks import DatasetRef
 
 RETRY_AFTER_S = "1"
 
@@ -50,6 +52,30 @@ def submit_job(
         session.add(job)
     state.runner.notify()
     return job
+
+
+def dataset_for_job(
+    state: ServiceState, tenant_id: str, dataset_id: str
+) -> tuple[DatasetRef, ResolvedRobot]:
+    """A job's input: the tenant's dataset (404 naming ``dataset_id`` otherwise) and its robot."""
+    with state.database.sessions() as session:
+        dataset = repository.get_dataset(session, tenant_id, dataset_id)
+        if dataset is None:
+            raise ProblemException(
+                404,
+                f"dataset_id: dataset {dataset_id!r} not found; upload it with "
+                "POST /api/v1/datasets or list yours with GET /api/v1/datasets",
+                slug="not-found",
+            )
+        robot = resolve_robot(
+            state,
+            session,
+            tenant_id,
+            dataset.robot_id or dataset.robot,
+            dataset.base_frame,
+            dataset.tip_frame,
+        )
+    return DatasetRef(id=dataset.id, name=dataset.name, data_path=dataset.data_path), robot
 
 
 def job_or_404(session: Session, tenant_id: str, kind: str, job_id: str, noun: str) -> Job:
@@ -151,6 +177,15 @@ class JobResource:
     public_model: type[BaseModel]
     page_model: type[BaseModel]
     to_public: Callable[[Job], BaseModel]
+
+    def accepted(self, job: Job) -> Response:
+        """202 with the new job and its Location."""
+        return json_response(
+            self.to_public(job).model_dump_json(),
+            202,
+            location=f"{self.prefix}/{job.id}",
+            headers=poll_headers(job),
+        )
 
     def lookup(self, state: ServiceState, tenant_id: str, job_id: str) -> Job:
         with state.database.sessions() as session:

@@ -27,6 +27,10 @@ class CachedResult:
     result: CalibrationResult
     _derived: dict[str, Any] = field(default_factory=dict, repr=False)
 
+    def has(self, key: str) -> bool:
+        """Whether ``memo(key, ...)`` has been built (so calling it costs nothing)."""
+        return key in self._derived
+
     def memo(self, key: str, build: Callable[[CalibrationResult], T]) -> T:
         """``build(result)``, once per entry and key (a race may build it twice, harmlessly)."""
         try:
@@ -72,6 +76,16 @@ class ResultCache:
             while len(self._entries) > self._maxsize:
                 self._entries.popitem(last=False)
         return entry
+
+    def peek(self, tenant_id: str, calibration_id: str) -> CachedResult | None:
+        """The entry if it is cached for ``tenant_id`` (no loading: safe in the event loop)."""
+        with self._lock:
+            entry = self._entries.get(calibration_id)
+            if entry is None or entry.tenant_id != tenant_id:
+                return None
+            self._entries.move_to_end(calibration_id)
+            self.hits += 1
+            return entry
 
     def get(
         self, tenant_id: str, calibration_id: str, load_job: Callable[[], Job | None]

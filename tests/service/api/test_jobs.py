@@ -74,6 +74,8 @@ def comparable(result: CalibrationResult) -> dict[str, Any]:
     document = result.model_dump(mode="json")
     document.pop("created_utc")
     document["solver"].pop("time_s")
+    if document.get("covariance") is not None:
+        document["covariance"]["solver"].pop("time_s")
     document["dataset"].pop("source")
     return document
 

@@ -1,0 +1,105 @@
+"""Discoveries: jobs of kind ``discovery`` (see :func:`service.tasks.discovery_job`), which look
+for the physics a dataset shows and the user's model lacks (``kincal discover``).
+
+POST creates one; :func:`service.api.jobs_common.add_job_routes` adds list, status, result
+(the findings JSON, ``kincal.findings/1``), report and cancel.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Response
+
+from schemas.api import DiscoveriesPublic, DiscoveryCreate, DiscoveryLinks, DiscoveryPublic
+from schemas.discovery import DiscoveryOptions
+from service import discovery
+from service.api import jobs_common
+from service.api.calibrations import REPORT_HEADERS
+from service.api.deps import API_PREFIX, PrincipalDep, StateDep
+from service.api.idempotency import Idempotency, fingerprint
+from service.api.jobs_common import Artifact, JobResource
+from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
+from service.api.robots import one_line
+from service.storage.models import Job
+from service.tasks import DiscoveryJobParams
+from solver.errors import ModelError
+
+PREFIX = f"{API_PREFIX}/discoveries"
+router = APIRouter(prefix=PREFIX, tags=["discoveries"])
+
+
+def public(job: Job) -> DiscoveryPublic:
+    base = f"{PREFIX}/{job.id}"
+    return DiscoveryPublic(
+        id=job.id,
+        dataset_id=job.dataset_id,
+        status=jobs_common.job_status(job),
+        options=DiscoveryOptions.model_validate(job.params["options"]),
+        links=DiscoveryLinks(
+            self=base, result=f"{base}/result", report=f"{base}/report", cancel=f"{base}/cancel"
+        ),
+    )
+
+
+RESOURCE = JobResource(
+    kind="discovery",
+    noun="discovery",
+    prefix=PREFIX,
+    public_model=DiscoveryPublic,
+    page_model=DiscoveriesPublic,
+    to_public=public,
+)
+
+
+@router.post(
+    "",
+    status_code=202,
+    response_model=DiscoveryPublic,
+    responses={**STANDARD_PROBLEMS, **problem_responses(404, 409)},
+)
+def create_discovery(
+    body: DiscoveryCreate,
+    principal: PrincipalDep,
+    state: StateDep,
+    idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
+) -> Response:
+    """Start looking for missing physics in a dataset; poll the Location for progress."""
+    idempotency = Idempotency(
+        state.database, principal.tenant_id, idempotency_key, f"POST {PREFIX}"
+    )
+
+    def create() -> Response:
+        dataset, robot = jobs_common.dataset_for_job(state, principal.tenant_id, body.dataset_id)
+        try:  # options naming unknown joints: a 422 now rather than a failed job later
+            discovery.chain_for(robot.description, body.options)
+        except ModelError as exc:
+            raise ProblemException(
+                422, f"options: {one_line(exc)}", slug="invalid-options"
+            ) from exc
+        params = DiscoveryJobParams(dataset=dataset, robot=robot.ref, options=body.options)
+        job = jobs_common.submit_job(
+            state,
+            principal.tenant_id,
+            RESOURCE.kind,
+            params.model_dump(mode="json"),
+            dataset_id=dataset.id,
+        )
+        return RESOURCE.accepted(job)
+
+    return idempotency.run(lambda: fingerprint(body.model_dump(mode="json")), create)
+
+
+jobs_common.add_job_routes(
+    router,
+    RESOURCE,
+    [
+        Artifact("result", "application/json", "The findings JSON (kincal.findings/1)."),
+        Artifact(
+            "report",
+            "text/html; charset=utf-8",
+            "HTML report: findings with residuals before/after, ambiguities, held-out error.",
+            headers=REPORT_HEADERS,
+        ),
+    ],
+)

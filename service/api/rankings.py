@@ -1,0 +1,198 @@
+"""Rankings: candidate configurations (or a target pose's IK solutions) ordered by the
+task-weighted end-effector uncertainty a succeeded calibration predicts (paper Eq. 22–23).
+
+Synchronous, and the planners' hot path. A calibration's result and the
+:class:`solver.ranking.UncertaintyModel` built from it are cached per (tenant, calibration)
+(:func:`service.api.calibrations.cached_calibration`), so after the first request a ranking
+does no database query, file read or JSON parsing of the result. Scoring a few hundred
+configurations takes a few milliseconds of numpy, less than a thread hop under load costs, so
+it runs in the event loop; larger batches and inverse kinematics run in a worker thread.
+
+Rankings change nothing, so a repeated request (with or without ``Idempotency-Key``) gets
+the same answer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from fastapi import APIRouter, Response
+from numpy.typing import NDArray
+from starlette.concurrency import run_in_threadpool
+
+from schemas.api import RankingCreate
+from schemas.calibration import CalibrationResult
+from schemas.ranking import RankingResult, TargetRankingRequest
+from service import ranking
+from service.api.calibrations import cached_calibration
+from service.api.deps import API_PREFIX, PrincipalDep, ServiceState, StateDep
+from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
+from service.api.results import CachedResult
+from solver.ranking import UncertaintyModel
+
+PREFIX = f"{API_PREFIX}/rankings"
+router = APIRouter(prefix=PREFIX, tags=["rankings"])
+
+INLINE_MAX_CONFIGURATIONS = 512
+"""Larger configuration batches are scored in a worker thread, off the event loop."""
+MEMO_KEY = "ranking_context"
+
+
+@dataclass(frozen=True)
+class RankingContext:
+    """What rankings derive from one calibration result, built once per cache entry."""
+
+    result: CalibrationResult
+    model: UncertaintyModel
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return self.model.chain.joint_names
+
+
+def _build_context(result: CalibrationResult) -> RankingContext:
+    return RankingContext(result, ranking.uncertainty_model(result))
+
+
+def _loaded_context(state: ServiceState, tenant_id: str, calibration_id: str) -> RankingContext:
+    """Cache miss: read the result (database + file) and build the model (in a thread)."""
+    entry = cached_calibration(state, tenant_id, calibration_id)
+    _require_covariance(entry, calibration_id)
+    return entry.memo(MEMO_KEY, _build_context)
+
+
+def _require_covariance(entry: CachedResult, calibration_id: str) -> None:
+    if entry.result.covariance is None:
+        raise ProblemException(
+            409,
+            f"calibration {calibration_id} has no covariances, which rankings need; start a "
+            "calibration with options.covariance 'diag' or 'full'",
+            slug="no-covariance",
+        )
+
+
+async def ranking_context(
+    state: ServiceState, tenant_id: str, calibration_id: str
+) -> RankingContext:
+    """The calibration's ranking context; 404 (unknown or another tenant's), 409 (not
+    succeeded, or without covariances)."""
+    entry = state.results.peek(tenant_id, calibration_id)
+    if entry is not None and entry.has(MEMO_KEY):
+        return entry.memo(MEMO_KEY, _build_context)
+    return await run_in_threadpool(_loaded_context, state, tenant_id, calibration_id)
+
+
+# --- candidates --------------------------------------------------------------------------------
+
+
+def _invalid(detail: str, location: str, pointer: str) -> ProblemException:
+    error = {"location": location, "pointer": pointer, "detail": detail}
+    return ProblemException(
+        422, f"{location}: {detail}", slug="invalid-configurations", errors=[error]
+    )
+
+
+def joint_matrix(body: RankingCreate, joint_names: tuple[str, ...]) -> NDArray[np.float64]:
+    """The candidates as an (N, k) array in chain order; 422 naming the first bad row."""
+    k = len(joint_names)
+    expected = ", ".join(joint_names)
+    if body.joint_positions_rad is not None:
+        for i, row in enumerate(body.joint_positions_rad):
+            if len(row) != k:
+                raise _invalid(
+                    f"row {i} has {len(row)} joint positions; this calibration's chain has "
+                    f"{k} ({expected})",
+                    f"body.joint_positions_rad.{i}",
+                    f"#/joint_positions_rad/{i}",
+                )
+        return np.array(body.joint_positions_rad, dtype=float).reshape(-1, k)
+    assert body.configurations is not None
+    known = set(joint_names)
+    for i, named in enumerate(body.configurations):
+        unknown = sorted(set(named) - known)
+        missing = [name for name in joint_names if name not in named]
+        if unknown or missing:
+            problems = []
+            if unknown:
+                problems.append(f"unknown joint(s) {', '.join(unknown)}")
+            if missing:
+                problems.append(f"missing joint(s) {', '.join(missing)}")
+            raise _invalid(
+                f"configuration {i}: {'; '.join(problems)}; the chain's joints are {expected}",
+                f"body.configurations.{i}",
+                f"#/configurations/{i}",
+            )
+    return np.array([[named[name] for name in joint_names] for named in body.configurations])
+
+
+def _count(body: RankingCreate) -> int:
+    if body.joint_positions_rad is not None:
+        return len(body.joint_positions_rad)
+    if body.configurations is not None:
+        return len(body.configurations)
+    return body.n_candidates
+
+
+def _check_limits(body: RankingCreate, limit: int) -> None:
+    n = _count(body)
+    if n > limit:
+        raise ProblemException(
+            413,
+            f"{n} candidate configurations is more than the limit of {limit} per request; "
+            "split them over several requests or ask the operator to raise "
+            "KINCAL_MAX_RANKING_CANDIDATES",
+            slug="too-many-candidates",
+        )
+    if isinstance(body.payload_kg, list) and len(body.payload_kg) != n:
+        raise ProblemException(
+            422,
+            f"payload_kg: {len(body.payload_kg)} values for {n} configurations; give one "
+            "value, or one per configuration",
+            slug="invalid-request",
+        )
+
+
+def _payload(body: RankingCreate) -> NDArray[np.float64] | float | None:
+    if isinstance(body.payload_kg, list):
+        return np.array(body.payload_kg, dtype=float)
+    return body.payload_kg
+
+
+def _rank_configurations(context: RankingContext, body: RankingCreate) -> RankingResult:
+    q = joint_matrix(body, context.joint_names)
+    return ranking.rank_configurations(
+        context.result, q, body.options, payload_kg=_payload(body), model=context.model
+    )
+
+
+def _rank_target(context: RankingContext, body: RankingCreate) -> RankingResult:
+    payload = body.payload_kg if isinstance(body.payload_kg, float) else None
+    request = TargetRankingRequest(
+        target=body.target,  # type: ignore[arg-type]  # checked by RankingCreate
+        n_candidates=body.n_candidates,
+        seed=body.seed,
+        free_axis=body.free_axis,
+        n_free_rotations=body.n_free_rotations,
+        payload_kg=context.result.options.payload_kg if payload is None else payload,
+        options=body.options,
+    )
+    return ranking.rank_target(context.result, request, model=context.model)
+
+
+@router.post(
+    "",
+    response_model=RankingResult,
+    responses={**STANDARD_PROBLEMS, **problem_responses(404, 409, 413)},
+)
+async def create_ranking(body: RankingCreate, principal: PrincipalDep, state: StateDep) -> Response:
+    """Rank candidate configurations best first (kincal.ranking/1); synchronous."""
+    _check_limits(body, state.settings.max_ranking_candidates)
+    context = await ranking_context(state, principal.tenant_id, body.calibration_id)
+    if body.target is not None:
+        result = await run_in_threadpool(_rank_target, context, body)
+    elif _count(body) <= INLINE_MAX_CONFIGURATIONS:
+        result = _rank_configurations(context, body)
+    else:
+        result = await run_in_threadpool(_rank_configurations, context, body)
+    return Response(result.model_dump_json(), media_type="application/json")

@@ -1,0 +1,202 @@
+"""The discovery report as one self-contained HTML page (figures embedded as PNG data URIs).
+
+Sections: held-out error of the user's model and of the discovered one, each finding with its
+residuals-before/after figure (:func:`service.discovery.finding_figure`), ambiguous effects
+with the poses that would separate them, unexplained structure, random effects, the search
+steps and the ``kincal calibrate`` options that carry the discovered model.
+"""
+
+from __future__ import annotations
+
+import html
+from collections.abc import Mapping
+
+from schemas.discovery import ErrorPair, FindingsResult, Health
+from service.report_html import html_page, png_img
+
+
+def render_discovery_report(findings: FindingsResult, plots: Mapping[str, bytes]) -> str:
+    """The HTML report of ``findings``; ``plots`` maps each ``finding.plot`` name to its PNG."""
+    e = html.escape
+    sections = [
+        f"<h1>kincal discovery report: {e(findings.robot.name)}</h1>",
+        _overview(findings),
+        "<h2>Held-out error: your model vs the discovered model</h2>",
+        _heldout(findings),
+        "<h2>Findings</h2>",
+        _findings(findings, plots),
+        "<h2>Ambiguous effects</h2>",
+        _ambiguous(findings),
+        "<h2>Unexplained structure</h2>",
+        _unexplained(findings),
+        "<h2>Random effects (for the covariance calibration)</h2>",
+        _random_effects(findings),
+        "<h2>Residual health before and after</h2>",
+        _health(findings),
+        "<h2>Search steps</h2>",
+        _steps(findings),
+        "<h2>Calibrate with the discovered model</h2>",
+        _calibrate_options(findings),
+    ]
+    return html_page(f"kincal discovery: {findings.robot.name}", sections)
+
+
+def _overview(findings: FindingsResult) -> str:
+    e = html.escape
+    rows = [
+        (
+            "Robot",
+            f"{findings.robot.name} ({findings.robot.base_frame} → {findings.robot.tip_frame})",
+        ),
+        (
+            "Dataset",
+            f"{findings.dataset.source}: {findings.dataset.n_samples} samples, "
+            f"{len(findings.outliers.removed_rows)} gross outliers left out",
+        ),
+        ("Library", f"{findings.n_candidates} candidate terms tested at the first step"),
+        ("Created", f"{findings.created_utc} by kincal {findings.kincal_version}"),
+        ("Time", f"{findings.elapsed_s:.1f} s"),
+    ]
+    body = "".join(f"<tr><th>{e(k)}</th><td>{e(v)}</td></tr>" for k, v in rows)
+    return f"<table>{body}</table>"
+
+
+def _pair_cells(pair: ErrorPair) -> str:
+    rot = "–" if pair.rot_deg is None else f"{pair.rot_deg:.4f}"
+    return f"<td>{pair.trans_mm:.3f}</td><td>{rot}</td>"
+
+
+def _heldout(findings: FindingsResult) -> str:
+    heldout = findings.heldout
+    header = "<tr><th>model</th><th>mean mm</th><th>mean deg</th></tr>"
+    rows = (
+        f"<tr><td>your model</td>{_pair_cells(heldout.before)}</tr>"
+        f"<tr><td>discovered</td>{_pair_cells(heldout.after)}</tr>"
+    )
+    return f"<p>{html.escape(heldout.protocol)}</p><table>{header}{rows}</table>"
+
+
+def _findings(findings: FindingsResult, plots: Mapping[str, bytes]) -> str:
+    e = html.escape
+    if not findings.findings:
+        return '<p class="ok">No library effect is missing from your model.</p>'
+    parts = []
+    for f in findings.findings:
+        parameters = ", ".join(
+            f"{e(name)} = {value:.4g} ± {f.stderr.get(name, float('nan')):.2g}"
+            for name, value in f.parameters.items()
+        )
+        stability = "–" if f.stability is None else f"{f.stability:.0%}"
+        parts.append(
+            f"<h3>{e(f.effect)}{'' if f.joint is None else ' at ' + e(f.joint)} "
+            f"({e(f.variant)})</h3><p>{e(f.explanation)}</p>"
+            f"<table><tr><th>parameters</th><td>{parameters}</td></tr>"
+            f"<tr><th>p-value</th><td>{f.p_value:.3g}</td></tr>"
+            f"<tr><th>absorbed by the rest of the model</th><td>{f.absorbed_fraction:.0%}</td></tr>"
+            f"<tr><th>bootstrap stability</th><td>{stability}</td></tr>"
+            f"<tr><th>held-out mm without → with</th><td>{f.heldout.before.trans_mm:.3f} → "
+            f"{f.heldout.after.trans_mm:.3f}</td></tr></table>"
+        )
+        if f.plot is not None and f.plot in plots:
+            parts.append(
+                png_img(plots[f.plot], f"Residuals before and after adding {f.explanation}")
+            )
+    return "".join(parts)
+
+
+def _ambiguous(findings: FindingsResult) -> str:
+    e = html.escape
+    if not findings.ambiguous:
+        return "<p>None: every accepted effect is attributable.</p>"
+    parts = []
+    for a in findings.ambiguous:
+        poses = ""
+        if a.separating_poses:
+            header = "".join(f"<th>{e(name)}</th>" for name in a.separating_poses[0])
+            rows = "".join(
+                "<tr>" + "".join(f"<td>{v:.3f}</td>" for v in pose.values()) + "</tr>"
+                for pose in a.separating_poses
+            )
+            poses = f"<p>Poses (rad) that would separate them:</p><table><tr>{header}</tr>{rows}"
+            poses += "</table>"
+        parts.append(f'<p class="warn">{e(a.explanation)}</p>{poses}')
+    return "".join(parts)
+
+
+def _unexplained(findings: FindingsResult) -> str:
+    if not findings.unexplained:
+        return "<p>None found.</p>"
+    return "".join(
+        f'<p class="warn">{html.escape(u.explanation)}</p>' for u in findings.unexplained
+    )
+
+
+def _random_effects(findings: FindingsResult) -> str:
+    if not findings.random_effects:
+        return "<p>No joint shows more scatter than the rest.</p>"
+    return "".join(f"<p>{html.escape(r.explanation)}</p>" for r in findings.random_effects)
+
+
+def _health_row(label: str, health: Health) -> str:
+    def cell(value: float | None, digits: int) -> str:
+        return "–" if value is None else f"{value:.{digits}f}"
+
+    return (
+        f"<tr><td>{label}</td><td>{health.n_parameters}</td>"
+        f"<td>{cell(health.rms_translation_mm, 3)}</td><td>{cell(health.rms_rotation_deg, 4)}</td>"
+        f"<td>{cell(health.chi2_per_dof, 2)}</td><td>{len(health.dependences)}</td></tr>"
+    )
+
+
+def _health(findings: FindingsResult) -> str:
+    header = (
+        "<tr><th>model</th><th>parameters</th><th>RMS mm</th><th>RMS deg</th><th>χ²/dof</th>"
+        "<th>residual dependences</th></tr>"
+    )
+    rows = _health_row("your model", findings.health.before) + _health_row(
+        "discovered", findings.health.after
+    )
+    return f"<table>{header}{rows}</table>"
+
+
+def _steps(findings: FindingsResult) -> str:
+    e = html.escape
+    if not findings.steps:
+        return "<p>No step: nothing was significant.</p>"
+
+    def mm(value: float | None) -> str:
+        return "–" if value is None else f"{value:.3f}"
+
+    header = (
+        "<tr><th>step</th><th>candidate</th><th>action</th><th>p-value</th>"
+        "<th>held-out mm before</th><th>after</th></tr>"
+    )
+    rows = "".join(
+        f"<tr><td>{s.step}</td><td>{e(s.candidate)}</td><td>{e(s.action)}</td>"
+        f"<td>{s.p_value:.3g}</td><td>{mm(s.heldout_before_mm)}</td>"
+        f"<td>{mm(s.heldout_after_mm)}</td></tr>"
+        for s in findings.steps
+    )
+    return f"<table>{header}{rows}</table>"
+
+
+def _calibrate_options(findings: FindingsResult) -> str:
+    e = html.escape
+    model = findings.model
+    options = {
+        "compliant_joints": model.calibrate_compliant_joints,
+        "virtual_axes_at": model.calibrate_virtual_axes_at,
+        "gravity_base_m_s2": list(model.calibrate_gravity_base_m_s2),
+        "payload_kg": model.calibrate_payload_kg,
+    }
+    lines = "\n".join(f"  {name}: {value}" for name, value in options.items())
+    carried = (
+        f'<p class="warn">Not representable in calibrate (yet): {e(", ".join(model.not_carried))}'
+        "</p>"
+        if model.not_carried
+        else ""
+    )
+    return (
+        "<p>Options for <code>POST /api/v1/calibrations</code> (or <code>kincal calibrate</code>)"
+        f" that carry the discovered model:</p><pre>{e(lines)}</pre>{carried}"
+    )
