@@ -4,13 +4,26 @@ Gauss–Newton on the stacked end-effector-frame residuals with the columns of
 :func:`solver.kinematics.stacked_jacobian`, after a closed-form alignment of the measurement frame
 and tool offset. Columns that the data cannot identify are removed once, up front, by a
 column-pivoted QR and reported by name; the same columns stay fixed through the iterations.
+
+Every step reduces to sums over samples, so the same code serves in-memory arrays
+(:func:`fit_deterministic`) and data streamed in chunks (:mod:`solver.streaming`):
+
+- the Gauss–Newton step (Eq. 10) is solved from the normal equations :class:`NormalEquations`
+  (``JᵀJ``, ``Jᵀr``, ``rᵀr``), which add over chunks; :func:`gauss_newton` is the one iteration
+  loop (step halving included) and only asks a callable for the normal equations at a point;
+- the pruning (:func:`identifiable_columns`) is a column-pivoted QR of an in-memory stacked
+  Jacobian; the streamed fit runs it on its warm-start rows (see :mod:`solver.streaming`);
+- the outlier rule (§V-A) is :func:`within_spread` of a per-component :class:`ResidualSpread`,
+  which also merges over chunks.
 """
 
 from __future__ import annotations
 
 import functools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Generic, TypeVar
 
 import numpy as np
 import scipy.linalg
@@ -31,6 +44,7 @@ from solver.model import KinematicChain, gravity_loads, sample_configurations
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
+Payload = TypeVar("Payload")
 
 
 @dataclass(frozen=True)
@@ -144,52 +158,59 @@ def fit_deterministic(
             weighted(jacobian, position_only=position_only, rotation_weight=w),
         )
 
-    required = identifiable_parameter_count(chain, position_only=position_only, options=options)
-    if rows * joint_positions.shape[0] <= required:
-        raise CalibrationError(
-            f"fewer samples than identifiable parameters: {joint_positions.shape[0]} samples give "
-            f"{rows * joint_positions.shape[0]} equations for {required} identifiable parameters; "
-            f"record at least {required // rows + 1} configurations (3x that is advisable)"
-        )
+    check_sample_count(
+        chain, joint_positions.shape[0], position_only=position_only, options=options
+    )
     residual, jacobian = linearise(params)
-    keep, rank, condition = _identifiable_columns(jacobian, chain, options)
-    costs = [float(np.sum(residual**2))]
-    converged = False
-    iterations = 0
-    while iterations < options.max_iterations:
-        iterations += 1
-        a = jacobian[:, :, keep].reshape(-1, keep.size)
-        step = np.linalg.lstsq(a, residual.reshape(-1), rcond=None)[0]
-        params, residual, jacobian, cost = _accept_step(
-            params, step, keep, costs[-1], linearise, chain
-        )
-        costs.append(cost)
-        if abs(costs[-2] - cost) <= options.tolerance * max(costs[-2], 1e-300):
-            converged = True
-            break
-    a = jacobian[:, :, keep].reshape(-1, keep.size)
-    dof = a.shape[0] - keep.size
-    sigma2 = costs[-1] / dof
-    covariance = sigma2 * np.linalg.pinv(a.T @ a)
+    keep, rank, condition = identifiable_columns(jacobian, chain, options)
+
+    def evaluate(p: ChainParameters) -> tuple[NormalEquations, FloatArray]:
+        r, j = linearise(p)
+        kept = j[:, :, keep]
+        return normal_equations(kept.reshape(-1, keep.size), r.reshape(-1)), kept
+
+    first = normal_equations(jacobian[:, :, keep].reshape(-1, keep.size), residual.reshape(-1))
+    run = gauss_newton(chain, params, keep, (first, jacobian[:, :, keep]), evaluate, options)
     final_residual = pose_residuals(
-        forward_kinematics(chain, params, joint_positions, loads_nm),
+        forward_kinematics(chain, run.params, joint_positions, loads_nm),
         measured_pose,
         position_only=position_only,
     )
     return DeterministicFit(
-        params=params,
+        params=run.params,
         estimated=[names[i] for i in keep],
-        removed=[names[i] for i in range(len(names)) if i not in set(keep.tolist())],
-        standard_errors=np.sqrt(np.clip(np.diag(covariance), 0.0, None)),
+        removed=removed_names(names, keep),
+        standard_errors=parameter_standard_errors(run.normal),
         rank=rank,
         condition_number=condition,
-        iterations=iterations,
-        converged=converged,
-        cost_history=costs,
+        iterations=run.iterations,
+        converged=run.converged,
+        cost_history=run.cost_history,
         residuals=final_residual,
-        jacobian=jacobian[:, :, keep],
+        jacobian=run.payload,
         elapsed_s=time.perf_counter() - started,
     )
+
+
+def check_sample_count(
+    chain: KinematicChain, n_samples: int, *, position_only: bool, options: FitOptions
+) -> None:
+    """A clear error when ``n_samples`` poses give no more equations than identifiable
+    parameters."""
+    rows = 3 if position_only else 6
+    required = identifiable_parameter_count(chain, position_only=position_only, options=options)
+    if rows * n_samples <= required:
+        raise CalibrationError(
+            f"fewer samples than identifiable parameters: {n_samples} samples give "
+            f"{rows * n_samples} equations for {required} identifiable parameters; "
+            f"record at least {required // rows + 1} configurations (3x that is advisable)"
+        )
+
+
+def removed_names(names: list[str], keep: NDArray[np.intp]) -> list[str]:
+    """Names of the columns not in ``keep``, in column order."""
+    kept = set(keep.tolist())
+    return [names[i] for i in range(len(names)) if i not in kept]
 
 
 @functools.lru_cache(maxsize=64)
@@ -204,20 +225,129 @@ def identifiable_parameter_count(
     q = sample_configurations(chain, 200, rng)
     evaluation = evaluate_chain(chain, ChainParameters.nominal(chain), q, gravity_loads(chain, q))
     jacobian = stacked_jacobian(evaluation)[:, : 3 if position_only else 6]
-    return _identifiable_columns(jacobian, chain, options)[1]
+    return identifiable_columns(jacobian, chain, options)[1]
 
 
-def _accept_step(params, step, keep, previous_cost, linearise, chain):  # type: ignore[no-untyped-def]
-    """Apply a Gauss–Newton step, halving it while the cost rises (at most 20 halvings)."""
+# --- the shared Gauss–Newton core --------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NormalEquations:
+    """Eq. (10) as sums over samples of the weighted, stacked system ``A x ≈ y``.
+
+    ``gram`` AᵀA (p, p), ``cross`` Aᵀy (p,), ``cost`` yᵀy, ``n_rows`` the number of stacked
+    rows (d per sample); residuals in m and (weighted) rad, columns per parameter unit (local
+    twists m/rad, compliance rad/N·m). Sums of two sets of samples add (:meth:`__add__`).
+    """
+
+    gram: FloatArray
+    cross: FloatArray
+    cost: float
+    n_rows: int
+
+    def __add__(self, other: NormalEquations) -> NormalEquations:
+        return NormalEquations(
+            self.gram + other.gram,
+            self.cross + other.cross,
+            self.cost + other.cost,
+            self.n_rows + other.n_rows,
+        )
+
+
+def normal_equations(design: FloatArray, target: FloatArray) -> NormalEquations:
+    """Normal equations of ``design`` (m, p) and ``target`` (m,): AᵀA, Aᵀy, yᵀy, m."""
+    return NormalEquations(
+        design.T @ design, design.T @ target, float(target @ target), int(target.shape[0])
+    )
+
+
+def gauss_newton_step(normal: NormalEquations) -> FloatArray:
+    """``x = (AᵀA)⁻¹ Aᵀy`` (p,) with the columns scaled to unit norm first (Jacobi), so the
+    solve sees the condition number of the scaled columns, squared; falls back to the
+    minimum-norm least-squares solution if the scaled Gram is not positive definite."""
+    norms = np.sqrt(np.clip(np.diag(normal.gram), 0.0, None))
+    norms = np.where(norms > 0.0, norms, 1.0)
+    scaled = normal.gram / np.outer(norms, norms)
+    rhs = normal.cross / norms
+    try:
+        solution = scipy.linalg.solve(scaled, rhs, assume_a="pos", check_finite=False)
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+        solution = np.linalg.lstsq(scaled, rhs, rcond=None)[0]
+    return np.asarray(solution / norms, dtype=float)
+
+
+def parameter_standard_errors(normal: NormalEquations) -> FloatArray:
+    """Standard errors of the estimated parameters, ``sqrt(diag(σ² (AᵀA)⁺))`` with
+    ``σ² = cost / (rows − p)`` (p,), in the units of the parameters."""
+    dof = normal.n_rows - normal.gram.shape[0]
+    sigma2 = normal.cost / dof
+    covariance = sigma2 * np.linalg.pinv(normal.gram)
+    return np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+
+
+@dataclass(frozen=True)
+class GaussNewtonRun(Generic[Payload]):
+    """Result of :func:`gauss_newton`: final parameters, the normal equations there (kept
+    columns) and whatever the evaluation returned with them (``payload``)."""
+
+    params: ChainParameters
+    normal: NormalEquations
+    payload: Payload
+    iterations: int
+    converged: bool
+    cost_history: list[float]
+
+
+def gauss_newton(
+    chain: KinematicChain,
+    start: ChainParameters,
+    keep: NDArray[np.intp],
+    first: tuple[NormalEquations, Payload],
+    evaluate: Callable[[ChainParameters], tuple[NormalEquations, Payload]],
+    options: FitOptions,
+) -> GaussNewtonRun[Payload]:
+    """The iteration of Eq. (10) over the columns ``keep``: step from the normal equations,
+    halve it while the cost rises (at most 20 halvings), stop when the relative cost change is
+    below ``options.tolerance`` or after ``options.max_iterations`` steps.
+
+    ``first``: the normal equations (and payload) at ``start``; ``evaluate(params)`` gives them
+    at any other point — from arrays in memory or summed over streamed chunks.
+    """
+    params, (normal, payload) = start, first
+    costs = [normal.cost]
+    converged = False
+    iterations = 0
+    while iterations < options.max_iterations:
+        iterations += 1
+        step = gauss_newton_step(normal)
+        params, normal, payload = _accept_step(
+            params, step, keep, (normal, payload), evaluate, chain
+        )
+        costs.append(normal.cost)
+        if abs(costs[-2] - normal.cost) <= options.tolerance * max(costs[-2], 1e-300):
+            converged = True
+            break
+    return GaussNewtonRun(params, normal, payload, iterations, converged, costs)
+
+
+def _accept_step(
+    params: ChainParameters,
+    step: FloatArray,
+    keep: NDArray[np.intp],
+    current: tuple[NormalEquations, Payload],
+    evaluate: Callable[[ChainParameters], tuple[NormalEquations, Payload]],
+    chain: KinematicChain,
+) -> tuple[ChainParameters, NormalEquations, Payload]:
+    """Apply a Gauss–Newton step, halving it while the cost rises (at most 20 halvings); if
+    none lowers the cost, stay (the caller then sees no change and stops)."""
     scale = 1.0
     for _ in range(20):
         candidate = _apply_step(params, scale * step, keep, chain)
-        residual, jacobian = linearise(candidate)
-        cost = float(np.sum(residual**2))
-        if cost <= previous_cost:
-            return candidate, residual, jacobian, cost
+        normal, payload = evaluate(candidate)
+        if normal.cost <= current[0].cost:
+            return candidate, normal, payload
         scale *= 0.5
-    return params, *linearise(params), previous_cost
+    return params, *current
 
 
 def _apply_step(
@@ -230,13 +360,13 @@ def _apply_step(
     return ChainParameters(updated.links, params.compliance_rad_per_nm + full[6 * chain.n_links :])
 
 
-def _identifiable_columns(
+def identifiable_columns(
     jacobian: FloatArray, chain: KinematicChain, options: FitOptions
 ) -> tuple[NDArray[np.intp], int, float]:
     """Free columns that survive column-pivoted QR on the unit-norm-scaled stacked Jacobian.
 
-    Returns kept column indices (sorted), the rank and the condition number of the kept,
-    scaled columns.
+    ``jacobian`` (N, d, P): all P columns, weighted like the fit. Returns kept column indices
+    (sorted), the rank and the condition number of the kept, scaled columns.
     """
     n_link_cols = 6 * chain.n_links
     free = np.zeros(jacobian.shape[2], dtype=bool)
@@ -249,8 +379,8 @@ def _identifiable_columns(
     norms = np.linalg.norm(a, axis=0)
     nonzero = norms > 1e-12 * max(norms.max(), 1e-300)
     candidates, a, norms = candidates[nonzero], a[:, nonzero], norms[nonzero]
-    _, r, pivots = scipy.linalg.qr(a / norms, mode="economic", pivoting=True)
-    diagonal = np.abs(np.diag(r))
+    _, upper, pivots = scipy.linalg.qr(a / norms, mode="economic", pivoting=True)
+    diagonal = np.abs(np.diag(upper))
     rank = int(np.sum(diagonal > options.rank_tolerance * diagonal[0]))
     keep = np.sort(candidates[pivots[:rank]])
     singular = np.linalg.svd(
@@ -259,13 +389,55 @@ def _identifiable_columns(
     return keep, rank, float(singular[0] / singular[-1])
 
 
+# --- outlier rule (§V-A) ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ResidualSpread:
+    """Per residual component (d,): count, mean and sum of squared deviations (m, rad).
+
+    Merges over chunks exactly (Chan et al.'s pairwise update), so a streamed recording gets
+    the spread of the whole recording without holding it.
+    """
+
+    n: int
+    mean: FloatArray
+    m2: FloatArray
+
+    @classmethod
+    def of(cls, residuals: FloatArray) -> ResidualSpread:
+        """Spread of residuals (N, d)."""
+        mean = residuals.mean(axis=0) if residuals.shape[0] else np.zeros(residuals.shape[1])
+        return cls(int(residuals.shape[0]), mean, np.sum((residuals - mean) ** 2, axis=0))
+
+    def __add__(self, other: ResidualSpread) -> ResidualSpread:
+        n = self.n + other.n
+        if n == 0:
+            return self
+        delta = other.mean - self.mean
+        mean = self.mean + delta * (other.n / n)
+        m2 = self.m2 + other.m2 + delta**2 * (self.n * other.n / n)
+        return ResidualSpread(n, mean, m2)
+
+    @property
+    def std(self) -> FloatArray:
+        """Population standard deviation per component (d,)."""
+        return np.sqrt(self.m2 / max(self.n, 1))
+
+
+def within_spread(
+    residuals: FloatArray, mean: FloatArray, std: FloatArray, sigma: float
+) -> BoolArray:
+    """Samples (N, d) whose every component is within ``sigma`` standard deviations of its
+    mean -> (N,) bool; a component without spread never rejects."""
+    spread = np.where(std > 0.0, std, np.inf)
+    return np.all(np.abs(residuals - mean) <= sigma * spread, axis=1)
+
+
 def outlier_mask(residuals: FloatArray, sigma: float) -> BoolArray:
     """Paper §V-A: keep samples whose every residual component is within ``sigma`` standard
     deviations of that component's mean; (N, d) -> (N,) bool."""
-    centred = residuals - residuals.mean(axis=0)
-    spread = residuals.std(axis=0)
-    spread = np.where(spread > 0.0, spread, np.inf)
-    return np.all(np.abs(centred) <= sigma * spread, axis=1)
+    return within_spread(residuals, residuals.mean(axis=0), residuals.std(axis=0), sigma)
 
 
 def pose_errors(
