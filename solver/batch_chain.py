@@ -15,6 +15,7 @@ end-effector frame into the measurement frame; Jacobian columns map local twists
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,12 +65,16 @@ def sweep_chain(
     *,
     residual_dim: int,
     with_columns: bool,
+    column_links: Collection[int] | None = None,
+    compliance_columns: bool = True,
 ) -> ChainSweep:
     """Eq. (7) and the Eq. (9) Jacobian in one backward sweep over the chain.
 
     ``motions``: :func:`joint_motions` of the read joint positions (N, k); ``loads_nm``
     (N, n_axes): gravity torque about each compliance axis (Eq. 6), so the joints sit at
     ``q + c τ``. ``residual_dim`` 6 (pose) or 3 (position-only: the first three rows).
+    ``column_links`` (link indices, None = all) and ``compliance_columns`` say which columns
+    to fill; the others stay zero (a fit of the measurement frame and tool needs two links).
     """
     n = loads_nm.shape[0]
     k = chain.n_joints
@@ -79,7 +84,9 @@ def sweep_chain(
     columns = np.zeros((n_cols, residual_dim, n)) if with_columns else None
     suffix = np.empty((3, 4, n))
     suffix[:] = params.links[k][:3, :, None]
-    if columns is not None:
+    wanted = set(range(k + 1)) if column_links is None else set(column_links)
+    comp_columns = columns if compliance_columns else None
+    if columns is not None and k in wanted:
         for m in range(residual_dim):  # J_{k+1} = I: the tip link's twist is the residual's
             columns[6 * k + m, m] = 1.0
     for i in range(k - 1, -1, -1):
@@ -88,19 +95,19 @@ def sweep_chain(
         for a in own:
             motion = motion.advanced(deflection[a])
         suffix = _left_motion(suffix, motion)
-        if columns is not None and own:
+        if comp_columns is not None and own:
             column = adjoint_inverse_apply(suffix, chain.joint_screws[i])[:residual_dim]
             for a in own:
-                np.multiply(column, loads_nm[:, a], out=columns[6 * (k + 1) + a])
+                np.multiply(column, loads_nm[:, a], out=comp_columns[6 * (k + 1) + a])
         for a in reversed(range(len(axes))):
             if axes[a].joint_index != i or axes[a].is_joint_axis:
                 continue
             screw = np.r_[0.0, 0.0, 0.0, axes[a].axis]
             suffix = _left_motion(suffix, lie.ScrewMotion.of(screw, deflection[a]))
-            if columns is not None:
+            if comp_columns is not None:
                 column = adjoint_inverse_apply(suffix, screw)[:residual_dim]
-                np.multiply(column, loads_nm[:, a], out=columns[6 * (k + 1) + a])
-        if columns is not None:
+                np.multiply(column, loads_nm[:, a], out=comp_columns[6 * (k + 1) + a])
+        if columns is not None and i in wanted:
             link_columns(suffix, columns[6 * i : 6 * i + 6])
         link = params.links[i]
         suffix = lie.combine_rows(link[:3, :3], suffix)

@@ -307,8 +307,9 @@ def gauss_newton(
     options: FitOptions,
 ) -> GaussNewtonRun[Payload]:
     """The iteration of Eq. (10) over the columns ``keep``: step from the normal equations,
-    halve it while the cost rises (at most 20 halvings), stop when the relative cost change is
-    below ``options.tolerance`` or after ``options.max_iterations`` steps.
+    halve it while the cost rises (at most 20 halvings), stop when the relative cost change —
+    achieved, or predicted by the linearisation before the step is tried — is below
+    ``options.tolerance``, or after ``options.max_iterations`` steps.
 
     ``first``: the normal equations (and payload) at ``start``; ``evaluate(params)`` gives them
     at any other point — from arrays in memory or summed over streamed chunks.
@@ -318,8 +319,13 @@ def gauss_newton(
     converged = False
     iterations = 0
     while iterations < options.max_iterations:
-        iterations += 1
         step = gauss_newton_step(normal)
+        # The full step lowers the linearised cost by xᵀAᵀy; below the tolerance the iterate
+        # has settled and trying the step (a pass over the data when streaming) is pointless.
+        if float(step @ normal.cross) <= options.tolerance * max(costs[-1], 1e-300):
+            converged = True
+            break
+        iterations += 1
         params, normal, payload = _accept_step(
             params, step, keep, (normal, payload), evaluate, chain
         )
@@ -338,15 +344,25 @@ def _accept_step(
     evaluate: Callable[[ChainParameters], tuple[NormalEquations, Payload]],
     chain: KinematicChain,
 ) -> tuple[ChainParameters, NormalEquations, Payload]:
-    """Apply a Gauss–Newton step, halving it while the cost rises (at most 20 halvings); if
-    none lowers the cost, stay (the caller then sees no change and stops)."""
+    """Apply a Gauss–Newton step, shortened while the cost rises (at most 20 tries); if none
+    lowers the cost, stay (the caller then sees no change and stops).
+
+    Each shorter trial goes to the minimum of the parabola through the current cost, its
+    slope along the step (``−2 xᵀAᵀy``) and the failed trial, kept within [0.1, 0.5] of the
+    failed length (safeguarded backtracking): with large residuals the Gauss–Newton step can
+    overshoot by orders of magnitude, and each trial is a pass over the data when streaming.
+    """
+    cost = current[0].cost
+    slope = -2.0 * float(step @ current[0].cross)
     scale = 1.0
     for _ in range(20):
         candidate = _apply_step(params, scale * step, keep, chain)
         normal, payload = evaluate(candidate)
-        if normal.cost <= current[0].cost:
+        if normal.cost <= cost:
             return candidate, normal, payload
-        scale *= 0.5
+        curvature = (normal.cost - cost - slope * scale) / scale**2
+        best = -slope / (2.0 * curvature) if curvature > 0.0 else 0.5 * scale
+        scale = float(np.clip(best, 0.1 * scale, 0.5 * scale))
     return params, *current
 
 

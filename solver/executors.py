@@ -1,0 +1,226 @@
+"""One way to run a plain function over many items: in this process, in local worker
+processes, or on a Dask cluster — with the same numbers from each.
+
+``executor.map(fn, shared, items)`` returns ``[fn(shared, item) for item in items]`` in item
+order. ``fn`` must be a module-level function and ``shared``/``items`` picklable for the process
+and Dask backends; ``shared`` (e.g. the kinematic chain and the current parameters of a
+Gauss–Newton pass) travels once per worker and call, each item once. The caller combines the
+results in item order, so the backends differ only in where the work runs, never in the
+arithmetic (results are bit-identical when the workers run the same numpy/BLAS).
+
+Items are split into contiguous blocks, block w always to worker w, so a process that read and
+prepared chunk i in one pass sees chunk i again in the next (per-process caches keep hitting).
+
+The maths never imports Dask: it is imported only when a :class:`DaskExecutor` is made.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Any, Literal, Protocol, TypeVar
+
+from solver.errors import KincalError
+
+S = TypeVar("S")
+T = TypeVar("T")
+R = TypeVar("R")
+
+ExecutorKind = Literal["inprocess", "processes", "dask"]
+EXECUTOR_KINDS: tuple[ExecutorKind, ...] = ("inprocess", "processes", "dask")
+
+
+class Executor(Protocol):
+    """Where map-reduce work runs (see the module docstring)."""
+
+    name: str
+
+    @property
+    def n_workers(self) -> int: ...
+
+    def map(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> list[R]: ...
+
+    def run_on_workers(self, fn: Callable[[], R]) -> list[R]:
+        """``fn()`` once in every worker process (e.g. to read its peak memory)."""
+        ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> Executor: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+
+def blocks(n_items: int, n_workers: int) -> list[range]:
+    """Contiguous, near-equal item ranges, one per worker (some empty if items are few)."""
+    bounds = [round(w * n_items / n_workers) for w in range(n_workers + 1)]
+    return [range(bounds[w], bounds[w + 1]) for w in range(n_workers)]
+
+
+def _run_block(fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> list[R]:
+    return [fn(shared, item) for item in items]
+
+
+def _call(fn: Callable[[], R]) -> R:
+    return fn()
+
+
+class InProcessExecutor:
+    """Everything in the calling process, one item after the other (the default)."""
+
+    name = "inprocess"
+
+    @property
+    def n_workers(self) -> int:
+        return 1
+
+    def map(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> list[R]:
+        return _run_block(fn, shared, items)
+
+    def run_on_workers(self, fn: Callable[[], R]) -> list[R]:
+        return [fn()]
+
+    def close(self) -> None:
+        return None
+
+    def __enter__(self) -> InProcessExecutor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class ProcessExecutor:
+    """``n_workers`` local worker processes (default: every core), started once and reused.
+
+    One single-process pool per worker, so block w of every call lands on the same process.
+    Workers start with ``forkserver`` (clean interpreter, no inherited threads) and import the
+    solver once; BLAS runs one thread per worker (see :mod:`solver`).
+    """
+
+    name = "processes"
+
+    def __init__(self, n_workers: int | None = None) -> None:
+        count = n_workers or os.cpu_count() or 1
+        if count < 1:
+            raise KincalError(f"processes executor needs at least 1 worker, got {count}")
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload(["solver.streaming"])
+        self._pools = [ProcessPoolExecutor(1, mp_context=context) for _ in range(count)]
+
+    @property
+    def n_workers(self) -> int:
+        return len(self._pools)
+
+    def map(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> list[R]:
+        futures: list[Future[list[R]]] = [
+            pool.submit(_run_block, fn, shared, [items[i] for i in block])
+            for pool, block in zip(self._pools, blocks(len(items), self.n_workers), strict=True)
+            if len(block)
+        ]
+        return [result for future in futures for result in future.result()]
+
+    def run_on_workers(self, fn: Callable[[], R]) -> list[R]:
+        return [pool.submit(_call, fn).result() for pool in self._pools]
+
+    def close(self) -> None:
+        for pool in self._pools:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> ProcessExecutor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class DaskExecutor:
+    """Items as tasks on a Dask distributed cluster.
+
+    ``address``: a running scheduler (``tcp://host:8786``); its workers need kincal installed
+    and, for files, the same paths. None starts a LocalCluster of ``n_workers`` single-threaded
+    worker processes (``processes=False``: threads in this process, for tests) that is shut down
+    on :meth:`close`. ``shared`` is scattered to every worker once per call.
+    """
+
+    name = "dask"
+
+    def __init__(
+        self, address: str | None = None, *, n_workers: int | None = None, processes: bool = True
+    ) -> None:
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError as exc:  # pragma: no cover - pinned in requirements.lock
+            raise KincalError("the dask executor needs dask[distributed] installed") from exc
+        self._cluster: Any = None
+        if address is None:
+            self._cluster = LocalCluster(
+                n_workers=n_workers or os.cpu_count() or 1,
+                threads_per_worker=1,
+                processes=processes,
+                dashboard_address=None,
+            )
+            self._client: Any = Client(self._cluster)
+        else:
+            try:
+                self._client = Client(address, timeout="20s")
+            except OSError as exc:
+                raise KincalError(f"cannot reach the Dask scheduler at {address}: {exc}") from exc
+
+    def _workers(self) -> list[str]:
+        return sorted(self._client.scheduler_info(n_workers=-1)["workers"])
+
+    @property
+    def n_workers(self) -> int:
+        return len(self._workers())
+
+    def map(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> list[R]:
+        if not items:
+            return []
+        workers = self._workers()
+        if not workers:
+            raise KincalError("the Dask cluster has no workers")
+        remote = self._client.scatter(shared, broadcast=True, hash=False)
+        futures = []
+        for worker, block in zip(workers, blocks(len(items), len(workers)), strict=True):
+            futures += [
+                self._client.submit(
+                    fn, remote, items[i], workers=[worker], allow_other_workers=True, pure=False
+                )
+                for i in block
+            ]
+        results: list[R] = self._client.gather(futures)
+        return results
+
+    def run_on_workers(self, fn: Callable[[], R]) -> list[R]:
+        return list(self._client.run(fn).values())
+
+    def close(self) -> None:
+        self._client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+    def __enter__(self) -> DaskExecutor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def make_executor(
+    kind: ExecutorKind = "inprocess",
+    *,
+    n_workers: int | None = None,
+    dask_address: str | None = None,
+    dask_processes: bool = True,
+) -> Executor:
+    """The executor named ``kind``; ``dask_address`` None starts a LocalCluster."""
+    if kind == "inprocess":
+        return InProcessExecutor()
+    if kind == "processes":
+        return ProcessExecutor(n_workers)
+    if kind == "dask":
+        return DaskExecutor(dask_address, n_workers=n_workers, processes=dask_processes)
+    raise KincalError(f"unknown executor {kind!r}; choose one of {', '.join(EXECUTOR_KINDS)}")
