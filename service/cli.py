@@ -22,6 +22,7 @@ from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
 from service.urdf_export import export_urdf
 from solver import lie
 from solver.errors import KincalError
+from solver.executors import Executor
 
 app = typer.Typer(
     add_completion=False,
@@ -38,6 +39,28 @@ UrdfOpt = Annotated[Path | None, typer.Option("--urdf", help="A URDF file instea
 BaseOpt = Annotated[str | None, typer.Option("--base", help="Base frame (with --urdf).")]
 TipOpt = Annotated[str | None, typer.Option("--tip", help="Tip frame (with --urdf).")]
 OutputOpt = Annotated[Path, typer.Option("-o", "--output", help="Output file.")]
+ExecutorOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="Stream the recording in chunks; run each pass inprocess, on local processes (all "
+        "cores) or on dask. Any of --executor/--dask/--chunk-rows streams (no held-out splits; "
+        "covariances by moment matching)."
+    ),
+]
+DaskOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--dask",
+        help="Dask scheduler address (tcp://host:8786), implies --executor dask; without it "
+        "--executor dask uses KINCAL_DASK_ADDRESS or starts a local cluster.",
+    ),
+]
+ChunkRowsOpt = Annotated[
+    int | None, typer.Option(min=1, help="Rows per streamed chunk [65536; Parquet: row groups].")
+]
+WorkersOpt = Annotated[
+    int | None, typer.Option(min=1, help="Processes for --executor processes/local dask [cores].")
+]
 
 
 def _robot(
@@ -146,6 +169,10 @@ def calibrate(
     marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
     heldout: Annotated[bool, typer.Option(help="Run the 10-split held-out evaluation.")] = True,
     max_iterations: Annotated[int, typer.Option(min=1)] = 50,
+    executor: ExecutorOpt = None,
+    dask: DaskOpt = None,
+    chunk_rows: ChunkRowsOpt = None,
+    workers: WorkersOpt = None,
     covariance: Annotated[
         str, typer.Option(help="Random-effect covariances: diag, full or none (§IV-C).")
     ] = "diag",
@@ -189,6 +216,14 @@ def calibrate(
         covariance_frames=_names(covariance_frames),
         noise_std=None if noise_std is None else tuple(numbers(noise_std, "--noise-std", 6)),
     )
+    if executor is not None or dask is not None or chunk_rows is not None:
+        _calibrate_streamed(
+            data, output, description, options, executor, dask, chunk_rows, workers, marker
+        )
+        if export_urdf_to is not None:
+            export_urdf_to.parent.mkdir(parents=True, exist_ok=True)
+            export_urdf_to.write_text(export_urdf(read_result(output)), encoding="utf-8")
+        return
     chain = pipeline.chain_for(description, options)
     dataset = read_dataset(
         data, chain.joint_names, other_joint_names=chain.other_joint_names, marker=marker
@@ -441,6 +476,118 @@ def keys_revoke(key_id: Annotated[str, typer.Argument(help="The key id (kc_<id>_
     if not revoke_key(key_id):
         raise KincalError(f"no active key with id {key_id!r}")
     typer.echo(f"revoked key {key_id}")
+
+
+# --- streaming and fleets (issue 7) ------------------------------------------------------
+
+
+def _executor(kind: str | None, dask: str | None, workers: int | None) -> Executor:
+    """The executor asked for: ``--dask ADDRESS`` (or KINCAL_DASK_ADDRESS with ``dask``)
+    reaches a running cluster; ``dask`` alone starts a local one."""
+    from service.settings import Settings
+    from solver.executors import EXECUTOR_KINDS, make_executor
+
+    name = "dask" if dask is not None and kind is None else kind or "inprocess"
+    if name not in EXECUTOR_KINDS:
+        raise KincalError(f"--executor {name!r}: choose one of {', '.join(EXECUTOR_KINDS)}")
+    if dask is not None and name != "dask":
+        raise KincalError(f"--dask needs --executor dask (got --executor {name})")
+    address = dask or (Settings().dask_address if name == "dask" else None)
+    return make_executor(name, n_workers=workers, dask_address=address)  # type: ignore[arg-type]
+
+
+def _calibrate_streamed(
+    data: Path,
+    output: Path,
+    description: RobotDescription,
+    options: CalibrationOptions,
+    kind: str | None,
+    dask: str | None,
+    chunk_rows: int | None,
+    workers: int | None,
+    marker: int | None,
+) -> None:
+    stream = pipeline.StreamOptions()
+    if chunk_rows is not None:
+        stream = pipeline.StreamOptions(chunk_rows=chunk_rows)
+    timings: dict[str, float] = {}
+    with _executor(kind, dask, workers) as executor:
+        where = f"{executor.name} ({executor.n_workers} worker(s))"
+        result = pipeline.calibrate_streamed(
+            data, description, options, executor, stream, marker=marker, timings=timings
+        )
+    _write_json(output, result.model_dump_json(indent=1))
+    typer.echo(summary(result))
+    if options.heldout:
+        typer.echo("\nstreamed: held-out splits skipped (pass --no-heldout to silence this)")
+    stages = ", ".join(f"{name} {seconds:.2f} s" for name, seconds in timings.items())
+    typer.echo(f"streamed on {where}: {stages}")
+    typer.echo(f"\nresult written to {output}")
+
+
+@app.command()
+def fleet(
+    directory: Annotated[
+        Path, typer.Argument(help="Folder with one dataset per robot; file name = serial.")
+    ],
+    output: OutputOpt,
+    robot: RobotOpt = None,
+    urdf: UrdfOpt = None,
+    base: BaseOpt = None,
+    tip: TipOpt = None,
+    compliant_joints: Annotated[
+        str | None, typer.Option(help="Comma-separated elastic joints (default: all revolute).")
+    ] = None,
+    rigid: Annotated[bool, typer.Option(help="No joint compliance at all.")] = False,
+    outlier_sigma: Annotated[
+        float, typer.Option(min=0.0, help="Paper §V-A rule; 0 disables.")
+    ] = 2.0,
+    covariance: Annotated[str, typer.Option(help="diag, full or none (§IV-C).")] = "diag",
+    estimator: Annotated[str, typer.Option(help="Covariance estimator: reml, ml, moment.")] = (
+        "reml"
+    ),
+    heldout: Annotated[bool, typer.Option(help="Held-out splits per robot (slow).")] = False,
+    z_threshold: Annotated[
+        float, typer.Option(min=0.0, help="Robust z-score beyond which a robot is an outlier.")
+    ] = 3.5,
+    results_dir: Annotated[
+        Path | None, typer.Option(help="Also write each robot's result JSON here.")
+    ] = None,
+    marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
+    executor: Annotated[
+        str, typer.Option(help="Run robots inprocess, on local processes or on dask.")
+    ] = "inprocess",
+    dask: DaskOpt = None,
+    workers: WorkersOpt = None,
+) -> None:
+    """Calibrate every robot of a fleet (one dataset per serial) in parallel; summarise the
+    population spread of each parameter and flag robots that are outliers (e.g. a worn
+    joint)."""
+    from service import fleet as fleet_mode
+
+    description = _robot(robot, urdf, base, tip)
+    options = _options(
+        compliant_joints=[] if rigid else _names(compliant_joints),
+        outlier_sigma=outlier_sigma or None,
+        heldout=heldout,
+        covariance=covariance,
+        covariance_estimator=estimator,
+    )
+    datasets = fleet_mode.fleet_datasets(directory)
+    with _executor(executor, dask, workers) as runner:
+        report, outcomes = fleet_mode.calibrate_fleet(
+            datasets, description, options, runner, marker=marker, z_threshold=z_threshold
+        )
+    _write_json(output, report.to_json())
+    if results_dir is not None:
+        for outcome in outcomes:
+            if outcome.result is not None:
+                _write_json(
+                    results_dir / f"{outcome.serial}.json",
+                    outcome.result.model_dump_json(indent=1),
+                )
+    typer.echo(fleet_mode.fleet_table(report))
+    typer.echo(f"\nfleet summary written to {output}")
 
 
 def main() -> None:

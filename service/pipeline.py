@@ -6,9 +6,11 @@ The CLI and the HTTP service both call these functions; nothing is computed anyw
 from __future__ import annotations
 
 import datetime as dt
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import metadata
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,7 +36,7 @@ from schemas.calibration import (
     SolverReport,
     Transform,
 )
-from schemas.dataset import PoseDataset
+from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_chunks
 from service.robots import RobotDescription
 from solver import lie
 from solver.calibration import (
@@ -47,6 +49,7 @@ from solver.calibration import (
 from solver.covariance.estimate import CovarianceEstimate, FrameCovariance, estimate_covariances
 from solver.errors import KincalError
 from solver.evaluation import SplitError, cross_validate
+from solver.executors import Executor, InProcessExecutor
 from solver.kinematics import (
     ChainParameters,
     evaluate_chain,
@@ -55,11 +58,26 @@ from solver.kinematics import (
     pose_residuals,
 )
 from solver.model import KinematicChain, build_chain, gravity_loads
+from solver.streaming import (
+    STREAMED_ESTIMATOR_NOTE,
+    ChunkArrays,
+    ErrorSums,
+    StreamedCalibration,
+    StreamedFit,
+    StreamProblem,
+    StreamSettings,
+    calibrate_streamed_fits,
+    estimate_covariances_streamed,
+    release,
+)
 
 FloatArray = NDArray[np.float64]
 
 BEFORE = "before"
 CALIBRATED = "calibrated"
+
+FitLike = DeterministicFit | StreamedFit
+"""A deterministic fit, in memory or streamed: what the result JSON is assembled from."""
 
 Progress = Callable[[str, int, int], None]
 """``progress(stage, done, total)``, called after each solver run of a stage ("fit", "baseline",
@@ -165,12 +183,47 @@ def calibrate(
     covariance = covariance_stage(data, used, fit, options)
     progress("covariance", 1, 1)
     splits = heldout_splits(data, used, options, progress) if options.heldout else []
-    return CalibrationResult(
-        kincal_version=kincal_version(),
-        created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+    return _assemble_result(
         dataset=DatasetInfo(
             source=dataset.source, n_samples=dataset.n_samples, position_only=data.position_only
         ),
+        robot=robot,
+        chain=chain,
+        options=options,
+        fit=fit,
+        baseline_params=baseline.params,
+        train_before=_stats(data, used, baseline.params),
+        train_after=_stats(data, used, fit.params),
+        splits=splits,
+        covariance=covariance,
+        outliers=OutlierReport(
+            sigma=options.outlier_sigma,
+            n_input=dataset.n_samples,
+            n_used=int(used.size),
+            removed_rows=[int(i) + 1 for i in np.setdiff1d(everything, used)],
+        ),
+    )
+
+
+def _assemble_result(
+    *,
+    dataset: DatasetInfo,
+    robot: RobotDescription,
+    chain: KinematicChain,
+    options: CalibrationOptions,
+    fit: FitLike,
+    baseline_params: ChainParameters,
+    train_before: ErrorStats,
+    train_after: ErrorStats,
+    splits: list[SplitError],
+    covariance: CovarianceResult | None,
+    outliers: OutlierReport,
+) -> CalibrationResult:
+    """The result JSON of a calibration, in memory or streamed."""
+    return CalibrationResult(
+        kincal_version=kincal_version(),
+        created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        dataset=dataset,
         robot=RobotInfo(
             name=robot.name,
             base_frame=robot.base_frame,
@@ -189,9 +242,9 @@ def calibrate(
         ),
         baseline=BaselineFit(
             measurement_frame=_transform(
-                baseline.params.links[0] @ lie.inverse(chain.nominal_links[0])
+                baseline_params.links[0] @ lie.inverse(chain.nominal_links[0])
             ),
-            tool=_transform(lie.inverse(chain.nominal_links[-1]) @ baseline.params.links[-1]),
+            tool=_transform(lie.inverse(chain.nominal_links[-1]) @ baseline_params.links[-1]),
         ),
         links=_links(chain, fit),
         compliance=_compliance(chain, fit),
@@ -203,22 +256,17 @@ def calibrate(
         ),
         fit=FitStatistics(
             before=FitPhase(
-                train=_stats(data, used, baseline.params),
-                heldout=_heldout_stats(splits, BEFORE, data.position_only),
+                train=train_before,
+                heldout=_heldout_stats(splits, BEFORE, dataset.position_only),
             ),
             after=FitPhase(
-                train=_stats(data, used, fit.params),
-                heldout=_heldout_stats(splits, CALIBRATED, data.position_only),
+                train=train_after,
+                heldout=_heldout_stats(splits, CALIBRATED, dataset.position_only),
             ),
         ),
         covariance=covariance,
         evaluation=_evaluation(splits, options) if splits else None,
-        outliers=OutlierReport(
-            sigma=options.outlier_sigma,
-            n_input=dataset.n_samples,
-            n_used=int(used.size),
-            removed_rows=[int(i) + 1 for i in np.setdiff1d(everything, used)],
-        ),
+        outliers=outliers,
         solver=SolverReport(
             name="gauss_newton",
             status="optimal" if fit.converged else "iteration_limit",
@@ -242,16 +290,7 @@ def covariance_stage(
     if options.covariance == "none":
         return None
     chain = data.chain
-    names = list(chain.joint_names)
-    chosen = options.covariance_frames if options.covariance_frames is not None else names
-    unknown = [name for name in chosen if name not in names]
-    if unknown or len(set(chosen)) != len(chosen):
-        raise KincalError(
-            f"covariance_frames: {unknown or 'duplicates'} "
-            f"{'are not joints of the chain' if unknown else 'given twice'}; "
-            f"choose among {', '.join(names)}"
-        )
-    index = [names.index(name) for name in chosen]
+    chosen, index = _covariance_frames(chain, options)
     rows = 3 if data.position_only else 6
     evaluation = evaluate_chain(chain, fit.params, data.joint_positions[used], data.loads_nm[used])
     frame_jacobians = evaluation.link_jacobians[:, index, :rows, :]
@@ -259,9 +298,7 @@ def covariance_stage(
     if not data.position_only:
         unweight[3:] = 1.0 / options.rotation_weight_m_per_rad
     fit_jacobian = fit.jacobian * unweight[None, :, None]
-    noise = None
-    if options.noise_std is not None:
-        noise = np.diag(np.square(np.asarray(options.noise_std, dtype=float)))
+    noise = _known_noise(options)
     estimate = estimate_covariances(
         fit.residuals,
         frame_jacobians,
@@ -273,6 +310,29 @@ def covariance_stage(
         noise_covariance=noise,
     )
     return _covariance_result(estimate, index)
+
+
+def _covariance_frames(
+    chain: KinematicChain, options: CalibrationOptions
+) -> tuple[list[str], list[int]]:
+    """Joints whose frame carries a perturbation (names, chain indices), checked."""
+    names = list(chain.joint_names)
+    chosen = options.covariance_frames if options.covariance_frames is not None else names
+    unknown = [name for name in chosen if name not in names]
+    if unknown or len(set(chosen)) != len(chosen):
+        raise KincalError(
+            f"covariance_frames: {unknown or 'duplicates'} "
+            f"{'are not joints of the chain' if unknown else 'given twice'}; "
+            f"choose among {', '.join(names)}"
+        )
+    return list(chosen), [names.index(name) for name in chosen]
+
+
+def _known_noise(options: CalibrationOptions) -> FloatArray | None:
+    """The known measurement-noise covariance (6, 6) from ``noise_std``, or None."""
+    if options.noise_std is None:
+        return None
+    return np.diag(np.square(np.asarray(options.noise_std, dtype=float)))
 
 
 def heldout_splits(
@@ -382,7 +442,7 @@ def _transform(
 
 
 def _link_stderr(
-    fit: DeterministicFit, chain: KinematicChain, link: int
+    fit: FitLike, chain: KinematicChain, link: int
 ) -> tuple[tuple[float | None, ...], tuple[float | None, ...]]:
     """Standard errors of link ``link``'s local twist components (None where not estimated)."""
     lookup = dict(zip(fit.estimated, fit.standard_errors.tolist(), strict=True))
@@ -391,7 +451,7 @@ def _link_stderr(
     return tuple(values[:3]), tuple(values[3:])
 
 
-def _links(chain: KinematicChain, fit: DeterministicFit) -> list[LinkCalibration]:
+def _links(chain: KinematicChain, fit: FitLike) -> list[LinkCalibration]:
     out = []
     for i, name in enumerate(chain.link_names):
         correction = lie.se3_log(lie.inverse(chain.nominal_links[i]) @ fit.params.links[i])
@@ -410,7 +470,7 @@ def _links(chain: KinematicChain, fit: DeterministicFit) -> list[LinkCalibration
     return out
 
 
-def _compliance(chain: KinematicChain, fit: DeterministicFit) -> list[ComplianceCalibration]:
+def _compliance(chain: KinematicChain, fit: FitLike) -> list[ComplianceCalibration]:
     lookup = dict(zip(fit.estimated, fit.standard_errors.tolist(), strict=True))
     out = []
     for a, axis in enumerate(chain.compliance_axes):
@@ -535,4 +595,169 @@ def _evaluation(splits: list[SplitError], options: CalibrationOptions) -> Evalua
             )
             for s in splits
         ],
+    )
+
+
+# --- streamed calibration (issue 7): recordings larger than memory ------------------------
+
+
+@dataclass(frozen=True)
+class StreamOptions:
+    """How :func:`calibrate_streamed` cuts and holds a recording.
+
+    ``chunk_rows``: rows per task (Parquet: whole row groups up to this); ``block_rows``:
+    samples per vectorised block inside a task; ``warm_start_rows``: head rows fitted in
+    memory for the start and the pruning; ``cache_mb``: prepared chunks each worker process
+    keeps between passes (0: re-read each pass; memory then does not grow with N).
+    """
+
+    chunk_rows: int = 65_536
+    block_rows: int = 8192
+    warm_start_rows: int = 20_000
+    cache_mb: float = 512.0
+
+
+@dataclass(frozen=True)
+class DatasetChunkLoader:
+    """:data:`solver.streaming.ChunkLoader` of a dataset file; picklable, so worker processes
+    and Dask workers read and validate their own chunks."""
+
+    plan: DatasetChunks
+
+    def __call__(self, ref: ChunkRef) -> ChunkArrays:
+        dataset = self.plan.read(ref)
+        return ChunkArrays(
+            dataset.joint_positions,
+            dataset.position_m,
+            dataset.quaternion_xyzw,
+            dataset.payload_kg,
+            ref.first_row,
+        )
+
+
+def stream_problem(
+    path: str | Path,
+    chain: KinematicChain,
+    options: CalibrationOptions,
+    stream: StreamOptions = StreamOptions(),
+    *,
+    marker: int | None = None,
+) -> StreamProblem:
+    """Plan the chunks of a dataset file (first chunk validated) for one chain."""
+    plan = plan_dataset_chunks(
+        path,
+        chain.joint_names,
+        chunk_rows=stream.chunk_rows,
+        other_joint_names=chain.other_joint_names,
+        marker=marker,
+    )
+    return StreamProblem(
+        chain,
+        DatasetChunkLoader(plan),
+        plan.refs,
+        position_only=plan.position_only,
+        gravity_base_m_s2=np.asarray(options.gravity_base_m_s2, dtype=float),
+        payload_kg=options.payload_kg,
+        block_rows=stream.block_rows,
+        cache_bytes=int(stream.cache_mb * 1024 * 1024),
+    )
+
+
+def calibrate_streamed(
+    path: str | Path,
+    robot: RobotDescription,
+    options: CalibrationOptions,
+    executor: Executor | None = None,
+    stream: StreamOptions = StreamOptions(),
+    *,
+    marker: int | None = None,
+    progress: Progress = _no_progress,
+    timings: dict[str, float] | None = None,
+) -> CalibrationResult:
+    """:func:`calibrate` for a dataset file read in chunks, each pass mapped over ``executor``
+    (default in-process); see :mod:`solver.streaming` for what differs: warm start and pruning
+    on the head rows, moment-matching covariances, no held-out splits (``heldout`` is stored
+    as False). ``timings`` (optional) receives the wall time of each stage in seconds.
+    """
+    chain = chain_for(robot, options)
+    started = time.perf_counter()
+    problem = stream_problem(path, chain, options, stream, marker=marker)
+    executor = executor or InProcessExecutor()
+    stage: dict[str, float] = {"plan": time.perf_counter() - started}
+    try:
+        run = calibrate_streamed_fits(
+            problem,
+            executor,
+            fit_options(options),
+            fit_options(options, baseline=True, n_links=chain.n_links),
+            StreamSettings(stream.warm_start_rows, options.outlier_sigma),
+        )
+        stage.update(run.stage_s)
+        progress("fit", 1, 1)
+        progress("baseline", 1, 1)
+        clock = time.perf_counter()
+        covariance = _streamed_covariance(problem, executor, run, options)
+        stage["covariance"] = time.perf_counter() - clock
+        progress("covariance", 1, 1)
+    finally:
+        release(problem, executor)
+    if timings is not None:
+        timings.update(stage)
+    load = problem.load
+    source = load.plan.source if isinstance(load, DatasetChunkLoader) else str(path)
+    position_only = problem.position_only
+    return _assemble_result(
+        dataset=DatasetInfo(source=source, n_samples=run.n_rows, position_only=position_only),
+        robot=robot,
+        chain=chain,
+        options=options.model_copy(update={"heldout": False}),
+        fit=run.fit,
+        baseline_params=run.baseline.params,
+        train_before=_sums_stats(run.baseline.sums.errors, position_only),
+        train_after=_sums_stats(run.fit.sums.errors, position_only),
+        splits=[],
+        covariance=covariance,
+        outliers=OutlierReport(
+            sigma=options.outlier_sigma,
+            n_input=run.n_rows,
+            n_used=run.fit.sums.errors.n,
+            removed_rows=[int(i) + 1 for i in run.removed_rows],
+        ),
+    )
+
+
+def _streamed_covariance(
+    problem: StreamProblem,
+    executor: Executor,
+    run: StreamedCalibration,
+    options: CalibrationOptions,
+) -> CovarianceResult | None:
+    """§IV-C on the streamed fit (moment matching; the same samples as the fit)."""
+    if options.covariance == "none":
+        return None
+    chosen, index = _covariance_frames(problem.chain, options)
+    notes = [] if options.covariance_estimator == "moment" else [STREAMED_ESTIMATOR_NOTE]
+    estimate = estimate_covariances_streamed(
+        problem,
+        executor,
+        run.fit.params,
+        chosen,
+        index,
+        structure=options.covariance,
+        solver=options.covariance_solver,
+        noise_covariance=_known_noise(options),
+        rule=run.rule,
+        notes=notes,
+    )
+    return _covariance_result(estimate, index)
+
+
+def _sums_stats(sums: ErrorSums, position_only: bool) -> ErrorStats:
+    mean_mm, rms_mm, mean_deg, rms_deg = sums.summary(position_only)
+    return ErrorStats(
+        n_samples=sums.n,
+        translation_mean_mm=mean_mm,
+        translation_rms_mm=rms_mm,
+        rotation_mean_deg=mean_deg,
+        rotation_rms_deg=rms_deg,
     )

@@ -89,6 +89,11 @@ class Settings(BaseSettings):
         description="How long a verified API key is trusted without a DB lookup "
         "(upper bound on how long a revoked key keeps working).",
     )
+    dask_address: str | None = Field(
+        None,
+        description="Dask scheduler (tcp://host:8786) for streamed calibrations and fleets "
+        "(kincal calibrate/fleet --executor dask); None: a local cluster.",
+    )
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     log_format: Literal["json", "text"] = "json"
 

@@ -29,8 +29,8 @@ What differs from the in-memory pipeline, and why:
 - **Outliers (2σ rule).** The first fit's final pass also sums the residual spread
   (mean, M2 per component, merged exactly); the rule (first fit's parameters, mean, σ) is then
   applied per chunk in every later pass (the per-chunk keep mask is cached, else recomputed from
-  one forward pass). The refit starts from the first fit (the in-memory path restarts from the
-  alignment; both iterate to the same fixed point).
+  one forward pass). The refit and the "before" fit are warm-started, and pruned, like the
+  first fit, on the head rows the rule keeps — as the in-memory pipeline refits the kept rows.
 - **Standard errors** come from the final pass's ``JᵀJ`` and ``rᵀr`` exactly as in memory.
 - **Covariances.** Moment matching (Eq. 13–14) streams exactly: one pass for ``G, h, c`` (and
   the Jacobian range for the constant-Jacobian warning), the solve, one pass for the sandwich
@@ -366,6 +366,27 @@ def _row_weights(d: int, rotation_weight: float) -> FloatArray:
     return weights
 
 
+def rule_mask(
+    problem: StreamProblem,
+    rule: OutlierRule,
+    motions: list[lie.ScrewMotion],
+    loads_nm: FloatArray,
+    rotation: FloatArray | None,
+    translation: FloatArray,
+) -> BoolArray:
+    """Samples kept by ``rule`` (b,): residuals at ``rule.params`` from one forward pass."""
+    sweep = sweep_chain(
+        problem.chain,
+        rule.params,
+        motions,
+        loads_nm,
+        residual_dim=problem.residual_dim,
+        with_columns=False,
+    )
+    residual = pose_residuals(sweep, rotation, translation).residual
+    return within_spread(residual.T, rule.mean, rule.std, rule.sigma)
+
+
 def _used(problem: StreamProblem, rule: OutlierRule | None, ref: Any, index: int) -> BoolArray:
     """Keep mask of block ``index`` of chunk ``ref`` under ``rule`` (cached per process)."""
     blocks = _prepare(problem, ref)
@@ -374,18 +395,10 @@ def _used(problem: StreamProblem, rule: OutlierRule | None, ref: Any, index: int
     key = (problem.token, ref, rule.token)
     masks = _MASKS.get(key)
     if masks is None:
-        masks = []
-        for block in blocks:
-            sweep = sweep_chain(
-                problem.chain,
-                rule.params,
-                block.motions,
-                block.loads_nm,
-                residual_dim=problem.residual_dim,
-                with_columns=False,
-            )
-            residual = pose_residuals(sweep, block.rotation, block.translation).residual
-            masks.append(within_spread(residual.T, rule.mean, rule.std, rule.sigma))
+        masks = [
+            rule_mask(problem, rule, b.motions, b.loads_nm, b.rotation, b.translation)
+            for b in blocks
+        ]
         _MASKS[key] = masks
     return masks[index]
 
@@ -460,6 +473,33 @@ def scaled_condition_number(gram: FloatArray) -> float:
     return float(np.sqrt(eigenvalues[-1] / max(eigenvalues[0], 1e-300)))
 
 
+def streamed_fit_sums(
+    problem: StreamProblem,
+    executor: Executor,
+    params: ChainParameters,
+    keep: IntArray,
+    options: FitOptions,
+    *,
+    rule: OutlierRule | None = None,
+    collect_removed: bool = False,
+) -> FitSums:
+    """One pass: the Eq. (10) normal equations over the columns ``keep`` at ``params`` (and the
+    residual spread and errors), summed over the chunks in order; samples failing ``rule`` are
+    left out (and listed when ``collect_removed``)."""
+    request = _FitPass(
+        problem,
+        params,
+        keep,
+        options.rotation_weight_m_per_rad,
+        None if options.free_links is None else tuple(options.free_links),
+        options.fit_compliance,
+        rule,
+        collect_removed,
+    )
+    total: FitSums = functools.reduce(operator.add, executor.map(fit_chunk, request, problem.refs))
+    return total
+
+
 def fit_streamed(
     problem: StreamProblem,
     executor: Executor,
@@ -473,32 +513,20 @@ def fit_streamed(
     ``keep`` from ``start``, each iterate's normal equations summed over the chunks; samples
     failing ``rule`` are left out (their rows are collected on the first pass)."""
     started = time.perf_counter()
-    chain = problem.chain
-    column_links = None if options.free_links is None else tuple(options.free_links)
     passes = [0]
 
     def evaluate(params: ChainParameters, collect: bool = False) -> tuple[NormalEquations, FitSums]:
-        request = _FitPass(
-            problem,
-            params,
-            keep,
-            options.rotation_weight_m_per_rad,
-            column_links,
-            options.fit_compliance,
-            rule,
-            collect,
-        )
-        total: FitSums = functools.reduce(
-            operator.add, executor.map(fit_chunk, request, problem.refs)
+        total = streamed_fit_sums(
+            problem, executor, params, keep, options, rule=rule, collect_removed=collect
         )
         passes[0] += 1
         return total.normal, total
 
     first_normal, first_sums = evaluate(start, collect=rule is not None)
     run: GaussNewtonRun[FitSums] = gauss_newton(
-        chain, start, keep, (first_normal, first_sums), evaluate, options
+        problem.chain, start, keep, (first_normal, first_sums), evaluate, options
     )
-    names = parameter_names(chain)
+    names = parameter_names(problem.chain)
     sums = FitSums(
         run.payload.normal, run.payload.spread, run.payload.errors, first_sums.removed_rows
     )
@@ -528,6 +556,18 @@ class HeadSample:
     joint_positions: FloatArray
     measured_pose: FloatArray
     loads_nm: FloatArray
+
+    def kept_by(self, problem: StreamProblem, rule: OutlierRule) -> HeadSample:
+        """The rows ``rule`` keeps (the same computation as on streamed chunks)."""
+        keep = rule_mask(
+            problem,
+            rule,
+            joint_motions(problem.chain, self.joint_positions),
+            self.loads_nm,
+            None if problem.position_only else self.measured_pose[:, :3, :3].transpose(1, 2, 0),
+            np.ascontiguousarray(self.measured_pose[:, :3, 3].T),
+        )
+        return HeadSample(self.joint_positions[keep], self.measured_pose[keep], self.loads_nm[keep])
 
 
 def read_head(problem: StreamProblem, n_rows: int) -> HeadSample:
@@ -675,6 +715,26 @@ def covariance_chunk(request: _CovariancePass, ref: Any) -> CovarianceSums:
     return total
 
 
+def streamed_covariance_sums(
+    problem: StreamProblem,
+    executor: Executor,
+    params: ChainParameters,
+    frame_index: Sequence[int],
+    layout: CovarianceLayout,
+    known: FloatArray | None = None,
+    rule: OutlierRule | None = None,
+    *,
+    theta: FloatArray | None = None,
+) -> CovarianceSums:
+    """One pass: Eq. (13–14) statistics (``theta`` None) or the sandwich meat at ``theta``,
+    and the Jacobian range, of the frames ``frame_index`` at ``params``, summed over chunks."""
+    request = _CovariancePass(problem, params, tuple(frame_index), layout, known, rule, theta)
+    total: CovarianceSums = functools.reduce(
+        operator.add, executor.map(covariance_chunk, request, problem.refs)
+    )
+    return total
+
+
 def estimate_covariances_streamed(
     problem: StreamProblem,
     executor: Executor,
@@ -688,6 +748,7 @@ def estimate_covariances_streamed(
     rule: OutlierRule | None = None,
     confidence: float = 0.95,
     noise_name: str = "noise",
+    notes: Sequence[str] = (),
 ) -> CovarianceEstimate:
     """Moment-matching covariance calibration (paper §IV-C, Eq. 13–14) of a streamed recording:
     the same steps as :func:`solver.covariance.estimate.estimate_covariances` with
@@ -695,7 +756,7 @@ def estimate_covariances_streamed(
 
     ``frame_index``: chain joint of each perturbed frame (``frame_names``); residuals and
     Jacobians in the end-effector frame ([v; w], m and rad) at ``params``; ``rule``: the outlier
-    rule of the deterministic fit (the same samples are used).
+    rule of the deterministic fit (the same samples are used); ``notes`` start the warnings.
     """
     d = problem.residual_dim
     known = None
@@ -709,10 +770,7 @@ def estimate_covariances_streamed(
     layout = make_layout(
         frame_names, d, structure=structure, include_noise=include_noise, noise_name=noise_name
     )
-    request = _CovariancePass(problem, params, tuple(frame_index), layout, known, rule, None)
-    sums: CovarianceSums = functools.reduce(
-        operator.add, executor.map(covariance_chunk, request, problem.refs)
-    )
+    sums = streamed_covariance_sums(problem, executor, params, frame_index, layout, known, rule)
     if sums.n < 2:
         raise CalibrationError(f"covariance calibration needs at least 2 samples, got {sums.n}")
     assert sums.stats is not None
@@ -725,7 +783,7 @@ def estimate_covariances_streamed(
     moment = solve_moment(stats, solver, pgd_settings=PGD_STABLE)
     if not np.all(np.isfinite(moment.theta)):
         raise SolverError(f"moment solver {solver!r} failed ({moment.status}): {moment.message}")
-    notes = list(report.warnings)
+    notes = [*notes, *report.warnings]
     if not moment.converged:
         notes.append(
             f"moment solver {solver!r} ended with status {moment.status!r}"
@@ -733,9 +791,8 @@ def estimate_covariances_streamed(
         )
     theta = resolve_null_space(moment.theta, report, layout)
     cov, unc = None, None
-    meat_request = _CovariancePass(problem, params, tuple(frame_index), layout, known, rule, theta)
-    meat_sums: CovarianceSums = functools.reduce(
-        operator.add, executor.map(covariance_chunk, meat_request, problem.refs)
+    meat_sums = streamed_covariance_sums(
+        problem, executor, params, frame_index, layout, known, rule, theta=theta
     )
     try:
         assert meat_sums.meat is not None
@@ -825,7 +882,7 @@ def release(problem: StreamProblem, executor: Executor) -> None:
     executor.run_on_workers(functools.partial(forget, problem.token))
 
 
-def calibrate_streamed(
+def calibrate_streamed_fits(
     problem: StreamProblem,
     executor: Executor,
     options: FitOptions,
@@ -843,19 +900,21 @@ def calibrate_streamed(
     clock = time.perf_counter()
     head = read_head(problem, settings.warm_start_rows)
     start, keep = warm_start(problem, head, options)
-    baseline_start, baseline_keep = warm_start(problem, head, baseline_options)
-    del head
     stage["warm_start"] = time.perf_counter() - clock
     clock = time.perf_counter()
     first = fit_streamed(problem, executor, start=start, keep=keep, options=options)
     rule = None
     fit = first
+    used_head = head
     if settings.outlier_sigma is not None:
         spread = first.sums.spread
         rule = OutlierRule(first.params, spread.mean, spread.std, settings.outlier_sigma)
+        used_head = head.kept_by(problem, rule)
+        refit_start, refit_keep = warm_start(problem, used_head, options)
         fit = fit_streamed(
-            problem, executor, start=first.params, keep=keep, options=options, rule=rule
+            problem, executor, start=refit_start, keep=refit_keep, options=options, rule=rule
         )
+    baseline_start, baseline_keep = warm_start(problem, used_head, baseline_options)
     baseline = fit_streamed(
         problem,
         executor,

@@ -1,0 +1,320 @@
+"""Fleet mode: calibrate one dataset per robot serial in parallel and compare the robots.
+
+Each robot is calibrated by :func:`service.pipeline.calibrate` (the in-memory pipeline; a
+robot's recording fits in memory, the fleet need not), robots spread over an executor
+(:mod:`solver.executors`: in-process, local processes, Dask). The summary compares what is
+comparable between robots of one model:
+
+- per joint: compliance of each estimated axis (rad/N·m), the σ of the random perturbation of
+  each joint frame (per axis, m and rad, §IV-C), and the geometric correction of each inner
+  link (local twist of L_i, m and rad);
+- per robot: RMS translation error after calibration (mm, training data).
+
+The measurement frame and tool are each robot's own mounting and are not compared. Link
+corrections are only comparable in one gauge: the pruning QR may drop a different one of two
+interchangeable columns on different data, so a robot whose removed columns differ from the
+fleet's most common set is left out of the link-correction comparison (and listed).
+
+Population spread per parameter: median, MAD (scaled by 1.4826, a σ for Gaussian data), mean,
+std, min, max. A robot is an outlier in a parameter when its robust z-score
+``(x − median) / (1.4826 · MAD)`` exceeds the threshold (default 3.5, Iglewicz & Hoaglin), e.g.
+a worn joint: much larger compliance or perturbation σ at that joint than the rest of the fleet.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.dataset import SUFFIXES, read_dataset
+from service import pipeline
+from service.robots import RobotDescription
+from solver.errors import KincalError
+from solver.executors import Executor, InProcessExecutor
+from solver.kinematics import TWIST_COMPONENTS
+
+FLEET_FORMAT = "kincal.fleet/1"
+MAD_TO_SIGMA = 1.4826
+DEFAULT_Z_THRESHOLD = 3.5
+
+
+@dataclass(frozen=True)
+class FleetJob:
+    """What every robot of the fleet is calibrated with (shared by all tasks)."""
+
+    robot: RobotDescription
+    options: CalibrationOptions
+    marker: int | None = None
+
+
+@dataclass(frozen=True)
+class RobotOutcome:
+    """One robot's calibration: the result, or the one-line error that stopped it."""
+
+    serial: str
+    source: str
+    result: CalibrationResult | None
+    error: str | None = None
+
+
+def calibrate_one(job: FleetJob, item: tuple[str, str]) -> RobotOutcome:
+    """Read and calibrate one robot's dataset (runs in a worker)."""
+    serial, path = item
+    chain = pipeline.chain_for(job.robot, job.options)
+    try:
+        dataset = read_dataset(
+            path, chain.joint_names, other_joint_names=chain.other_joint_names, marker=job.marker
+        )
+        result = pipeline.calibrate(dataset, job.robot, job.options)
+    except KincalError as exc:
+        return RobotOutcome(serial, path, None, str(exc))
+    return RobotOutcome(serial, path, result)
+
+
+def fleet_datasets(directory: str | Path) -> dict[str, str]:
+    """Dataset files of a fleet folder, by serial (the file name without suffix), sorted."""
+    folder = Path(directory)
+    if not folder.is_dir():
+        raise KincalError(f"{folder}: not a folder; pass a folder with one dataset per robot")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in SUFFIXES and p.is_file())
+    if not files:
+        raise KincalError(
+            f"{folder}: no datasets ({', '.join(SUFFIXES)}); put one file per robot serial there"
+        )
+    twice = [serial for serial, n in Counter(p.stem for p in files).items() if n > 1]
+    if twice:
+        raise KincalError(
+            f"{folder}: serial(s) {', '.join(twice)} have more than one file; keep one per robot"
+        )
+    return {p.stem: str(p) for p in files}
+
+
+@dataclass(frozen=True)
+class ParameterSpread:
+    """Population spread of one parameter over the robots that have it."""
+
+    parameter: str
+    joint: str | None
+    unit: str
+    n_robots: int
+    median: float
+    mad_sigma: float
+    mean: float
+    std: float
+    min: float
+    max: float
+
+
+@dataclass(frozen=True)
+class Outlier:
+    """A robot whose parameter is far from the fleet's (robust z-score)."""
+
+    serial: str
+    parameter: str
+    joint: str | None
+    value: float
+    median: float
+    robust_z: float
+
+
+@dataclass(frozen=True)
+class RobotSummary:
+    serial: str
+    source: str
+    n_samples: int
+    n_used: int
+    rms_after_mm: float
+    parameters: dict[str, float]
+    gauge_differs: bool = False
+
+
+@dataclass(frozen=True)
+class FleetReport:
+    """Per-robot parameters, their population spread and the outliers (JSON via
+    :meth:`to_json`)."""
+
+    robot: str
+    n_robots: int
+    z_threshold: float
+    robots: list[RobotSummary]
+    population: list[ParameterSpread]
+    outliers: list[Outlier]
+    failures: dict[str, str] = field(default_factory=dict)
+    format: str = FLEET_FORMAT
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=1, allow_nan=False)
+
+
+@dataclass(frozen=True)
+class _Parameter:
+    name: str
+    joint: str | None
+    unit: str
+    value: float
+
+
+def robot_parameters(result: CalibrationResult) -> list[_Parameter]:
+    """The comparable parameters of one calibrated robot (see the module docstring)."""
+    out = [
+        _Parameter(f"compliance.{c.axis}", c.joint, "rad/N·m", c.value_rad_per_nm)
+        for c in result.compliance
+        if c.estimated
+    ]
+    for link in result.links:
+        if link.correction_translation_m is None or link.correction_rotation_rad is None:
+            continue
+        values = [*link.correction_translation_m, *link.correction_rotation_rad]
+        errors = [*link.stderr_translation_m, *link.stderr_rotation_rad]
+        for component, value, stderr in zip(TWIST_COMPONENTS, values, errors, strict=True):
+            if stderr is not None:  # estimated
+                unit = "m" if component.startswith("t") else "rad"
+                out.append(_Parameter(f"link.{link.link}.{component}", link.link, unit, value))
+    if result.covariance is not None:
+        for frame in result.covariance.frames:
+            for axis, std in zip(("vx", "vy", "vz", "wx", "wy", "wz"), frame.std, strict=True):
+                unit = "m" if axis.startswith("v") else "rad"
+                out.append(_Parameter(f"sigma.{frame.name}.{axis}", frame.name, unit, std))
+    after = result.fit.after.train.translation_rms_mm
+    out.append(_Parameter("rms_after_mm", None, "mm", after))
+    return out
+
+
+def robust_z(values: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """Median, scaled MAD and robust z-scores of values (n,); a fleet without spread gets the
+    mean absolute deviation (×1.2533) as scale, and z = 0 if that is 0 too."""
+    median = float(np.median(values))
+    deviation = np.abs(values - median)
+    scale = MAD_TO_SIGMA * float(np.median(deviation))
+    if scale <= 0.0:
+        scale = 1.2533 * float(np.mean(deviation))
+    z = (values - median) / scale if scale > 0.0 else np.zeros_like(values)
+    return median, scale, z
+
+
+def summarise_fleet(
+    outcomes: Sequence[RobotOutcome], robot: str, *, z_threshold: float = DEFAULT_Z_THRESHOLD
+) -> FleetReport:
+    """Population spread and robust-z outliers over the calibrated robots."""
+    done = [o for o in outcomes if o.result is not None]
+    params = {o.serial: robot_parameters(o.result) for o in done if o.result is not None}
+    gauges = {
+        o.serial: tuple(o.result.identifiability.removed) for o in done if o.result is not None
+    }
+    common = Counter(gauges.values()).most_common(1)[0][0] if gauges else ()
+    other_gauge = {serial for serial, gauge in gauges.items() if gauge != common}
+    table: dict[str, dict[str, float]] = {}
+    meta: dict[str, tuple[str | None, str]] = {}
+    for serial, robot_values in params.items():
+        for p in robot_values:
+            if p.name.startswith("link.") and serial in other_gauge:
+                continue
+            table.setdefault(p.name, {})[serial] = p.value
+            meta[p.name] = (p.joint, p.unit)
+    population, outliers = [], []
+    for name, by_robot in table.items():
+        serials = list(by_robot)
+        values = np.array([by_robot[s] for s in serials])
+        median, scale, z = robust_z(values)
+        joint, unit = meta[name]
+        population.append(
+            ParameterSpread(
+                name,
+                joint,
+                unit,
+                len(serials),
+                median,
+                scale,
+                float(values.mean()),
+                float(values.std(ddof=1)) if values.size > 1 else 0.0,
+                float(values.min()),
+                float(values.max()),
+            )
+        )
+        if values.size >= 3:
+            outliers += [
+                Outlier(s, name, joint, float(v), median, float(zi))
+                for s, v, zi in zip(serials, values, z, strict=True)
+                if abs(zi) > z_threshold
+            ]
+    outliers.sort(key=lambda o: -abs(o.robust_z))
+    robots = []
+    for o in done:
+        assert o.result is not None
+        robots.append(
+            RobotSummary(
+                o.serial,
+                o.source,
+                o.result.dataset.n_samples,
+                o.result.outliers.n_used,
+                o.result.fit.after.train.translation_rms_mm,
+                {p.name: p.value for p in params[o.serial]},
+                o.serial in other_gauge,
+            )
+        )
+    failures = {o.serial: o.error or "" for o in outcomes if o.result is None}
+    return FleetReport(robot, len(outcomes), z_threshold, robots, population, outliers, failures)
+
+
+def calibrate_fleet(
+    datasets: dict[str, str],
+    robot: RobotDescription,
+    options: CalibrationOptions,
+    executor: Executor | None = None,
+    *,
+    marker: int | None = None,
+    z_threshold: float = DEFAULT_Z_THRESHOLD,
+) -> tuple[FleetReport, list[RobotOutcome]]:
+    """Calibrate every robot (serial → dataset path) on ``executor`` and summarise the fleet."""
+    items = sorted(datasets.items())
+    outcomes = (executor or InProcessExecutor()).map(
+        calibrate_one, FleetJob(robot, options, marker), items
+    )
+    return summarise_fleet(outcomes, robot.name, z_threshold=z_threshold), outcomes
+
+
+def fleet_table(report: FleetReport, *, max_parameters: int | None = None) -> str:
+    """Readable summary: robots, outliers first, then the population spread."""
+    lines = [
+        f"fleet of {report.n_robots} {report.robot} robots: {len(report.robots)} calibrated, "
+        f"{len(report.failures)} failed",
+        "",
+        f"{'serial':<16} {'samples':>8} {'used':>8} {'RMS after mm':>13}",
+    ]
+    lines += [
+        f"{r.serial:<16} {r.n_samples:>8} {r.n_used:>8} {r.rms_after_mm:>13.4f}"
+        + ("  (other gauge: link corrections not compared)" if r.gauge_differs else "")
+        for r in report.robots
+    ]
+    lines += [f"{serial:<16} FAILED: {error}" for serial, error in report.failures.items()]
+    lines += ["", f"outliers (|robust z| > {report.z_threshold:g}): {len(report.outliers)}"]
+    if report.outliers:
+        lines.append(
+            f"{'serial':<16} {'joint':<22} {'parameter':<40} {'value':>12} {'median':>12} {'z':>7}"
+        )
+        lines += [
+            f"{o.serial:<16} {o.joint or '-':<22} {o.parameter:<40} {o.value:>12.4g} "
+            f"{o.median:>12.4g} {o.robust_z:>7.1f}"
+            for o in report.outliers
+        ]
+    shown = report.population[:max_parameters] if max_parameters else report.population
+    lines += [
+        "",
+        "population spread",
+        f"{'parameter':<40} {'unit':<8} {'n':>4} {'median':>12} {'MAD σ':>11} {'min':>12} "
+        f"{'max':>12}",
+    ]
+    lines += [
+        f"{p.parameter:<40} {p.unit:<8} {p.n_robots:>4} {p.median:>12.4g} {p.mad_sigma:>11.3g} "
+        f"{p.min:>12.4g} {p.max:>12.4g}"
+        for p in shown
+    ]
+    if max_parameters and len(report.population) > max_parameters:
+        lines.append(f"... {len(report.population) - max_parameters} more in the JSON")
+    return "\n".join(lines)
