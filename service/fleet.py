@@ -18,7 +18,9 @@ fleet's most common set is left out of the link-correction comparison (and liste
 Population spread per parameter: median, MAD (scaled by 1.4826, a σ for Gaussian data), mean,
 std, min, max. A robot is an outlier in a parameter when its robust z-score
 ``(x − median) / (1.4826 · MAD)`` exceeds the threshold (default 3.5, Iglewicz & Hoaglin), e.g.
-a worn joint: much larger compliance or perturbation σ at that joint than the rest of the fleet.
+a worn joint: much larger compliance or perturbation σ at that joint than the rest of the fleet;
+and when the deviation exceeds 3 of that robot's own standard errors of the parameter (a poorly
+identified parameter, e.g. a wrist compliance, scatters without anything being wrong).
 """
 
 from __future__ import annotations
@@ -42,6 +44,9 @@ from solver.kinematics import TWIST_COMPONENTS
 FLEET_FORMAT = "kincal.fleet/1"
 MAD_TO_SIGMA = 1.4826
 DEFAULT_Z_THRESHOLD = 3.5
+SIGNIFICANCE = 3.0
+"""A flagged deviation from the median must also exceed this many of the robot's own standard
+errors (a poorly identified parameter scatters without anything being wrong)."""
 
 
 @dataclass(frozen=True)
@@ -158,12 +163,15 @@ class _Parameter:
     joint: str | None
     unit: str
     value: float
+    stderr: float | None = None  # the robot's own standard error, if known
 
 
 def robot_parameters(result: CalibrationResult) -> list[_Parameter]:
     """The comparable parameters of one calibrated robot (see the module docstring)."""
     out = [
-        _Parameter(f"compliance.{c.axis}", c.joint, "rad/N·m", c.value_rad_per_nm)
+        _Parameter(
+            f"compliance.{c.axis}", c.joint, "rad/N·m", c.value_rad_per_nm, c.stderr_rad_per_nm
+        )
         for c in result.compliance
         if c.estimated
     ]
@@ -175,12 +183,15 @@ def robot_parameters(result: CalibrationResult) -> list[_Parameter]:
         for component, value, stderr in zip(TWIST_COMPONENTS, values, errors, strict=True):
             if stderr is not None:  # estimated
                 unit = "m" if component.startswith("t") else "rad"
-                out.append(_Parameter(f"link.{link.link}.{component}", link.link, unit, value))
+                name = f"link.{link.link}.{component}"
+                out.append(_Parameter(name, link.link, unit, value, stderr))
     if result.covariance is not None:
         for frame in result.covariance.frames:
-            for axis, std in zip(("vx", "vy", "vz", "wx", "wy", "wz"), frame.std, strict=True):
+            axes = ("vx", "vy", "vz", "wx", "wy", "wz")
+            frame_errors = frame.std_stderr or (None,) * 6
+            for axis, std, se in zip(axes, frame.std, frame_errors, strict=True):
                 unit = "m" if axis.startswith("v") else "rad"
-                out.append(_Parameter(f"sigma.{frame.name}.{axis}", frame.name, unit, std))
+                out.append(_Parameter(f"sigma.{frame.name}.{axis}", frame.name, unit, std, se))
     after = result.fit.after.train.translation_rms_mm
     out.append(_Parameter("rms_after_mm", None, "mm", after))
     return out
@@ -209,18 +220,19 @@ def summarise_fleet(
     }
     common = Counter(gauges.values()).most_common(1)[0][0] if gauges else ()
     other_gauge = {serial for serial, gauge in gauges.items() if gauge != common}
-    table: dict[str, dict[str, float]] = {}
+    table: dict[str, dict[str, _Parameter]] = {}
     meta: dict[str, tuple[str | None, str]] = {}
     for serial, robot_values in params.items():
         for p in robot_values:
             if p.name.startswith("link.") and serial in other_gauge:
                 continue
-            table.setdefault(p.name, {})[serial] = p.value
+            table.setdefault(p.name, {})[serial] = p
             meta[p.name] = (p.joint, p.unit)
     population, outliers = [], []
     for name, by_robot in table.items():
         serials = list(by_robot)
-        values = np.array([by_robot[s] for s in serials])
+        values = np.array([by_robot[s].value for s in serials])
+        stderr = np.array([by_robot[s].stderr or 0.0 for s in serials])
         median, scale, z = robust_z(values)
         joint, unit = meta[name]
         population.append(
@@ -238,10 +250,11 @@ def summarise_fleet(
             )
         )
         if values.size >= 3:
+            significant = np.abs(values - median) > SIGNIFICANCE * stderr
             outliers += [
                 Outlier(s, name, joint, float(v), median, float(zi))
-                for s, v, zi in zip(serials, values, z, strict=True)
-                if abs(zi) > z_threshold
+                for s, v, zi, sig in zip(serials, values, z, significant, strict=True)
+                if abs(zi) > z_threshold and sig
             ]
     outliers.sort(key=lambda o: -abs(o.robust_z))
     robots = []

@@ -1,0 +1,111 @@
+"""Fleet mode: many robots calibrated through one executor; a worn joint stands out."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from schemas.dataset import write_dataset
+from service import cli, scenarios
+from service.fleet import fleet_datasets, robust_z
+from solver.errors import KincalError
+from solver.simulate import SimulationSpec, look_at, simulate_recording
+from tests.conftest import chain
+
+ROBOT = "kinova"
+WORN = "R03"
+WORN_JOINT = "j2s6s200_joint_3"
+
+
+def _fleet(folder: Path, n_robots: int = 6, n_poses: int = 300) -> None:
+    """One robot model; every robot its own geometry errors, mounting and compliance
+    (±3 %); robot R03's joint 3 is worn: 2.5 times as compliant."""
+    c = chain(ROBOT)
+    rng = np.random.default_rng(11)
+    for r in range(n_robots):
+        serial = f"R{r:02d}"
+        stiffness = {
+            "j2s6s200_joint_2": 5e-4 * (1 + 0.03 * rng.normal()),
+            WORN_JOINT: 8e-4 * (1 + 0.03 * rng.normal()) * (2.5 if serial == WORN else 1.0),
+        }
+        spec = SimulationSpec(
+            n_samples=n_poses,
+            seed=100 + r,
+            compliance_rad_per_nm=stiffness,
+            noise_sigma=np.array([5e-5] * 3 + [1e-4] * 3),
+            measurement_frame=look_at(
+                np.array([0.8, -0.5, 0.45]) + rng.normal(scale=0.05, size=3),
+                np.array([0.0, 0.0, 0.3]),
+            ),
+        )
+        recording = simulate_recording(c, spec)
+        dataset = scenarios.recording_dataset(recording, c, position_only=False)
+        write_dataset(dataset, folder / f"{serial}{'.parquet' if r % 2 else '.csv'}")
+
+
+def test_fleet_flags_the_robot_and_joint_that_is_worn(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    folder = tmp_path / "fleet"
+    folder.mkdir()
+    _fleet(folder)
+    (folder / "notes.txt").write_text("not a dataset")
+    output = tmp_path / "fleet.json"
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        [
+            "kincal",
+            "fleet",
+            str(folder),
+            "--robot",
+            ROBOT,
+            "--covariance",
+            "none",
+            "-o",
+            str(output),
+            "--results-dir",
+            str(tmp_path / "results"),
+        ],
+    )
+    with pytest.raises(SystemExit) as done:
+        cli.main()
+    assert done.value.code in (0, None)
+    table = capsys.readouterr().out
+    report = json.loads(output.read_text())
+    assert report["format"] == "kincal.fleet/1" and report["n_robots"] == 6
+    assert not report["failures"]
+    assert sorted(r["serial"] for r in report["robots"]) == [f"R{r:02d}" for r in range(6)]
+    top = report["outliers"][0]
+    assert (top["serial"], top["joint"]) == (WORN, WORN_JOINT)
+    assert top["parameter"] == f"compliance.{WORN_JOINT}" and top["robust_z"] > 10
+    flagged = {(o["serial"], o["parameter"]) for o in report["outliers"]}
+    assert all(serial == WORN for serial, p in flagged if p == f"compliance.{WORN_JOINT}")
+    spread = {p["parameter"]: p for p in report["population"]}
+    joint3 = spread[f"compliance.{WORN_JOINT}"]
+    assert joint3["n_robots"] == 6 and 7e-4 < joint3["median"] < 9e-4
+    assert joint3["max"] > 1.8e-3  # the worn one
+    assert len(list((tmp_path / "results").glob("R*.json"))) == 6
+    assert WORN in table and WORN_JOINT in table and "population spread" in table
+
+
+def test_robust_z_ignores_the_outlier_it_measures() -> None:
+    values = np.array([1.0, 1.1, 0.9, 1.05, 0.95, 10.0])
+    median, scale, z = robust_z(values)
+    assert scale == pytest.approx(1.4826 * 0.075)
+    assert median == pytest.approx(1.025)
+    assert abs(z[-1]) > 50 and np.all(np.abs(z[:-1]) < 2)
+    assert np.all(robust_z(np.full(4, 3.0))[2] == 0.0)
+
+
+def test_fleet_folder_needs_one_dataset_per_serial(tmp_path: Path) -> None:
+    with pytest.raises(KincalError, match="no datasets"):
+        fleet_datasets(tmp_path)
+    (tmp_path / "A1.csv").write_text("x\n")
+    (tmp_path / "A1.parquet").write_text("x\n")
+    with pytest.raises(KincalError, match="A1 have more than one file"):
+        fleet_datasets(tmp_path)
