@@ -7,9 +7,11 @@ Errors are :class:`Problem` documents (RFC 9457, ``application/problem+json``).
 from __future__ import annotations
 
 import datetime as dt
-from typing import Annotated, Any, Literal
+import math
+from collections.abc import Iterator
+from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from schemas.calibration import CalibrationOptions
 from schemas.discovery import DiscoveryOptions
@@ -21,6 +23,29 @@ NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 
 class _In(BaseModel):
     model_config = ConfigDict(extra="forbid")
+
+
+OptionsT = TypeVar("OptionsT", bound=BaseModel)
+
+
+def _non_finite(value: Any, path: str) -> Iterator[str]:
+    if isinstance(value, float) and not math.isfinite(value):
+        yield f"{path} is {value}"
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            yield from _non_finite(item, f"{path}.{key}")
+    elif isinstance(value, list | tuple):
+        for i, item in enumerate(value):
+            yield from _non_finite(item, f"{path}.{i}")
+
+
+def require_finite(options: OptionsT) -> OptionsT:
+    """Options models of other modules accept NaN/inf (Python's JSON reads ``NaN``); a job
+    must not start with them, so the request is refused naming the field."""
+    bad = list(_non_finite(options.model_dump(), "options"))
+    if bad:
+        raise ValueError(f"{bad[0]}; every number must be finite")
+    return options
 
 
 class ProblemFieldError(BaseModel):
@@ -135,6 +160,11 @@ class CalibrationCreate(_In):
     dataset_id: str = Field(min_length=1, max_length=64)
     options: CalibrationOptions = Field(default_factory=CalibrationOptions)
 
+    @field_validator("options")
+    @classmethod
+    def _finite(cls, options: CalibrationOptions) -> CalibrationOptions:
+        return require_finite(options)
+
 
 class CalibrationLinks(BaseModel):
     self: str
@@ -158,8 +188,14 @@ class CalibrationsPublic(Page):
 
 # --- rankings ----------------------------------------------------------------------------------
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
-NonNegativeFloat = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+MAX_JOINT_POSITION = 1e4
+MAX_PAYLOAD_KG = 1e5
+MAX_IK_CANDIDATES = 64
+JointPosition = Annotated[
+    float,
+    Field(ge=-MAX_JOINT_POSITION, le=MAX_JOINT_POSITION, allow_inf_nan=False),
+]
+PayloadKg = Annotated[float, Field(ge=0.0, le=MAX_PAYLOAD_KG, allow_inf_nan=False)]
 
 
 class RankingCreate(_In):
@@ -169,22 +205,31 @@ class RankingCreate(_In):
     name) or ``target`` (a pose whose inverse-kinematics solutions are found and ranked)."""
 
     calibration_id: str = Field(min_length=1, max_length=64)
-    joint_positions_rad: list[list[FiniteFloat]] | None = Field(
-        None, min_length=1, description="Candidate configurations, rad, joints in chain order."
+    joint_positions_rad: list[list[JointPosition]] | None = Field(
+        None,
+        min_length=1,
+        description="Candidate configurations, rad (m for prismatic joints), joints in chain "
+        "order.",
     )
-    configurations: list[dict[str, FiniteFloat]] | None = Field(
+    configurations: list[dict[str, JointPosition]] | None = Field(
         None, min_length=1, description="Candidate configurations as {joint name: rad}."
     )
     target: TargetPose | None = Field(
         None, description="End-effector pose in the calibration's measurement frame."
     )
-    n_candidates: int = Field(16, ge=1, le=512, description="Target only: IK restarts.")
+    n_candidates: int = Field(
+        16,
+        ge=1,
+        le=MAX_IK_CANDIDATES,
+        description="Target only: distinct IK solutions wanted (8 restarts each); the search "
+        "runs in the request, hence the limit.",
+    )
     seed: int = Field(0, description="Target only: seed of the IK restarts.")
     free_axis: Literal["auto", "x", "y", "z", "none"] = Field(
         "auto", description="Target only: end-effector axis the task lets the target turn about."
     )
     n_free_rotations: int = Field(12, ge=1, le=360, description="Target only.")
-    payload_kg: NonNegativeFloat | list[NonNegativeFloat] | None = Field(
+    payload_kg: PayloadKg | list[PayloadKg] | None = Field(
         None,
         description="Payload (one value, or one per configuration); default: the "
         "calibration's payload option.",
@@ -212,8 +257,16 @@ class RankingCreate(_In):
 
 
 class DiscoveryCreate(_In):
+    """Look for the physics a dataset shows and the model in ``options`` lacks
+    (``kincal discover``)."""
+
     dataset_id: str = Field(min_length=1, max_length=64)
     options: DiscoveryOptions = Field(default_factory=DiscoveryOptions)
+
+    @field_validator("options")
+    @classmethod
+    def _finite(cls, options: DiscoveryOptions) -> DiscoveryOptions:
+        return require_finite(options)
 
 
 class DiscoveryLinks(BaseModel):

@@ -5,6 +5,8 @@
 >>> calibration = client.start_calibration(dataset["id"])                   # doctest: +SKIP
 >>> client.wait(calibration["id"], on_progress=print)                       # doctest: +SKIP
 >>> result = client.result(calibration["id"])   # schemas.calibration.CalibrationResult
+>>> ranking = client.rank(calibration["id"], [[0.0, -1.2, 1.0, 0.0, 0.5, 0.0]])  # doctest: +SKIP
+>>> ranking.ranking[0].index   # RankingResult, best first           # doctest: +SKIP
 
 Every non-2xx answer raises :class:`KincalAPIError` carrying the problem document.
 """
@@ -20,6 +22,8 @@ from typing import Any
 import httpx
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.discovery import DiscoveryOptions, FindingsResult
+from schemas.ranking import RankingOptions, RankingResult, TargetPose
 
 API = "/api/v1"
 TERMINAL = ("succeeded", "failed", "cancelled")
@@ -39,13 +43,27 @@ class KincalAPIError(Exception):
         super().__init__(f"HTTP {status}: {problem.get('detail') or problem.get('title')}")
 
 
-class CalibrationFailed(Exception):
-    """The calibration job ended failed or cancelled; ``status`` is its last status."""
+class JobFailed(Exception):
+    """A job ended failed or cancelled; ``status`` is its last status."""
 
-    def __init__(self, calibration_id: str, status: dict[str, Any]) -> None:
-        self.calibration_id = calibration_id
+    noun = "job"
+
+    def __init__(self, job_id: str, status: dict[str, Any]) -> None:
+        self.job_id = job_id
         self.status = status
-        super().__init__(f"calibration {calibration_id} {status['state']}: {status.get('error')}")
+        super().__init__(f"{self.noun} {job_id} {status['state']}: {status.get('error')}")
+
+
+class CalibrationFailed(JobFailed):
+    noun = "calibration"
+
+    @property
+    def calibration_id(self) -> str:
+        return self.job_id
+
+
+class DiscoveryFailed(JobFailed):
+    noun = "discovery"
 
 
 class KincalClient:
@@ -179,20 +197,33 @@ class KincalClient:
         on_progress: Callable[[dict[str, Any]], None] | None = None,
     ) -> dict[str, Any]:
         """Poll until the calibration ends; :class:`CalibrationFailed` unless it succeeded."""
+        return self._wait(
+            self.status, CalibrationFailed, calibration_id, timeout_s, poll_s, on_progress
+        )
+
+    def _wait(
+        self,
+        get: Callable[[str], dict[str, Any]],
+        failed: type[JobFailed],
+        job_id: str,
+        timeout_s: float,
+        poll_s: float,
+        on_progress: Callable[[dict[str, Any]], None] | None,
+    ) -> dict[str, Any]:
         deadline = time.monotonic() + timeout_s
         last: tuple[Any, ...] | None = None
         while True:
-            status = self.status(calibration_id)["status"]
+            status: dict[str, Any] = get(job_id)["status"]
             seen = (status["state"], status["stage"], status["fraction"], status["iteration"])
             if on_progress is not None and seen != last:
                 on_progress(status)
             last = seen
             if status["state"] in TERMINAL:
                 if status["state"] != "succeeded":
-                    raise CalibrationFailed(calibration_id, status)
+                    raise failed(job_id, status)
                 return status
             if time.monotonic() > deadline:
-                raise TimeoutError(f"calibration {calibration_id} still {status['state']}")
+                raise TimeoutError(f"{failed.noun} {job_id} still {status['state']}")
             time.sleep(poll_s)
 
     def result(self, calibration_id: str) -> CalibrationResult:
@@ -222,19 +253,95 @@ class KincalClient:
         self.wait(calibration["id"], on_progress=on_progress)
         return self.result(calibration["id"])
 
-    # rankings (synchronous): the body is schemas.ranking.ConfigurationRankingRequest plus the
-    # calibration id; ``fields`` passes ``options`` / ``payload_kg`` through unchanged.
+    # rankings (synchronous; the planners' hot path)
 
     def rank(
         self,
         calibration_id: str,
-        joint_positions_rad: Sequence[Sequence[float]],
+        joint_positions_rad: Sequence[Sequence[float]] | None = None,
+        *,
+        configurations: Sequence[Mapping[str, float]] | None = None,
+        target: TargetPose | Mapping[str, Any] | None = None,
+        options: RankingOptions | Mapping[str, Any] | None = None,
+        payload_kg: float | Sequence[float] | None = None,
         **fields: Any,
+    ) -> RankingResult:
+        """Rank candidates best first (lower score = less task-relevant uncertainty, Eq. 22–23).
+
+        Give exactly one of ``joint_positions_rad`` (rows in chain order, rad),
+        ``configurations`` ({joint name: rad} each) or ``target`` (a pose in the measurement
+        frame whose IK solutions are ranked; ``fields`` takes n_candidates, seed, free_axis,
+        n_free_rotations). ``index`` of an entry is its input row (or IK candidate number).
+        """
+        body: dict[str, Any] = {"calibration_id": calibration_id, **fields}
+        if joint_positions_rad is not None:
+            body["joint_positions_rad"] = [[float(v) for v in q] for q in joint_positions_rad]
+        if configurations is not None:
+            body["configurations"] = [
+                {name: float(v) for name, v in named.items()} for named in configurations
+            ]
+        if target is not None:
+            body["target"] = (
+                target.model_dump(mode="json") if isinstance(target, TargetPose) else dict(target)
+            )
+        if options is not None:
+            body["options"] = (
+                options.model_dump(mode="json", exclude_none=True)
+                if isinstance(options, RankingOptions)
+                else dict(options)
+            )
+        if payload_kg is not None:
+            body["payload_kg"] = (
+                float(payload_kg)
+                if isinstance(payload_kg, int | float)
+                else [float(v) for v in payload_kg]
+            )
+        response = self._request("POST", f"{API}/rankings", json=body)
+        return RankingResult.model_validate_json(response.content)
+
+    # discoveries (jobs, like calibrations)
+
+    def start_discovery(
+        self,
+        dataset_id: str,
+        options: DiscoveryOptions | Mapping[str, Any] | None = None,
+        *,
+        idempotency_key: str | None = None,
     ) -> dict[str, Any]:
-        """Score candidate joint configurations (lower = less task-relevant uncertainty)."""
-        body = {
-            "calibration_id": calibration_id,
-            "joint_positions_rad": [list(map(float, q)) for q in joint_positions_rad],
-            **fields,
-        }
-        return dict(self._request("POST", f"{API}/rankings", json=body).json())
+        """Queue a discovery job (``kincal discover`` over HTTP); retrying with the same
+        ``idempotency_key`` is safe."""
+        if isinstance(options, DiscoveryOptions):
+            options = options.model_dump(mode="json", exclude_defaults=True)
+        body = {"dataset_id": dataset_id, "options": dict(options or {})}
+        headers = self._idempotency(idempotency_key)
+        return dict(self._request("POST", f"{API}/discoveries", json=body, headers=headers).json())
+
+    def discovery_status(self, discovery_id: str) -> dict[str, Any]:
+        return dict(self._request("GET", f"{API}/discoveries/{discovery_id}").json())
+
+    def wait_discovery(
+        self,
+        discovery_id: str,
+        *,
+        timeout_s: float = 900.0,
+        poll_s: float = 0.25,
+        on_progress: Callable[[dict[str, Any]], None] | None = None,
+    ) -> dict[str, Any]:
+        """Poll until the discovery ends; :class:`DiscoveryFailed` unless it succeeded."""
+        return self._wait(
+            self.discovery_status, DiscoveryFailed, discovery_id, timeout_s, poll_s, on_progress
+        )
+
+    def findings(self, discovery_id: str) -> FindingsResult:
+        response = self._request("GET", f"{API}/discoveries/{discovery_id}/result")
+        return FindingsResult.model_validate_json(response.content)
+
+    def discovery_report(self, discovery_id: str) -> str:
+        return self._request("GET", f"{API}/discoveries/{discovery_id}/report").text
+
+    def cancel_discovery(self, discovery_id: str) -> dict[str, Any]:
+        return dict(self._request("POST", f"{API}/discoveries/{discovery_id}/cancel").json())
+
+    def discoveries(self, *, offset: int = 0, limit: int = 50) -> dict[str, Any]:
+        params = {"offset": offset, "limit": limit}
+        return dict(self._request("GET", f"{API}/discoveries", params=params).json())

@@ -112,15 +112,20 @@ def _ambiguous(findings: FindingsResult) -> str:
     for a in findings.ambiguous:
         poses = ""
         if a.separating_poses:
-            header = "".join(f"<th>{e(name)}</th>" for name in a.separating_poses[0])
+            names = list(dict.fromkeys(name for pose in a.separating_poses for name in pose))
+            header = "".join(f"<th>{e(name)}</th>" for name in names)
             rows = "".join(
-                "<tr>" + "".join(f"<td>{v:.3f}</td>" for v in pose.values()) + "</tr>"
+                "<tr>" + "".join(_number_cell(pose.get(name), 3) for name in names) + "</tr>"
                 for pose in a.separating_poses
             )
             poses = f"<p>Poses (rad) that would separate them:</p><table><tr>{header}</tr>{rows}"
             poses += "</table>"
         parts.append(f'<p class="warn">{e(a.explanation)}</p>{poses}')
     return "".join(parts)
+
+
+def _number_cell(value: float | None, digits: int) -> str:
+    return "<td>–</td>" if value is None else f"<td>{value:.{digits}f}</td>"
 
 
 def _unexplained(findings: FindingsResult) -> str:

@@ -6,6 +6,7 @@ The CLI and the HTTP service both call these functions; nothing is computed anyw
 from __future__ import annotations
 
 import datetime as dt
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -99,6 +100,7 @@ class PreparedData:
     position_only: bool
 
 
+@functools.cache  # reading package metadata costs milliseconds; rankings stamp every answer
 def kincal_version() -> str:
     try:
         return metadata.version("kincal")

@@ -34,8 +34,11 @@ log = logging.getLogger("kincal.service")
 DESCRIPTION = """Calibrate robot kinematics, including the randomness inside the chain.
 
 Upload a recording (`/datasets`), start a calibration job (`/calibrations`), poll it, then read
-its result, HTML report and calibrated URDF. Every error is `application/problem+json`
-(RFC 9457). Authenticate with `X-API-Key` (not needed when the service is bound to 127.0.0.1).
+its result, HTML report and calibrated URDF. Rank candidate configurations or a target pose's IK
+solutions by the calibrated uncertainty (`/rankings`, synchronous), or look for the physics a
+recording shows and your model lacks (`/discoveries`, a job like calibrations). Every error is
+`application/problem+json` (RFC 9457). Authenticate with `X-API-Key` (not needed when the
+service is bound to 127.0.0.1).
 """
 
 

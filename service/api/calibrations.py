@@ -20,7 +20,7 @@ from schemas.calibration import CalibrationOptions, CalibrationResult
 from service import pipeline
 from service.api import jobs_common
 from service.api.deps import API_PREFIX, PrincipalDep, StateDep
-from service.api.idempotency import Idempotency, fingerprint
+from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.results import CachedResult
@@ -94,7 +94,7 @@ def result_of(state: StateDep, tenant_id: str, calibration_id: str) -> Calibrati
     "",
     status_code=202,
     response_model=CalibrationPublic,
-    responses={**STANDARD_PROBLEMS, **problem_responses(404, 409)},
+    responses={**STANDARD_PROBLEMS, **IDEMPOTENCY_PROBLEMS, **problem_responses(404)},
 )
 def create_calibration(
     body: CalibrationCreate,

@@ -17,7 +17,7 @@ from service import discovery
 from service.api import jobs_common
 from service.api.calibrations import REPORT_HEADERS
 from service.api.deps import API_PREFIX, PrincipalDep, StateDep
-from service.api.idempotency import Idempotency, fingerprint
+from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.robots import one_line
@@ -56,7 +56,7 @@ RESOURCE = JobResource(
     "",
     status_code=202,
     response_model=DiscoveryPublic,
-    responses={**STANDARD_PROBLEMS, **problem_responses(404, 409)},
+    responses={**STANDARD_PROBLEMS, **IDEMPOTENCY_PROBLEMS, **problem_responses(404)},
 )
 def create_discovery(
     body: DiscoveryCreate,

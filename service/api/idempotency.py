@@ -19,7 +19,7 @@ from fastapi import Response
 from sqlalchemy import delete
 from sqlalchemy.exc import IntegrityError
 
-from service.api.problems import ProblemException
+from service.api.problems import ProblemException, problem_responses
 from service.storage import repository
 from service.storage.db import Database
 from service.storage.models import IdempotencyRecord, utcnow
@@ -27,6 +27,8 @@ from service.storage.models import IdempotencyRecord, utcnow
 RETENTION = dt.timedelta(hours=24)
 STALE_PENDING = dt.timedelta(minutes=2)
 MAX_KEY_LENGTH = 255
+IDEMPOTENCY_PROBLEMS = problem_responses(400, 409, 422)
+"""What a route taking ``Idempotency-Key`` can answer because of it (OpenAPI)."""
 
 
 def fingerprint(*parts: Any) -> str:

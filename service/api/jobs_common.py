@@ -16,7 +16,7 @@ from starlette.concurrency import run_in_threadpool
 
 from schemas.api import JobStatus
 from service.api.deps import PrincipalDep, ServiceState, StateDep
-from service.api.idempotency import Idempotency
+from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.robots import ResolvedRobot, resolve_robot
 from service.storage import repository
@@ -280,7 +280,7 @@ def add_job_routes(router: APIRouter, resource: JobResource, artifacts: Sequence
         responses={
             202: {"model": resource.public_model, "description": "Cancellation under way."},
             **not_found,
-            **problem_responses(409),
+            **IDEMPOTENCY_PROBLEMS,
         },
         name=f"cancel_{kind}",
         summary=f"Cancel a queued or running {noun}.",

@@ -193,4 +193,5 @@ def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
     }
 
 
-STANDARD_PROBLEMS = problem_responses(401, 422, 500)
+STANDARD_PROBLEMS = problem_responses(400, 401, 422, 500)
+"""What any route can answer: 400 (a body that cannot even be decoded), 401, 422, 500."""

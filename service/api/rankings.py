@@ -14,6 +14,7 @@ the same answer.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -166,6 +167,19 @@ def _rank_configurations(context: RankingContext, body: RankingCreate) -> Rankin
     )
 
 
+def _require_finite(out: RankingResult) -> RankingResult:
+    """Extreme (finite) inputs can overflow the covariance arithmetic; answer 422, never NaN."""
+    for entry in out.ranking:
+        if not (math.isfinite(entry.score) and all(math.isfinite(v) for v in entry.ee_std)):
+            raise ProblemException(
+                422,
+                f"the predicted uncertainty of candidate {entry.index} is not a finite number; "
+                "check joint positions (rad), payload_kg and options.weights for extreme values",
+                slug="invalid-configurations",
+            )
+    return out
+
+
 def _rank_target(context: RankingContext, body: RankingCreate) -> RankingResult:
     payload = body.payload_kg if isinstance(body.payload_kg, float) else None
     request = TargetRankingRequest(
@@ -177,7 +191,15 @@ def _rank_target(context: RankingContext, body: RankingCreate) -> RankingResult:
         payload_kg=context.result.options.payload_kg if payload is None else payload,
         options=body.options,
     )
-    return ranking.rank_target(context.result, request, model=context.model)
+    out = ranking.rank_target(context.result, request, model=context.model)
+    if not out.ranking:
+        raise ProblemException(
+            422,
+            f"target: {ranking.NO_IK_SOLUTION.replace('(--free-axis)', '(free_axis)')}",
+            slug="no-ik-solution",
+            errors=[{"location": "body.target", "pointer": "#/target", "detail": "unreachable"}],
+        )
+    return out
 
 
 @router.post(
@@ -195,4 +217,4 @@ async def create_ranking(body: RankingCreate, principal: PrincipalDep, state: St
         result = _rank_configurations(context, body)
     else:
         result = await run_in_threadpool(_rank_configurations, context, body)
-    return Response(result.model_dump_json(), media_type="application/json")
+    return Response(_require_finite(result).model_dump_json(), media_type="application/json")

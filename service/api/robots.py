@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session
 
 from schemas.api import RobotCreate, RobotPublic, RobotsPublic
 from service.api.deps import API_PREFIX, PrincipalDep, SessionDep, StateDep
-from service.api.idempotency import Idempotency, fingerprint
+from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
 from service.settings import Settings
@@ -191,7 +191,7 @@ def get_robot(robot_id: str, principal: PrincipalDep, session: SessionDep) -> Ro
     "",
     status_code=201,
     response_model=RobotPublic,
-    responses={**STANDARD_PROBLEMS, **problem_responses(409, 413)},
+    responses={**STANDARD_PROBLEMS, **IDEMPOTENCY_PROBLEMS, **problem_responses(413)},
 )
 def upload_robot(
     body: RobotCreate,

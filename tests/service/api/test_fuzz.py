@@ -2,18 +2,33 @@
 
 from __future__ import annotations
 
+import importlib
+import math
+import tempfile
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
 import pytest
+import schemathesis
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from schemathesis.checks import not_a_server_error
+from schemathesis.python import asgi
+from schemathesis.specs.openapi.checks import (
+    content_type_conformance,
+    response_schema_conformance,
+    status_code_conformance,
+)
 
+from schemas.ranking import RankingResult
 from service.api import create_app
-from tests.service.api.conftest import fresh_database_url, make_settings
+from service.storage import repository
+from service.worker import JobContext
+from tests.service.api.conftest import fresh_database_url, make_settings, upload_csv
 
 JSON = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
@@ -24,6 +39,10 @@ JSON = st.recursive(
 )
 PATHS = st.sampled_from(
     [
+        "/api/v1/rankings",
+        "/api/v1/discoveries",
+        "/api/v1/discoveries/{id}",
+        "/api/v1/discoveries/{id}/report",
         "/api/v1/datasets",
         "/api/v1/calibrations",
         "/api/v1/robots",
@@ -87,3 +106,194 @@ def test_random_uploads_never_give_a_5xx(
         data={"robot": robot, **extra},
     )
     _check(response)
+
+
+# --- schemathesis: every operation of /openapi.json, answers checked against the schema -------
+
+
+def run_queued_job_inline(state: Any, job_id: str) -> None:
+    """Run a queued job's function in this process, as a worker would (the fuzzed app has no
+    worker processes, so what the fuzzer queues stays queued)."""
+    with state.database.session() as session:
+        job = repository.claim_next_job(session, "fuzz-inline", ["calibration"])
+        assert job is not None and job.id == job_id
+        params, tenant = dict(job.params), job.tenant_id
+    module, _, function = state.registry["calibration"].target.partition(":")
+    ctx = JobContext(job_id, tenant, params, state.files, lambda message: None)
+    getattr(importlib.import_module(module), function)(ctx)
+    with state.database.session() as session:
+        finished = repository.finish_job(
+            session, job_id, "fuzz-inline", repository.SUCCEEDED, artifacts=ctx.artifacts
+        )
+        assert finished is not None
+
+
+def _openapi_document() -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as folder:
+        app = create_app(make_settings(Path(folder), f"sqlite:///{folder}/openapi.db"))
+        return app.openapi()
+
+
+# Loaded at import (schemathesis parametrizes at collection); the requests go to the app of the
+# ``fuzzed`` fixture, which has a dataset and a succeeded calibration to steer bodies to.
+SCHEMA = schemathesis.openapi.from_dict(_openapi_document())
+
+
+@dataclass
+class Fuzzed:
+    client: TestClient
+    session: Any  # a requests.Session that calls the same ASGI app in-process
+    dataset_id: str
+    calibration_id: str
+
+
+FUZZED: list[Fuzzed] = []
+
+
+@pytest.fixture(scope="module")
+def fuzzed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fuzzed]:
+    folder: Path = tmp_path_factory.mktemp("schemathesis")
+    with fresh_database_url(folder) as url:
+        app = create_app(make_settings(folder, url, max_request_bytes=256 * 1024))
+        with TestClient(app, raise_server_exceptions=False) as client:
+            dataset_id = upload_csv(client).json()["id"]
+            created = client.post(
+                "/api/v1/calibrations",
+                json={"dataset_id": dataset_id, "options": {"heldout": False}},
+            ).json()
+            run_queued_job_inline(app.state.kincal, created["id"])
+            body = {"calibration_id": created["id"], "joint_positions_rad": [[0.1] * 6]}
+            assert client.post("/api/v1/rankings", json=body).status_code == 200
+            # Not entered as a context manager: the TestClient above runs the app's lifespan.
+            FUZZED.append(Fuzzed(client, asgi.get_client(app), dataset_id, created["id"]))
+            yield FUZZED[-1]
+            FUZZED.clear()
+
+
+UR10_JOINTS = (
+    "shoulder_pan_joint",
+    "shoulder_lift_joint",
+    "elbow_joint",
+    "wrist_1_joint",
+    "wrist_2_joint",
+    "wrist_3_joint",
+)
+
+
+def _six(values: list[Any]) -> list[Any]:
+    return (list(values) + [0.0] * 6)[:6]
+
+
+def _one_kind_of_candidates(body: dict[str, Any]) -> dict[str, Any]:
+    """A ranking body the JSON schema cannot promise to be valid made plausible: exactly one
+    kind of candidates, rows of the UR10's six joints (the generated values kept)."""
+    steered = {k: v for k, v in body.items() if k not in ("configurations", "target")}
+    rows = body.get("joint_positions_rad")
+    named = body.get("configurations")
+    if isinstance(rows, list) and rows and all(isinstance(r, list) for r in rows):
+        steered["joint_positions_rad"] = [_six(r) for r in rows]
+    elif isinstance(named, list) and named and all(isinstance(c, dict) for c in named):
+        steered.pop("joint_positions_rad", None)
+        steered["configurations"] = [
+            dict(zip(UR10_JOINTS, _six(list(c.values())), strict=True)) for c in named
+        ]
+    elif isinstance(body.get("target"), dict):
+        steered.pop("joint_positions_rad", None)
+        # IK costs ~20 ms per candidate: keep the search small
+        steered |= {"target": body["target"], "n_candidates": 2, "n_free_rotations": 2}
+    return steered
+
+
+@SCHEMA.hook
+def flatmap_body(context: Any, body: Any) -> st.SearchStrategy[Any]:
+    """Half of the generated bodies name the seeded dataset / calibration (ranking bodies also
+    made plausible), so that the fuzzer gets past the 404s into validation and the work."""
+    if not isinstance(body, dict) or not FUZZED:
+        return st.just(body)
+    steered = dict(body)
+    if "calibration_id" in body:
+        steered = _one_kind_of_candidates(body)
+        steered["calibration_id"] = FUZZED[-1].calibration_id
+    if "dataset_id" in body:
+        steered["dataset_id"] = FUZZED[-1].dataset_id
+    return st.sampled_from([body, steered])
+
+
+@SCHEMA.parametrize()
+@settings(max_examples=25, deadline=None, suppress_health_check=list(HealthCheck))
+def test_openapi_operations_never_5xx_and_match_their_schema(case: Any, fuzzed: Fuzzed) -> None:
+    response = case.call(session=fuzzed.session, base_url=f"http://{asgi.HOST}")
+    case.validate_response(
+        response,
+        checks=[
+            not_a_server_error,
+            status_code_conformance,
+            content_type_conformance,
+            response_schema_conformance,
+        ],
+    )
+
+
+# --- rankings: well-formed bodies with extreme values reach the maths, never a 5xx or a NaN ----
+
+HUGE = st.floats(min_value=-1e300, max_value=1e300, allow_nan=False)
+NON_NEGATIVE = st.floats(min_value=0.0, max_value=1e300, allow_nan=False)
+WEIGHTS = st.one_of(
+    st.builds(
+        lambda d, scale: {"kind": "pose", "diagonal": d, "rotation_scale_m_per_rad": scale},
+        st.lists(NON_NEGATIVE, min_size=6, max_size=6),
+        st.floats(min_value=1e-300, max_value=1e300),
+    ),
+    st.builds(
+        lambda m: {"kind": "pose", "matrix": m},
+        st.lists(st.lists(HUGE, min_size=6, max_size=6), min_size=6, max_size=6),
+    ),
+    st.builds(
+        lambda p, w: {"kind": "task_point", "point_m": p, "axis_weights": w},
+        st.lists(HUGE, min_size=3, max_size=3),
+        st.lists(NON_NEGATIVE, min_size=3, max_size=3),
+    ),
+)
+
+
+@settings(
+    max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    rows=st.lists(
+        st.lists(st.floats(min_value=-1e4, max_value=1e4), min_size=6, max_size=6),
+        min_size=1,
+        max_size=12,
+    ),
+    named=st.booleans(),
+    payload=st.none() | st.floats(min_value=0.0, max_value=1e5),
+    weights=WEIGHTS,
+    include_noise=st.booleans(),
+    top=st.none() | st.integers(min_value=1, max_value=20),
+)
+def test_well_formed_rankings_with_extreme_values_answer_200_or_422(
+    fuzzed: Fuzzed,
+    rows: list[list[float]],
+    named: bool,
+    payload: float | None,
+    weights: dict[str, Any],
+    include_noise: bool,
+    top: int | None,
+) -> None:
+    body: dict[str, Any] = {
+        "calibration_id": fuzzed.calibration_id,
+        "payload_kg": payload,
+        "options": {"weights": weights, "include_noise": include_noise, "top": top},
+    }
+    if named:
+        body["configurations"] = [dict(zip(UR10_JOINTS, row, strict=True)) for row in rows]
+    else:
+        body["joint_positions_rad"] = rows
+    response = fuzzed.client.post("/api/v1/rankings", json=body)
+    _check(response)
+    assert response.status_code in (200, 422), response.text
+    if response.status_code == 200:
+        ranking = RankingResult.model_validate_json(response.content)
+        scores = [entry.score for entry in ranking.ranking]
+        assert all(math.isfinite(v) for v in scores) and scores == sorted(scores)
+        assert len(scores) == min(len(rows), top or len(rows))
