@@ -9,9 +9,17 @@ models; the arithmetic lives in :mod:`solver.ranking`.
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    field_validator,
+    model_validator,
+)
 
 from schemas.calibration import Matrix6, Vector3, Vector6
 
@@ -67,7 +75,18 @@ class TaskPointWeights(_Model):
         return point
 
 
-TaskWeights = Annotated[PoseWeights | TaskPointWeights, Field(discriminator="kind")]
+def _weights_kind(value: Any) -> str:
+    """``kind`` may be left out (its default is documented): a task point is recognised by its
+    ``point_m``, anything else is pose weights."""
+    if isinstance(value, dict):
+        return str(value.get("kind", "task_point" if "point_m" in value else "pose"))
+    return str(getattr(value, "kind", "pose"))
+
+
+TaskWeights = Annotated[
+    Annotated[PoseWeights, Tag("pose")] | Annotated[TaskPointWeights, Tag("task_point")],
+    Discriminator(_weights_kind),
+]
 
 
 class RankingOptions(_Model):

@@ -122,6 +122,19 @@ def test_weights_top_and_payload_are_passed_through_like_the_cli(
     assert [e.score for e in default.ranking] != [e.score for e in over_http.ranking]
 
 
+def test_weights_kind_may_be_left_out(calibrated: Calibrated) -> None:
+    q = calibrated.configurations(8, seed=10).tolist()
+    for weights, kind in (
+        ({"diagonal": [1.0, 1.0, 0.0, 0.0, 0.0, 0.0]}, "pose"),
+        ({"point_m": [0.0, 0.0, 0.05]}, "task_point"),
+    ):
+        implicit = calibrated.api.rank(calibrated.id, q, options={"weights": weights})
+        explicit = calibrated.api.rank(
+            calibrated.id, q, options={"weights": {"kind": kind, **weights}}
+        )
+        assert implicit == explicit and implicit.weights.kind == kind
+
+
 def test_payload_per_configuration(calibrated: Calibrated) -> None:
     q = calibrated.configurations(6, seed=9)
     payload = [0.0, 0.5, 1.0, 2.0, 3.0, 4.0]
