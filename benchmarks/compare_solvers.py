@@ -60,7 +60,8 @@ from solver.covariance import (
     make_layout,
     solve_moment,
 )
-from solver.covariance.estimate import CovarianceEstimate, EstimatorName, SolverName
+from solver.covariance.estimate import CovarianceEstimate, EstimatorName
+from solver.covariance.solvers import ConcreteSolver, concrete_solver
 from solver.kinematics import ChainParameters, evaluate_chain
 from solver.model import KinematicChain, gravity_loads, sample_configurations
 from solver.ranking import (
@@ -77,7 +78,7 @@ FloatArray = NDArray[np.float64]
 SIZES = (119, 1_000, 10_000, 100_000)
 SEEDS = (1, 2, 3)
 EFFECTS = ("geometry", "compliance", "random", "camera", "marker")
-SOLVERS: dict[str, tuple[SolverName, PGDSettings]] = {
+SOLVERS: dict[str, tuple[ConcreteSolver, PGDSettings]] = {
     "clarabel": ("clarabel", PGD_STABLE),
     "pgd-published": ("pgd", PGD_PUBLISHED),
     "pgd-published-kkt": (
@@ -90,7 +91,7 @@ SOLVERS: dict[str, tuple[SolverName, PGDSettings]] = {
 ESTIMATORS: tuple[EstimatorName, ...] = ("moment", "ml", "reml")
 _PRODUCT = CalibrationOptions()
 DEFAULT_SOLVER = {"clarabel": "clarabel", "pgd": "pgd-stable", "nnls": "nnls"}[
-    _PRODUCT.covariance_solver
+    concrete_solver(_PRODUCT.covariance_solver, "diag")
 ]
 DEFAULT_ESTIMATOR: EstimatorName = _PRODUCT.covariance_estimator
 N_HELDOUT = 1_000

@@ -55,10 +55,11 @@ class CalibrationOptions(_Model):
         description="Structure of the random-effect covariances Σ_n, Σ_1..Σ_k (paper §IV-C); "
         "'none' skips the covariance calibration.",
     )
-    covariance_solver: Literal["clarabel", "pgd", "nnls"] = Field(
-        "clarabel",
+    covariance_solver: Literal["auto", "clarabel", "pgd", "nnls"] = Field(
+        "auto",
         description="Solver of the moment problem (Eq. 14): clarabel (cvxpy, PSD cones), pgd "
-        "(paper Eq. 15, stable step) or nnls (diagonal only).",
+        "(paper Eq. 15, stable step), nnls (diagonal only, exact) or auto (nnls for diagonal, "
+        "clarabel for full covariances).",
     )
     covariance_estimator: Literal["moment", "ml", "reml"] = Field(
         "reml",

@@ -31,7 +31,15 @@ from solver.covariance.likelihood import (
     moment_sandwich_meat,
     orthonormal_fit_basis,
 )
-from solver.covariance.solvers import PGD_STABLE, CovarianceSolution, PGDSettings, solve_moment
+from solver.covariance.solvers import (
+    PGD_STABLE,
+    ConcreteSolver,
+    CovarianceSolution,
+    PGDSettings,
+    SolverName,
+    concrete_solver,
+    solve_moment,
+)
 from solver.covariance.statistics import (
     DEFAULT_CHUNK_SIZE,
     MomentStatistics,
@@ -43,7 +51,6 @@ from solver.errors import CalibrationError, SolverError
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 EstimatorName = Literal["moment", "ml", "reml"]
-SolverName = Literal["clarabel", "pgd", "nnls"]
 
 
 @dataclass(frozen=True)
@@ -80,7 +87,7 @@ class CovarianceEstimate:
 
     estimator: EstimatorName
     structure: Structure
-    solver: SolverName
+    solver: ConcreteSolver
     n_samples: int
     frames: tuple[FrameCovariance, ...]
     noise: FrameCovariance | None
@@ -125,7 +132,7 @@ def estimate_covariances(
     *,
     structure: Structure = "diag",
     estimator: EstimatorName = "moment",
-    solver: SolverName = "clarabel",
+    solver: SolverName = "auto",
     fit_jacobian: FloatArray | None = None,
     noise_covariance: FloatArray | None = None,
     include_noise: bool = True,
@@ -150,9 +157,10 @@ def estimate_covariances(
     ``estimator``: "moment" (Eq. 13–15), "ml" (Eq. 16–17) or "reml" (needs ``fit_jacobian``
     (N, d, p), the deterministic fit's Jacobian in the same residual space, e.g. the rows of
     the stacked calibration Jacobian; only its column space matters). ``solver`` solves the
-    moment problem, which also starts ML/REML (projected Fisher scoring, :mod:`.fitting`).
+    moment problem, which also starts ML/REML (projected Fisher scoring, :mod:`.fitting`);
+    "auto" is NNLS for diagonal and Clarabel for full Σ (:func:`.solvers.concrete_solver`).
     ``free_axes`` restricts frames to some axes (names from ``POSE_AXES``); ``structure``
-    "full" needs ``solver`` "clarabel" or "pgd".
+    "full" needs ``solver`` "auto", "clarabel" or "pgd".
 
     Unidentifiable combinations are resolved by the rule of :mod:`.identifiability` (minimum
     norm among equally good fits; entries without effect are 0) and reported in words in
@@ -177,19 +185,22 @@ def estimate_covariances(
         noise_name=noise_name,
         free_axes=free_axes,
     )
+    solver_used = concrete_solver(solver, structure)
     stats = build_moment_statistics(
         residuals, frame_jacobians, layout, known_covariance=known, chunk_size=chunk_size
     )
     report = analyse_identifiability(
         stats, rank_rtol=rank_rtol, weak_rtol=weak_rtol, frame_jacobians=frame_jacobians
     )
-    moment = solve_moment(stats, solver, pgd_settings=pgd_settings)
+    moment = solve_moment(stats, solver_used, pgd_settings=pgd_settings)
     if not np.all(np.isfinite(moment.theta)):
-        raise SolverError(f"moment solver {solver!r} failed ({moment.status}): {moment.message}")
+        raise SolverError(
+            f"moment solver {solver_used!r} failed ({moment.status}): {moment.message}"
+        )
     notes = list(report.warnings)
     if not moment.converged:
         notes.append(
-            f"moment solver {solver!r} ended with status {moment.status!r}"
+            f"moment solver {solver_used!r} ended with status {moment.status!r}"
             + (f": {moment.message}" if moment.message else "")
         )
     theta = resolve_null_space(moment.theta, report, layout)
@@ -245,7 +256,7 @@ def estimate_covariances(
     return CovarianceEstimate(
         estimator,
         structure,
-        solver,
+        solver_used,
         residuals.shape[0],
         tuple(frames),
         noise,

@@ -2,7 +2,7 @@
 
 Projected Fisher scoring, started from the moment solution (Eq. 14): each step solves the cone
 QP ``min_θ' ½(θ'−θ)ᵀH(θ'−θ) + ∇NLL(θ)ᵀ(θ'−θ)`` over θ' ≥ 0 (diagonal) or Σ'_f ⪰ 0 (full)
-with the same solvers as Eq. (14) (nnls / clarabel), then backtracks on the NLL along the
+with the solver "auto" picks for Eq. (14) (nnls / clarabel), then backtracks on the NLL along the
 segment θ → θ' (which stays in the cone). H = 2·(Fisher information of Eq. 16) = Σ_n K̃_nᵀK̃_n
 with the whitened Jacobians L_n⁻¹A_f, plus a tiny proximal term for the null directions.
 
@@ -29,7 +29,7 @@ from solver.covariance.likelihood import (
     theta_gradient,
 )
 from solver.covariance.objective import ProblemScaling, clip_psd, moment_objective
-from solver.covariance.solvers import CovarianceSolution, Status, solve_clarabel, solve_nnls
+from solver.covariance.solvers import CovarianceSolution, Status, solve_moment
 from solver.covariance.statistics import DEFAULT_CHUNK_SIZE, MomentStatistics
 from solver.errors import CalibrationError
 
@@ -101,7 +101,7 @@ def fit_likelihood(
         mu = PROXIMAL_RTOL * float(np.max(np.diag(hess) / inv_scale2))
         gram = hess + np.diag(mu * inv_scale2)
         qp = MomentStatistics(layout, gram, gram @ theta - grad, 0.0, n)
-        target = (solve_nnls(qp) if layout.structure == "diag" else solve_clarabel(qp)).theta
+        target = solve_moment(qp, "auto").theta
         if not np.all(np.isfinite(target)):
             status, message = "error", "scoring QP failed"
             break

@@ -385,17 +385,32 @@ def published_step_limit(stats: MomentStatistics) -> float:
     return 2.0 / float(np.linalg.eigvalsh(stats.gram)[-1])
 
 
+ConcreteSolver = Literal["clarabel", "pgd", "nnls"]
+SolverName = Literal["auto", "clarabel", "pgd", "nnls"]
+
+
+def concrete_solver(solver: SolverName, structure: Literal["diag", "full"]) -> ConcreteSolver:
+    """The solver "auto" stands for: the exact active-set NNLS when Σ is diagonal (PSD is then
+    θ ≥ 0 and Eq. 14 is a non-negative least-squares problem), the Clarabel cone program for
+    full Σ (PSD cones). Both solve Eq. (14) to the same optimum (tested); NNLS needs no
+    problem compilation, which makes it ~10× faster on the paper-sized problem."""
+    if solver == "auto":
+        return "nnls" if structure == "diag" else "clarabel"
+    return solver
+
+
 def solve_moment(
     stats: MomentStatistics,
-    solver: Literal["clarabel", "pgd", "nnls"] = "clarabel",
+    solver: SolverName = "auto",
     *,
     pgd_settings: PGDSettings = PGD_STABLE,
 ) -> CovarianceSolution:
-    """Dispatch to one of the three solvers of Eq. (14)."""
+    """Dispatch to one of the three solvers of Eq. (14) ("auto": :func:`concrete_solver`)."""
+    solver = concrete_solver(solver, stats.layout.structure)
     if solver == "clarabel":
         return solve_clarabel(stats)
     if solver == "pgd":
         return solve_pgd(stats, pgd_settings)
     if solver == "nnls":
         return solve_nnls(stats)
-    raise SolverError(f"unknown solver {solver!r}; use 'clarabel', 'pgd' or 'nnls'")
+    raise SolverError(f"unknown solver {solver!r}; use 'auto', 'clarabel', 'pgd' or 'nnls'")

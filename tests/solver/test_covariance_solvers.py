@@ -60,6 +60,16 @@ def test_clarabel_stable_pgd_and_nnls_agree_on_the_objective(n, free):
     assert max(values) - min(values) <= 1e-6 * min(values), values
 
 
+@pytest.mark.parametrize(("structure", "expected"), [("diag", "nnls"), ("full", "clarabel")])
+def test_auto_is_the_exact_solver_for_the_structure(structure, expected):
+    stats = jaco_statistics(
+        300, seed=3, structure=structure, free_axes={n: ROTATION_ONLY for n in S.jaco_joint_names()}
+    )
+    auto = solve_moment(stats, "auto")
+    assert auto.solver == expected
+    assert auto.objective == pytest.approx(solve_clarabel(stats).objective, rel=1e-6)
+
+
 def test_full_covariances_from_clarabel_and_stable_pgd_agree():
     stats = jaco_statistics(
         400, seed=5, structure="full", free_axes={n: ROTATION_ONLY for n in S.jaco_joint_names()}
