@@ -75,11 +75,26 @@ def _chunks(
         yield _Chunk(cols, residuals[start:stop], None if basis is None else basis[start:stop])
 
 
+def _chain_covariance(layout: CovarianceLayout, theta: FloatArray) -> FloatArray:
+    """blockdiag(Σ_1 … Σ_F) matching the columns C, as its diagonal (6F,) when every Σ_f is
+    diagonal (then C·diag·Cᵀ costs 6F instead of (6F)² per row)."""
+    covariances = layout.frame_covariances(theta)
+    if layout.structure == "diag":
+        return np.concatenate([np.diagonal(c) for c in covariances])
+    return block_diagonal(covariances)
+
+
+def _ee_covariances(columns: FloatArray, sigma_all: FloatArray) -> FloatArray:
+    """Eq. (12) for a chunk, ``C blockdiag(Σ_f) Cᵀ`` (n, d, d), from :func:`_chain_covariance`."""
+    weighted = columns * sigma_all if sigma_all.ndim == 1 else columns @ sigma_all
+    return weighted @ columns.transpose(0, 2, 1)
+
+
 def _ee_chunk(
     chunk: _Chunk, sigma_all: FloatArray, known: FloatArray | None
 ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
     """Σ_E, its inverse and log det for one chunk; None if some Σ_E is not positive definite."""
-    cov = chunk.columns @ sigma_all @ chunk.columns.transpose(0, 2, 1)
+    cov = _ee_covariances(chunk.columns, sigma_all)
     if known is not None:
         cov = cov + known
     cov = 0.5 * (cov + cov.transpose(0, 2, 1))
@@ -121,7 +136,7 @@ def gaussian_nll(
 
     Returns (inf, 0) where some Σ_E is not positive definite. Constants (N·d·log 2π) omitted.
     """
-    sigma_all = block_diagonal(layout.frame_covariances(theta))
+    sigma_all = _chain_covariance(layout, theta)
     value, psi = 0.0, np.zeros((layout.n_frames, 6, 6))
     for chunk in _chunks(residuals, frame_jacobians, layout, None, chunk_size):
         ee = _ee_chunk(chunk, sigma_all, known_covariance)
@@ -164,14 +179,16 @@ def restricted_nll(
     ``fit_basis`` (N, d, k) from :func:`orthonormal_fit_basis`. Two passes over the chunks,
     O(N·d²·k + N·d·k²) per evaluation.
     """
-    sigma_all = block_diagonal(layout.frame_covariances(theta))
+    sigma_all = _chain_covariance(layout, theta)
     k = fit_basis.shape[2]
     value, fisher_x, u = 0.0, np.zeros((k, k)), np.zeros(k)
+    inverses = []  # Σ_E⁻¹ per chunk (N·d² floats, small next to the basis) for the second pass
     for chunk in _chunks(residuals, frame_jacobians, layout, fit_basis, chunk_size):
         ee = _ee_chunk(chunk, sigma_all, known_covariance)
         if ee is None:
             return float("inf"), np.zeros((layout.n_frames, 6, 6))
         _, inv, logdet = ee
+        inverses.append(inv)
         assert chunk.basis is not None
         q = inv @ chunk.basis  # V⁻¹X, (n, d, k)
         a = np.einsum("nij,nj->ni", inv, chunk.residuals)
@@ -187,10 +204,9 @@ def restricted_nll(
     m_inv_u = m_inv @ u
     value += 2.0 * float(np.log(np.diag(chol)).sum()) - float(u @ m_inv_u)
     psi = np.zeros((layout.n_frames, 6, 6))
-    for chunk in _chunks(residuals, frame_jacobians, layout, fit_basis, chunk_size):
-        ee = _ee_chunk(chunk, sigma_all, known_covariance)
-        assert ee is not None and chunk.basis is not None
-        _, inv, _ = ee
+    chunks = _chunks(residuals, frame_jacobians, layout, fit_basis, chunk_size)
+    for chunk, inv in zip(chunks, inverses, strict=True):
+        assert chunk.basis is not None
         q = inv @ chunk.basis
         s = np.einsum("nij,nj->ni", inv, chunk.residuals) - q @ m_inv_u
         p_nn = inv - (q @ m_inv) @ q.transpose(0, 2, 1)
@@ -211,9 +227,8 @@ def _whitening(
 
     Lᵀ is the symmetric square root (works for singular PSD Σ_E); L⁻¹ needs Σ_E ≻ 0.
     """
-    sigma_all = block_diagonal(layout.frame_covariances(theta))
     cols = column_matrix(frame_jacobians, layout)
-    cov = cols @ sigma_all @ cols.transpose(0, 2, 1)
+    cov = _ee_covariances(cols, _chain_covariance(layout, theta))
     if known_covariance is not None:
         cov = cov + known_covariance
     if not inverse:
