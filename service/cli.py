@@ -520,7 +520,9 @@ def _calibrate_streamed(
     typer.echo(summary(result))
     if options.heldout:
         typer.echo("\nstreamed: held-out splits skipped (pass --no-heldout to silence this)")
+    passes = int(timings.pop("passes", 0))
     stages = ", ".join(f"{name} {seconds:.2f} s" for name, seconds in timings.items())
+    stages += f"; {passes} passes over the data"
     typer.echo(f"streamed on {where}: {stages}")
     typer.echo(f"\nresult written to {output}")
 

@@ -20,7 +20,8 @@ std, min, max. A robot is an outlier in a parameter when its robust z-score
 ``(x − median) / (1.4826 · MAD)`` exceeds the threshold (default 3.5, Iglewicz & Hoaglin), e.g.
 a worn joint: much larger compliance or perturbation σ at that joint than the rest of the fleet;
 and when the deviation exceeds 3 of that robot's own standard errors of the parameter (a poorly
-identified parameter, e.g. a wrist compliance, scatters without anything being wrong).
+identified parameter, e.g. a wrist compliance, scatters without anything being wrong; a σ
+without a standard error, at the boundary 0, is never flagged).
 """
 
 from __future__ import annotations
@@ -164,6 +165,7 @@ class _Parameter:
     unit: str
     value: float
     stderr: float | None = None  # the robot's own standard error, if known
+    needs_stderr: bool = True  # flag only deviations significant against ``stderr``
 
 
 def robot_parameters(result: CalibrationResult) -> list[_Parameter]:
@@ -193,7 +195,7 @@ def robot_parameters(result: CalibrationResult) -> list[_Parameter]:
                 unit = "m" if axis.startswith("v") else "rad"
                 out.append(_Parameter(f"sigma.{frame.name}.{axis}", frame.name, unit, std, se))
     after = result.fit.after.train.translation_rms_mm
-    out.append(_Parameter("rms_after_mm", None, "mm", after))
+    out.append(_Parameter("rms_after_mm", None, "mm", after, needs_stderr=False))
     return out
 
 
@@ -232,7 +234,15 @@ def summarise_fleet(
     for name, by_robot in table.items():
         serials = list(by_robot)
         values = np.array([by_robot[s].value for s in serials])
-        stderr = np.array([by_robot[s].stderr or 0.0 for s in serials])
+        # unknown standard error (e.g. σ at the boundary 0): deviation never significant
+        stderr = np.array(
+            [
+                np.inf
+                if by_robot[s].needs_stderr and by_robot[s].stderr is None
+                else by_robot[s].stderr or 0.0
+                for s in serials
+            ]
+        )
         median, scale, z = robust_z(values)
         joint, unit = meta[name]
         population.append(

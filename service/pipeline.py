@@ -679,7 +679,8 @@ def calibrate_streamed(
     """:func:`calibrate` for a dataset file read in chunks, each pass mapped over ``executor``
     (default in-process); see :mod:`solver.streaming` for what differs: warm start and pruning
     on the head rows, moment-matching covariances, no held-out splits (``heldout`` is stored
-    as False). ``timings`` (optional) receives the wall time of each stage in seconds.
+    as False). ``timings`` (optional) receives the wall time of each stage in seconds and
+    the number of passes over the data (``passes``).
     """
     chain = chain_for(robot, options)
     started = time.perf_counter()
@@ -695,11 +696,14 @@ def calibrate_streamed(
             StreamSettings(stream.warm_start_rows, options.outlier_sigma),
         )
         stage.update(run.stage_s)
+        fits = (run.first, run.fit, run.baseline) if run.rule else (run.first, run.baseline)
+        stage["passes"] = 1.0 + sum(fit.passes for fit in fits)
         progress("fit", 1, 1)
         progress("baseline", 1, 1)
         clock = time.perf_counter()
         covariance = _streamed_covariance(problem, executor, run, options)
         stage["covariance"] = time.perf_counter() - clock
+        stage["passes"] += 2.0 if covariance is not None else 0.0
         progress("covariance", 1, 1)
     finally:
         release(problem, executor)

@@ -67,6 +67,21 @@ def _call(fn: Callable[[], R]) -> R:
     return fn()
 
 
+def peak_rss_bytes() -> int:
+    """Peak resident memory of this process (Linux VmHWM; else ``ru_maxrss``), in bytes; run
+    it on the workers with :meth:`Executor.run_on_workers`."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    import resource
+
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+
+
 class InProcessExecutor:
     """Everything in the calling process, one item after the other (the default)."""
 

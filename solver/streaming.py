@@ -31,12 +31,14 @@ What differs from the in-memory pipeline, and why:
   applied per chunk in every later pass (the per-chunk keep mask is cached, else recomputed from
   one forward pass). The refit and the "before" fit are warm-started, and pruned, like the
   first fit, on the head rows the rule keeps — as the in-memory pipeline refits the kept rows.
-- **Standard errors** come from the final pass's ``JᵀJ`` and ``rᵀr`` exactly as in memory.
 - **Covariances.** Moment matching (Eq. 13–14) streams exactly: one pass for ``G, h, c`` (and
   the Jacobian range for the constant-Jacobian warning), the solve, one pass for the sandwich
-  ``Σ K̃ᵀK̃`` of the standard errors. ML/REML need a pass per scoring step and line-search
-  trial; a streamed calibration uses the moment estimator and says so in its warnings (at
-  10⁵⁺ samples the REML correction is O(p/N)).
+  ``Σ K̃ᵀK̃`` of the standard errors (over every s-th row beyond 50 000 used rows, scaled).
+  ML/REML need a pass per scoring step and line-search trial; a streamed calibration uses the
+  moment estimator and says so in its warnings (at 10⁵⁺ samples the REML correction is
+  O(p/N)).
+- **Deterministic standard errors** come from the final pass's ``JᵀJ`` and ``rᵀr`` exactly as
+  in memory.
 """
 
 from __future__ import annotations
@@ -83,7 +85,7 @@ from solver.covariance.identifiability import (
 )
 from solver.covariance.layout import CovarianceLayout, Structure, make_layout
 from solver.covariance.likelihood import moment_sandwich_meat
-from solver.covariance.solvers import PGD_STABLE, solve_moment
+from solver.covariance.solvers import PGD_STABLE, concrete_solver, solve_moment
 from solver.covariance.statistics import (
     MomentStatistics,
     build_moment_statistics,
@@ -432,10 +434,12 @@ def fit_chunk(request: _FitPass, ref: Any) -> FitSums:
             rotation = None if rotation is None else rotation[used]
             if request.collect_removed:
                 removed = block.first_row + np.flatnonzero(~used).astype(np.int64)
-        weighted_residual = residual * weights[:, None]
-        weighted_columns = columns * weights[None, :, None]
+        if request.rotation_weight != 1.0:
+            residual_w, columns = residual * weights[:, None], columns * weights[None, :, None]
+        else:
+            residual_w = residual
         normal = normal_equations(
-            weighted_columns.reshape(columns.shape[0], -1).T, weighted_residual.reshape(-1)
+            columns.reshape(columns.shape[0], -1).T, np.ascontiguousarray(residual_w).reshape(-1)
         )
         errors = ErrorSums.of(translation_mm, None if rotation is None else np.degrees(rotation))
         parts.append(FitSums(normal, ResidualSpread.of(residual.T), errors, removed))
@@ -628,6 +632,7 @@ class _CovariancePass:
     known: FloatArray | None
     rule: OutlierRule | None
     theta: FloatArray | None  # None: statistics pass; else the sandwich pass at θ
+    stride: int = 1  # sandwich pass: every stride-th row of the recording
 
 
 @dataclass(frozen=True)
@@ -674,6 +679,9 @@ def covariance_chunk(request: _CovariancePass, ref: Any) -> CovarianceSums:
     )
     for index, block in enumerate(_prepare(problem, ref)):
         used = _used(problem, request.rule, ref, index)
+        if theta is not None and request.stride > 1:
+            rows = block.first_row + np.arange(block.n)
+            used = used & (rows % request.stride == 0)
         sweep = sweep_chain(
             problem.chain,
             request.params,
@@ -725,10 +733,14 @@ def streamed_covariance_sums(
     rule: OutlierRule | None = None,
     *,
     theta: FloatArray | None = None,
+    stride: int = 1,
 ) -> CovarianceSums:
-    """One pass: Eq. (13–14) statistics (``theta`` None) or the sandwich meat at ``theta``,
-    and the Jacobian range, of the frames ``frame_index`` at ``params``, summed over chunks."""
-    request = _CovariancePass(problem, params, tuple(frame_index), layout, known, rule, theta)
+    """One pass: Eq. (13–14) statistics (``theta`` None) or the sandwich meat at ``theta`` (of
+    every ``stride``-th row), and the Jacobian range, of the frames ``frame_index`` at
+    ``params``, summed over chunks."""
+    request = _CovariancePass(
+        problem, params, tuple(frame_index), layout, known, rule, theta, stride
+    )
     total: CovarianceSums = functools.reduce(
         operator.add, executor.map(covariance_chunk, request, problem.refs)
     )
@@ -743,12 +755,13 @@ def estimate_covariances_streamed(
     frame_index: Sequence[int],
     *,
     structure: Structure = "diag",
-    solver: SolverName = "clarabel",
+    solver: SolverName = "auto",
     noise_covariance: FloatArray | None = None,
     rule: OutlierRule | None = None,
     confidence: float = 0.95,
     noise_name: str = "noise",
     notes: Sequence[str] = (),
+    sandwich_rows: int = 50_000,
 ) -> CovarianceEstimate:
     """Moment-matching covariance calibration (paper §IV-C, Eq. 13–14) of a streamed recording:
     the same steps as :func:`solver.covariance.estimate.estimate_covariances` with
@@ -757,6 +770,11 @@ def estimate_covariances_streamed(
     ``frame_index``: chain joint of each perturbed frame (``frame_names``); residuals and
     Jacobians in the end-effector frame ([v; w], m and rad) at ``params``; ``rule``: the outlier
     rule of the deterministic fit (the same samples are used); ``notes`` start the warnings.
+
+    Standard errors need the sandwich ``Σ_n 2K̃ᵀK̃`` at θ̂, a second pass with a 6×6 whitening
+    per sample; beyond ``sandwich_rows`` samples it is summed over every s-th row of the
+    recording (s fixed by the row number, so independent of the chunking) and scaled by the
+    ratio of counts — an unbiased estimate of the sum, for errors that need 2 digits, not 10.
     """
     d = problem.residual_dim
     known = None
@@ -780,23 +798,28 @@ def estimate_covariances_streamed(
     report = analyse_identifiability(
         stats, rank_rtol=RANK_RTOL, weak_rtol=WEAK_RTOL, frame_jacobians=_jacobian_range(sums)
     )
-    moment = solve_moment(stats, solver, pgd_settings=PGD_STABLE)
+    solver_used = concrete_solver(solver, structure)
+    moment = solve_moment(stats, solver_used, pgd_settings=PGD_STABLE)
     if not np.all(np.isfinite(moment.theta)):
-        raise SolverError(f"moment solver {solver!r} failed ({moment.status}): {moment.message}")
+        raise SolverError(
+            f"moment solver {solver_used!r} failed ({moment.status}): {moment.message}"
+        )
     notes = [*notes, *report.warnings]
     if not moment.converged:
         notes.append(
-            f"moment solver {solver!r} ended with status {moment.status!r}"
+            f"moment solver {solver_used!r} ended with status {moment.status!r}"
             + (f": {moment.message}" if moment.message else "")
         )
     theta = resolve_null_space(moment.theta, report, layout)
     cov, unc = None, None
+    stride = max(1, -(-sums.n // sandwich_rows))  # ceil
     meat_sums = streamed_covariance_sums(
-        problem, executor, params, frame_index, layout, known, rule, theta=theta
+        problem, executor, params, frame_index, layout, known, rule, theta=theta, stride=stride
     )
     try:
         assert meat_sums.meat is not None
-        cov = theta_covariance(meat_sums.meat, report, bread=stats.gram)
+        meat = meat_sums.meat * (sums.n / meat_sums.n)  # a sum over all samples
+        cov = theta_covariance(meat, report, bread=stats.gram)
         unc = theta_uncertainty(
             theta,
             cov,
@@ -818,7 +841,7 @@ def estimate_covariances_streamed(
     return CovarianceEstimate(
         "moment",
         structure,
-        solver,
+        solver_used,
         sums.n,
         tuple(frames),
         noise,
