@@ -513,7 +513,11 @@ def _accumulate(
         g[:, :3] += lie.combine_rows(term.factor_w_t, cross)
         g[:, 3:] = lie.combine_rows(term.factor_w_t, rotation)
     mg = lie.combine_rows(plan.matrix, g.transpose(1, 0, 2))  # (d, r, n)
-    score += (mg * mg).sum(axis=(0, 1))
+    # Term by term in a fixed order: numpy's multi-axis sum picks its loop order (and thus its
+    # rounding) from the batch size, so a sample's score would depend on its chunk.
+    for row in mg:
+        for term_values in row:
+            score += term_values * term_values
 
 
 def _quadratic(

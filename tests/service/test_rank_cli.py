@@ -172,6 +172,38 @@ def test_weight_options_change_the_score_as_defined(
     assert len(top["ranking"]) == 3 and top["n_configurations"] == 30
 
 
+def test_rank_ignores_row_order_scores_duplicates_equally_and_zero_weights_tie(
+    files: dict[str, Path], capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 4 acceptance through the CLI: CONFIGS rows reversed with three rows repeated give
+    every configuration exactly its score and the same order of configurations; W = 0 ties all
+    of them (in input order)."""
+    q = pd.read_csv(files["configs"])
+    rows = [*range(29, -1, -1), 4, 17, 4]
+    shuffled = files["folder"] / "shuffled.csv"
+    q.iloc[rows].to_csv(shuffled, index=False, float_format="%.17g")
+
+    def scores(configs: Path, extra: list[object], name: str) -> tuple[np.ndarray, list[int]]:
+        out = files["folder"] / name
+        code, _, stderr = run(
+            ["rank", files["result"], configs, "-o", out, *extra], capsys, monkeypatch
+        )
+        assert code == 0, stderr
+        entries = json.loads(out.read_text())["ranking"]
+        by_row = np.empty(len(entries))
+        by_row[[e["index"] for e in entries]] = [e["score"] for e in entries]
+        return by_row, [e["index"] for e in entries]
+
+    base, order = scores(files["configs"], [], "base.json")
+    moved, moved_order = scores(shuffled, [], "shuffled.json")
+    assert np.array_equal(moved, base[rows])
+    assert moved[30] == moved[32] == base[4] and moved[31] == base[17]
+    distinct = [rows[i] for i in moved_order if i < 30]
+    assert distinct == order
+    zero, zero_order = scores(shuffled, ["--weights", "0,0,0,0,0,0"], "zero.json")
+    assert np.all(zero == 0.0) and zero_order == list(range(33))
+
+
 def test_rank_target_ranks_ik_candidates_that_reach_it(
     files: dict[str, Path],
     result: CalibrationResult,

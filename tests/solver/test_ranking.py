@@ -144,6 +144,25 @@ def test_ranking_is_invariant_to_candidate_order(permutation: list[int]) -> None
     assert np.array_equal(shuffled[moved.order()], q[base.order()])
 
 
+@pytest.mark.parametrize("label", sorted(METRICS))
+def test_scores_do_not_depend_on_position_in_the_batch(label: str) -> None:
+    """Every metric path (diagonal W, full W and task point use different code) with full Σ:
+    reversing the candidates and splitting them into chunks of 3 permutes the scores exactly,
+    and a candidate repeated in another chunk gets exactly its score."""
+    c = chain("kinova", virtual_first=True)
+    model = UncertaintyModel.build(c, _calibrated(c, 23), _effects(c, 24, full=True))
+    q = sample_configurations(c, 10, np.random.default_rng(25))
+    metric = METRICS[label]
+    base = score_configurations(model, q, metric)
+    reverse = np.arange(10)[::-1]
+    moved = score_configurations(model, q[reverse], metric, chunk_size=3)
+    assert np.array_equal(moved.score, base.score[reverse])
+    assert np.array_equal(moved.ee_variance, base.ee_variance[reverse])
+    assert np.array_equal(q[reverse][moved.order()], q[base.order()])
+    repeated = score_configurations(model, np.concatenate([q, q[[9, 0, 4]]]), metric, chunk_size=4)
+    assert np.array_equal(repeated.score[10:], base.score[[9, 0, 4]])
+
+
 def test_duplicates_get_equal_scores_and_ties_keep_input_order() -> None:
     c = chain("panda", virtual_first=True)
     model = UncertaintyModel.build(c, _calibrated(c, 7), _effects(c, 8, full=True))
@@ -163,6 +182,7 @@ def test_zero_weights_give_equal_zero_scores() -> None:
     q = sample_configurations(c, 20, np.random.default_rng(12))
     for metric in (
         TaskMetric.pose_weights(np.zeros(6)),
+        TaskMetric.pose_weights(np.zeros((6, 6))),
         TaskMetric.task_point([0, 0, 0.1], [0] * 3),
     ):
         scores = score_configurations(model, q, metric)
@@ -238,7 +258,7 @@ def test_lowest_score_configuration_has_the_lowest_monte_carlo_task_error() -> N
     assert scores.score[worst] > 3.0 * scores.score[best]  # the case has a clear difference
     rng = np.random.default_rng(22)
     draws = 4000
-    empirical = {}
+    empirical, docking_error = {}, {}
     for n in (best, worst):
         configs = np.repeat(q[n : n + 1], draws, axis=0)
         loads = gravity_loads(c, q[n : n + 1]).repeat(draws, axis=0)
@@ -248,9 +268,12 @@ def test_lowest_score_configuration_has_the_lowest_monte_carlo_task_error() -> N
         point = executed @ np.r_[0.0, 0.0, 0.05, 1.0]
         local = (lie.inverse(mean) @ point[..., None])[:, :3, 0] - [0.0, 0.0, 0.05]
         empirical[n] = float(np.mean(np.sum(local[:, :2] ** 2, axis=1)))
+        docking_error[n] = float(np.mean(np.linalg.norm(local[:, :2], axis=1)))
         # 4000 draws: relative standard error of a variance ≈ √(2/4000) ≈ 2 %.
         assert np.isclose(empirical[n], scores.score[n], rtol=0.1)
     assert empirical[best] < empirical[worst] / 3.0
+    # The task error itself (mean x-y distance, paper §V-C), not only its second moment.
+    assert docking_error[best] < docking_error[worst] / 1.5
 
 
 # --- vectorised gravity (solver.gravity) against Pinocchio's RNEA ------------------------------
