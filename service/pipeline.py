@@ -615,7 +615,7 @@ class StreamOptions:
 
     chunk_rows: int = 65_536
     block_rows: int = 8192
-    warm_start_rows: int = 20_000
+    warm_start_rows: int = 10_000
     cache_mb: float = 512.0
 
 

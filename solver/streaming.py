@@ -874,7 +874,7 @@ class StreamSettings:
     """How a recording is streamed: ``warm_start_rows`` in-memory rows for the start and the
     pruning; ``outlier_sigma`` the §V-A rule (None: off)."""
 
-    warm_start_rows: int = 20_000
+    warm_start_rows: int = 10_000
     outlier_sigma: float | None = 2.0
 
 

@@ -1,0 +1,379 @@
+"""Scale benchmark (issue 7): streamed calibration of 10³…10⁶ poses and a fleet of robots.
+
+For each N, a simulated Kinova Jaco2 recording (every joint compliant, random perturbations of
+every joint frame, sensor noise, 1 % gross outliers) is written to Parquet (row groups of
+``chunk_rows``), then each backend runs the streamed pipeline end to end —
+read → deterministic (first fit, 2σ rule, refit, "before" fit) → covariance (moment matching,
+Eq. 13–14) — in a fresh process, so that peak memory is that run's: wall time per stage, peak
+resident memory of the driver and of the largest worker (VmHWM), CPU seconds of all its
+processes (on a machine shared with other work, CPU time / cores is what an idle machine would
+take), the number of passes over the data. The scaling exponent is the log-log slope of time
+(and memory) against N over N ≥ 10⁴.
+Then a fleet of robots (one Parquet file each) is calibrated by ``kincal fleet``'s code on each
+backend.
+
+Prints a table, writes ``scale.json`` in ``--out`` and the log-log plot to ``--plot``.
+
+Usage: ``python benchmarks/scale.py [--sizes 1e3,1e4,1e5,1e6] [--backends inprocess,processes,
+dask] [--fleet-robots 100] [--fleet-poses 2000] [--out out/scale] [--plot docs/scale.png]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+import solver  # noqa: F401  (BLAS defaults)
+from schemas.calibration import CalibrationOptions
+from schemas.dataset import PoseDataset, dataset_to_frame, write_dataset
+from service import pipeline, scenarios
+from service.robots import load_robot
+from solver import lie
+from solver.executors import make_executor, peak_rss_bytes
+from solver.gravity import StaticGravityModel, static_gravity_loads
+from solver.kinematics import forward_kinematics
+from solver.model import KinematicChain, sample_configurations
+from solver.simulate import SimulationSpec, look_at, simulate_recording, true_parameters
+
+ROBOT = "kinova"
+SIZES = (1_000, 10_000, 100_000, 1_000_000)
+BACKENDS = ("inprocess", "processes", "dask")
+STAGES = ("read", "deterministic", "covariance")
+MiB = 1024 * 1024
+
+
+def spec(n: int, seed: int, chain: KinematicChain) -> SimulationSpec:
+    """The simulated robot: compliant joints 2 and 3, random perturbations, noise, outliers."""
+    return SimulationSpec(
+        n_samples=n,
+        seed=seed,
+        compliance_rad_per_nm={
+            chain.compliance_axes[1].name: 5e-4,
+            chain.compliance_axes[2].name: 8e-4,
+        },
+        perturbation_sigma=np.full((chain.n_joints, 6), 5e-5),
+        noise_sigma=np.array([5e-5] * 3 + [1e-4] * 3),
+        measurement_frame=look_at(np.array([0.8, -0.5, 0.45]), np.array([0.0, 0.0, 0.3])),
+        outlier_fraction=0.01,
+    )
+
+
+def write_recording(path: Path, chain: KinematicChain, n: int, *, chunk_rows: int) -> None:
+    """Simulate ``n`` poses of one robot, ``chunk_rows`` at a time, into Parquet row groups
+    (the robot is drawn once; every chunk draws its own configurations and noise)."""
+    simulation = spec(n, 1, chain)
+    rng = np.random.default_rng(1)
+    params, _ = true_parameters(chain, simulation, rng)
+    gravity = StaticGravityModel.from_chain(chain)
+    assert simulation.perturbation_sigma is not None
+    writer = None
+    try:
+        for start in range(0, n, chunk_rows):
+            m = min(chunk_rows, n - start)
+            q = sample_configurations(chain, m, rng)
+            loads = static_gravity_loads(gravity, q)
+            xi = rng.normal(size=(m, chain.n_joints, 6)) * simulation.perturbation_sigma
+            pose = forward_kinematics(chain, params, q, loads, perturbations=xi)
+            noise = rng.normal(size=(m, 6)) * simulation.noise_sigma
+            pose = pose @ lie.se3_exp(noise)
+            gross = rng.random(m) < simulation.outlier_fraction
+            kick = rng.normal(size=(int(gross.sum()), 6)) * np.r_[[5e-3] * 3, [0.17] * 3]
+            pose[gross] = pose[gross] @ lie.se3_exp(kick)
+            dataset = PoseDataset(
+                joint_names=chain.joint_names,
+                joint_positions=q,
+                position_m=pose[:, :3, 3],
+                quaternion_xyzw=lie.matrix_to_quaternion_xyzw(pose[:, :3, :3]),
+                sample_id=np.arange(start + 1, start + m + 1),
+            )
+            table = pa.Table.from_pandas(dataset_to_frame(dataset), preserve_index=False)
+            if writer is None:
+                writer = pq.ParquetWriter(path.with_suffix(".tmp"), table.schema)
+            writer.write_table(table, row_group_size=chunk_rows)
+    finally:
+        if writer is not None:
+            writer.close()
+    path.with_suffix(".tmp").replace(path)
+
+
+@dataclass
+class Run:
+    """One streamed calibration: N, backend, seconds per stage, peak memory (MiB)."""
+
+    n: int
+    backend: str
+    workers: int
+    stage_s: dict[str, float]
+    total_s: float
+    cpu_s: float
+    driver_mib: float
+    worker_mib: float
+    passes: int
+    rms_after_mm: float
+    compliance_rad_per_nm: list[float] = field(default_factory=list)
+
+
+def run_one(
+    path: Path, n: int, backend: str, *, chunk_rows: int, cache_mb: float, workers: int
+) -> Run:
+    """Streamed calibration of ``path`` on ``backend`` (call in a fresh process)."""
+    robot = load_robot(ROBOT)
+    options = CalibrationOptions(covariance_estimator="moment", heldout=False)
+    stream = pipeline.StreamOptions(chunk_rows=chunk_rows, cache_mb=cache_mb)
+    timings: dict[str, float] = {}
+    started = time.perf_counter()
+    executor = make_executor(backend, n_workers=workers)  # type: ignore[arg-type]
+    ready = time.perf_counter()
+    try:
+        result = pipeline.calibrate_streamed(
+            path, robot, options, executor, stream, timings=timings
+        )
+        total = time.perf_counter() - started
+        worker_peaks = executor.run_on_workers(peak_rss_bytes)
+        worker_cpu = executor.run_on_workers(time.process_time)
+    finally:
+        executor.close()
+    cpu_s = time.process_time() + (sum(worker_cpu) if backend != "inprocess" else 0.0)
+    stage = {
+        "start": ready - started,
+        "read": timings.get("plan", 0.0) + timings.get("read", 0.0),
+        "deterministic": timings.get("warm_start", 0.0) + timings.get("deterministic", 0.0),
+        "covariance": timings.get("covariance", 0.0),
+    }
+    return Run(
+        n,
+        backend,
+        executor.n_workers if backend == "inprocess" else workers,
+        stage,
+        total,
+        cpu_s,
+        peak_rss_bytes() / MiB,
+        max(worker_peaks) / MiB,
+        int(timings.get("passes", 0)),
+        result.fit.after.train.translation_rms_mm,
+        [c.value_rad_per_nm for c in result.compliance],
+    )
+
+
+def run_isolated(
+    path: Path, n: int, backend: str, *, chunk_rows: int, cache_mb: float, workers: int
+) -> Run:
+    """:func:`run_one` in a new interpreter (peak memory of this run alone)."""
+    code = (
+        "import json, sys; from pathlib import Path; from dataclasses import asdict; "
+        "from benchmarks.scale import run_one; "
+        f"r = run_one(Path({str(path)!r}), {n}, {backend!r}, chunk_rows={chunk_rows}, "
+        f"cache_mb={cache_mb}, workers={workers}); print('RESULT' + json.dumps(asdict(r)))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=False,
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT")]
+    if done.returncode or not lines:
+        raise RuntimeError(f"{backend} at N={n} failed:\n{done.stderr[-3000:]}")
+    return Run(**json.loads(lines[-1][len("RESULT") :]))
+
+
+def slope(x: Sequence[float], y: Sequence[float]) -> float:
+    """Least-squares slope of log y against log x."""
+    return float(np.polyfit(np.log(np.asarray(x)), np.log(np.asarray(y)), 1)[0])
+
+
+@dataclass
+class FleetRun:
+    backend: str
+    n_robots: int
+    n_poses: int
+    wall_s: float
+    robots_per_s: float
+    flagged: list[str]
+
+
+def write_fleet(folder: Path, chain: KinematicChain, n_robots: int, n_poses: int) -> None:
+    """One Parquet file per robot; robot 7 (if any) has a worn joint 3 (2.5× compliance)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(5)
+    for r in range(n_robots):
+        path = folder / f"SN{r:04d}.parquet"
+        if path.exists():
+            continue
+        simulation = spec(n_poses, 1000 + r, chain)
+        compliance = {
+            k: v * (1 + 0.03 * rng.normal()) for k, v in simulation.compliance_rad_per_nm.items()
+        }
+        if r == 7:
+            compliance[chain.compliance_axes[2].name] *= 2.5
+        simulation = SimulationSpec(**{**simulation.__dict__, "compliance_rad_per_nm": compliance})
+        recording = simulate_recording(chain, simulation)
+        write_dataset(scenarios.recording_dataset(recording, chain, position_only=False), path)
+
+
+def run_fleet(folder: Path, backend: str, workers: int) -> FleetRun:
+    from service.fleet import calibrate_fleet, fleet_datasets
+
+    robot = load_robot(ROBOT)
+    options = CalibrationOptions(covariance_estimator="moment", heldout=False)
+    datasets = fleet_datasets(folder)
+    started = time.perf_counter()
+    with make_executor(backend, n_workers=workers) as executor:  # type: ignore[arg-type]
+        report, _ = calibrate_fleet(datasets, robot, options, executor)
+    wall = time.perf_counter() - started
+    flagged = sorted({f"{o.serial}:{o.parameter}" for o in report.outliers})
+    n_poses = report.robots[0].n_samples if report.robots else 0
+    return FleetRun(backend, len(datasets), n_poses, wall, len(datasets) / wall, flagged)
+
+
+def table(runs: list[Run], fleets: list[FleetRun]) -> str:
+    header = (
+        f"{'backend':<10} {'N':>9} {'read s':>8} {'determ. s':>10} {'cov. s':>8} "
+        f"{'total s':>8} {'CPU s':>7} {'driver MiB':>11} {'worker MiB':>11} {'passes':>7}"
+    )
+    lines = [header]
+    for r in runs:
+        lines.append(
+            f"{r.backend:<10} {r.n:>9} {r.stage_s['read']:>8.2f} "
+            f"{r.stage_s['deterministic']:>10.2f} {r.stage_s['covariance']:>8.2f} "
+            f"{r.total_s:>8.2f} {r.cpu_s:>7.1f} {r.driver_mib:>11.0f} {r.worker_mib:>11.0f} "
+            f"{r.passes:>7}"
+        )
+    lines += ["", "scaling exponents (log-log slope over N >= 1e4): time, peak memory"]
+    for backend in dict.fromkeys(r.backend for r in runs):
+        mine = [r for r in runs if r.backend == backend and r.n >= 10_000]
+        if len(mine) >= 2:
+            n = [r.n for r in mine]
+            memory = [max(r.driver_mib, r.worker_mib) for r in mine]
+            lines.append(
+                f"{backend:<10} time {slope(n, [r.total_s for r in mine]):.2f}, "
+                + ", ".join(
+                    f"{s} {slope(n, [max(r.stage_s[s], 1e-3) for r in mine]):.2f}" for s in STAGES
+                )
+                + f"; memory {slope(n, memory):.2f}"
+            )
+    if fleets:
+        lines += [
+            "",
+            f"{'fleet':<10} {'robots':>7} {'poses':>6} {'wall s':>8} {'robots/s':>9}  flagged",
+        ]
+        lines += [
+            f"{f.backend:<10} {f.n_robots:>7} {f.n_poses:>6} {f.wall_s:>8.1f} "
+            f"{f.robots_per_s:>9.2f}  {', '.join(f.flagged) or '-'}"
+            for f in fleets
+        ]
+    return "\n".join(lines)
+
+
+def plot(runs: list[Run], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    for backend in dict.fromkeys(r.backend for r in runs):
+        mine = sorted((r for r in runs if r.backend == backend), key=lambda r: r.n)
+        n = [r.n for r in mine]
+        left.loglog(n, [r.total_s for r in mine], "o-", label=f"{backend} total")
+        right.loglog(n, [max(r.driver_mib, r.worker_mib) for r in mine], "o-", label=backend)
+    if runs:
+        sizes = np.array(sorted({r.n for r in runs}), dtype=float)
+        fastest = min((r for r in runs if r.n == sizes[-1]), key=lambda r: r.total_s)
+        left.loglog(sizes, fastest.total_s * sizes / sizes[-1], "k:", label="linear")
+    left.set(xlabel="poses N", ylabel="wall time (s)", title="read → deterministic → covariance")
+    right.set(xlabel="poses N", ylabel="peak resident memory (MiB)", title="largest process")
+    for ax in (left, right):
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(
+    sizes: Sequence[int] = SIZES,
+    backends: Sequence[str] = BACKENDS,
+    *,
+    out: Path = Path("out/scale"),
+    plot_path: Path | None = Path("docs/scale.png"),
+    fleet_robots: int = 100,
+    fleet_poses: int = 2000,
+    chunk_rows: int = 65_536,
+    cache_mb: float = 512.0,
+    workers: int | None = None,
+    echo=print,  # type: ignore[no-untyped-def]
+) -> tuple[str, list[Run], list[FleetRun]]:
+    """Run the benchmark; returns the table and the measurements."""
+    workers = workers or os.cpu_count() or 1
+    out.mkdir(parents=True, exist_ok=True)
+    chain = pipeline.chain_for(load_robot(ROBOT), CalibrationOptions())
+    runs: list[Run] = []
+    for n in sizes:
+        path = out / f"kinova_{n}.parquet"
+        if not path.exists():
+            clock = time.perf_counter()
+            write_recording(path, chain, n, chunk_rows=chunk_rows)
+            echo(f"simulated N={n} in {time.perf_counter() - clock:.1f} s -> {path}")
+        for backend in backends:
+            run = run_isolated(
+                path, n, backend, chunk_rows=chunk_rows, cache_mb=cache_mb, workers=workers
+            )
+            echo(
+                f"{backend:<10} N={n:>8}: {run.total_s:7.2f} s, "
+                f"{max(run.driver_mib, run.worker_mib):6.0f} MiB"
+            )
+            runs.append(run)
+    fleets: list[FleetRun] = []
+    if fleet_robots:
+        folder = out / f"fleet_{fleet_robots}x{fleet_poses}"
+        write_fleet(folder, chain, fleet_robots, fleet_poses)
+        for backend in backends:
+            fleets.append(run_fleet(folder, backend, workers))
+            echo(f"fleet on {backend}: {fleets[-1].wall_s:.1f} s")
+    summary = table(runs, fleets)
+    (out / "scale.json").write_text(
+        json.dumps({"runs": [asdict(r) for r in runs], "fleets": [asdict(f) for f in fleets]})
+    )
+    if plot_path is not None and runs:
+        plot(runs, plot_path)
+    return summary, runs, fleets
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", default=",".join(str(s) for s in SIZES))
+    parser.add_argument("--backends", default=",".join(BACKENDS))
+    parser.add_argument("--out", type=Path, default=Path("out/scale"))
+    parser.add_argument("--plot", type=Path, default=Path("docs/scale.png"))
+    parser.add_argument("--fleet-robots", type=int, default=100)
+    parser.add_argument("--fleet-poses", type=int, default=2000)
+    parser.add_argument("--chunk-rows", type=int, default=65_536)
+    parser.add_argument("--cache-mb", type=float, default=512.0)
+    parser.add_argument("--workers", type=int, default=None)
+    args = parser.parse_args()
+    report = main(
+        [int(float(s)) for s in args.sizes.split(",")],
+        args.backends.split(","),
+        out=args.out,
+        plot_path=args.plot,
+        fleet_robots=args.fleet_robots,
+        fleet_poses=args.fleet_poses,
+        chunk_rows=args.chunk_rows,
+        cache_mb=args.cache_mb,
+        workers=args.workers,
+    )[0]
+    print(report)

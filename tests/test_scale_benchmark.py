@@ -1,0 +1,31 @@
+"""benchmarks/scale.py runs on tiny settings: table, JSON, plot, fleet (cannot rot)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from benchmarks import scale
+
+
+def test_scale_benchmark_prints_its_table_and_finds_the_worn_robot(tmp_path: Path) -> None:
+    lines: list[str] = []
+    text, runs, fleets = scale.main(
+        [600, 1200],
+        ["inprocess"],
+        out=tmp_path / "out",
+        plot_path=tmp_path / "scale.png",
+        fleet_robots=8,
+        fleet_poses=200,
+        chunk_rows=500,
+        echo=lines.append,
+    )
+    assert [(r.backend, r.n) for r in runs] == [("inprocess", 600), ("inprocess", 1200)]
+    assert all(r.passes >= 5 and r.stage_s["deterministic"] > 0 for r in runs)
+    assert all(abs(r.compliance_rad_per_nm[2] - 8e-4) < 1e-4 for r in runs)
+    assert "inprocess       1200" in text and "fleet" in text
+    assert (tmp_path / "scale.png").stat().st_size > 10_000
+    saved = json.loads((tmp_path / "out" / "scale.json").read_text())
+    assert len(saved["runs"]) == 2 and len(saved["fleets"]) == 1
+    (fleet,) = fleets
+    assert fleet.n_robots == 8 and "SN0007:compliance.j2s6s200_joint_3" in fleet.flagged
