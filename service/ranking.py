@@ -161,11 +161,13 @@ def rank_configurations(
     *,
     payload_kg: FloatArray | float | None = None,
     model: UncertaintyModel | None = None,
+    reference: CalibrationReference | None = None,
 ) -> RankingResult:
     """Score configurations (N, k) rad and order them best first (Eq. 22–23).
 
     ``payload_kg`` per configuration or scalar (default: the calibration's payload option).
-    ``index`` in the output is the 0-based input row.
+    ``index`` in the output is the 0-based input row. ``model`` and ``reference`` (of
+    :func:`uncertainty_model` and :func:`calibration_reference`) may be built once per result.
     """
     model = model or uncertainty_model(result)
     q = _joint_array(joint_positions, model.chain)
@@ -176,7 +178,7 @@ def rank_configurations(
     except SolverError as exc:
         raise KincalError(str(exc)) from exc
     entries = _entries(scores, options.top, joint_positions=None)
-    return _result(result, model, metric, options, scores, entries)
+    return _result(result, model, metric, options, scores, entries, reference)
 
 
 def rank_target(
@@ -184,6 +186,7 @@ def rank_target(
     request: TargetRankingRequest,
     *,
     model: UncertaintyModel | None = None,
+    reference: CalibrationReference | None = None,
 ) -> RankingResult:
     """Distinct IK solutions for the target pose (measurement frame, as ``kincal predict``
     reports poses), ranked. Each entry carries its joints and its IK pose error."""
@@ -213,7 +216,7 @@ def rank_target(
     q = np.array([c.joint_positions for c in candidates]).reshape(-1, model.chain.n_joints)
     scores = score_configurations(model, q, metric, payload_kg=request.payload_kg)
     entries = _entries(scores, request.options.top, joint_positions=q, candidates=candidates)
-    out = _result(result, model, metric, request.options, scores, entries)
+    out = _result(result, model, metric, request.options, scores, entries, reference)
     return out.model_copy(update={"target": request.target, "free_axis": axis})
 
 
@@ -283,10 +286,11 @@ def _result(
     options: RankingOptions,
     scores: ConfigurationScores,
     entries: list[RankedConfiguration],
+    reference: CalibrationReference | None = None,
 ) -> RankingResult:
     return RankingResult(
         kincal_version=pipeline.kincal_version(),
-        calibration=calibration_reference(result),
+        calibration=reference or calibration_reference(result),
         joint_names=list(model.chain.joint_names),
         weights=options.weights,
         task_matrix=metric.matrix.tolist(),

@@ -109,13 +109,18 @@ def validation_errors(errors: list[Any], prefix: tuple[str, ...] = ()) -> list[d
     return out
 
 
-def validation_problem(errors: list[dict[str, Any]], instance: str | None) -> JSONResponse:
+def validation_detail(errors: list[dict[str, Any]]) -> str:
+    """One line naming the first bad field (and how many more there are)."""
     first = errors[0]
     more = (
         f" (and {len(errors) - 1} more problem(s), listed in 'errors')" if len(errors) > 1 else ""
     )
     where = first["location"] or "request"
-    detail = f"{where}: {first['detail']}{more}; fix the field and resend (schema: /docs)"
+    return f"{where}: {first['detail']}{more}; fix the field and resend (schema: /docs)"
+
+
+def validation_problem(errors: list[dict[str, Any]], instance: str | None) -> JSONResponse:
+    detail = validation_detail(errors)
     return problem_response(422, detail, instance=instance, slug="invalid-request", errors=errors)
 
 

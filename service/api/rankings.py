@@ -14,21 +14,28 @@ the same answer.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+from typing import Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, Response
+import pydantic
+from fastapi import APIRouter, Depends, Request, Response
 from numpy.typing import NDArray
 from starlette.concurrency import run_in_threadpool
 
 from schemas.api import RankingCreate
 from schemas.calibration import CalibrationResult
-from schemas.ranking import RankingResult, TargetRankingRequest
+from schemas.ranking import CalibrationReference, RankingResult, TargetRankingRequest
 from service import ranking
 from service.api.calibrations import cached_calibration
 from service.api.deps import API_PREFIX, PrincipalDep, ServiceState, StateDep
-from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
+from service.api.problems import (
+    STANDARD_PROBLEMS,
+    ProblemException,
+    problem_responses,
+    validation_detail,
+    validation_errors,
+)
 from service.api.results import CachedResult
 from solver.ranking import UncertaintyModel
 
@@ -46,6 +53,7 @@ class RankingContext:
 
     result: CalibrationResult
     model: UncertaintyModel
+    reference: CalibrationReference  # hashes the whole result: once, not per request
 
     @property
     def joint_names(self) -> tuple[str, ...]:
@@ -53,7 +61,9 @@ class RankingContext:
 
 
 def _build_context(result: CalibrationResult) -> RankingContext:
-    return RankingContext(result, ranking.uncertainty_model(result))
+    return RankingContext(
+        result, ranking.uncertainty_model(result), ranking.calibration_reference(result)
+    )
 
 
 def _loaded_context(state: ServiceState, tenant_id: str, calibration_id: str) -> RankingContext:
@@ -163,20 +173,27 @@ def _payload(body: RankingCreate) -> NDArray[np.float64] | float | None:
 def _rank_configurations(context: RankingContext, body: RankingCreate) -> RankingResult:
     q = joint_matrix(body, context.joint_names)
     return ranking.rank_configurations(
-        context.result, q, body.options, payload_kg=_payload(body), model=context.model
+        context.result,
+        q,
+        body.options,
+        payload_kg=_payload(body),
+        model=context.model,
+        reference=context.reference,
     )
 
 
 def _require_finite(out: RankingResult) -> RankingResult:
     """Extreme (finite) inputs can overflow the covariance arithmetic; answer 422, never NaN."""
-    for entry in out.ranking:
-        if not (math.isfinite(entry.score) and all(math.isfinite(v) for v in entry.ee_std)):
-            raise ProblemException(
-                422,
-                f"the predicted uncertainty of candidate {entry.index} is not a finite number; "
-                "check joint positions (rad), payload_kg and options.weights for extreme values",
-                slug="invalid-configurations",
-            )
+    numbers = np.array([(entry.score, *entry.ee_std) for entry in out.ranking]).reshape(-1, 7)
+    finite = np.isfinite(numbers).all(axis=1)
+    if not finite.all():
+        index = out.ranking[int(np.argmin(finite))].index
+        raise ProblemException(
+            422,
+            f"the predicted uncertainty of candidate {index} is not a finite number; "
+            "check joint positions (rad), payload_kg and options.weights for extreme values",
+            slug="invalid-configurations",
+        )
     return out
 
 
@@ -191,7 +208,9 @@ def _rank_target(context: RankingContext, body: RankingCreate) -> RankingResult:
         payload_kg=context.result.options.payload_kg if payload is None else payload,
         options=body.options,
     )
-    out = ranking.rank_target(context.result, request, model=context.model)
+    out = ranking.rank_target(
+        context.result, request, model=context.model, reference=context.reference
+    )
     if not out.ranking:
         raise ProblemException(
             422,
@@ -202,12 +221,64 @@ def _rank_target(context: RankingContext, body: RankingCreate) -> RankingResult:
     return out
 
 
+def _inline_refs(schema: Any, definitions: dict[str, Any] | None = None) -> Any:
+    """A pydantic JSON schema with its ``$defs`` substituted in place, so that it can stand
+    alone in an OpenAPI ``requestBody`` (the models it uses are not recursive)."""
+    if definitions is None and isinstance(schema, dict):
+        definitions = schema.get("$defs", {})
+    if isinstance(schema, dict):
+        if "$ref" in schema:
+            assert definitions is not None
+            target = _inline_refs(definitions[schema["$ref"].rsplit("/", 1)[-1]], definitions)
+            return {**target, **{k: v for k, v in schema.items() if k != "$ref"}}
+        return {k: _inline_refs(v, definitions) for k, v in schema.items() if k != "$defs"}
+    if isinstance(schema, list):
+        return [_inline_refs(item, definitions) for item in schema]
+    return schema
+
+
+_REQUEST_BODY = {
+    "required": True,
+    "content": {"application/json": {"schema": _inline_refs(RankingCreate.model_json_schema())}},
+}
+
+
+async def ranking_request(request: Request) -> RankingCreate:
+    """The body, parsed and validated by pydantic-core in one pass: several times faster than
+    FastAPI's ``json.loads`` + validation for a few hundred numbers (a fifth of the event
+    loop's time under load). Same 422 problems, naming each field."""
+    media = request.headers.get("content-type", "application/json").split(";")[0].strip()
+    if media.lower() != "application/json" and not media.lower().endswith("+json"):
+        raise ProblemException(
+            415,
+            f"Content-Type {media or '(none)'} is not accepted; send the ranking request as "
+            "application/json (see /docs)",
+            slug="unsupported-media-type",
+        )
+    try:
+        return RankingCreate.model_validate_json(await request.body())
+    except pydantic.ValidationError as exc:
+        errors = validation_errors(exc.errors(include_url=False), ("body",))
+        raise ProblemException(
+            422,
+            validation_detail(errors),
+            slug="invalid-request",
+            errors=errors,
+        ) from exc
+
+
+RankingBodyDep = Annotated[RankingCreate, Depends(ranking_request)]
+
+
 @router.post(
     "",
     response_model=RankingResult,
-    responses={**STANDARD_PROBLEMS, **problem_responses(404, 409, 413)},
+    responses={**STANDARD_PROBLEMS, **problem_responses(404, 409, 413, 415)},
+    openapi_extra={"requestBody": _REQUEST_BODY},
 )
-async def create_ranking(body: RankingCreate, principal: PrincipalDep, state: StateDep) -> Response:
+async def create_ranking(
+    body: RankingBodyDep, principal: PrincipalDep, state: StateDep
+) -> Response:
     """Rank candidate configurations best first (kincal.ranking/1); synchronous."""
     _check_limits(body, state.settings.max_ranking_candidates)
     context = await ranking_context(state, principal.tenant_id, body.calibration_id)

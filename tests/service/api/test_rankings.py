@@ -322,6 +322,18 @@ def test_nan_and_infinity_are_422(calibrated: Calibrated) -> None:
     assert calibrated.client.get("/healthz").status_code == 200
 
 
+def test_body_that_is_not_json_is_a_problem(calibrated: Calibrated) -> None:
+    post = calibrated.client.post
+    assert_problem(post(URL, content=b"{not json"), 422, "body", "Invalid JSON")
+    assert_problem(post(URL, content=b"\xff\xfe"), 422, "body", "Invalid JSON")
+    text = {"content-type": "text/plain"}
+    assert_problem(post(URL, content=b"{}", headers=text), 415, "application/json")
+    documented = calibrated.client.get("/openapi.json").json()["paths"][URL]["post"]
+    schema = documented["requestBody"]["content"]["application/json"]["schema"]
+    assert "$ref" not in json.dumps(schema) and "joint_positions_rad" in schema["properties"]
+    assert {"404", "409", "413", "415", "422"} <= set(documented["responses"])
+
+
 def test_a_slow_ik_search_does_not_stall_other_rankings(calibrated: Calibrated) -> None:
     """Target rankings run in a thread: a row ranking answers while one is searching."""
     import threading
