@@ -8,6 +8,7 @@ the process (the service replaces it), so job functions need no cancellation che
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import multiprocessing.connection
@@ -25,6 +26,8 @@ from service.storage.files import FileStore, tenant_path
 from solver.errors import KincalError
 
 log = logging.getLogger("kincal.worker")
+WORKER_NICENESS = 10
+"""Jobs run behind the service's request loop: a calibration must not slow rankings down."""
 
 
 @dataclass
@@ -88,6 +91,8 @@ def worker_main(
     """Entry point of a worker process: run jobs sent over ``conn`` until told to stop."""
     logs.configure_logging(log_level, log_format)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the service decides what stops
+    with contextlib.suppress(OSError):  # lowering one's own priority is always allowed
+        os.nice(WORKER_NICENESS)
     threading.Thread(target=_watch_parent, args=(service_pid,), daemon=True).start()
     for module in preload:
         importlib.import_module(module)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import base64
 import re
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -15,6 +16,7 @@ from schemas.discovery import DiscoveryOptions, FindingsResult
 from service import discovery
 from service.api import create_app
 from service.client import KincalClient
+from service.worker import WORKER_NICENESS
 from tests.conftest import robot
 from tests.service.api.conftest import (
     AppFactory,
@@ -214,3 +216,17 @@ def test_unknown_dataset_or_discovery_is_404(client: TestClient) -> None:
     dataset = upload_csv(client).json()
     calibration = client.post("/api/v1/calibrations", json={"dataset_id": dataset["id"]}).json()
     assert_problem(client.get(f"{URL}/{calibration['id']}"), 404, calibration["id"])
+
+
+def test_jobs_run_at_a_lower_priority_than_the_request_loop(discovered: Discovered) -> None:
+    """A calibration or discovery must not take the CPU from rankings: workers are niced."""
+    runner = discovered.client.app.state.kincal.runner  # type: ignore[attr-defined]
+    pids = [slot.process.pid for slot in runner._slots if slot.alive()]
+    assert pids
+
+    def niceness(pid: int | str) -> int:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return int(fields[16])  # field 19 of proc(5), counted after the command name
+
+    expected = min(niceness("self") + WORKER_NICENESS, 19)
+    assert all(niceness(pid) == expected for pid in pids)
