@@ -56,6 +56,8 @@ class Settings(BaseSettings):
     )
     instance_name: str = Field(
         default_factory=socket.gethostname,
+        min_length=1,
+        max_length=200,  # jobs.runner_id is VARCHAR(200); PostgreSQL enforces it, SQLite not
         description="Identifies this service instance in job leases; unique per instance that "
         "shares a database.",
     )

@@ -1,8 +1,11 @@
 """Fixtures for the HTTP service tests: apps on fresh databases, keys, small recordings.
 
-Storage runs on SQLite in a temporary folder; set ``KINCAL_TEST_POSTGRES_URL`` (a server URL
-whose user may create databases, e.g. ``postgresql+psycopg://kincal@127.0.0.1:5432/postgres``)
-to run every test on a fresh PostgreSQL database instead.
+Storage runs on SQLite in a temporary folder. Set ``KINCAL_TEST_DATABASE_URL`` to a PostgreSQL
+server URL whose user may create databases, e.g.
+``postgresql+psycopg://kincal:kincal@127.0.0.1:5432/postgres``, to run every storage and API test
+on a fresh database of its own on that server instead (created for the test, dropped after it);
+running the suite with and without it covers both backends. Once set, an unreachable server is
+an error, not a skip. (``KINCAL_TEST_POSTGRES_URL`` is the older name of the same setting.)
 """
 
 from __future__ import annotations
@@ -30,7 +33,21 @@ from service.settings import Settings
 from service.storage.db import Database
 from tests.conftest import robot
 
-POSTGRES_URL = os.environ.get("KINCAL_TEST_POSTGRES_URL")
+
+def _test_database_url() -> str | None:
+    """The opted-in PostgreSQL server URL, or None for SQLite."""
+    url = os.environ.get("KINCAL_TEST_DATABASE_URL") or os.environ.get("KINCAL_TEST_POSTGRES_URL")
+    if not url:
+        return None
+    if make_url(url).get_backend_name() != "postgresql":
+        raise pytest.UsageError(
+            f"KINCAL_TEST_DATABASE_URL must be a postgresql:// URL (SQLite is the default), "
+            f"got {make_url(url).render_as_string(hide_password=True)}"
+        )
+    return url
+
+
+POSTGRES_URL = _test_database_url()
 
 
 @contextlib.contextmanager
@@ -49,8 +66,16 @@ def fresh_database_url(folder: Path) -> Iterator[str]:
     try:
         yield server.set(database=name).render_as_string(hide_password=False)
     finally:
+        # Sessions the test left open are ended first (ours only: DROP ... WITH (FORCE) would
+        # also need to end an autovacuum worker, which an unprivileged user may not); plain
+        # DROP DATABASE then waits for autovacuum by itself.
         with psycopg.connect(admin, autocommit=True) as connection:
-            connection.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+            connection.execute(
+                "SELECT pg_terminate_backend(pid, 5000) FROM pg_stat_activity "
+                "WHERE datname = %s AND usename = current_user AND pid <> pg_backend_pid()",
+                [name],
+            )
+            connection.execute(f'DROP DATABASE IF EXISTS "{name}"')
 
 
 def make_settings(folder: Path, database_url: str, **overrides: Any) -> Settings:
