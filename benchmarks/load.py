@@ -9,11 +9,12 @@ What it does:
    it (the calibration the planners rank with);
 3. keeps a long calibration job (many held-out splits) running in the worker process for the
    whole measurement, starting the next one as soon as one ends;
-4. runs ``--clients`` planners (asyncio + one ``httpx.AsyncClient``, one keep-alive connection
-   each). Each planner sends ``POST /api/v1/rankings`` with ``--candidates`` configurations,
-   waits for the answer, then waits for its next slot: slots are ``--interval-s`` apart with
-   a random phase per planner (``--interval-s 0``: back to back, which measures saturation
-   throughput, not latency). Latency is measured by the planner, send to last byte;
+4. runs ``--clients`` planners in one asyncio loop, each on its own keep-alive HTTP/1.1
+   connection (bare asyncio streams: a general client costs more CPU than the service). Each
+   planner sends ``POST /api/v1/rankings`` with ``--candidates`` configurations, waits for the
+   answer, then waits for its next slot: slots are ``--interval-s`` apart with a random phase
+   per planner (``--interval-s 0``: back to back, which measures saturation throughput, not
+   latency). Latency is measured by the planner, send to last byte;
 5. reports requests, errors (non-200 or transport errors), achieved requests/s, p50/p90/p99/max
    latency, the server's own view (share of ranking requests under 20 ms from ``/metrics``), the
    calibration jobs that ran meanwhile, and the machine's load average.
@@ -256,8 +257,49 @@ class _Window:
     stop: float
 
 
+class _Connection:
+    """One planner's keep-alive HTTP/1.1 connection, on bare asyncio streams.
+
+    A general client (httpx) spends more CPU per request than the service does once it holds
+    200 connections, and on a 2-core machine the load generator's CPU is taken from the server;
+    a planner needs only one kind of request, so the request bytes are built once.
+    """
+
+    def __init__(self, host: str, port: int, key: str) -> None:
+        self.host, self.port = host, port
+        self.head = (
+            f"POST {RANKINGS} HTTP/1.1\r\nHost: {host}:{port}\r\nX-API-Key: {key}\r\n"
+            "Content-Type: application/json\r\nContent-Length: {length}\r\n\r\n"
+        )
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+
+    async def post(self, body: bytes) -> int:
+        """Send one ranking request; the response's status code (its body is read and
+        dropped)."""
+        if self.reader is None or self.writer is None:
+            self.reader, self.writer = await asyncio.open_connection(self.host, self.port)
+        self.writer.write(self.head.format(length=len(body)).encode() + body)
+        await self.writer.drain()
+        head = await self.reader.readuntil(b"\r\n\r\n")
+        lines = head.decode("latin-1").split("\r\n")
+        status = int(lines[0].split()[1])
+        headers = dict(line.lower().split(": ", 1) for line in lines[1:] if ": " in line)
+        await self.reader.readexactly(int(headers.get("content-length", "0")))
+        if headers.get("connection") == "close":
+            await self.close()
+        return status
+
+    async def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+            with contextlib.suppress(OSError):
+                await self.writer.wait_closed()
+        self.reader = self.writer = None
+
+
 async def _planner(
-    http: httpx.AsyncClient,
+    connection: _Connection,
     bodies: list[bytes],
     interval_s: float,
     window: _Window,
@@ -266,47 +308,46 @@ async def _planner(
 ) -> None:
     rng = random.Random(seed)
     next_slot = window.start + rng.uniform(0.0, interval_s)
-    while True:
-        now = time.perf_counter()
-        if next_slot > now:
-            await asyncio.sleep(next_slot - now)
-        sent = time.perf_counter()
-        if sent >= window.stop:
-            return
-        try:
-            response = await http.post(RANKINGS, content=rng.choice(bodies))
-            failure = None if response.status_code == 200 else f"HTTP {response.status_code}"
-        except httpx.HTTPError as exc:
-            failure = f"{type(exc).__name__}: {exc}"
-        elapsed = time.perf_counter() - sent
-        tally.sent += 1
-        if sent >= window.measure_from:
-            tally.latencies.append(elapsed)
-            if failure is not None:
-                tally.errors.append(failure)
-        next_slot = max(next_slot + interval_s, time.perf_counter())
+    try:
+        while True:
+            now = time.perf_counter()
+            if next_slot > now:
+                await asyncio.sleep(next_slot - now)
+            sent = time.perf_counter()
+            if sent >= window.stop:
+                return
+            try:
+                status = await connection.post(rng.choice(bodies))
+                failure = None if status == 200 else f"HTTP {status}"
+            except (OSError, asyncio.IncompleteReadError, ValueError) as exc:
+                failure = f"{type(exc).__name__}: {exc}"
+                await connection.close()
+            elapsed = time.perf_counter() - sent
+            tally.sent += 1
+            if sent >= window.measure_from:
+                tally.latencies.append(elapsed)
+                if failure is not None:
+                    tally.errors.append(failure)
+            next_slot = max(next_slot + interval_s, time.perf_counter())
+    finally:
+        await connection.close()
 
 
 async def run_planners(base: str, key: str, bodies: list[bytes], settings: LoadSettings) -> _Tally:
-    """All planners, each on its own keep-alive connection of one shared client."""
-    limits = httpx.Limits(
-        max_connections=settings.clients, max_keepalive_connections=settings.clients
-    )
-    headers = {"X-API-Key": key, "content-type": "application/json"}
+    """All planners, each on its own keep-alive connection."""
+    address = httpx.URL(base)
+    host, port = address.host, address.port or 80
     tally = _Tally()
-    async with httpx.AsyncClient(
-        base_url=base, headers=headers, limits=limits, timeout=30.0
-    ) as http:
-        start = time.perf_counter()
-        window = _Window(
-            start, start + settings.warmup_s, start + settings.warmup_s + settings.duration_s
+    start = time.perf_counter()
+    window = _Window(
+        start, start + settings.warmup_s, start + settings.warmup_s + settings.duration_s
+    )
+    await asyncio.gather(
+        *(
+            _planner(_Connection(host, port, key), bodies, settings.interval_s, window, i, tally)
+            for i in range(settings.clients)
         )
-        await asyncio.gather(
-            *(
-                _planner(http, bodies, settings.interval_s, window, i, tally)
-                for i in range(settings.clients)
-            )
-        )
+    )
     return tally
 
 
