@@ -10,6 +10,8 @@
 # Needs root, buildah, debootstrap, curl, ss and access to the Debian mirror and PyPI. Takes about
 # ten minutes the first time and downloads about 0.5 GB, so it is not part of the test suite.
 #   Usage: docker/smoke.sh            (SUITE=bookworm MIRROR=... PORT=18080 to override)
+#   DATABASE_URL=postgresql+psycopg://user:pw@127.0.0.1:5432/db docker/smoke.sh runs the server
+#   in the image on that (empty or kincal-migrated) PostgreSQL database instead of SQLite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -103,8 +105,15 @@ if curl -s -o /dev/null "http://127.0.0.1:$PORT/"; then
     fail "something already listens on 127.0.0.1:$PORT (set PORT=...)"
 fi
 CTR=$(buildah from "$IMAGE")
+DB_ENV=()
+if [ -n "${DATABASE_URL:-}" ]; then
+    DB_ENV=(--env "KINCAL_DATABASE_URL=$DATABASE_URL")
+    echo "database: $(sed -E 's#://([^:@/]*):[^@/]*@#://\1:***@#' <<<"$DATABASE_URL")"
+else
+    echo "database: SQLite in the image's data folder (default)"
+fi
 RUN_ENV=(--env KINCAL_HOST=127.0.0.1 --env "KINCAL_PORT=$PORT" --env KINCAL_LOG_FORMAT=text
-         --env KINCAL_ALLOW_KEYLESS_LOCALHOST=false)
+         --env KINCAL_ALLOW_KEYLESS_LOCALHOST=false "${DB_ENV[@]}")
 buildah run --isolation chroot "${RUN_ENV[@]}" "$CTR" -- "${CMD[@]}" >"$WORK/server.log" 2>&1 &
 SERVER_PID=$!
 # Live first (/healthz), ready once the worker process is up (/readyz).
@@ -134,8 +143,8 @@ echo "listening process: pid $LISTENER, uid $server_uid: $(tr '\0' ' ' <"/proc/$
 code=$(curl -s -o "$WORK/unauth.json" -w '%{http_code}' "http://127.0.0.1:$PORT/api/v1/datasets")
 echo "GET /api/v1/datasets without key -> $code $(cat "$WORK/unauth.json")"
 [ "$code" = 401 ] || fail "expected 401 without an API key"
-# A key created in the image (same SQLite file in the image's data folder) is accepted.
-key=$(buildah run --isolation chroot "$CTR" -- kincal keys create --tenant smoke 2>/dev/null)
+# A key created in the image (same database as the server's) is accepted.
+key=$(buildah run --isolation chroot "${DB_ENV[@]}" "$CTR" -- kincal keys create --tenant smoke 2>/dev/null)
 code=$(curl -s -o "$WORK/auth.json" -w '%{http_code}' -H "X-API-Key: $key" \
     "http://127.0.0.1:$PORT/api/v1/datasets")
 echo "GET /api/v1/datasets with a key from 'kincal keys create' -> $code $(cat "$WORK/auth.json")"
