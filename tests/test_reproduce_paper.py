@@ -1,0 +1,161 @@
+"""The paper reproduction (benchmarks/reproduce_paper.py, issue 4 item 5) on its quick settings:
+it writes the report and figures, its statistics decide as documented, and the issue's
+acceptance points are checked with the report's own rule (the whole 95 % bootstrap interval on
+the right side of the bar)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import reproduce_paper
+from benchmarks.reproduce_paper import ApproachRun, StudyResult, StudySettings
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory: pytest.TempPathFactory) -> tuple[StudyResult, Path, list[str]]:
+    out = tmp_path_factory.mktemp("reproduce_paper")
+    lines: list[str] = []
+    study = reproduce_paper.main(StudySettings.quick(), out, echo=lines.append)
+    return study, out, lines
+
+
+def test_quick_study_writes_the_report_and_figures(
+    quick: tuple[StudyResult, Path, list[str]],
+) -> None:
+    study, out, lines = quick
+    assert sorted(p.name for p in out.iterdir()) == [
+        "reproduce_paper.md",
+        "reproduce_paper_runs.png",
+        "reproduce_paper_sigma.png",
+    ]
+    for png in out.glob("*.png"):
+        assert png.read_bytes()[:8] == PNG_SIGNATURE
+    text = (out / "reproduce_paper.md").read_text(encoding="utf-8")
+    for heading in (
+        "## Table II",
+        "## Fig. 4b",
+        "## Manipulation experiment",
+        "## Table III",
+        "## Acceptance (issue 4)",
+        "## Where the gap to the oracle comes from",
+    ):
+        assert heading in text
+    assert "](reproduce_paper_sigma.png)" in text and "](reproduce_paper_runs.png)" in text
+    assert f"share {100 * study.pooled.share_of_oracle:.1f} %" in text
+    assert "\nshare of the oracle's reduction: " in "\n".join(lines)
+    # Table II: the calibration beats the nominal robot on every split, as in the paper.
+    table = study.table
+    for seed in table.seeds:
+        assert table.errors["calibrated"][seed][0] < 0.5 * table.errors["before"][seed][0]
+    # The recording and the experiment are what the docstring says.
+    first = study.first
+    assert first.result.outliers.n_input == 154
+    assert set(first.recording.outlier_rows + 1) <= set(first.result.outliers.removed_rows)
+    assert len(study.runs) == 40 and all(run.error_mm.shape == (10,) for run in study.runs)
+
+
+def _run(scores: dict[str, np.ndarray], error_mm: np.ndarray, recording: int = 1) -> ApproachRun:
+    m = error_mm.size
+    return ApproachRun(
+        recording=recording,
+        run=0,
+        attempts=1,
+        joint_positions=np.zeros((m, 6)),
+        scores=scores,
+        error_mm=error_mm,
+        scatter_mm=error_mm,
+        bias_mm=np.zeros(m),
+        true_xy_std_mm=error_mm,
+    )
+
+
+def test_acceptance_rules_decide_both_ways_on_constructed_runs() -> None:
+    """The rule the acceptance tests use can fail: a score that ranks like the oracle meets it,
+    one that ranks backwards or like noise does not."""
+    rng = np.random.default_rng(0)
+    runs = []
+    for _ in range(40):
+        error = np.sort(rng.uniform(0.3, 0.6, 10))  # the oracle's order is the true order
+        oracle = error**2
+        runs.append((error, oracle))
+
+    def comparison(ours: list[np.ndarray], gp: list[np.ndarray]) -> reproduce_paper.Comparison:
+        return reproduce_paper.compare(
+            [
+                _run({"ours": o, "gp": g, "oracle": truth}, error)
+                for (error, truth), o, g in zip(runs, ours, gp, strict=True)
+            ],
+            bootstrap=500,
+        )
+
+    noise = [rng.normal(size=10) for _ in runs]
+    good = comparison([truth for _, truth in runs], noise)
+    assert good.share_of_oracle == pytest.approx(1.0) and good.reduction_verdict == "met"
+    assert good.correlation_verdict == "met"
+    backwards = comparison([-truth for _, truth in runs], noise)
+    assert backwards.share_of_oracle < 0.0 and backwards.reduction_verdict == "not met"
+    assert backwards.correlation_verdict == "not met"
+    same = comparison(noise, noise)
+    assert same.pearson_gap == 0.0 and same.correlation_verdict != "met"
+
+
+def test_two_level_bootstrap_resamples_recordings_then_runs() -> None:
+    groups = [1] * 5 + [2] * 5 + [3] * 5
+    index = reproduce_paper.bootstrap_indices(groups, 200, np.random.default_rng(1))
+    assert index.shape == (200, 15)
+    blocks = np.asarray(groups)[index].reshape(200, 3, 5)
+    assert np.all(blocks == blocks[:, :, :1])  # each block of 5 draws comes from one recording
+    assert len(np.unique(blocks[:, :, 0])) == 3
+    assert np.any(blocks[:, 0, 0] == blocks[:, 1, 0])  # recordings drawn with replacement
+    with pytest.raises(ValueError, match="equal numbers"):
+        reproduce_paper.bootstrap_indices([1, 1, 2], 10, np.random.default_rng(2))
+
+
+def test_command_line_settings() -> None:
+    arguments = argparse.Namespace(quick=True, runs=7, recordings=None, executions=50)
+    settings = reproduce_paper.settings_from_arguments(arguments)
+    assert settings == dataclasses.replace(StudySettings.quick(), n_runs=7, n_executions=50)
+    arguments = argparse.Namespace(quick=False, runs=None, recordings=2, executions=None)
+    assert reproduce_paper.settings_from_arguments(arguments).n_recordings == 2
+
+
+def test_our_score_correlates_with_the_observed_error_better_than_the_gp(
+    quick: tuple[StudyResult, Path, list[str]],
+) -> None:
+    """Issue 4 acceptance (Table III): the whole 95 % interval of mean Pearson r, ours minus
+    the GP's, is above zero."""
+    study = quick[0]
+    assert study.pooled.correlation_verdict == "met", study.pooled.pearson_gap_ci
+
+
+def test_true_covariances_reach_the_oracles_reduction_on_the_same_candidates(
+    quick: tuple[StudyResult, Path, list[str]],
+) -> None:
+    """Control for the experiment: scoring the same candidates with the true Σ on the
+    calibrated geometry meets the 80 % bar, so the experiment can show it and a shortfall of
+    ours is the covariance calibration's."""
+    study = quick[0]
+    control = next(a for a in study.ablations if a.label.startswith("true Σ"))
+    assert control.comparison.reduction_verdict == "met", control.comparison.share_ci
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 4 acceptance not demonstrated: with covariances calibrated from the "
+    "paper-sized recording (154 samples) the selection reaches only part of the oracle's "
+    "reduction (full study: docs/reproduce_paper.md, with the causes)",
+)
+def test_selection_reaches_80_percent_of_the_oracles_reduction(
+    quick: tuple[StudyResult, Path, list[str]],
+) -> None:
+    """Issue 4 acceptance: the lowest- vs highest-score reduction of ours is ≥ 80 % of the
+    oracle's, i.e. the whole 95 % interval of the share is ≥ 0.8."""
+    study = quick[0]
+    assert study.pooled.reduction_verdict == "met", study.pooled.share_ci
