@@ -202,14 +202,22 @@ class ModelTerm(_Model):
 
 
 class DiscoveredModel(_Model):
-    """The model after discovery, and what ``kincal calibrate`` can take of it."""
+    """The model after discovery, and what ``kincal calibrate --model`` takes of it: the
+    ``calibrate_*`` options, and the ``corrections`` undone on the recording."""
 
     terms: list[ModelTerm]
     calibrate_compliant_joints: list[str]
     calibrate_virtual_axes_at: list[str]
     calibrate_gravity_base_m_s2: Vector3
     calibrate_payload_kg: float
-    not_carried: list[str] = Field(description="Terms calibrate cannot represent (yet).")
+    corrections: list[str] = Field(
+        default_factory=list,
+        description="Named terms `kincal calibrate --model` undoes on the recording at their "
+        "discovered values (joint-angle terms, sensor depth scale, measurement-frame drift).",
+    )
+    not_carried: list[str] = Field(
+        description="Terms calibrate cannot represent: unexplained structure, which has no name."
+    )
 
 
 class RobotRef(_Model):

@@ -7,7 +7,7 @@ import os
 import sys
 import traceback
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import pandas as pd
 import pydantic
@@ -23,6 +23,9 @@ from service.urdf_export import export_urdf
 from solver import lie
 from solver.errors import KincalError
 from solver.executors import Executor
+
+if TYPE_CHECKING:
+    from schemas.discovery import FindingsResult
 
 app = typer.Typer(
     add_completion=False,
@@ -97,6 +100,23 @@ def read_result(path: Path) -> CalibrationResult:
         raise KincalError(
             f"{path} is not a kincal calibration result ({where}: {first['msg']}); "
             "pass the -o file of 'kincal calibrate'"
+        ) from exc
+
+
+def read_findings(path: Path) -> FindingsResult:
+    """Load a findings JSON written by ``kincal discover``, with a one-line error otherwise."""
+    from schemas.discovery import FindingsResult
+
+    try:
+        return FindingsResult.model_validate_json(path.read_bytes())
+    except OSError as exc:
+        raise KincalError(f"cannot read findings {path}: {exc.strerror}") from exc
+    except pydantic.ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or "document"
+        raise KincalError(
+            f"{path} is not a kincal findings file ({where}: {first['msg']}); "
+            "pass the -o file of 'kincal discover'"
         ) from exc
 
 
@@ -177,8 +197,12 @@ def calibrate(
         str, typer.Option(help="Random-effect covariances: diag, full or none (§IV-C).")
     ] = "diag",
     solver: Annotated[
-        str, typer.Option(help="Covariance solver: clarabel, pgd (paper Eq. 15) or nnls.")
-    ] = "clarabel",
+        str,
+        typer.Option(
+            help="Covariance solver: auto (nnls for diag, clarabel for full), clarabel, "
+            "pgd (paper Eq. 15) or nnls."
+        ),
+    ] = "auto",
     estimator: Annotated[
         str, typer.Option(help="Covariance estimator: reml (default), ml or moment (paper).")
     ] = "reml",
@@ -196,18 +220,65 @@ def calibrate(
     export_urdf_to: Annotated[
         Path | None, typer.Option("--export-urdf", help="Also write the calibrated URDF.")
     ] = None,
+    model: Annotated[
+        Path | None,
+        typer.Option(
+            "--model",
+            help="findings.json of 'kincal discover': calibrate the discovered model (its "
+            "compliance, flex axes, gravity and payload; its other named terms undone on the "
+            "recording at their discovered values). Replaces --compliant-joints, --rigid, "
+            "--virtual-axes, --gravity, --payload-kg and --payload-com.",
+        ),
+    ] = None,
 ) -> None:
     """Calibrate geometry, joint compliance (paper Eq. 8–10) and the covariances of the random
     perturbations (Eq. 13–17) from recorded poses."""
     description = _robot(robot, urdf, base, tip)
+    model_values: dict[str, object] = {
+        "compliant_joints": [] if rigid else _names(compliant_joints),
+        "virtual_axes_at": _names(virtual_axes) or [],
+        "gravity_base_m_s2": _vector3(gravity, "--gravity"),
+        "payload_kg": payload_kg,
+        "payload_com_m": _vector3(payload_com, "--payload-com"),
+    }
+    carried = None
+    if model is not None:
+        from service import discovery
+
+        given = [
+            flag
+            for flag, value, default in (
+                ("--compliant-joints", compliant_joints, None),
+                ("--rigid", rigid, False),
+                ("--virtual-axes", virtual_axes, None),
+                ("--gravity", _vector3(gravity, "--gravity"), (0.0, 0.0, -9.81)),
+                ("--payload-kg", payload_kg, 0.0),
+                ("--payload-com", _vector3(payload_com, "--payload-com"), (0.0, 0.0, 0.0)),
+            )
+            if value != default
+        ]
+        if given:
+            raise KincalError(
+                f"--model sets the model; do not also pass {', '.join(given)} "
+                "(run kincal discover with them instead)"
+            )
+        findings = read_findings(model)
+        first = pipeline.chain_for(description, CalibrationOptions(compliant_joints=[]))
+        dataset = read_dataset(
+            data, first.joint_names, other_joint_names=first.other_joint_names, marker=marker
+        )
+        carried = discovery.carry_model(findings, dataset, description)
+        model_values = {
+            "compliant_joints": carried.compliant_joints,
+            "virtual_axes_at": carried.virtual_axes_at,
+            "gravity_base_m_s2": carried.gravity_base_m_s2,
+            "payload_kg": carried.payload_kg,
+            "payload_com_m": carried.payload_com_m,
+        }
     options = _options(
-        compliant_joints=[] if rigid else _names(compliant_joints),
-        virtual_axes_at=_names(virtual_axes) or [],
+        **model_values,
         outlier_sigma=outlier_sigma or None,
         rotation_weight_m_per_rad=rotation_weight,
-        gravity_base_m_s2=_vector3(gravity, "--gravity"),
-        payload_kg=payload_kg,
-        payload_com_m=_vector3(payload_com, "--payload-com"),
         heldout=heldout,
         max_iterations=max_iterations,
         covariance=covariance,
@@ -217,6 +288,11 @@ def calibrate(
         noise_std=None if noise_std is None else tuple(numbers(noise_std, "--noise-std", 6)),
     )
     if executor is not None or dask is not None or chunk_rows is not None:
+        if carried is not None and carried.corrections:
+            raise KincalError(
+                f"--model undoes {', '.join(carried.corrections)} on the recording, which the "
+                "streamed calibration cannot; drop --executor/--dask/--chunk-rows"
+            )
         _calibrate_streamed(
             data, output, description, options, executor, dask, chunk_rows, workers, marker
         )
@@ -224,10 +300,15 @@ def calibrate(
             export_urdf_to.parent.mkdir(parents=True, exist_ok=True)
             export_urdf_to.write_text(export_urdf(read_result(output)), encoding="utf-8")
         return
-    chain = pipeline.chain_for(description, options)
-    dataset = read_dataset(
-        data, chain.joint_names, other_joint_names=chain.other_joint_names, marker=marker
-    )
+    if carried is None:
+        chain = pipeline.chain_for(description, options)
+        dataset = read_dataset(
+            data, chain.joint_names, other_joint_names=chain.other_joint_names, marker=marker
+        )
+    else:
+        dataset = carried.dataset
+        for note in carried.notes:
+            typer.echo(f"--model: {note}")
     result = pipeline.calibrate(dataset, description, options)
     _write_json(output, result.model_dump_json(indent=1))
     if export_urdf_to is not None:
@@ -557,8 +638,9 @@ def fleet(
     ] = None,
     marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
     executor: Annotated[
-        str, typer.Option(help="Run robots inprocess, on local processes or on dask.")
-    ] = "inprocess",
+        str | None,
+        typer.Option(help="Run robots inprocess (default), on local processes or on dask."),
+    ] = None,
     dask: DaskOpt = None,
     workers: WorkersOpt = None,
 ) -> None:

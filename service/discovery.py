@@ -6,6 +6,7 @@ The CLI (``kincal discover``) and the HTTP service both call :func:`discover`; t
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import math
 import re
@@ -41,13 +42,24 @@ from service.pipeline import kincal_version
 from service.robots import RobotDescription
 from solver import discovery as solver_discovery
 from solver import lie
+from solver.discovery.carry import correct_recording, is_correction
 from solver.discovery.explain import describe, reported_parameters
+from solver.discovery.features import FeatureBank, probe_chain
 from solver.discovery.health import HealthReport
-from solver.discovery.library import UNEXPLAINED
+from solver.discovery.library import UNEXPLAINED, Term, library_term
 from solver.discovery.results import HeldoutError, PlotPanel, TermEstimate
+from solver.errors import ModelError
 from solver.model import KinematicChain, build_chain
 
-__all__ = ["EFFECTS", "calibration_options", "chain_for", "discover", "summary"]
+__all__ = [
+    "EFFECTS",
+    "CarriedModel",
+    "calibration_options",
+    "carry_model",
+    "chain_for",
+    "discover",
+    "summary",
+]
 
 PROTOCOL = "{k}-fold cross-validation (seed {seed}), the same folds before and after"
 
@@ -91,17 +103,7 @@ def discover(
     """Run discovery; with ``plot_dir`` also write one PNG per finding there."""
     started = time.perf_counter()
     chain = chain_for(robot, options)
-    payload = dataset.payload_kg if dataset.payload_kg is not None else None
-    data = solver_discovery.DiscoveryData(
-        joint_positions=dataset.joint_positions,
-        measured_pose=lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw),
-        position_only=dataset.is_position_only,
-        time_s=dataset.time_s,
-        payload_kg=payload
-        if payload is not None
-        else np.full(dataset.n_samples, options.payload_kg),
-        gravity_base=np.asarray(options.gravity_base_m_s2, dtype=float),
-    )
+    data = solver_data(dataset, options)
     result = solver_discovery.discover(chain, data, solver_options(options))
     names = chain.joint_names
     plots: list[str] = []
@@ -168,6 +170,21 @@ def discover(
     )
 
 
+def solver_data(dataset: PoseDataset, options: DiscoveryOptions) -> solver_discovery.DiscoveryData:
+    """The recording as discovery sees it (gravity and payload of the user's model)."""
+    payload = dataset.payload_kg
+    return solver_discovery.DiscoveryData(
+        joint_positions=dataset.joint_positions,
+        measured_pose=lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw),
+        position_only=dataset.is_position_only,
+        time_s=dataset.time_s,
+        payload_kg=payload
+        if payload is not None
+        else np.full(dataset.n_samples, options.payload_kg),
+        gravity_base=np.asarray(options.gravity_base_m_s2, dtype=float),
+    )
+
+
 def calibration_options(findings: FindingsResult) -> CalibrationOptions:
     """Calibration options that carry the discovered compliance, flex, tilt and payload."""
     model = findings.model
@@ -177,6 +194,98 @@ def calibration_options(findings: FindingsResult) -> CalibrationOptions:
         gravity_base_m_s2=model.calibrate_gravity_base_m_s2,
         payload_kg=model.calibrate_payload_kg,
         payload_com_m=findings.options.payload_com_m,
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class CarriedModel:
+    """What ``kincal calibrate --model findings.json`` calibrates.
+
+    ``options`` carry the discovered compliance, flex axes, gravity and payload (the
+    calibration estimates those afresh); ``dataset`` is the recording with the other named
+    terms undone at their discovered values (:mod:`solver.discovery.carry`); ``notes`` say
+    what was carried and how, one line each.
+    """
+
+    dataset: PoseDataset
+    compliant_joints: list[str]
+    virtual_axes_at: list[str]
+    gravity_base_m_s2: tuple[float, float, float]
+    payload_kg: float
+    payload_com_m: tuple[float, float, float]
+    corrections: list[str]
+    notes: list[str]
+
+
+def carry_model(
+    findings: FindingsResult, dataset: PoseDataset, robot: RobotDescription
+) -> CarriedModel:
+    """The discovered model of ``findings`` applied to ``dataset`` for the calibration."""
+    chain = chain_for(robot, findings.options)
+    if list(chain.joint_names) != findings.robot.joint_names:
+        raise ModelError(
+            f"the findings are for joints {', '.join(findings.robot.joint_names)} of "
+            f"{findings.robot.name}, not {', '.join(chain.joint_names)}; pass the same robot "
+            "to calibrate as to discover"
+        )
+    names = chain.joint_names
+    data = solver_data(dataset, findings.options)
+    bank = FeatureBank(probe_chain(chain), data)
+    model = findings.model
+    notes: list[str] = []
+    terms: list[tuple[Term, np.ndarray]] = []
+    extra_payload_kg = 0.0
+    for entry in model.terms:
+        if entry.effect == UNEXPLAINED:
+            notes.append(f"not carried: unexplained {entry.variant} structure (no physical name)")
+            continue
+        index = None if entry.joint is None else names.index(entry.joint)
+        term = library_term(bank.probe, entry.effect, index, entry.variant, bank.clock_unit)
+        if entry.effect == "payload_mass":
+            extra_payload_kg += entry.parameters.get("payload_kg", 0.0)
+        if not is_correction(term):
+            continue
+        missing = [p for p in term.parameters if p not in entry.parameters]
+        if missing:
+            notes.append(
+                f"not carried: {describe(term, names)} (no {', '.join(missing)} — recorded "
+                "with another clock?)"
+            )
+            continue
+        terms.append((term, np.array([entry.parameters[p] for p in term.parameters])))
+    corrected = correct_recording(bank, terms)
+    for term in corrected.applied:
+        notes.append(f"undone on the recording at its discovered value: {describe(term, names)}")
+    for term, reason in corrected.skipped:
+        notes.append(f"not carried: {describe(term, names)} ({reason})")
+    pose = corrected.measured_pose
+    payload = dataset.payload_kg
+    out = dataclasses.replace(
+        dataset,
+        joint_positions=corrected.joint_positions,
+        position_m=pose[:, :3, 3],
+        quaternion_xyzw=None
+        if dataset.is_position_only
+        else lie.matrix_to_quaternion_xyzw(pose[:, :3, :3]),
+        payload_kg=None if payload is None else payload + extra_payload_kg,
+    )
+    calibrated = [*model.calibrate_compliant_joints, *model.calibrate_virtual_axes_at]
+    if calibrated:
+        notes.append(f"calibrated afresh: compliance/flex of {', '.join(calibrated)}")
+    if extra_payload_kg or model.calibrate_gravity_base_m_s2 != findings.options.gravity_base_m_s2:
+        gravity = ", ".join(f"{g:.4g}" for g in model.calibrate_gravity_base_m_s2)
+        notes.append(
+            f"gravity [{gravity}] m/s² and {extra_payload_kg:+.3g} kg payload from the findings"
+        )
+    return CarriedModel(
+        dataset=out,
+        compliant_joints=list(model.calibrate_compliant_joints),
+        virtual_axes_at=list(model.calibrate_virtual_axes_at),
+        gravity_base_m_s2=model.calibrate_gravity_base_m_s2,
+        payload_kg=model.calibrate_payload_kg,
+        payload_com_m=findings.options.payload_com_m,
+        corrections=[describe(term, names) for term in corrected.applied],
+        notes=notes,
     )
 
 
@@ -191,7 +300,8 @@ def summary(findings: FindingsResult) -> str:
     for a in findings.ambiguous:
         lines.append(f"ambiguous: {a.explanation}")
     for u in findings.unexplained:
-        lines.append(f"unexplained: {u.explanation}")
+        text = u.explanation
+        lines.append(text if text.startswith("unexplained") else f"unexplained: {text}")
     for r in findings.random_effects:
         lines.append(f"random: {r.explanation}")
     if not (findings.findings or findings.ambiguous or findings.unexplained):
@@ -326,7 +436,7 @@ def _model(
     virtual = list(options.virtual_axes_at)
     gravity = np.asarray(options.gravity_base_m_s2, dtype=float)
     payload = options.payload_kg
-    terms, not_carried = [], []
+    terms, corrections, not_carried = [], [], []
     for t in result.terms:
         params, _ = reported_parameters(t, values[t.key], np.zeros((t.size, t.size)))
         label = describe(t, names) if t.effect != UNEXPLAINED else f"unexplained {t.variant}"
@@ -349,6 +459,8 @@ def _model(
             gravity = lie.so3_exp(tilt) @ gravity
         elif t.effect == "payload_mass":
             payload += float(values[t.key][0])
+        elif t.effect != UNEXPLAINED:
+            corrections.append(label)
         else:
             not_carried.append(label)
     return DiscoveredModel(
@@ -357,6 +469,7 @@ def _model(
         calibrate_virtual_axes_at=sorted(set(virtual), key=names.index),
         calibrate_gravity_base_m_s2=(float(gravity[0]), float(gravity[1]), float(gravity[2])),
         calibrate_payload_kg=max(payload, 0.0),
+        corrections=corrections,
         not_carried=not_carried,
     )
 

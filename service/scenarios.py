@@ -46,7 +46,15 @@ EFFECTS = {
     "tilted_base": "base tilted 2 deg about x (visible through joint compliance)",
     "payload": "undeclared 1 kg payload at the flange (visible through joint compliance)",
     "depth_scale": "the sensor's depth along its z axis reads 0.2 % long",
-    "quadratic_joint": "outside the discovery library: last joint off by 1e-4 rad x q^2",
+    "link_bending": "the link carrying the 3rd joint bends under its gravity moment: two virtual "
+    "compliant axes at the 3rd joint (1e-4 rad/Nm)",
+    "camera_drift": "the measurement frame drifts 1 mm and 1 mrad per hour (linear)",
+    "quadratic_joint": "outside the discovery library: last joint off by 1e-4 rad x q^2 (on this "
+    "full-revolution joint 99 % of it is harmonics 1-3, which discovery may name)",
+    "gear_dent": "outside the discovery library: the 4th joint's gear has a local defect, "
+    "0.4 mrad over about +-0.25 rad around q = 1 rad",
+    "softening_spring": "outside the discovery library: 2nd joint deflects 1e-6 rad x tau|tau| "
+    "(N.m)^2, a spring that softens under load",
     "blocked_order": "samples recorded in order of the first joint's angle (blocked acquisition)",
 }
 DEFAULT_EFFECTS = ("geometry", "compliance", "camera", "marker")
@@ -76,17 +84,20 @@ def scenario(
         raise ModelError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(EFFECTS)}")
     probe = build_chain(robot.urdf_xml, robot.base_frame, robot.tip_frame)
     first = probe.joint_names[0]
+    third = probe.joint_names[min(2, probe.n_joints - 1)]
     chain = build_chain(
         robot.urdf_xml,
         robot.base_frame,
         robot.tip_frame,
-        virtual_axes_at=[first] if "base_flex" in chosen else [],
+        virtual_axes_at=[first] * ("base_flex" in chosen) + [third] * ("link_bending" in chosen),
     )
     compliance: dict[str, float] = {}
     if "compliance" in chosen:
         compliance |= dict(zip(chain.joint_names[1:3], (5e-4, 8e-4), strict=False))
     if "base_flex" in chosen:
         compliance |= {f"{first}.flex_a": 2e-4, f"{first}.flex_b": 2e-4}
+    if "link_bending" in chosen:
+        compliance |= {f"{third}.flex_a": 1e-4, f"{third}.flex_b": 1e-4}
     k = chain.n_joints
     perturbation = np.zeros((k, 6))
     if "random" in chosen:
@@ -128,6 +139,11 @@ def _hidden(chain: KinematicChain, chosen: tuple[str, ...]) -> dict[str, Any]:
         effects.append(JointEffect(second, "drift_warmup", 5e-4, time_constant_s=300.0))
     if "quadratic_joint" in chosen:
         effects.append(JointEffect(names[-1], "quadratic", 1e-4))
+    if "gear_dent" in chosen:
+        fourth = names[min(3, len(names) - 1)]
+        effects.append(JointEffect(fourth, "bump", 4e-4, centre_rad=1.0, width_rad=0.25))
+    if "softening_spring" in chosen:
+        effects.append(JointEffect(second, "load_quadratic", 1e-6))
     out: dict[str, Any] = {"joint_effects": tuple(effects)}
     if "tilted_base" in chosen:
         out["gravity_base"] = lie.so3_exp(np.array([np.radians(2.0), 0.0, 0.0])) @ np.array(
@@ -137,6 +153,9 @@ def _hidden(chain: KinematicChain, chosen: tuple[str, ...]) -> dict[str, Any]:
         out["payload_kg"] = 1.0
     if "depth_scale" in chosen:
         out["depth_scale"] = 2e-3
+    if "camera_drift" in chosen:
+        per_axis = 1e-3 / 3600.0 / np.sqrt(3.0)  # 1 mm and 1 mrad per hour in total
+        out["measurement_drift_per_s"] = np.full(6, per_axis)
     if "blocked_order" in chosen:
         out["order_by_joint"] = names[0]
     return out
@@ -219,6 +238,9 @@ def truth_document(
             "payload_kg": spec.payload_kg,
             "depth_scale": spec.depth_scale,
             "depth_axis": spec.depth_axis,
+            "measurement_drift_per_s": None
+            if spec.measurement_drift_per_s is None
+            else np.asarray(spec.measurement_drift_per_s).tolist(),
             "order_by_joint": spec.order_by_joint,
         },
     }

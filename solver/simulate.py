@@ -5,8 +5,8 @@ compliant axes (base flex), random local perturbations ξ_i ~ N(0, Σ_i) (Eq. 7)
 ε ~ N(0, Σ_n) in the end-effector frame, an unknown measurement frame (camera/tracker) and an
 unknown marker offset, plus gross outliers. For missing-physics discovery it can also hide joint
 angle errors (gear, backlash, scale, drift, off-library shapes), a depth scale of the sensor, a
-tilted gravity or an undeclared payload (``gravity_base``, ``payload_kg``) and a blocked
-acquisition order. Samples come in execution order with timestamps.
+tilted gravity or an undeclared payload (``gravity_base``, ``payload_kg``), a drifting
+measurement frame and a blocked acquisition order. Samples come in execution order with timestamps.
 Everything random is drawn from one ``numpy.random.Generator`` seeded by ``spec.seed``.
 """
 
@@ -38,6 +38,8 @@ JointEffectKind = Literal[
     "drift_linear",
     "drift_warmup",
     "quadratic",
+    "load_quadratic",
+    "bump",
 ]
 
 
@@ -49,8 +51,10 @@ class JointEffect:
     of the joint's gravity torque, uniform in the dead band where |τ| < ``float_below_nm``
     (backlash with nothing to take it up); ``backlash_direction``: ±size/2 by the sign of
     q[n] − q[n−1] (0 for the first sample); ``joint_scale``: size·q; ``drift_linear``:
-    size·t (rad/s); ``drift_warmup``: size·(1 − exp(−t/T)); ``quadratic``: size·q² (rad/rad²,
-    an effect outside the discovery library).
+    size·t (rad/s); ``drift_warmup``: size·(1 − exp(−t/T)). Outside the discovery library:
+    ``quadratic``: size·q² (rad/rad²); ``load_quadratic``: size·τ·|τ| (rad/(N·m)², a spring
+    that softens under load, τ the joint's gravity torque); ``bump``: size·exp(−½((q − c)/w)²)
+    with c = ``centre_rad``, w = ``width_rad`` (a local gear defect, e.g. a dented tooth).
     """
 
     joint: str
@@ -60,6 +64,8 @@ class JointEffect:
     phase_rad: float = 0.0
     time_constant_s: float = 600.0
     float_below_nm: float = 0.0
+    centre_rad: float = 0.0
+    width_rad: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -97,6 +103,9 @@ class SimulationSpec:
     joint_effects: tuple[JointEffect, ...] = ()
     depth_scale: float = 0.0  # the sensor's depth reading is off by this factor
     depth_axis: Literal["measurement_z", "marker_z"] = "measurement_z"
+    # Linear drift of the measurement frame (camera/tracker), twist [v; w] per second (m, rad)
+    # in the measurement frame: the sensor reports Exp(t·drift) · X.
+    measurement_drift_per_s: FloatArray | None = None
     order_by_joint: str | None = None  # blocked acquisition: samples sorted by this joint
 
 
@@ -161,8 +170,10 @@ def simulate_recording(chain: KinematicChain, spec: SimulationSpec) -> Simulated
     time_s = spec.sample_period_s * np.arange(spec.n_samples, dtype=np.float64)
     offsets = _joint_offsets(chain, spec, q, time_s) if spec.joint_effects else None
     q_true = q if offsets is None else q + offsets
-    mean_pose = _sensor(forward_kinematics(chain, params, q_true, loads), spec)
-    true_pose = _sensor(forward_kinematics(chain, params, q_true, loads, perturbations=xi), spec)
+    mean_pose = _sensor(forward_kinematics(chain, params, q_true, loads), spec, time_s)
+    true_pose = _sensor(
+        forward_kinematics(chain, params, q_true, loads, perturbations=xi), spec, time_s
+    )
     noise = rng.normal(size=(spec.n_samples, 6)) * spec.noise_sigma
     measured = true_pose @ lie.se3_exp(noise)
     n_outliers = round(spec.outlier_fraction * spec.n_samples)
@@ -215,6 +226,13 @@ def _joint_offsets(
             delta = effect.size * (1.0 - np.exp(-time_s / effect.time_constant_s))
         elif effect.kind == "quadratic":
             delta = effect.size * angle**2
+        elif effect.kind == "bump":
+            delta = effect.size * np.exp(
+                -0.5 * ((angle - effect.centre_rad) / effect.width_rad) ** 2
+            )
+        elif effect.kind == "load_quadratic":
+            torque = _joint_torque(chain, spec, q, j)
+            delta = effect.size * torque * np.abs(torque)
         else:
             raise ValueError(f"unknown joint effect {effect.kind!r}")
         offsets[:, j] += delta
@@ -230,8 +248,12 @@ def _joint_torque(chain: KinematicChain, spec: SimulationSpec, q: FloatArray, j:
     ]
 
 
-def _sensor(pose: FloatArray, spec: SimulationSpec) -> FloatArray:
-    """What the sensor reports for true poses: the depth along its axis scaled (if set)."""
+def _sensor(pose: FloatArray, spec: SimulationSpec, time_s: FloatArray) -> FloatArray:
+    """What the sensor reports for true poses: its frame drifted (if set), then the depth
+    along its axis scaled (if set)."""
+    if spec.measurement_drift_per_s is not None:
+        drift = np.asarray(spec.measurement_drift_per_s, dtype=float)
+        pose = lie.se3_exp(time_s[:, None] * drift[None, :]) @ pose
     if spec.depth_scale == 0.0:
         return pose
     out = pose.copy()

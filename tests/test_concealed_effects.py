@@ -1,16 +1,63 @@
-"""benchmarks/discovery_study.py runs on tiny settings and prints its table (cannot rot)."""
+"""benchmarks/concealed_effects.py runs on tiny settings and writes its outputs (cannot rot)."""
 
 from __future__ import annotations
 
-from benchmarks import discovery_study
+import csv
+from pathlib import Path
+
+from benchmarks import concealed_effects
 
 
-def test_discovery_study_prints_a_row_per_scenario() -> None:
+def test_concealed_effects_benchmark_runs_and_writes_table_and_csv(tmp_path: Path) -> None:
     lines: list[str] = []
-    text, rows = discovery_study.main(
-        seeds=1, n=120, workers=1, names=["null", "backlash"], bootstrap=5, echo=lines.append
+    text, rows, numbers = concealed_effects.main(
+        seeds=1,
+        n=120,
+        workers=1,
+        names=["null", "backlash", "gear_dent"],
+        bootstrap=5,
+        out_dir=tmp_path,
+        timing_n=130,
+        timing_seeds=1,
+        echo=lines.append,
     )
-    assert text.count("\n") == 3 and text.startswith("| Scenario |")
-    assert rows["null"]["detected"] == 1.0 and rows["null"]["false_runs"] == 0.0
+    assert text.startswith("| Scenario |") and text.count("\n") == 4
+    assert rows["null"]["detected"] == 1.0 and rows["null"]["named_any"] == 0.0
     assert rows["backlash"]["detected"] == 1.0 and rows["backlash"]["heldout_ratio"] < 1.1
-    assert "2 discoveries" in lines[-1]
+    assert rows["gear_dent"]["fdr"] == 0.0
+    assert numbers["null_false_alarm"] == 0.0 and numbers["timing_max_s"] > 0.0
+    assert any("false-discovery rate" in line for line in lines)
+    with (tmp_path / "runs.csv").open() as handle:
+        runs = list(csv.DictReader(handle))
+    assert [r["scenario"] for r in runs] == ["null", "backlash", "gear_dent", "two_effects"]
+    assert runs[1]["named"] == "backlash@j2s6s200_joint_2" and runs[1]["detected"] == "1"
+    assert (tmp_path / "table.md").read_text().startswith(text)
+    assert {r["scenario"] for r in csv.DictReader((tmp_path / "scenarios.csv").open())} == {
+        "null",
+        "backlash",
+        "gear_dent",
+    }
+
+
+def test_judging_counts_wrong_names_and_accepts_only_the_right_joint() -> None:
+    described = concealed_effects.scenarios(tuple(f"j{i}" for i in range(6)))
+    run = concealed_effects.RunResult(
+        "backlash", 0, 100, [("backlash", 2)], [], [], [], [], [], 1.0, 1.0, 1.0, 0.1
+    )
+    assert concealed_effects.judge(described["backlash"], run) == (False, 1)
+    collinear = concealed_effects.RunResult(
+        "collinear",
+        0,
+        100,
+        [],
+        [[("joint_compliance", 1), ("gear_periodic", 1)]],
+        [],
+        [],
+        [],
+        [],
+        1.0,
+        1.0,
+        1.0,
+        0.1,
+    )
+    assert concealed_effects.judge(described["collinear"], collinear) == (True, 0)

@@ -13,6 +13,11 @@ model, so their size is known:
   near zero (backlash with nothing to take it up): a permutation test on the squared
   per-sample deflection estimates. Random, so it belongs to the covariance calibration.
 
+* **clustered outliers** — the samples screened out as gross outliers, if they sit in a narrow
+  range of one joint's angle (or of acquisition time): a local effect (a damaged gear tooth, a
+  bumped camera) that the screening would otherwise hide. Exact test on the span of their
+  ranks; real gross outliers fall at random rows and do not cluster.
+
 Distance correlation (bias-corrected, Székely & Rizzo 2014) of the whitened residual vectors
 with each joint angle is reported alongside, as a model-free effect size.
 """
@@ -22,6 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.special
 import scipy.stats
 from numpy.typing import NDArray
 
@@ -31,6 +37,7 @@ from solver.discovery.library import Term
 from solver.discovery.scoring import NullModel, ScoreTest, holm, score_test
 
 FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.intp]
 
 COMPONENT_DEGREES = range(1, 4)
 
@@ -239,6 +246,77 @@ def floating_deflection(ctx: Context, fit: ModelFit, alpha: float) -> list[Float
         results[str(j)] = (j, p if ratio >= MIN_FLOATING_RATIO else 1.0, ratio)
     rejected = holm({k: v[1] for k, v in results.items()}, alpha)
     return [FloatingTest(*results[k]) for k in sorted(rejected)]
+
+
+@dataclass(frozen=True)
+class OutlierCluster:
+    """Screened-out samples bunched over ``[low, high]`` of one variable: joint
+    ``joint_index``'s angle (rad) or gravity torque (N·m), or acquisition time
+    (``joint_index`` None; clock units)."""
+
+    joint_index: int | None
+    variable: str  # "angle", "load" or "time"
+    p_value: float
+    n_outliers: int
+    low: float
+    high: float
+
+
+# Two samples always span some interval; three or more bunched together are evidence.
+MIN_CLUSTERED = 3
+
+
+def clustered_outliers(ctx: Context, kept_rows: IndexArray, alpha: float) -> OutlierCluster | None:
+    """Are the samples left out as gross outliers bunched in one joint angle, one joint's
+    gravity torque, or in time? The most significant such variable, or None.
+
+    For m outliers among N samples, the statistic is the span s of their ranks in the
+    variable (max − min); under random rows its exact law is
+    ``P(span ≤ s) = Σ_{t=m−1..s} (N − t) C(t − 1, m − 2) / C(N, m)``. Holm over the variables.
+    More than a quarter of the samples screened out is not a local effect: no test.
+    """
+    n = ctx.data.n_samples
+    out = np.setdiff1d(ctx.all_rows, kept_rows)
+    m = int(out.size)
+    if m < MIN_CLUSTERED or m > n // 4:
+        return None
+    variables: dict[str, tuple[int | None, str, FloatArray]] = {
+        "time": (None, "time", ctx.bank.clock)
+    }
+    for index in np.flatnonzero(ctx.chain.is_revolute()):
+        j = int(index)
+        variables[f"angle:{j}"] = (j, "angle", ctx.data.joint_positions[:, j])
+        variables[f"load:{j}"] = (j, "load", ctx.bank.nominal_tau(ctx.chain.joint_names[j]))
+    tests: dict[str, OutlierCluster] = {}
+    for key, (joint, kind, values) in variables.items():
+        if np.ptp(values) <= 1e-12 * max(1.0, float(np.abs(values).max())):
+            continue
+        ranks = np.empty(n, dtype=int)
+        ranks[np.argsort(values, kind="stable")] = np.arange(n)
+        span = int(ranks[out].max() - ranks[out].min())
+        chosen = values[out]
+        p = span_p_value(span, m, n)
+        tests[key] = OutlierCluster(joint, kind, p, m, float(chosen.min()), float(chosen.max()))
+    rejected = holm({k: v.p_value for k, v in tests.items()}, alpha)
+    return min((tests[k] for k in rejected), key=lambda c: c.p_value, default=None)
+
+
+def span_p_value(span: int, m: int, n: int) -> float:
+    """P(rank span of m random rows among n ≤ ``span``), exact (log-space sums)."""
+    t = np.arange(m - 1, min(span, n - 1) + 1, dtype=float)
+    if t.size == 0:
+        return 0.0
+    log_terms = np.log(n - t) + _log_comb(t - 1.0, m - 2.0) - _log_comb(float(n), float(m))
+    return float(min(1.0, np.exp(scipy.special.logsumexp(log_terms))))
+
+
+def _log_comb(a: FloatArray | float, b: float) -> FloatArray:
+    return np.asarray(
+        scipy.special.gammaln(np.asarray(a) + 1.0)
+        - scipy.special.gammaln(b + 1.0)
+        - scipy.special.gammaln(np.asarray(a) - b + 1.0),
+        dtype=np.float64,
+    )
 
 
 def distance_correlation(x: FloatArray, y: FloatArray) -> float:

@@ -49,6 +49,7 @@ EFFECTS = (
 )
 UNEXPLAINED = "unexplained"  # generic structure kept in the model, never reported as found
 HARMONICS = (1, 2, 3)
+DEPTH_AXES = ("measurement_z", "marker_z")
 # Floating zones of load-sign backlash tested as candidates (quantiles of |τ|; refined later).
 CANDIDATE_DEADZONES = (0.0, 0.1, 0.2)
 TWIST_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -164,6 +165,92 @@ def backlash_load_term(chain: KinematicChain, j: int, zone: float = 0.0) -> Term
     )
 
 
+def gear_term(chain: KinematicChain, j: int, harmonic: int) -> Term:
+    """Periodic transmission error of joint j: a·sin(h q_j) + b·cos(h q_j) about its axis."""
+    name = chain.joint_names[j]
+    return Term(
+        "gear_periodic",
+        j,
+        f"h{harmonic}",
+        ("sin_rad", "cos_rad"),
+        (
+            AxisSpec(j, "joint", f"sin{harmonic}:{name}"),
+            AxisSpec(j, "joint", f"cos{harmonic}:{name}"),
+        ),
+    )
+
+
+def direction_backlash_term(chain: KinematicChain, j: int) -> Term:
+    """Backlash taken up by the direction joint j was approached from (execution order)."""
+    name = chain.joint_names[j]
+    return Term(
+        "backlash", j, "direction", ("backlash_rad",), (AxisSpec(j, "joint", f"dir:{name}"),)
+    )
+
+
+def scale_term(chain: KinematicChain, j: int) -> Term:
+    """Gear-ratio / encoder-scale error of joint j: deflection ∝ q_j."""
+    name = chain.joint_names[j]
+    return Term("joint_scale", j, "", ("scale_error",), (AxisSpec(j, "joint", f"q:{name}"),))
+
+
+def drift_term(chain: KinematicChain, j: int | None, shape: str, clock_unit: str) -> Term:
+    """Thermal drift of joint j's zero (``j`` None: of the measurement frame, 6 twist
+    components) with time shape ``linear`` or ``warmup:<T>`` (see :func:`drift_variants`)."""
+    rate = "per_s" if clock_unit == "s" else "per_sample"
+    linear = shape == "linear"
+    if j is None:
+        suffix = f"_{rate}" if linear else ""
+        names = tuple(f"{c}_{'m' if c.startswith('t') else 'rad'}{suffix}" for c in TWIST_NAMES)
+        return Term("thermal_drift", None, f"measurement_frame:{shape}", names)
+    feature = f"time:{shape}"
+    unit = f"rad_{rate}" if linear else "rad"
+    return Term("thermal_drift", j, shape, (f"drift_{unit}",), (AxisSpec(j, "joint", feature),))
+
+
+def global_term(effect: str, variant: str = "") -> Term:
+    """A whole-robot term: payload_mass, gravity_direction or depth_scale (variant: axis)."""
+    parameters = {
+        "payload_mass": ("payload_kg",),
+        "gravity_direction": ("tilt_x_rad", "tilt_y_rad"),
+        "depth_scale": ("scale",),
+    }[effect]
+    return Term(effect, None, variant, parameters)
+
+
+def library_term(
+    chain: KinematicChain, effect: str, j: int | None, variant: str, clock_unit: str
+) -> Term:
+    """The library term with this (effect, joint, variant): the inverse of its ``key``.
+
+    Used to carry a discovered model (findings JSON) back into the solver.
+    """
+    if effect == "joint_compliance" and j is not None:
+        return compliance_term(chain, j)
+    if effect in ("base_flex", "link_bending") and j is not None:
+        return flex_term(chain, j)
+    if effect == "gear_periodic" and j is not None and variant.startswith("h"):
+        return gear_term(chain, j, int(variant[1:]))
+    if effect == "backlash" and j is not None:
+        if variant == "direction":
+            return direction_backlash_term(chain, j)
+        if variant.startswith("load"):
+            _, _, zone = variant.partition(":")
+            return backlash_load_term(chain, j, float(zone) if zone else 0.0)
+    if effect == "joint_scale" and j is not None:
+        return scale_term(chain, j)
+    if effect == "thermal_drift":
+        shape = variant.removeprefix("measurement_frame:")
+        if shape == "linear" or shape.startswith("warmup:"):
+            return drift_term(chain, j if shape == variant else None, shape, clock_unit)
+    if effect in ("payload_mass", "gravity_direction") and j is None and not variant:
+        return global_term(effect)
+    if effect == "depth_scale" and j is None and variant in DEPTH_AXES:
+        return global_term(effect, variant)
+    where = "no joint" if j is None else f"joint {chain.joint_names[j]}"
+    raise ValueError(f"no library term {effect} ({variant}) on {where}")
+
+
 def generic_term(chain: KinematicChain, bank: FeatureBank, j: int, family: str) -> Term:
     """Unnamed structure of joint j: a rotation about its axis by a generic function of its
     angle or load (library and extra basis). Kept in the model so it cannot leak into other
@@ -203,7 +290,6 @@ def candidate_library(
     in_model = {t.key for t in model}
     out: list[Term] = []
     clock_unit = bank.clock_unit
-    rate = "per_s" if clock_unit == "s" else "per_sample"
     shapes = drift_variants(float(bank.clock.max()))
     for index in np.flatnonzero(chain.is_revolute()):
         j = int(index)
@@ -219,52 +305,14 @@ def candidate_library(
             ]
         if all(_varies(bank.nominal_tau(f"{name}.{lab}")) for lab in FLEX_LABELS):
             out.append(flex_term(chain, j))
-        for h in HARMONICS:
-            out.append(
-                Term(
-                    "gear_periodic",
-                    j,
-                    f"h{h}",
-                    ("sin_rad", "cos_rad"),
-                    (
-                        AxisSpec(j, "joint", f"sin{h}:{name}"),
-                        AxisSpec(j, "joint", f"cos{h}:{name}"),
-                    ),
-                )
-            )
-        out.append(
-            Term(
-                "backlash",
-                j,
-                "direction",
-                ("backlash_rad",),
-                (AxisSpec(j, "joint", f"dir:{name}"),),
-            )
-        )
-        out.append(
-            Term("joint_scale", j, "", ("scale_error",), (AxisSpec(j, "joint", f"q:{name}"),))
-        )
-        for variant, constant in shapes:
-            feature = "time:linear" if constant is None else f"time:warmup:{constant:.6g}"
-            unit = f"rad_{rate}" if constant is None else "rad"
-            out.append(
-                Term(
-                    "thermal_drift",
-                    j,
-                    variant,
-                    (f"drift_{unit}",),
-                    (AxisSpec(j, "joint", feature),),
-                )
-            )
-    for variant, constant in shapes:
-        suffix = f"_{rate}" if constant is None else ""
-        names = tuple(f"{c}_{'m' if c.startswith('t') else 'rad'}{suffix}" for c in TWIST_NAMES)
-        out.append(Term("thermal_drift", None, f"measurement_frame:{variant}", names))
+        out += [gear_term(chain, j, h) for h in HARMONICS]
+        out.append(direction_backlash_term(chain, j))
+        out.append(scale_term(chain, j))
+        out += [drift_term(chain, j, variant, clock_unit) for variant, _ in shapes]
+    out += [drift_term(chain, None, variant, clock_unit) for variant, _ in shapes]
     if any(t.gravity_driven for t in model):
-        out.append(Term("payload_mass", None, "", ("payload_kg",)))
-        out.append(Term("gravity_direction", None, "", ("tilt_x_rad", "tilt_y_rad")))
-    out.append(Term("depth_scale", None, "measurement_z", ("scale",)))
-    out.append(Term("depth_scale", None, "marker_z", ("scale",)))
+        out += [global_term("payload_mass"), global_term("gravity_direction")]
+    out += [global_term("depth_scale", axis) for axis in DEPTH_AXES]
     # One load-sign backlash per joint: its floating zone is a refinement, not another term.
     loaded_backlash = {t.joint_index for t in model if t.deadzone() is not None}
     return [

@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver.discovery.checks import (
+    clustered_outliers,
     floating_deflection,
     lack_of_fit,
     residual_structure,
@@ -400,7 +401,8 @@ class _Search:
         before = cross_validate(self.ctx, self.terms, self.fit, self.folds, self.fit.weights)
         after = cross_validate(self.ctx, new_terms, new_fit, self.folds, self.fit.weights)
         if before.improved_by(after, self.options.heldout_level):
-            self.terms, self.fit = new_terms, new_fit
+            self.terms = new_terms
+            self.fit = screen_outliers(self.ctx, new_terms, new_fit, self.options.outlier_level)
             entry.modelled = True
 
     def _declared_checks(self) -> list[Unexplained]:
@@ -510,7 +512,13 @@ class _Search:
             findings=findings,
             ambiguous=self.ambiguous,
             unexplained=self.declared_notes
-            + unexplained_entries(list(self.misfits.values()), structure, self.names),
+            + unexplained_entries(
+                list(self.misfits.values()),
+                structure,
+                self.names,
+                clustered_outliers(ctx, final.rows, options.alpha),
+                ctx.bank.clock_unit,
+            ),
             random_effects=[
                 RandomEffect(
                     f.joint_index,

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.discovery.checks import StructureTest
+from solver.discovery.checks import OutlierCluster, StructureTest
 from solver.discovery.design import separating_poses
 from solver.discovery.explain import describe, reported_parameters
 from solver.discovery.fitting import Context, ModelFit
@@ -55,7 +55,11 @@ def sign_note(term: Term, test: ScoreTest, names: tuple[str, ...]) -> str:
 
 
 def unexplained_entries(
-    misfits: list[Misfit], structure: list[StructureTest], names: tuple[str, ...]
+    misfits: list[Misfit],
+    structure: list[StructureTest],
+    names: tuple[str, ...],
+    cluster: OutlierCluster | None = None,
+    clock_unit: str = "s",
 ) -> list[Unexplained]:
     """One entry per joint (and per global variable), misfit evidence first."""
     by_joint: dict[object, Unexplained] = {}
@@ -125,6 +129,43 @@ def unexplained_entries(
                 s.distance_correlation,
                 [],
                 text,
+            )
+    for c in [cluster] if cluster is not None else []:
+        if c.joint_index is None:
+            key = "time"
+            where = f"rows acquired between {c.low:.4g} and {c.high:.4g} {clock_unit}"
+            what = "unexplained: a disturbance during the recording"
+        elif c.variable == "angle":
+            key = c.joint_index
+            where = (
+                f"{names[c.joint_index]} between {np.degrees(c.low):.3g}° and "
+                f"{np.degrees(c.high):.3g}°"
+            )
+            what = (
+                f"unexplained, concentrated in {names[c.joint_index]}: a local effect of its "
+                "angle (e.g. a damaged gear tooth)"
+            )
+        else:
+            key = c.joint_index
+            where = f"a gravity torque on {names[c.joint_index]} of {c.low:.3g} to {c.high:.3g} N·m"
+            what = (
+                f"unexplained, concentrated in {names[c.joint_index]}: an effect of its load "
+                "that no library term describes"
+            )
+        text = (
+            f"{what} — the {c.n_outliers} samples the model cannot fit at all (left out as "
+            f"gross outliers) all lie at {where} (p = {c.p_value:.2g}); not named."
+        )
+        if key in by_joint:
+            old = by_joint[key]
+            by_joint[key] = replace(
+                old,
+                p_value=min(old.p_value, c.p_value),
+                explanation=old.explanation + " " + text[0].upper() + text[1:],
+            )
+        else:
+            by_joint[key] = Unexplained(
+                c.joint_index, "outliers", c.p_value, float("nan"), None, [], text
             )
     return sorted(
         by_joint.values(),

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from schemas.discovery import EFFECTS, FindingsResult
-from service import cli, discovery
-from tests.conftest import chain
+from schemas.discovery import EFFECTS, DiscoveryOptions, FindingsResult
+from service import cli, discovery, scenarios
+from tests.conftest import chain, robot
 
 
 def run(
@@ -86,8 +86,66 @@ def test_discover_names_the_hidden_gear_error_and_improves_heldout(findings_path
         ("gear_periodic", third, "h2")
     ]
     assert result.heldout.after.trans_mm < 0.8 * result.heldout.before.trans_mm
-    assert result.model.not_carried == [f"gear_periodic (h2) on {third}"]
+    assert result.model.corrections == [f"gear_periodic (h2) on {third}"]
+    assert result.model.not_carried == []
     assert discovery.calibration_options(result).compliant_joints == []
+
+
+def test_calibrate_with_the_findings_model_carries_the_gear_error(
+    findings_path: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``calibrate --model findings.json``: the gear error undone at its discovered value
+    gives the calibration the discovery's held-out error; the rigid calibration cannot."""
+    from schemas.calibration import CalibrationResult
+
+    data = str(findings_path.parent.parent / "gear.csv")
+    common = ["calibrate", data, "--robot", "kinova", "--covariance", "none"]
+    common += ["--outlier-sigma", "0"]
+    code, out, _ = run(
+        [*common, "--model", str(findings_path), "-o", str(tmp_path / "model.json")],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 0
+    assert "undone on the recording at its discovered value: gear_periodic (h2)" in out
+    code, _, _ = run([*common, "--rigid", "-o", str(tmp_path / "rigid.json")], capsys, monkeypatch)
+    assert code == 0
+    with_model, rigid = (
+        CalibrationResult.model_validate_json((tmp_path / f"{name}.json").read_bytes())
+        for name in ("model", "rigid")
+    )
+    assert with_model.options.compliant_joints == []  # the discovered model has no spring
+    heldout = [r.fit.after.heldout for r in (with_model, rigid)]
+    assert heldout[0] is not None and heldout[1] is not None
+    findings = FindingsResult.model_validate_json(findings_path.read_bytes())
+    assert heldout[0].translation_mean_mm < 0.9 * heldout[1].translation_mean_mm
+    assert heldout[0].translation_mean_mm < 1.1 * findings.heldout.after.trans_mm
+
+
+def test_calibrate_model_refuses_flags_it_replaces(
+    findings_path: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    data = str(findings_path.parent.parent / "gear.csv")
+    args = ["calibrate", data, "--robot", "kinova", "--model", str(findings_path), "--rigid"]
+    code, _, err = run([*args, "-o", str(tmp_path / "x.json")], capsys, monkeypatch)
+    assert code == 2 and err.count("\n") == 1 and "--rigid" in err
+    code, _, err = run(
+        ["calibrate", data, "--robot", "kinova", "--model", data, "-o", str(tmp_path / "y.json")],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 2 and "not a kincal findings file" in err
+    args = ["calibrate", data, "--robot", "kinova", "--model", str(findings_path)]
+    code, _, err = run(
+        [*args, "--chunk-rows", "50", "-o", str(tmp_path / "z.json")], capsys, monkeypatch
+    )
+    assert code == 2 and "streamed calibration cannot" in err
 
 
 def test_a_plot_per_finding_is_written_next_to_the_json(findings_path: Path) -> None:
@@ -125,8 +183,7 @@ def test_fr3_negative_compliance_is_reported_not_named() -> None:
     """Real FR3 recording, all loaded joints declared elastic: the springs fit negative (the
     calibration's ">5σ negative compliance"); discovery must say so, not name a physics."""
     from schemas.dataset import read_dataset
-    from schemas.discovery import DiscoveryOptions
-    from tests.conftest import REAL_DATA, robot
+    from tests.conftest import REAL_DATA
 
     joints = [f"panda_joint{i}" for i in range(2, 8)]
     options = DiscoveryOptions(compliant_joints=joints, bootstrap=10)
@@ -140,3 +197,54 @@ def test_fr3_negative_compliance_is_reported_not_named() -> None:
     assert {"panda_joint2", "panda_joint3"} <= declared
     assert all(f.effect != "joint_compliance" for f in result.findings)
     assert result.heldout.after.trans_mm <= result.heldout.before.trans_mm
+
+
+# `kincal simulate --effect` name(s) that conceal each library effect, the joints the user's
+# model declares compliant, and what discovery must then report (effect, chain joint index).
+CONCEALED: dict[str, tuple[list[str], list[int], set[tuple[str, int | None]] | int]] = {
+    "joint_compliance": (["compliance"], [], {("joint_compliance", 1), ("joint_compliance", 2)}),
+    "base_flex": (["base_flex"], [], {("base_flex", 0)}),
+    "link_bending": (["link_bending"], [], {("link_bending", 2)}),
+    "gear_periodic": (["gear_error"], [], {("gear_periodic", 2)}),
+    "backlash (load)": (["backlash"], [], {("backlash", 1)}),
+    "backlash (direction)": (["approach_backlash"], [], {("backlash", 2)}),
+    "joint_scale": (["joint_scale"], [], {("joint_scale", 1)}),
+    "thermal_drift (joint)": (["thermal_drift"], [], {("thermal_drift", 1)}),
+    "thermal_drift (camera)": (["camera_drift"], [], {("thermal_drift", None)}),
+    "payload_mass": (["payload", "compliance"], [1, 2], {("payload_mass", None)}),
+    "gravity_direction": (["tilted_base", "compliance"], [1, 2], {("gravity_direction", None)}),
+    "depth_scale": (["depth_scale"], [], {("depth_scale", None)}),
+    "off-library: gear_dent": (["gear_dent"], [], 3),
+    "off-library: softening_spring": (["softening_spring"], [], 1),
+}
+
+
+def test_every_library_effect_can_be_concealed_by_kincal_simulate() -> None:
+    assert {label.split(" ")[0] for label in CONCEALED} >= set(EFFECTS)
+    known = set(scenarios.EFFECTS)
+    assert all(set(names) <= known for names, _, _ in CONCEALED.values())
+
+
+@pytest.mark.parametrize("label", sorted(CONCEALED))
+def test_simulated_effect_is_discovered(label: str) -> None:
+    """What ``kincal simulate --effect`` hides, discovery names (or, off the library, reports
+    unexplained at its joint without a name)."""
+    names, declared, expected = CONCEALED[label]
+    description = robot("kinova")
+    scn, recording = scenarios.simulate(
+        description, n_samples=200, seed=3, effects=("geometry", "camera", "marker", *names)
+    )
+    compliant = [scn.chain.joint_names[i] for i in declared]
+    options = DiscoveryOptions(compliant_joints=compliant, bootstrap=5)
+    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
+    result = discovery.discover(dataset, description, options)
+    joints = list(scn.chain.joint_names)
+    named = {
+        (f.effect, None if f.joint is None else joints.index(f.joint)) for f in result.findings
+    }
+    if isinstance(expected, set):
+        assert named == expected, [f.explanation for f in result.findings]
+        assert not result.ambiguous
+    else:
+        assert not named and not result.ambiguous
+        assert [u.joint for u in result.unexplained][:1] == [joints[expected]]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from hypothesis import strategies as st
 
 from solver import lie
 from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, discover
+from solver.discovery.checks import span_p_value
 from solver.discovery.features import (
     approach_direction,
     deadzone_sign,
@@ -231,11 +233,35 @@ def test_collinear_pair_is_reported_ambiguous_not_named() -> None:
     assert poses is not None and poses.separation_after_sigma > 10 * poses.separation_now_sigma
 
 
-def test_off_library_effect_is_unexplained_and_names_its_joint() -> None:
-    last = chain("kinova").joint_names[-1]
-    result = _discover("kinova", 16, joint_effects=(JointEffect(last, "quadratic", 1.5e-4),))
-    assert [u.joint_index for u in result.unexplained][:1] == [5]
-    assert not [f for f in result.findings if f.estimate.term.joint_index == 5]
+@pytest.mark.parametrize(
+    ("kind", "joint", "size"),
+    [("bump", 3, 4e-4), ("load_quadratic", 1, 1e-6)],
+    ids=["gear_dent", "softening_spring"],
+)
+def test_off_library_effect_is_unexplained_at_its_joint_and_not_named(
+    kind: str, joint: int, size: float
+) -> None:
+    """A local gear defect (a bump in q) and a spring that softens under load (τ|τ|): no
+    library term describes them, so they must be reported at their joint, never named."""
+    name = chain("kinova").joint_names[joint]
+    effect = JointEffect(name, kind, size, centre_rad=1.0, width_rad=0.25)  # type: ignore[arg-type]
+    result = _discover("kinova", 16, joint_effects=(effect,))
+    assert [u.joint_index for u in result.unexplained][:1] == [joint]
+    assert not result.findings
+
+
+@pytest.mark.parametrize(("n", "m"), [(9, 3), (10, 4), (12, 5)])
+def test_outlier_span_p_value_is_the_exact_law_of_random_rows(n: int, m: int) -> None:
+    spans = np.array([max(c) - min(c) for c in itertools.combinations(range(n), m)])
+    for span in range(m - 1, n):
+        assert span_p_value(span, m, n) == pytest.approx(np.mean(spans <= span), rel=1e-12)
+
+
+def test_random_gross_outliers_are_screened_not_reported() -> None:
+    """10 % gross outliers (10°, 5 mm) at random rows: screened out, and not a local effect."""
+    result = _discover("kinova", 31, outlier_fraction=0.1)
+    assert result.outlier_rows.size >= 15
+    assert not result.findings and not result.ambiguous and not result.unexplained
 
 
 def test_floating_backlash_is_routed_to_random_effects() -> None:

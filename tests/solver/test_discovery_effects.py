@@ -141,12 +141,34 @@ def test_hidden_effect_size_is_inside_its_confidence_interval(name: str) -> None
     for key, true_value in CASES[name].truth.items():
         value, error = estimate.parameters[key], estimate.stderr[key]
         assert abs(value - true_value) <= 3.0 * error, (key, value, error, true_value)
-        scale = max(abs(v) for v in CASES[name].truth.values())
-        assert abs(value - true_value) <= 0.2 * scale, (key, value, true_value)
+        assert _within_20_percent(key, value, true_value), (key, value, true_value)
+
+
+def _within_20_percent(key: str, value: float, true_value: float) -> bool:
+    """Magnitudes within 20 % of the truth (a phase, or a zero component, has no magnitude:
+    the confidence-interval check covers it)."""
+    if key == "phase_rad" or true_value == 0.0:
+        return True
+    return abs(value - true_value) <= 0.2 * abs(true_value)
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_heldout_error_reaches_the_true_model(name: str) -> None:
     result, oracle_mm = _run(name)
     assert result.heldout_after.translation_mm < 0.9 * result.heldout_before.translation_mm
+    assert result.heldout_after.translation_mm < 1.10 * oracle_mm
+
+
+@pytest.mark.parametrize("name", ["joint_compliance", "gear_periodic", "backlash"])
+@pytest.mark.parametrize("seed", [2, 3])
+def test_issue_acceptance_effects_hold_on_other_recordings(name: str, seed: int) -> None:
+    """Issue 5's three named cases on further seeds: right effect and joint, magnitude within
+    20 %, held-out error within 10 % of the true model's."""
+    result, oracle_mm = _run(name, seed)
+    case = CASES[name]
+    named = [(f.estimate.term.effect, f.estimate.term.joint_index) for f in result.findings]
+    assert named == [(case.effect, case.joint)], [f.explanation for f in result.findings]
+    for key, true_value in case.truth.items():
+        value = result.findings[0].estimate.parameters[key]
+        assert _within_20_percent(key, value, true_value), (key, value, true_value)
     assert result.heldout_after.translation_mm < 1.10 * oracle_mm
