@@ -201,7 +201,14 @@ def _calibrate_options(findings: FindingsResult) -> str:
         if model.not_carried
         else ""
     )
+    corrections = (
+        "<p>Undone on the recording at their discovered values by <code>kincal calibrate "
+        f"--model findings.json</code> (not by these options): {e(', '.join(model.corrections))}"
+        "</p>"
+        if model.corrections
+        else ""
+    )
     return (
         "<p>Options for <code>POST /api/v1/calibrations</code> (or <code>kincal calibrate</code>)"
-        f" that carry the discovered model:</p><pre>{e(lines)}</pre>{carried}"
+        f" that carry the discovered model:</p><pre>{e(lines)}</pre>{corrections}{carried}"
     )

@@ -16,6 +16,7 @@ from schemas.discovery import DiscoveryOptions, FindingsResult
 from service import discovery
 from service.api import create_app
 from service.client import KincalClient
+from service.discovery_html import render_discovery_report
 from service.worker import WORKER_NICENESS
 from tests.conftest import robot
 from tests.service.api.conftest import (
@@ -230,3 +231,12 @@ def test_jobs_run_at_a_lower_priority_than_the_request_loop(discovered: Discover
 
     expected = min(niceness("self") + WORKER_NICENESS, 19)
     assert all(niceness(pid) == expected for pid in pids)
+
+
+def test_report_names_what_only_kincal_calibrate_model_carries(discovered: Discovered) -> None:
+    findings = discovered.api.findings(discovered.id)
+    assert "Undone on the recording" not in discovered.api.discovery_report(discovered.id)
+    model = findings.model.model_copy(update={"corrections": ["gear_periodic (h2) on <j3>"]})
+    html = render_discovery_report(findings.model_copy(update={"model": model}), {})
+    assert "kincal calibrate --model findings.json" in html
+    assert "gear_periodic (h2) on &lt;j3&gt;" in html  # escaped
