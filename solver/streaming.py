@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import functools
 import operator
+import threading
 import time
 import uuid
 from collections import OrderedDict
@@ -148,7 +149,10 @@ def row_ranges(n_rows: int, chunk_rows: int) -> tuple[tuple[int, int], ...]:
 
 @dataclass(frozen=True, eq=False)
 class ArrayChunks:
-    """A :data:`ChunkLoader` over arrays already in memory; references are ``(start, stop)``."""
+    """A :data:`ChunkLoader` over arrays already in memory; references are ``(start, stop)``.
+
+    It carries the arrays, so other processes receive all of them with every pass: for tests
+    and small data; large recordings go through a file loader."""
 
     joint_positions: FloatArray
     position_m: FloatArray
@@ -223,31 +227,35 @@ class _Block:
 _PREPARED: OrderedDict[tuple[str, Any], list[_Block]] = OrderedDict()
 _MASKS: dict[tuple[str, Any, str], list[BoolArray]] = {}
 _GRAVITY: dict[str, StaticGravityModel] = {}
+_LOCK = threading.Lock()  # Dask may run several tasks of one process in threads
 
 
 def forget(token: str) -> None:
     """Drop this process's caches of the problem ``token`` (call on every worker when done)."""
-    for key in [k for k in _PREPARED if k[0] == token]:
-        del _PREPARED[key]
-    for mask_key in [k for k in _MASKS if k[0] == token]:
-        del _MASKS[mask_key]
-    _GRAVITY.pop(token, None)
+    with _LOCK:
+        for key in [k for k in _PREPARED if k[0] == token]:
+            del _PREPARED[key]
+        for mask_key in [k for k in _MASKS if k[0] == token]:
+            del _MASKS[mask_key]
+        _GRAVITY.pop(token, None)
 
 
 def _gravity(problem: StreamProblem) -> StaticGravityModel:
-    model = _GRAVITY.get(problem.token)
-    if model is None:
-        model = _GRAVITY[problem.token] = StaticGravityModel.from_chain(problem.chain)
-    return model
+    with _LOCK:
+        model = _GRAVITY.get(problem.token)
+        if model is None:
+            model = _GRAVITY[problem.token] = StaticGravityModel.from_chain(problem.chain)
+        return model
 
 
 def _prepare(problem: StreamProblem, ref: Any) -> list[_Block]:
     """Load a chunk and prepare its blocks (from this process's cache when possible)."""
     key = (problem.token, ref)
-    cached = _PREPARED.get(key)
-    if cached is not None:
-        _PREPARED.move_to_end(key)
-        return cached
+    with _LOCK:
+        cached = _PREPARED.get(key)
+        if cached is not None:
+            _PREPARED.move_to_end(key)
+            return cached
     chunk = problem.load(ref)
     gravity = _gravity(problem)
     blocks = []
@@ -265,11 +273,12 @@ def _prepare(problem: StreamProblem, ref: Any) -> list[_Block]:
         blocks.append(_Block(chunk.first_row + a, motions, loads, rotation, translation))
     size = sum(block.nbytes for block in blocks)
     if size <= problem.cache_bytes:
-        _PREPARED[key] = blocks
-        held = sum(block.nbytes for value in _PREPARED.values() for block in value)
-        while held > problem.cache_bytes and len(_PREPARED) > 1:
-            _, dropped = _PREPARED.popitem(last=False)
-            held -= sum(block.nbytes for block in dropped)
+        with _LOCK:
+            _PREPARED[key] = blocks
+            held = sum(block.nbytes for value in _PREPARED.values() for block in value)
+            while held > problem.cache_bytes and len(_PREPARED) > 1:
+                _, dropped = _PREPARED.popitem(last=False)
+                held -= sum(block.nbytes for block in dropped)
     return blocks
 
 
@@ -395,13 +404,15 @@ def _used(problem: StreamProblem, rule: OutlierRule | None, ref: Any, index: int
     if rule is None:
         return np.ones(blocks[index].n, dtype=bool)
     key = (problem.token, ref, rule.token)
-    masks = _MASKS.get(key)
+    with _LOCK:
+        masks = _MASKS.get(key)
     if masks is None:
         masks = [
             rule_mask(problem, rule, b.motions, b.loads_nm, b.rotation, b.translation)
             for b in blocks
         ]
-        _MASKS[key] = masks
+        with _LOCK:
+            _MASKS[key] = masks
     return masks[index]
 
 

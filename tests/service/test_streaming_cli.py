@@ -110,3 +110,14 @@ def test_dask_address_with_another_executor_is_one_clear_error(
     args += ["--dask", "tcp://127.0.0.1:1", "-o", str(tmp_path / "x.json")]
     code, _, err = run(args, capsys, monkeypatch)
     assert code == 2 and err.count("\n") == 1 and "--dask needs --executor dask" in err
+
+
+def test_executor_flags_pick_the_backend() -> None:
+    from solver.errors import KincalError
+
+    with cli._executor(None, None, None) as executor:
+        assert executor.name == "inprocess"
+    with pytest.raises(KincalError, match="choose one of inprocess, processes, dask"):
+        cli._executor("threads", None, None)
+    with pytest.raises(KincalError, match="--dask needs --executor dask"):
+        cli._executor("inprocess", "tcp://127.0.0.1:1", None)
