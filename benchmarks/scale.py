@@ -7,8 +7,9 @@ read → deterministic (first fit, 2σ rule, refit, "before" fit) → covariance
 Eq. 13–14) — in a fresh process, so that peak memory is that run's: wall time per stage, peak
 resident memory of the driver and of the largest worker (VmHWM), CPU seconds of all its
 processes (on a machine shared with other work, CPU time / cores is what an idle machine would
-take), the number of passes over the data. The scaling exponent is the log-log slope of time
-(and memory) against N over N ≥ 10⁴.
+take), the number of passes over the data. The scaling exponents are log-log slopes of time
+and memory against N, over N ≥ 10⁴ and over the top decade; fixed costs (worker start, warm
+start) flatten them, so the table also fits CPU time = a + b·N (linear with an intercept).
 Then a fleet of robots (one Parquet file each) is calibrated by ``kincal fleet``'s code on each
 backend.
 
@@ -251,18 +252,29 @@ def table(runs: list[Run], fleets: list[FleetRun]) -> str:
             f"{r.total_s:>8.2f} {r.cpu_s:>7.1f} {r.driver_mib:>11.0f} {r.worker_mib:>11.0f} "
             f"{r.passes:>7}"
         )
-    lines += ["", "scaling exponents (log-log slope over N >= 1e4): time, peak memory"]
+    for smallest in (10_000, 100_000):
+        lines += ["", f"scaling exponents (log-log slopes over N >= {smallest:.0e})"]
+        for backend in dict.fromkeys(r.backend for r in runs):
+            mine = [r for r in runs if r.backend == backend and r.n >= smallest]
+            if len(mine) >= 2:
+                n = [r.n for r in mine]
+                memory = [max(r.driver_mib, r.worker_mib) for r in mine]
+                stages = ", ".join(
+                    f"{s} {slope(n, [max(r.stage_s[s], 1e-3) for r in mine]):.2f}" for s in STAGES
+                )
+                lines.append(
+                    f"{backend:<10} wall {slope(n, [r.total_s for r in mine]):.2f} "
+                    f"({stages}), CPU {slope(n, [r.cpu_s for r in mine]):.2f}, "
+                    f"peak memory {slope(n, memory):.2f}"
+                )
+    lines += ["", "CPU time = a + b·N (least squares over N >= 1e4)"]
     for backend in dict.fromkeys(r.backend for r in runs):
         mine = [r for r in runs if r.backend == backend and r.n >= 10_000]
         if len(mine) >= 2:
-            n = [r.n for r in mine]
-            memory = [max(r.driver_mib, r.worker_mib) for r in mine]
+            b, a = np.polyfit([r.n for r in mine], [r.cpu_s for r in mine], 1)
             lines.append(
-                f"{backend:<10} time {slope(n, [r.total_s for r in mine]):.2f}, "
-                + ", ".join(
-                    f"{s} {slope(n, [max(r.stage_s[s], 1e-3) for r in mine]):.2f}" for s in STAGES
-                )
-                + f"; memory {slope(n, memory):.2f}"
+                f"{backend:<10} a = {a:.1f} s, b = {b * 1e6:.1f} µs per pose "
+                f"({b * 1e6:.1f} CPU-s per 10⁶ poses)"
             )
     if fleets:
         lines += [
