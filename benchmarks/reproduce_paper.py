@@ -33,6 +33,14 @@ The study, with everything random seeded:
 * **Table III.** Per run, Pearson and Spearman correlation between each score and the observed
   error over the 10 configurations.
 
+* **Protocol variant: the camera noise measured separately (§V-B).** The paper measured Σ_n on
+  5 static configurations × 10 detections, only to validate the calibrated Σ_n. The variant
+  simulates that experiment on the true robot (one ξ draw per standing configuration, fresh
+  camera noise and detector failures per detection; :func:`measure_camera_noise`), gives the
+  measured Σ_n to the product's calibration as known (``noise_std``; also the full sample
+  covariance via ``noise_covariance`` and, as a limit, the true Σ_n) and re-scores the same
+  candidates; reported next to the default, which stays the product's behaviour.
+
 Acceptance (issue 4): ours reduces the mean task error by at least 80 % of the oracle's
 reduction, and our score correlates with the observed error better than the GP's. Both are
 judged on 95 % bootstrap intervals ("met" only if the whole interval clears the bar).
@@ -87,6 +95,7 @@ from solver.simulate import simulate_recording
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
 
 BACKLASH_STD_RAD = (3.0e-4, 1.5e-3)
 """σ of the rotation about the joint axis, first and last joint frame (linear in between)."""
@@ -99,6 +108,11 @@ LABELS = {"ours": "Ours", "gp": "GP [13]", "oracle": "Oracle (true Σ)"}
 PAPER_RUNS = 10
 MIN_REDUCTION_SHARE = 0.8
 MAX_TARGET_ATTEMPTS = 50
+NOISE_CONFIGURATIONS = 5
+NOISE_DETECTIONS = 10
+"""Paper §V-B: the camera noise measured on 5 static configurations × 10 detections."""
+NOISE_SCREEN_MAD = 5.0
+"""Detections beyond this many robust σ in any component are detector failures (§V-B)."""
 XY_METRIC = TaskMetric.pose_weights((1.0, 1.0, 0.0, 0.0, 0.0, 0.0))
 """diag Σ_E x + y: the true x-y variance of the end effector (diagnostics only)."""
 
@@ -195,6 +209,8 @@ class TrueRobot:
     perturbation_std: FloatArray
     noise_std: FloatArray
     gravity_base: FloatArray
+    outlier_fraction: float = 0.0
+    outlier_size: tuple[float, float] = (0.0, 0.0)  # translation m, rotation rad
 
     def loads(self, joint_positions: FloatArray) -> FloatArray:
         return gravity_loads(self.chain, joint_positions, gravity_base=self.gravity_base)
@@ -215,6 +231,32 @@ class TrueRobot:
         xi = rng.normal(size=(q.shape[0], k, 6)) * self.perturbation_std
         pose = forward_kinematics(self.chain, self.params, q, self.loads(q), perturbations=xi)
         return pose.reshape(m, n_executions, 4, 4)
+
+    def detect_static(
+        self, joint_positions: FloatArray, n_detections: int, rng: np.random.Generator
+    ) -> tuple[FloatArray, BoolArray]:
+        """Camera detections (M, n_detections, 4, 4) of the marker while each of the M
+        configurations (M, k) rad stands still, and which detections are gross errors (M, n).
+
+        The arm does not move between the detections of one configuration, so one ξ_i draw per
+        configuration (Eq. 7) and fresh camera noise ε per detection; the detector fails
+        (a gross error as in the recording) with ``outlier_fraction`` per detection.
+        """
+        m, k = joint_positions.shape
+        xi = rng.normal(size=(m, k, 6)) * self.perturbation_std
+        loads = self.loads(joint_positions)
+        static = forward_kinematics(
+            self.chain, self.params, joint_positions, loads, perturbations=xi
+        )
+        noise = rng.normal(size=(m, n_detections, 6)) * self.noise_std
+        detected = static[:, None] @ lie.se3_exp(noise)
+        gross = rng.random((m, n_detections)) < self.outlier_fraction
+        directions = rng.normal(size=(int(gross.sum()), 2, 3))
+        directions /= np.linalg.norm(directions, axis=2, keepdims=True)
+        size = np.repeat(np.asarray(self.outlier_size, dtype=float), 3)
+        twist = directions.reshape(-1, 6) * size
+        detected[gross] = detected[gross] @ lie.se3_exp(twist)
+        return detected, gross
 
     def effects(self) -> RandomEffects:
         return RandomEffects.from_std(self.perturbation_std, self.noise_std)
@@ -259,6 +301,8 @@ def simulate_study_recording(settings: StudySettings, seed: int | None = None) -
         perturbation_std=recording.perturbation_sigma,
         noise_std=recording.noise_sigma,
         gravity_base=np.asarray(spec.gravity_base, dtype=float),
+        outlier_fraction=spec.outlier_fraction,
+        outlier_size=(spec.outlier_translation_m, spec.outlier_rotation_rad),
     )
     dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
     return Recording(seed, robot, dataset, true_robot, recording.outliers)
@@ -694,7 +738,8 @@ def ablation_models(
 
     The paper's estimator (moment matching solved by PGD, Eq. 14–15) on the same data; the
     product's estimator on larger recordings of the same true robot; and the true Σ on the
-    calibrated geometry (what a perfect covariance calibration would give).
+    calibrated geometry (what a perfect covariance calibration would give). The product's
+    estimator told Σ_n is the known-noise variant (:class:`KnownNoise`).
     """
     recording, result = first.recording, first.result
     options = calibration_options(recording, settings, heldout=False)
@@ -725,6 +770,130 @@ def ablation_models(
     return models
 
 
+# --- protocol variant: the camera noise measured separately (paper §V-B) ----------------------
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class NoiseExperiment:
+    """Paper §V-B on the true robot: ``NOISE_CONFIGURATIONS`` static configurations, each seen
+    ``NOISE_DETECTIONS`` times.
+
+    ``deviations`` (M, n, 6): each detection's pose in the end-effector frame of its
+    configuration's mean detection, [v; w] m and rad, minus the configuration's mean over the
+    kept detections; ``kept`` (M, n): not screened as a gross detector error; ``gross`` (M, n):
+    the simulated gross errors (truth, for the report); ``covariance`` (6, 6): the sample
+    covariance of the kept deviations (degrees of freedom: kept detections minus one mean per
+    configuration).
+    """
+
+    joint_positions: FloatArray
+    deviations: FloatArray
+    kept: BoolArray
+    gross: BoolArray
+    covariance: FloatArray
+
+    @property
+    def std(self) -> FloatArray:
+        """σ per pose component (6,), m and rad: what the paper reports and what the
+        calibration is told (``noise_std``, the paper's diagonal model)."""
+        return np.asarray(np.sqrt(np.diag(self.covariance)), dtype=float)
+
+
+def _ee_deviations(detected: FloatArray, reference: FloatArray) -> FloatArray:
+    """Log(X_reference^-1 · X_detected) (M, n, 6): detections (M, n, 4, 4) in the end-effector
+    frame of a per-configuration reference (M, 4, 4) (DESIGN.md §2 residual convention)."""
+    return np.asarray(lie.se3_log(lie.inverse(reference)[:, None] @ detected), dtype=float)
+
+
+def measure_camera_noise(robot: TrueRobot, seed: int) -> NoiseExperiment:
+    """Σ_n as the paper measured it (§V-B): subtract each configuration's mean detection,
+    then the sample covariance of the pose components over all detections.
+
+    The paper does not mention detector failures in this experiment; the simulated detector
+    fails as often as in the recording, and a failure (10 deg / 5 mm) is 30–50 σ away, so the
+    detections beyond ``NOISE_SCREEN_MAD`` robust σ (1.4826 · median absolute deviation from
+    the configuration's median, per component) are screened first. The reference pose is the
+    configuration's component-wise median detection, which a failure cannot drag.
+    """
+    rng = np.random.default_rng([seed, 3])
+    q = sample_configurations(robot.chain, NOISE_CONFIGURATIONS, rng)
+    detected, gross = robot.detect_static(q, NOISE_DETECTIONS, rng)
+    first = detected[:, 0]
+    median = np.median(_ee_deviations(detected, first), axis=1)
+    reference = first @ lie.se3_exp(median)
+    deviation = _ee_deviations(detected, reference)
+    centred = deviation - np.median(deviation, axis=1, keepdims=True)
+    robust_std = 1.4826 * np.median(np.abs(centred).reshape(-1, 6), axis=0)
+    kept = np.all(np.abs(centred) <= NOISE_SCREEN_MAD * robust_std, axis=2)
+    counts = kept.sum(axis=1)
+    mean = (deviation * kept[..., None]).sum(axis=1) / np.maximum(counts, 1)[:, None]
+    deviations = deviation - mean[:, None]
+    used = deviations[kept]
+    dof = used.shape[0] - int(np.count_nonzero(counts))
+    return NoiseExperiment(q, deviations, kept, gross, used.T @ used / dof)
+
+
+KNOWN_NOISE_VARIANTS = {
+    "measured": "the measured σ per pose component (the paper's §V-B numbers; `noise_std`)",
+    "measured_full": "the measured full sample covariance (`noise_covariance`)",
+    "true": "the true Σ_n (the limit of a perfect noise experiment)",
+}
+"""How the calibration is told Σ_n; "measured" is the protocol variant, the others bound it."""
+
+
+def known_noise_options(
+    recording: Recording, experiment: NoiseExperiment, settings: StudySettings, variant: str
+) -> CalibrationOptions:
+    """The product's calibration options with Σ_n known (``KNOWN_NOISE_VARIANTS``)."""
+    known: dict[str, object] = {
+        "measured": {"noise_std": tuple(float(v) for v in experiment.std)},
+        "measured_full": {"noise_covariance": experiment.covariance.tolist()},
+        "true": {"noise_std": tuple(float(v) for v in recording.true_robot.noise_std)},
+    }[variant]
+    options = calibration_options(recording, settings, heldout=False).model_dump()
+    return CalibrationOptions.model_validate({**options, **known})
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class KnownNoise:
+    """The protocol variant: per recording the noise experiment, and per way of telling the
+    calibration its Σ_n (``KNOWN_NOISE_VARIANTS``) the results and the comparisons of their
+    scores in place of "ours" on the same candidates and executions (``per_recording[v]``,
+    ``pooled[v]`` as in :class:`StudyResult`)."""
+
+    experiments: tuple[NoiseExperiment, ...]
+    results: dict[str, tuple[CalibrationResult, ...]]
+    per_recording: dict[str, tuple[Comparison, ...]]
+    pooled: dict[str, Comparison]
+
+
+def known_noise_variant(
+    recordings: Sequence[RecordingStudy], settings: StudySettings, metric: TaskMetric
+) -> KnownNoise:
+    """Measure Σ_n, calibrate with it (each variant) and re-score every recording's runs."""
+    experiments = [
+        measure_camera_noise(study.recording.true_robot, study.recording.seed)
+        for study in recordings
+    ]
+    results: dict[str, tuple[CalibrationResult, ...]] = {}
+    per_recording: dict[str, tuple[Comparison, ...]] = {}
+    pooled: dict[str, Comparison] = {}
+    for variant in KNOWN_NOISE_VARIANTS:
+        calibrated, runs = [], []
+        for study, experiment in zip(recordings, experiments, strict=True):
+            options = known_noise_options(study.recording, experiment, settings, variant)
+            result = pipeline.calibrate(study.recording.dataset, study.recording.robot, options)
+            calibrated.append(result)
+            runs.append(rescored(study.runs, service_ranking.uncertainty_model(result), metric))
+        flat = [run for group in runs for run in group]
+        results[variant] = tuple(calibrated)
+        per_recording[variant] = tuple(compare(r, bootstrap=settings.bootstrap) for r in runs)
+        pooled[variant] = compare(
+            flat, bootstrap=settings.bootstrap, groups=[run.recording for run in flat]
+        )
+    return KnownNoise(tuple(experiments), results, per_recording, pooled)
+
+
 # --- the study ---------------------------------------------------------------------------------
 
 
@@ -748,6 +917,7 @@ class StudyResult:
     per_recording: tuple[Comparison, ...]
     pooled: Comparison  # all runs, two-level bootstrap: the verdicts
     ablations: tuple[Ablation, ...]
+    known_noise: KnownNoise  # protocol variant: Σ_n measured separately (paper §V-B)
     timings_s: dict[str, float]
 
     @property
@@ -814,6 +984,8 @@ def run_study(
         for label, model in models.items()
     )
     lap("ablations")
+    known_noise = known_noise_variant(recordings, settings, metric)
+    lap("known-noise variant (noise experiment, calibration, re-scoring)")
     runs = [run for study in recordings for run in study.runs]
     return StudyResult(
         settings=settings,
@@ -825,6 +997,7 @@ def run_study(
         per_recording=tuple(compare(s.runs, bootstrap=settings.bootstrap) for s in recordings),
         pooled=compare(runs, bootstrap=settings.bootstrap, groups=[run.recording for run in runs]),
         ablations=ablations,
+        known_noise=known_noise,
         timings_s=clock,
     )
 
@@ -951,16 +1124,89 @@ def table_ii_markdown(table: TableII) -> str:
     return _table(header, rows)
 
 
-def sigma_markdown(study: StudyResult) -> str:
-    """Calibrated (true) σ per frame: mm for x, y, z; mrad for roll, pitch, yaw."""
+def sigma_markdown(
+    study: StudyResult, sigma: FloatArray | None = None, noise_label: str = "camera noise"
+) -> str:
+    """Calibrated (true) σ per frame: mm for x, y, z; mrad for roll, pitch, yaw; ``sigma``
+    (k + 1, 6) defaults to the product default's on all kept samples of the first recording."""
+    sigma = study.sigma_full if sigma is None else sigma
     robot = study.first.recording.true_robot
     true = np.vstack([robot.perturbation_std, robot.noise_std])
-    names = [*robot.chain.joint_names, "camera noise"]
+    names = [*robot.chain.joint_names, noise_label]
     header = ["frame", "x mm", "y mm", "z mm", "roll mrad", "pitch mrad", "yaw mrad"]
     rows = [
-        [name, *(f"{1e3 * study.sigma_full[f, c]:.2f} ({1e3 * true[f, c]:.2f})" for c in range(6))]
+        [name, *(f"{1e3 * sigma[f, c]:.2f} ({1e3 * true[f, c]:.2f})" for c in range(6))]
         for f, name in enumerate(names)
     ]
+    return _table(header, rows)
+
+
+def noise_experiment_markdown(study: StudyResult) -> str:
+    """Per recording: the noise experiment's detections and its σ per component."""
+    header = [
+        "recording",
+        "detections kept",
+        "gross errors drawn / screened",
+        "good detections screened",
+        "x mm",
+        "y mm",
+        "z mm",
+        "roll mrad",
+        "pitch mrad",
+        "yaw mrad",
+    ]
+    rows = []
+    for s, e in zip(study.recordings, study.known_noise.experiments, strict=True):
+        rows.append(
+            [
+                str(s.recording.seed),
+                f"{int(e.kept.sum())} of {e.kept.size}",
+                f"{int(e.gross.sum())} / {int((e.gross & ~e.kept).sum())}",
+                str(int((~e.gross & ~e.kept).sum())),
+                *(f"{1e3 * v:.2f}" for v in e.std),
+            ]
+        )
+    true = study.first.recording.true_robot.noise_std
+    rows.append(["true", "–", "–", "–", *(f"{1e3 * v:.2f}" for v in true)])
+    return _table(header, rows)
+
+
+def known_noise_markdown(study: StudyResult) -> str:
+    """Per recording and pooled: share of the oracle's reduction, the default and every way of
+    giving Σ_n (``KNOWN_NOISE_VARIANTS``), and the measured variant's reduction."""
+    variant = study.known_noise
+    header = [
+        "recording",
+        "runs",
+        "oracle reduction",
+        "default: share",
+        "Σ_n measured: reduction",
+        "Σ_n measured: share",
+        "full: share",
+        "Σ_n true: share",
+    ]
+    items: list[tuple[str, int | None, Comparison]] = [
+        (str(s.recording.seed), i, study.per_recording[i]) for i, s in enumerate(study.recordings)
+    ]
+    if len(study.recordings) > 1:
+        items.append(("**all (two-level bootstrap)**", None, study.pooled))
+    rows = []
+    for name, i, default in items:
+        known = {
+            v: (variant.pooled[v] if i is None else variant.per_recording[v][i])
+            for v in KNOWN_NOISE_VARIANTS
+        }
+        o, m = default.selections["oracle"], known["measured"].selections["ours"]
+        rows.append(
+            [
+                name,
+                str(default.n_runs),
+                f"{o.reduction_pct:.1f} % {_ci(o.reduction_ci)}",
+                _recording_share(default),
+                f"{m.reduction_pct:.1f} % {_ci(m.reduction_ci)}",
+                *(_recording_share(known[v]) for v in KNOWN_NOISE_VARIANTS),
+            ]
+        )
     return _table(header, rows)
 
 
@@ -1164,6 +1410,107 @@ def diagnostics(runs: Sequence[ApproachRun]) -> Diagnostics:
     )
 
 
+def _sigma_pair_markdown(study: StudyResult, first: FloatArray, second: FloatArray) -> str:
+    """σ per frame "first / second (true)": mm for x, y, z; mrad for roll, pitch, yaw."""
+    robot = study.first.recording.true_robot
+    true = np.vstack([robot.perturbation_std, robot.noise_std])
+    names = [*robot.chain.joint_names, "camera noise (given)"]
+    header = ["frame", "x mm", "y mm", "z mm", "roll mrad", "pitch mrad", "yaw mrad"]
+    rows = [
+        [
+            name,
+            *(
+                f"{1e3 * first[f, c]:.2f} / {1e3 * second[f, c]:.2f} ({1e3 * true[f, c]:.2f})"
+                for c in range(6)
+            ),
+        ]
+        for f, name in enumerate(names)
+    ]
+    return _table(header, rows)
+
+
+def known_noise_section(study: StudyResult) -> list[str]:
+    """Report lines of the protocol variant (Σ_n measured separately)."""
+    s, first = study.settings, study.first
+    variant = study.known_noise
+    robot = first.recording.true_robot
+    dof = float(np.mean([e.kept.sum() - np.any(e.kept, axis=1).sum() for e in variant.experiments]))
+    rotation_noise = float(np.mean(robot.noise_std[3:]))
+    variance_error = float(np.sqrt(2 / dof) * (1e3 * rotation_noise) ** 2)
+    largest_joint = float((1e3 * robot.perturbation_std.max()) ** 2)
+    measured, exact = variant.pooled["measured"], variant.pooled["true"]
+    if exact.reduction_verdict == "met":
+        reading = (
+            "An exact Σ_n meets the bar, so the gap of the default is the camera noise's "
+            "confusion with the perturbations, and a larger noise experiment would close it."
+        )
+    else:
+        reading = (
+            "Even the exact Σ_n does not meet the bar pooled (per recording in the table): the "
+            "camera noise's confusion with the last joints is only part of the gap; the rest "
+            "is the sampling error of the joint covariances estimated from ~130 residuals "
+            "(see the larger recordings under *Where the gap to the oracle comes from*)."
+        )
+    return [
+        "## Protocol variant: camera noise measured separately (paper §V-B)",
+        "",
+        "Everything above is the product default: Σ_n is estimated together with the "
+        "perturbations from the recording. The paper also measured the camera noise "
+        f"separately ({NOISE_CONFIGURATIONS} configurations × {NOISE_DETECTIONS} AprilTag "
+        "detections, mean per configuration subtracted, σ per pose component), but only to "
+        "validate the calibrated Σ_n. This variant goes one step further and gives that "
+        "measured Σ_n to the calibration as known (`kincal calibrate --noise-std`, or the full "
+        "matrix with `--noise-covariance FILE`), so that only the perturbations are estimated; "
+        "everything else (recording, outlier removal, model, estimator, candidates, "
+        "executions, oracle) is the same as above, and the candidates of every run are "
+        "re-scored with the variant's covariances. It is not what the product does by "
+        "default and not what the paper did.",
+        "",
+        f"Simulated noise experiment per recording: {NOISE_CONFIGURATIONS} configurations of "
+        "the true robot, each standing still while the camera detects the marker "
+        f"{NOISE_DETECTIONS} times: one draw of the joint perturbations ξ per configuration "
+        "(the arm does not move), fresh camera noise per detection, and detector failures as "
+        "often as in the recording (the paper does not mention any; they are screened "
+        f"beforehand at {NOISE_SCREEN_MAD:.0f} robust σ, being 10 deg / 5 mm against "
+        "0.2 deg / 0.3 mm). Deviations in the end-effector frame of the configuration's "
+        "median detection, configuration mean subtracted; σ = √diag of their sample "
+        "covariance (degrees of freedom: kept detections − configurations):",
+        "",
+        noise_experiment_markdown(study),
+        "",
+        f"With {dof:.0f} degrees of freedom (mean over recordings) a measured σ_n is known "
+        f"to about ±{100 / np.sqrt(2 * dof):.0f} % and its variance to "
+        f"±{100 * np.sqrt(2 / dof):.0f} %: for the camera's rotation "
+        f"({1e3 * rotation_noise:.2f} mrad) that is ±{variance_error:.1f} mrad², against "
+        f"{largest_joint:.2f} mrad² for the largest joint perturbation "
+        f"({np.sqrt(largest_joint):.2f} mrad).",
+        "",
+        "σ per frame calibrated on all kept samples of recording "
+        f"{first.recording.seed}, with the measured Σ_n (σ per component) / with the true "
+        "Σ_n (true value in parentheses; compare the table of Fig. 4b):",
+        "",
+        _sigma_pair_markdown(
+            study,
+            covariance_std(variant.results["measured"][0]),
+            covariance_std(variant.results["true"][0]),
+        ),
+        "",
+        f"Manipulation experiment on the same {s.n_runs} runs per recording: share of the "
+        "oracle's reduction with the default and with Σ_n given to the calibration: "
+        f"*Σ_n measured* = {KNOWN_NOISE_VARIANTS['measured']}, the protocol variant; "
+        f"*full* = {KNOWN_NOISE_VARIANTS['measured_full']}; *Σ_n true* = "
+        f"{KNOWN_NOISE_VARIANTS['true']}. The oracle is the same; 95 % bootstrap intervals:",
+        "",
+        known_noise_markdown(study),
+        "",
+        f"Pooled share: default {_share(study.pooled.share_of_oracle, study.pooled.share_ci)}, "
+        f"Σ_n measured {_share(measured.share_of_oracle, measured.share_ci)}, Σ_n true "
+        f"{_share(exact.share_of_oracle, exact.share_ci)} ({measured.reduction_verdict} / "
+        f"{exact.reduction_verdict} for the 80 % bar). {reading}",
+        "",
+    ]
+
+
 def report_markdown(study: StudyResult, sigma_png: str, runs_png: str) -> str:
     """The whole report; figure links relative to the report's folder."""
     s, first, pooled = study.settings, study.first, study.pooled
@@ -1174,6 +1521,9 @@ def report_markdown(study: StudyResult, sigma_png: str, runs_png: str) -> str:
     estimator = covariance.estimator if covariance is not None else "none"
     d = diagnostics(first.runs)
     ours, oracle = pooled.selections["ours"], pooled.selections["oracle"]
+    variant = study.known_noise.pooled["measured"]
+    known = variant.selections["ours"]
+    variant_recordings = study.known_noise.per_recording["measured"]
     paper_width = float(np.subtract(*study.paper.selections["ours"].reduction_ci[::-1]))
     total_runs = pooled.n_runs
     seeds = ", ".join(str(r.recording.seed) for r in study.recordings)
@@ -1252,6 +1602,7 @@ def report_markdown(study: StudyResult, sigma_png: str, runs_png: str) -> str:
         "",
         table_iii_markdown(study),
         "",
+        *known_noise_section(study),
         "## Acceptance (issue 4)",
         "",
         f"- **Reduction ≥ 80 % of the oracle's:** ours {ours.reduction_pct:.1f} % "
@@ -1264,6 +1615,12 @@ def report_markdown(study: StudyResult, sigma_png: str, runs_png: str) -> str:
         f"r {ours.mean_pearson:.2f} vs {pooled.selections['gp'].mean_pearson:.2f}, gap "
         f"{pooled.pearson_gap:.2f} {_ci(pooled.pearson_gap_ci, digits=2)} → "
         f"**{pooled.correlation_verdict}**.",
+        f"- *Protocol variant, Σ_n measured separately (paper §V-B, not the product default):* "
+        f"reduction {known.reduction_pct:.1f} % {_ci(known.reduction_ci)}; share "
+        f"{_share(variant.share_of_oracle, variant.share_ci, 1)} → "
+        f"**{variant.reduction_verdict}** (on the random part: "
+        f"{_share(variant.random_share, variant.random_share_ci, 1)}). Per recording: "
+        f"{', '.join(_recording_share(c).split(' [')[0] for c in variant_recordings)}.",
         "",
         '"met" / "not met" need the whole 95 % interval (two-level bootstrap over recordings '
         'and runs) on one side of the bar; otherwise "not demonstrated".',
@@ -1319,7 +1676,7 @@ def headline(study: StudyResult) -> str:
     gp = "GP –"
     if "gp" in study.table.errors:
         gp = "GP {:.2f} / {:.2f}".format(*study.table.mean("gp"))
-    p = study.pooled
+    p, k = study.pooled, study.known_noise.pooled["measured"]
     return "\n".join(
         [
             f"Table II mean (mm / deg): before {before[0]:.2f} / {before[1]:.2f}, ours "
@@ -1334,6 +1691,9 @@ def headline(study: StudyResult) -> str:
             f"mean Pearson r: ours {p.selections['ours'].mean_pearson:.2f}, GP "
             f"{p.selections['gp'].mean_pearson:.2f}, gap {p.pearson_gap:.2f} "
             f"{_ci(p.pearson_gap_ci, digits=2)} ({p.correlation_verdict})",
+            f"variant with Σ_n measured separately (§V-B): share of the oracle's reduction "
+            f"{_share(k.share_of_oracle, k.share_ci)} ({k.reduction_verdict}); random part "
+            f"{_share(k.random_share, k.random_share_ci)}",
         ]
     )
 

@@ -8,9 +8,11 @@ else.
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 RESULT_FORMAT: Literal["kincal.calibration/1"] = "kincal.calibration/1"
 
@@ -75,6 +77,45 @@ class CalibrationOptions(_Model):
         description="Known measurement-noise standard deviations (x,y,z m; rx,ry,rz rad) in the "
         "end-effector frame; None = estimate Σ_n with the rest.",
     )
+    noise_covariance: Matrix6 | None = Field(
+        None,
+        description="Known measurement-noise covariance Σ_n (6×6, [v; w] in the end-effector "
+        "frame, m², m·rad, rad²), e.g. the sample covariance of repeated detections of a "
+        "static marker (paper §V-B); symmetric positive semidefinite. Not together with "
+        "noise_std; None = estimate Σ_n with the rest.",
+    )
+
+    @field_validator("noise_std")
+    @classmethod
+    def _noise_std_valid(cls, value: Vector6 | None) -> Vector6 | None:
+        if value is not None and not all(math.isfinite(v) and v >= 0.0 for v in value):
+            raise ValueError(f"standard deviations must be finite and >= 0, got {list(value)}")
+        return value
+
+    @field_validator("noise_covariance")
+    @classmethod
+    def _noise_covariance_valid(
+        cls, value: list[list[float]] | None, info: ValidationInfo
+    ) -> list[list[float]] | None:
+        if value is None:
+            return None
+        if info.data.get("noise_std") is not None:
+            raise ValueError("give noise_std or noise_covariance, not both")
+        if any(len(row) != 6 for row in value):
+            raise ValueError("must be 6×6 (six rows of six numbers)")
+        matrix = np.array(value, dtype=float)
+        if not np.all(np.isfinite(matrix)):
+            raise ValueError("entries must be finite")
+        scale = max(float(np.abs(matrix).max()), np.finfo(float).tiny)
+        unit = matrix / scale  # relative tolerances, and no overflow for huge entries
+        if np.abs(unit - unit.T).max() > 1e-9:
+            raise ValueError("must be symmetric")
+        smallest = float(np.linalg.eigvalsh(unit).min())
+        if smallest < -1e-9:
+            raise ValueError(
+                f"must be positive semidefinite (smallest eigenvalue {smallest * scale:.3g})"
+            )
+        return value
 
 
 class Transform(_Model):

@@ -103,6 +103,19 @@ def read_result(path: Path) -> CalibrationResult:
         ) from exc
 
 
+def read_noise_covariance(path: Path) -> object:
+    """The JSON of ``--noise-covariance`` (checked by :class:`CalibrationOptions`), with a
+    one-line error if it cannot be read."""
+    try:
+        return json.loads(path.read_bytes())
+    except OSError as exc:
+        raise KincalError(f"cannot read noise covariance {path}: {exc.strerror}") from exc
+    except ValueError as exc:
+        raise KincalError(
+            f"{path} is not JSON ({exc}); --noise-covariance takes a 6×6 JSON array"
+        ) from exc
+
+
 def read_findings(path: Path) -> FindingsResult:
     """Load a findings JSON written by ``kincal discover``, with a one-line error otherwise."""
     from schemas.discovery import FindingsResult
@@ -217,6 +230,14 @@ def calibrate(
             "default: estimated."
         ),
     ] = None,
+    noise_covariance: Annotated[
+        Path | None,
+        typer.Option(
+            help="JSON file with the known measurement-noise covariance: a 6×6 array, [v; w] "
+            "in the EE frame, m², m·rad, rad² (e.g. measured on repeated detections of a "
+            "static marker); instead of --noise-std. Default: estimated."
+        ),
+    ] = None,
     export_urdf_to: Annotated[
         Path | None, typer.Option("--export-urdf", help="Also write the calibrated URDF.")
     ] = None,
@@ -286,6 +307,9 @@ def calibrate(
         covariance_estimator=estimator,
         covariance_frames=_names(covariance_frames),
         noise_std=None if noise_std is None else tuple(numbers(noise_std, "--noise-std", 6)),
+        noise_covariance=None
+        if noise_covariance is None
+        else read_noise_covariance(noise_covariance),
     )
     if executor is not None or dask is not None or chunk_rows is not None:
         if carried is not None and carried.corrections:
@@ -323,7 +347,8 @@ def _options(**values: object) -> CalibrationOptions:
         return CalibrationOptions(**values)  # type: ignore[arg-type]
     except pydantic.ValidationError as exc:
         first = exc.errors()[0]
-        raise KincalError(f"option {first['loc'][0]}: {first['msg']}") from exc
+        where = ".".join(str(p) for p in first["loc"]) or "options"
+        raise KincalError(f"option {where}: {first['msg']}") from exc
 
 
 @app.command()

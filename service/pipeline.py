@@ -331,7 +331,10 @@ def _covariance_frames(
 
 
 def _known_noise(options: CalibrationOptions) -> FloatArray | None:
-    """The known measurement-noise covariance (6, 6) from ``noise_std``, or None."""
+    """The known measurement-noise covariance (6, 6) from ``noise_covariance`` or
+    ``noise_std`` (validated exclusive by the schema), or None."""
+    if options.noise_covariance is not None:
+        return np.array(options.noise_covariance, dtype=float)
     if options.noise_std is None:
         return None
     return np.diag(np.square(np.asarray(options.noise_std, dtype=float)))

@@ -4,14 +4,17 @@ known random perturbations -> result JSON -> predicted EE covariance (Eq. 12) vs
 from __future__ import annotations
 
 import functools
+import json
 import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pydantic
 import pytest
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.dataset import write_dataset
 from service import cli, pipeline, ranking, scenarios
 from solver.errors import KincalError
 from solver.kinematics import evaluate_chain
@@ -108,6 +111,52 @@ def test_unknown_covariance_frame_is_a_clear_error() -> None:
         pipeline.calibrate(dataset, robot("kinova"), options)
 
 
+# A camera noise with correlated translation and rotation (depth vs tilt), m², m·rad, rad².
+_NOISE_STD = np.array([3e-4, 3e-4, 5e-4, 3e-3, 3e-3, 1e-3])
+_NOISE_CORRELATION = np.eye(6)
+_NOISE_CORRELATION[2, 3] = _NOISE_CORRELATION[3, 2] = 0.6
+MEASURED_NOISE = (_NOISE_STD[:, None] * _NOISE_CORRELATION * _NOISE_STD[None, :]).tolist()
+
+
+def test_known_noise_covariance_is_used_as_given() -> None:
+    """noise_covariance (e.g. measured on a static marker, paper §V-B) is Σ_n of the result as
+    given, off-diagonal included; a diagonal one calibrates exactly like noise_std."""
+    _, recording, dataset = _simulated(200)
+    base = CalibrationOptions(heldout=False, outlier_sigma=None)
+    full = pipeline.calibrate(
+        dataset, robot("kinova"), base.model_copy(update={"noise_covariance": MEASURED_NOISE})
+    )
+    assert full.covariance is not None and full.options.noise_covariance == MEASURED_NOISE
+    np.testing.assert_array_equal(full.covariance.noise.matrix, MEASURED_NOISE)
+    std = tuple(float(v) for v in recording.noise_sigma)
+    by_std = pipeline.calibrate(
+        dataset, robot("kinova"), base.model_copy(update={"noise_std": std})
+    )
+    diagonal = np.diag(np.square(std)).tolist()
+    by_matrix = pipeline.calibrate(
+        dataset, robot("kinova"), base.model_copy(update={"noise_covariance": diagonal})
+    )
+    assert by_std.covariance is not None and by_matrix.covariance is not None
+    for a, b in zip(by_std.covariance.frames, by_matrix.covariance.frames, strict=True):
+        np.testing.assert_array_equal(a.matrix, b.matrix)
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"noise_std": (1e-4, 1e-4, -1e-4, 0.0, 0.0, 0.0)}, "finite and >= 0"),
+        ({"noise_covariance": [[1.0] * 5] * 6}, "must be 6×6"),
+        ({"noise_covariance": [[1.0, 0.1, 0, 0, 0, 0], *np.eye(6)[1:].tolist()]}, "symmetric"),
+        ({"noise_covariance": (-np.eye(6)).tolist()}, "positive semidefinite"),
+        ({"noise_covariance": np.full((6, 6), np.inf).tolist()}, "finite"),
+        ({"noise_std": (0.0,) * 6, "noise_covariance": np.eye(6).tolist()}, "not both"),
+    ],
+)
+def test_invalid_known_noise_is_refused(options: dict[str, object], message: str) -> None:
+    with pytest.raises(pydantic.ValidationError, match=message):
+        CalibrationOptions(**options)  # type: ignore[arg-type]
+
+
 def _run(args: list[str], capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch):  # type: ignore[no-untyped-def]
     monkeypatch.setattr(sys, "argv", ["kincal", *args])
     try:
@@ -175,6 +224,21 @@ def test_cli_calibrate_and_predict_covariance_columns(
     np.testing.assert_allclose(a, np.transpose(a, (0, 2, 1)), atol=1e-18)
 
 
+def test_cli_calibrate_with_a_measured_noise_covariance(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _, _, dataset = _simulated(200)
+    data, noise, out = tmp_path / "data.csv", tmp_path / "noise.json", tmp_path / "result.json"
+    write_dataset(dataset, data)
+    noise.write_text(json.dumps(MEASURED_NOISE))
+    args = ["calibrate", str(data), "--robot", "kinova", "--no-heldout", "-o", str(out)]
+    code, _, stderr = _run([*args, "--noise-covariance", str(noise)], capsys, monkeypatch)
+    assert code == 0, stderr
+    result = CalibrationResult.model_validate_json(out.read_text())
+    assert result.covariance is not None and result.options.noise_covariance == MEASURED_NOISE
+    np.testing.assert_array_equal(result.covariance.noise.matrix, MEASURED_NOISE)
+
+
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
@@ -182,6 +246,11 @@ def test_cli_calibrate_and_predict_covariance_columns(
         (["--solver", "adam"], "covariance_solver"),
         (["--covariance", "full", "--solver", "nnls"], "nnls"),
         (["--noise-std", "1,2"], "--noise-std takes 6 comma-separated numbers"),
+        (["--noise-std", "0,0,0,-1,0,0"], "option noise_std: Value error, standard deviations"),
+        (["--noise-covariance", "{missing}"], "cannot read noise covariance"),
+        (["--noise-covariance", "{not_json}"], "is not JSON"),
+        (["--noise-covariance", "{asymmetric}"], "option noise_covariance: Value error, must be"),
+        (["--noise-covariance", "{measured}", "--noise-std", "0,0,0,0,0,0"], "not both"),
         (["--covariance-frames", "elbow"], "covariance_frames"),
     ],
 )
@@ -197,6 +266,16 @@ def test_bad_covariance_options_are_one_line_errors(
     frame = pd.DataFrame(recording.joint_positions, columns=list(scn.chain.joint_names))
     frame[["x", "y", "z"]] = dataset.position_m
     frame.to_csv(data, index=False)
+    files = {
+        "missing": tmp_path / "missing.json",
+        "not_json": tmp_path / "noise.csv",
+        "asymmetric": tmp_path / "asymmetric.json",
+        "measured": tmp_path / "measured.json",
+    }
+    files["not_json"].write_text("1,0,0\n0,1,0\n")
+    files["asymmetric"].write_text(json.dumps([[1, 2, 0, 0, 0, 0], *np.eye(6)[1:].tolist()]))
+    files["measured"].write_text(json.dumps(MEASURED_NOISE))
+    extra = [arg.format(**files) for arg in extra]
     code, _, stderr = _run(
         [
             "calibrate",
