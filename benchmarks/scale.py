@@ -16,7 +16,8 @@ backend.
 Prints a table, writes ``scale.json`` in ``--out`` and the log-log plot to ``--plot``.
 
 Usage: ``python benchmarks/scale.py [--sizes 1e3,1e4,1e5,1e6] [--backends inprocess,processes,
-dask] [--fleet-robots 100] [--fleet-poses 2000] [--out out/scale] [--plot docs/scale.png]``.
+dask] [--uncached inprocess] [--fleet-robots 100] [--fleet-poses 2000] [--cache-mb 512]
+[--out out/scale] [--plot docs/scale.png]``.
 """
 
 from __future__ import annotations
@@ -123,6 +124,12 @@ class Run:
     passes: int
     rms_after_mm: float
     compliance_rad_per_nm: list[float] = field(default_factory=list)
+    cache_mb: float = 512.0
+
+    @property
+    def label(self) -> str:
+        """Backend, marked when prepared chunks were not cached (memory independent of N)."""
+        return self.backend if self.cache_mb else f"{self.backend}-nocache"
 
 
 def run_one(
@@ -164,6 +171,7 @@ def run_one(
         int(timings.get("passes", 0)),
         result.fit.after.train.translation_rms_mm,
         [c.value_rad_per_nm for c in result.compliance],
+        cache_mb,
     )
 
 
@@ -241,21 +249,21 @@ def run_fleet(folder: Path, backend: str, workers: int) -> FleetRun:
 
 def table(runs: list[Run], fleets: list[FleetRun]) -> str:
     header = (
-        f"{'backend':<10} {'N':>9} {'read s':>8} {'determ. s':>10} {'cov. s':>8} "
+        f"{'backend':<18} {'N':>9} {'read s':>8} {'determ. s':>10} {'cov. s':>8} "
         f"{'total s':>8} {'CPU s':>7} {'driver MiB':>11} {'worker MiB':>11} {'passes':>7}"
     )
     lines = [header]
     for r in runs:
         lines.append(
-            f"{r.backend:<10} {r.n:>9} {r.stage_s['read']:>8.2f} "
+            f"{r.label:<18} {r.n:>9} {r.stage_s['read']:>8.2f} "
             f"{r.stage_s['deterministic']:>10.2f} {r.stage_s['covariance']:>8.2f} "
             f"{r.total_s:>8.2f} {r.cpu_s:>7.1f} {r.driver_mib:>11.0f} {r.worker_mib:>11.0f} "
             f"{r.passes:>7}"
         )
     for smallest in (10_000, 100_000):
         lines += ["", f"scaling exponents (log-log slopes over N >= {smallest:.0e})"]
-        for backend in dict.fromkeys(r.backend for r in runs):
-            mine = [r for r in runs if r.backend == backend and r.n >= smallest]
+        for backend in dict.fromkeys(r.label for r in runs):
+            mine = [r for r in runs if r.label == backend and r.n >= smallest]
             if len(mine) >= 2:
                 n = [r.n for r in mine]
                 memory = [max(r.driver_mib, r.worker_mib) for r in mine]
@@ -263,17 +271,17 @@ def table(runs: list[Run], fleets: list[FleetRun]) -> str:
                     f"{s} {slope(n, [max(r.stage_s[s], 1e-3) for r in mine]):.2f}" for s in STAGES
                 )
                 lines.append(
-                    f"{backend:<10} wall {slope(n, [r.total_s for r in mine]):.2f} "
+                    f"{backend:<18} wall {slope(n, [r.total_s for r in mine]):.2f} "
                     f"({stages}), CPU {slope(n, [r.cpu_s for r in mine]):.2f}, "
                     f"peak memory {slope(n, memory):.2f}"
                 )
     lines += ["", "CPU time = a + b·N (least squares over N >= 1e4)"]
-    for backend in dict.fromkeys(r.backend for r in runs):
-        mine = [r for r in runs if r.backend == backend and r.n >= 10_000]
+    for backend in dict.fromkeys(r.label for r in runs):
+        mine = [r for r in runs if r.label == backend and r.n >= 10_000]
         if len(mine) >= 2:
             b, a = np.polyfit([r.n for r in mine], [r.cpu_s for r in mine], 1)
             lines.append(
-                f"{backend:<10} a = {a:.1f} s, b = {b * 1e6:.1f} µs per pose "
+                f"{backend:<18} a = {a:.1f} s, b = {b * 1e6:.1f} µs per pose "
                 f"({b * 1e6:.1f} CPU-s per 10⁶ poses)"
             )
     if fleets:
@@ -296,16 +304,22 @@ def plot(runs: list[Run], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
-    for backend in dict.fromkeys(r.backend for r in runs):
-        mine = sorted((r for r in runs if r.backend == backend), key=lambda r: r.n)
+    for i, backend in enumerate(dict.fromkeys(r.label for r in runs)):
+        mine = sorted((r for r in runs if r.label == backend), key=lambda r: r.n)
         n = [r.n for r in mine]
-        left.loglog(n, [r.total_s for r in mine], "o-", label=f"{backend} total")
-        right.loglog(n, [max(r.driver_mib, r.worker_mib) for r in mine], "o-", label=backend)
+        color = f"C{i}"
+        left.loglog(n, [r.total_s for r in mine], "o-", color=color, label=f"{backend} wall")
+        left.loglog(n, [r.cpu_s for r in mine], "x--", color=color, label=f"{backend} CPU")
+        right.semilogx(
+            n, [max(r.driver_mib, r.worker_mib) for r in mine], "o-", color=color, label=backend
+        )
+    right.axhline(2048, color="k", linestyle=":", label="target 2 GiB")
+    right.set_ylim(0, 2200)
     if runs:
         sizes = np.array(sorted({r.n for r in runs}), dtype=float)
         fastest = min((r for r in runs if r.n == sizes[-1]), key=lambda r: r.total_s)
         left.loglog(sizes, fastest.total_s * sizes / sizes[-1], "k:", label="linear")
-    left.set(xlabel="poses N", ylabel="wall time (s)", title="read → deterministic → covariance")
+    left.set(xlabel="poses N", ylabel="time (s)", title="read → deterministic → covariance")
     right.set(xlabel="poses N", ylabel="peak resident memory (MiB)", title="largest process")
     for ax in (left, right):
         ax.grid(True, which="both", alpha=0.3)
@@ -327,6 +341,7 @@ def main(
     chunk_rows: int = 65_536,
     cache_mb: float = 512.0,
     workers: int | None = None,
+    uncached: Sequence[str] = (),
     echo=print,  # type: ignore[no-untyped-def]
 ) -> tuple[str, list[Run], list[FleetRun]]:
     """Run the benchmark; returns the table and the measurements."""
@@ -340,12 +355,13 @@ def main(
             clock = time.perf_counter()
             write_recording(path, chain, n, chunk_rows=chunk_rows)
             echo(f"simulated N={n} in {time.perf_counter() - clock:.1f} s -> {path}")
-        for backend in backends:
+        plan = [(b, cache_mb) for b in backends] + [(b, 0.0) for b in uncached]
+        for backend, cache in plan:
             run = run_isolated(
-                path, n, backend, chunk_rows=chunk_rows, cache_mb=cache_mb, workers=workers
+                path, n, backend, chunk_rows=chunk_rows, cache_mb=cache, workers=workers
             )
             echo(
-                f"{backend:<10} N={n:>8}: {run.total_s:7.2f} s, "
+                f"{run.label:<18} N={n:>8}: {run.total_s:7.2f} s, "
                 f"{max(run.driver_mib, run.worker_mib):6.0f} MiB"
             )
             runs.append(run)
@@ -376,6 +392,9 @@ if __name__ == "__main__":
     parser.add_argument("--chunk-rows", type=int, default=65_536)
     parser.add_argument("--cache-mb", type=float, default=512.0)
     parser.add_argument("--workers", type=int, default=None)
+    parser.add_argument(
+        "--uncached", default="", help="Backends to run again without the chunk cache."
+    )
     args = parser.parse_args()
     report = main(
         [int(float(s)) for s in args.sizes.split(",")],
@@ -387,5 +406,6 @@ if __name__ == "__main__":
         chunk_rows=args.chunk_rows,
         cache_mb=args.cache_mb,
         workers=args.workers,
+        uncached=[b for b in args.uncached.split(",") if b],
     )[0]
     print(report)

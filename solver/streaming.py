@@ -398,9 +398,15 @@ def rule_mask(
     return within_spread(residual.T, rule.mean, rule.std, rule.sigma)
 
 
-def _used(problem: StreamProblem, rule: OutlierRule | None, ref: Any, index: int) -> BoolArray:
-    """Keep mask of block ``index`` of chunk ``ref`` under ``rule`` (cached per process)."""
-    blocks = _prepare(problem, ref)
+def _used(
+    problem: StreamProblem,
+    rule: OutlierRule | None,
+    ref: Any,
+    index: int,
+    blocks: list[_Block],
+) -> BoolArray:
+    """Keep mask of block ``index`` of chunk ``ref`` (prepared as ``blocks``) under ``rule``
+    (cached per process)."""
     if rule is None:
         return np.ones(blocks[index].n, dtype=bool)
     key = (problem.token, ref, rule.token)
@@ -422,8 +428,9 @@ def fit_chunk(request: _FitPass, ref: Any) -> FitSums:
     d = problem.residual_dim
     weights = _row_weights(d, request.rotation_weight)
     parts = []
-    for index, block in enumerate(_prepare(problem, ref)):
-        used = _used(problem, request.rule, ref, index)
+    blocks = _prepare(problem, ref)
+    for index, block in enumerate(blocks):
+        used = _used(problem, request.rule, ref, index, blocks)
         sweep = sweep_chain(
             problem.chain,
             request.params,
@@ -688,8 +695,9 @@ def covariance_chunk(request: _CovariancePass, ref: Any) -> CovarianceSums:
         np.full((n_frames, d, 6), -np.inf),
         0,
     )
-    for index, block in enumerate(_prepare(problem, ref)):
-        used = _used(problem, request.rule, ref, index)
+    blocks = _prepare(problem, ref)
+    for index, block in enumerate(blocks):
+        used = _used(problem, request.rule, ref, index, blocks)
         if theta is not None and request.stride > 1:
             rows = block.first_row + np.arange(block.n)
             used = used & (rows % request.stride == 0)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -240,3 +242,16 @@ def test_blocks_cover_items_once_in_order() -> None:
             ranges = blocks(n, workers)
             assert len(ranges) == workers
             assert [i for r in ranges for i in r] == list(range(n))
+
+
+def test_without_the_chunk_cache_the_numbers_are_the_same(
+    recording: SimulatedRecording,
+    unchunked,  # type: ignore[no-untyped-def]
+) -> None:
+    """cache_bytes=0 re-reads every chunk on every pass (memory independent of N)."""
+    problem = dataclasses.replace(_problem(recording, 500, 128), cache_bytes=0)
+    cal, cov = _run(problem, InProcessExecutor(), warm_rows=800)
+    ref_cal, ref_cov = unchunked
+    assert np.array_equal(cal.removed_rows, ref_cal.removed_rows)
+    assert _close(_fit_vector(cal), _fit_vector(ref_cal))
+    assert _close(cov.theta, ref_cov.theta)
