@@ -424,6 +424,9 @@ def summarise(scenario: Scenario, runs: list[RunResult]) -> dict[str, float]:
         "unexplained": float(np.mean([bool(r.unexplained) for r in runs])),
         "random": float(np.mean([bool(r.random) for r in runs])),
         "coverage": float(np.mean(np.abs(z) <= 1.96)) if z.size else float("nan"),
+        "z_count": float(z.size),
+        "z_inside": float(np.sum(np.abs(z) <= 1.96)),
+        "z_sd": float(np.std(z)) if z.size > 1 else float("nan"),
         "rel_error": float(np.median(rel)) if rel.size else float("nan"),
         "rel_error_p90": float(np.quantile(rel, 0.9)) if rel.size else float("nan"),
         "heldout_before": float(np.mean([r.heldout_before_mm / r.oracle_mm for r in runs])),
@@ -502,6 +505,18 @@ def headline(
             f"- detection of single effects at a detectable size: mean {_pct(mean, 1)}, lowest "
             f"{_pct(worst['detected'], 1)} ({worst_name}; target ≥ 90 % each)"
         )
+    if single:
+        count = int(sum(r["z_count"] for r in single))
+        inside = int(sum(r["z_inside"] for r in single))
+        if count:
+            low, high = clopper_pearson(inside, count)
+            out["single_coverage"] = inside / count
+            lines.append(
+                f"- 95 % confidence intervals of the single effects' parameters hold the truth in "
+                f"{inside}/{count} = {_pct(inside / count, 1)} (95 % CI {_pct(low, 1)}–"
+                f"{_pct(high, 1)}); standard deviation of (estimate − truth)/stderr per scenario "
+                f"{min(r['z_sd'] for r in single):.2f}–{max(r['z_sd'] for r in single):.2f}"
+            )
     names = sum(r["names"] for r in rows.values())
     wrong = sum(r["wrong_names"] for r in rows.values())
     if names:
@@ -602,6 +617,7 @@ def main(
     timing_n: int = 500,
     timing_seeds: int = 5,
     echo: Callable[[str], None] = print,
+    first_seed: int = 0,
 ) -> tuple[str, dict[str, dict[str, float]], dict[str, float]]:
     """Run the benchmark; returns (markdown, per-scenario rows, headline numbers)."""
     joints = _chains(robot_name, ()).joint_names
@@ -611,7 +627,8 @@ def main(
     if unknown:
         raise SystemExit(f"unknown scenario(s) {', '.join(unknown)}; known: {', '.join(described)}")
     started = time.perf_counter()
-    jobs = [(robot_name, name, seed, n, bootstrap) for name in chosen for seed in range(seeds)]
+    seed_range = range(first_seed, first_seed + seeds)
+    jobs = [(robot_name, name, seed, n, bootstrap) for name in chosen for seed in seed_range]
     timing_jobs = [
         (robot_name, "two_effects", 1000 + seed, timing_n, bootstrap)
         for seed in range(timing_seeds)
@@ -650,6 +667,7 @@ def main(
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--seeds", type=int, default=50)
+    parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--n", type=int, default=200)
     parser.add_argument("--workers", type=int, default=2, help="Processes (≤ your free cores).")
     parser.add_argument("--robot", default="kinova")
@@ -669,4 +687,5 @@ if __name__ == "__main__":
         out_dir=arguments.out,
         timing_n=arguments.timing_n,
         timing_seeds=arguments.timing_seeds,
+        first_seed=arguments.first_seed,
     )
