@@ -313,6 +313,7 @@ def plot(runs: list[Run], path: Path) -> None:
         right.semilogx(
             n, [max(r.driver_mib, r.worker_mib) for r in mine], "o-", color=color, label=backend
         )
+    left.plot([1e6], [10.0], "k*", markersize=12, label="target: 10 s at 10⁶")
     right.axhline(2048, color="k", linestyle=":", label="target 2 GiB")
     right.set_ylim(0, 2200)
     if runs:
