@@ -25,7 +25,10 @@ from tests.conftest import robot
 from tests.service.api.conftest import fresh_database_url, recording, recording_bytes
 from tests.service.api.test_jobs import comparable
 
-OPTIONS = CalibrationOptions(seeds=list(range(1, 13)))  # 24 held-out fits: about 1 s
+# A job long enough (about 4 s, 3 s of it in the held-out stage) that the test sees it running
+# on any machine, however fast: 2000 samples, 60 held-out fits.
+N_SAMPLES = 2000
+OPTIONS = CalibrationOptions(seeds=list(range(1, 31)))
 
 
 def _free_port() -> int:
@@ -109,7 +112,7 @@ def test_kill_9_during_a_job_then_restart_completes_it_with_the_same_result(
         first.wait_live()
         api = KincalClient(first.url)
         csv = tmp_path / "recording.csv"
-        csv.write_bytes(recording_bytes())
+        csv.write_bytes(recording_bytes(n=N_SAMPLES))
         dataset = api.upload_dataset(csv, robot="ur10")
         calibration = api.start_calibration(dataset["id"], OPTIONS)
         deadline = time.monotonic() + 60
@@ -137,7 +140,7 @@ def test_kill_9_during_a_job_then_restart_completes_it_with_the_same_result(
     second = Server(env, tmp_path / "second.log")
     try:
         second.wait_live()
-        undisturbed = pipeline.calibrate(recording(), robot("ur10"), OPTIONS)
+        undisturbed = pipeline.calibrate(recording(N_SAMPLES), robot("ur10"), OPTIONS)
         api = KincalClient(second.url)
         final = api.wait(calibration["id"], timeout_s=120)
         assert final["attempts"] == 2
