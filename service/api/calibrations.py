@@ -20,14 +20,12 @@ from schemas.calibration import CalibrationOptions, CalibrationResult
 from service import pipeline
 from service.api import jobs_common
 from service.api.deps import API_PREFIX, PrincipalDep, StateDep
-from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
+from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.results import CachedResult
-from service.api.robots import one_line
 from service.storage.models import Job
 from service.tasks import CalibrationJobParams
-from solver.errors import ModelError
 
 PREFIX = f"{API_PREFIX}/calibrations"
 router = APIRouter(prefix=PREFIX, tags=["calibrations"])
@@ -103,29 +101,18 @@ def create_calibration(
     idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
 ) -> Response:
     """Start calibrating a dataset; poll the Location for progress."""
-    idempotency = Idempotency(
-        state.database, principal.tenant_id, idempotency_key, f"POST {PREFIX}"
+    return jobs_common.accept_dataset_job(
+        state,
+        principal.tenant_id,
+        RESOURCE,
+        body,
+        idempotency_key,
+        dataset_id=body.dataset_id,
+        check_options=lambda robot: pipeline.chain_for(robot, body.options),
+        make_params=lambda dataset, robot: CalibrationJobParams(
+            dataset=dataset, robot=robot, options=body.options
+        ),
     )
-
-    def create() -> Response:
-        dataset, robot = jobs_common.dataset_for_job(state, principal.tenant_id, body.dataset_id)
-        try:  # options naming unknown joints: a 422 now rather than a failed job later
-            pipeline.chain_for(robot.description, body.options)
-        except ModelError as exc:
-            raise ProblemException(
-                422, f"options: {one_line(exc)}", slug="invalid-options"
-            ) from exc
-        params = CalibrationJobParams(dataset=dataset, robot=robot.ref, options=body.options)
-        job = jobs_common.submit_job(
-            state,
-            principal.tenant_id,
-            RESOURCE.kind,
-            params.model_dump(mode="json"),
-            dataset_id=dataset.id,
-        )
-        return RESOURCE.accepted(job)
-
-    return idempotency.run(lambda: fingerprint(body.model_dump(mode="json")), create)
 
 
 jobs_common.add_job_routes(

@@ -16,12 +16,14 @@ from starlette.concurrency import run_in_threadpool
 
 from schemas.api import JobStatus
 from service.api.deps import PrincipalDep, ServiceState, StateDep
-from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency
+from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
-from service.api.robots import ResolvedRobot, resolve_robot
+from service.api.robots import ResolvedRobot, one_line, resolve_robot
+from service.robots import RobotDescription
 from service.storage import repository
 from service.storage.models import Job
-from service.tasks import DatasetRef
+from service.tasks import DatasetRef, RobotRef
+from solver.errors import ModelError
 
 RETRY_AFTER_S = "1"
 
@@ -76,6 +78,40 @@ def dataset_for_job(
             dataset.tip_frame,
         )
     return DatasetRef(id=dataset.id, name=dataset.name, data_path=dataset.data_path), robot
+
+
+def accept_dataset_job(
+    state: ServiceState,
+    tenant_id: str,
+    resource: JobResource,
+    request: BaseModel,
+    idempotency_key: str | None,
+    *,
+    dataset_id: str,
+    check_options: Callable[[RobotDescription], object],
+    make_params: Callable[[DatasetRef, RobotRef], BaseModel],
+) -> Response:
+    """The POST of a job on a stored dataset: 202 + Location (the same answer again for a
+    repeated ``Idempotency-Key``), 404 for a dataset the tenant does not have, 422 when
+    ``check_options`` finds options naming joints the robot lacks (now, rather than a failed
+    job later)."""
+    idempotency = Idempotency(state.database, tenant_id, idempotency_key, f"POST {resource.prefix}")
+
+    def create() -> Response:
+        dataset, robot = dataset_for_job(state, tenant_id, dataset_id)
+        try:
+            check_options(robot.description)
+        except ModelError as exc:
+            raise ProblemException(
+                422, f"options: {one_line(exc)}", slug="invalid-options"
+            ) from exc
+        params = make_params(dataset, robot.ref)
+        job = submit_job(
+            state, tenant_id, resource.kind, params.model_dump(mode="json"), dataset_id=dataset.id
+        )
+        return resource.accepted(job)
+
+    return idempotency.run(lambda: fingerprint(request.model_dump(mode="json")), create)
 
 
 def job_or_404(session: Session, tenant_id: str, kind: str, job_id: str, noun: str) -> Job:
