@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 
 from solver import lie
 from solver.discovery.features import DiscoveryData, FeatureBank
+from solver.discovery.fitting import depth_direction
 from solver.discovery.library import Term, drift_feature
 
 FloatArray = NDArray[np.float64]
@@ -94,13 +95,9 @@ def correct_recording(
 
 
 def undo_depth_scale(measured_pose: FloatArray, scale: float, variant: str) -> FloatArray:
-    """Measured poses (N, 4, 4) with a depth reading scaled by ``1 + scale`` undone (exact)."""
+    """Measured poses (N, 4, 4) with a depth reading scaled by ``1 + scale`` undone (exact):
+    ``p = p_meas − s/(1 + s) (zᵀp_meas) z``, the depth axis ``z`` of :func:`depth_direction`
+    (the orientation is not scaled, so the marker's z reads true)."""
     out = measured_pose.copy()
-    p = measured_pose[:, :3, 3]
-    if variant == "measurement_z":
-        axis = np.broadcast_to(np.array([0.0, 0.0, 1.0]), p.shape)
-    else:
-        axis = measured_pose[:, :3, 2]  # the marker's z in the measurement frame
-    depth = np.einsum("ni,ni->n", axis, p)
-    out[:, :3, 3] = p - (scale / (1.0 + scale)) * depth[:, None] * axis
+    out[:, :3, 3] -= (scale / (1.0 + scale)) * depth_direction(measured_pose, variant)
     return out

@@ -189,7 +189,7 @@ def evaluate(
     depth_shift = np.zeros((rows.size, 3))
     for t, s in zip(terms, slices(terms), strict=True):
         if t.effect == "depth_scale":
-            depth_shift += float(params.theta[s][0]) * _depth_direction(before_depth, t.variant)
+            depth_shift += float(params.theta[s][0]) * depth_direction(before_depth, t.variant)
     if np.any(depth_shift):
         pose = pose.copy()
         pose[:, :3, 3] += depth_shift
@@ -200,7 +200,7 @@ def evaluate(
         if t.effect == "gravity_direction":
             return np.stack([_weighted_sum(comp, derivative_axes[a]) for a in ("x", "y")], axis=-1)
         if t.effect == "depth_scale":
-            shift = _depth_direction(before_depth, t.variant)
+            shift = depth_direction(before_depth, t.variant)
             local = np.einsum("nji,nj->ni", before_depth[:, :3, :3], shift)
             column = np.zeros((rows.size, 6))
             column[:, :3] = local
@@ -238,8 +238,9 @@ def _weighted_sum(comp: FloatArray, pairs: list[tuple[int, float]]) -> FloatArra
     return out
 
 
-def _depth_direction(pose: FloatArray, variant: str) -> FloatArray:
-    """Position shift (n, 3), measurement frame, per unit depth scale.
+def depth_direction(pose: FloatArray, variant: str) -> FloatArray:
+    """Position shift (n, 3), measurement frame, per unit depth scale: ``(zᵀp) z`` for the unit
+    depth axis ``z`` and the positions ``p`` of ``pose`` (n, 4, 4), m.
 
     ``measurement_z``: the depth along the measurement frame's z (a fixed camera) is scaled.
     ``marker_z``: the depth along the marker frame's z (a camera on the flange looking at a
