@@ -91,7 +91,7 @@ from solver.gp_baseline import GPErrorModel, fit_gp_error_model, gp_scores
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import KinematicChain, gravity_loads, sample_configurations
 from solver.ranking import RandomEffects, TaskMetric, UncertaintyModel, score_configurations
-from solver.simulate import simulate_recording
+from solver.simulate import gross_error_twists, simulate_recording
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
@@ -251,10 +251,7 @@ class TrueRobot:
         noise = rng.normal(size=(m, n_detections, 6)) * self.noise_std
         detected = static[:, None] @ lie.se3_exp(noise)
         gross = rng.random((m, n_detections)) < self.outlier_fraction
-        directions = rng.normal(size=(int(gross.sum()), 2, 3))
-        directions /= np.linalg.norm(directions, axis=2, keepdims=True)
-        size = np.repeat(np.asarray(self.outlier_size, dtype=float), 3)
-        twist = directions.reshape(-1, 6) * size
+        twist = gross_error_twists(int(gross.sum()), *self.outlier_size, rng)
         detected[gross] = detected[gross] @ lie.se3_exp(twist)
         return detected, gross
 

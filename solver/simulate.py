@@ -178,7 +178,9 @@ def simulate_recording(chain: KinematicChain, spec: SimulationSpec) -> Simulated
     measured = true_pose @ lie.se3_exp(noise)
     n_outliers = round(spec.outlier_fraction * spec.n_samples)
     outliers = np.sort(rng.choice(spec.n_samples, size=n_outliers, replace=False))
-    measured[outliers] = measured[outliers] @ lie.se3_exp(_gross_errors(spec, n_outliers, rng))
+    measured[outliers] = measured[outliers] @ lie.se3_exp(
+        gross_error_twists(n_outliers, spec.outlier_translation_m, spec.outlier_rotation_rad, rng)
+    )
     return SimulatedRecording(
         joint_positions=q,
         measured_pose=measured,
@@ -266,16 +268,15 @@ def _sensor(pose: FloatArray, spec: SimulationSpec, time_s: FloatArray) -> Float
     return out
 
 
-def _gross_errors(spec: SimulationSpec, n: int, rng: np.random.Generator) -> FloatArray:
-    """Local twists of outliers: a fixed-size rotation and translation in random directions."""
+def gross_error_twists(
+    n: int, translation_m: float, rotation_rad: float, rng: np.random.Generator
+) -> FloatArray:
+    """Local twists (n, 6), [v; w] in m and rad, of gross measurement errors: a translation of
+    ``translation_m`` and a rotation of ``rotation_rad``, each in a random direction."""
     directions = rng.normal(size=(n, 2, 3))
     directions /= np.linalg.norm(directions, axis=2, keepdims=True)
     return np.concatenate(
-        [
-            spec.outlier_translation_m * directions[:, 0],
-            spec.outlier_rotation_rad * directions[:, 1],
-        ],
-        axis=1,
+        [translation_m * directions[:, 0], rotation_rad * directions[:, 1]], axis=1
     )
 
 
