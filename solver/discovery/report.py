@@ -61,7 +61,8 @@ def unexplained_entries(
     cluster: OutlierCluster | None = None,
     clock_unit: str = "s",
 ) -> list[Unexplained]:
-    """One entry per joint (and per global variable), misfit evidence first."""
+    """One entry per joint (and per global variable), misfit evidence first; ``cluster``
+    (screened-out samples bunched in time, an angle or a load) joins its joint's entry."""
     by_joint: dict[object, Unexplained] = {}
     for m in misfits:
         joint = names[m.joint_index]
@@ -109,19 +110,10 @@ def unexplained_entries(
                 f"unexplained, concentrated in {names[s.joint_index]}: {how} that no library "
                 f"term explains ({share}, p = {s.p_value:.2g}{dcor})."
             )
-        if key in by_joint:
-            old = by_joint[key]
-            by_joint[key] = replace(
-                old,
-                p_value=min(old.p_value, s.p_value),
-                explained_fraction=s.explained_fraction
-                if math.isnan(old.explained_fraction)
-                else max(old.explained_fraction, s.explained_fraction),
-                distance_correlation=old.distance_correlation or s.distance_correlation,
-                explanation=old.explanation + " " + text[0].upper() + text[1:],
-            )
-        else:
-            by_joint[key] = Unexplained(
+        _merge(
+            by_joint,
+            key,
+            Unexplained(
                 s.joint_index,
                 s.kind,
                 s.p_value,
@@ -129,50 +121,65 @@ def unexplained_entries(
                 s.distance_correlation,
                 [],
                 text,
-            )
-    for c in [cluster] if cluster is not None else []:
-        if c.joint_index is None:
-            key = "time"
-            where = f"rows acquired between {c.low:.4g} and {c.high:.4g} {clock_unit}"
-            what = "unexplained: a disturbance during the recording"
-        elif c.variable == "angle":
-            key = c.joint_index
-            where = (
-                f"{names[c.joint_index]} between {np.degrees(c.low):.3g}° and "
-                f"{np.degrees(c.high):.3g}°"
-            )
-            what = (
-                f"unexplained, concentrated in {names[c.joint_index]}: a local effect of its "
-                "angle (e.g. a damaged gear tooth)"
-            )
-        else:
-            key = c.joint_index
-            where = f"a gravity torque on {names[c.joint_index]} of {c.low:.3g} to {c.high:.3g} N·m"
-            what = (
-                f"unexplained, concentrated in {names[c.joint_index]}: an effect of its load "
-                "that no library term describes"
-            )
-        text = (
-            f"{what} — the {c.n_outliers} samples the model cannot fit at all (left out as "
-            f"gross outliers) all lie at {where} (p = {c.p_value:.2g}); not named."
+            ),
         )
-        if key in by_joint:
-            old = by_joint[key]
-            by_joint[key] = replace(
-                old,
-                p_value=min(old.p_value, c.p_value),
-                explanation=old.explanation + " " + text[0].upper() + text[1:],
-            )
-        else:
-            by_joint[key] = Unexplained(
-                c.joint_index, "outliers", c.p_value, float("nan"), None, [], text
-            )
+    if cluster is not None:
+        key = "time" if cluster.joint_index is None else cluster.joint_index
+        text = _cluster_text(cluster, names, clock_unit)
+        _merge(
+            by_joint,
+            key,
+            Unexplained(
+                cluster.joint_index, "outliers", cluster.p_value, float("nan"), None, [], text
+            ),
+        )
     return sorted(
         by_joint.values(),
         key=lambda u: (
             -(0.0 if math.isnan(u.explained_fraction) else u.explained_fraction),
             u.p_value,
         ),
+    )
+
+
+def _merge(by_joint: dict[object, Unexplained], key: object, entry: Unexplained) -> None:
+    """Add ``entry`` under ``key``, or fold it into the entry already there (one per joint):
+    the smaller p-value, the larger explained share, both explanations."""
+    old = by_joint.get(key)
+    if old is None:
+        by_joint[key] = entry
+        return
+    by_joint[key] = replace(
+        old,
+        p_value=min(old.p_value, entry.p_value),
+        explained_fraction=float(np.fmax(old.explained_fraction, entry.explained_fraction)),
+        distance_correlation=old.distance_correlation or entry.distance_correlation,
+        explanation=f"{old.explanation} {entry.explanation[0].upper()}{entry.explanation[1:]}",
+    )
+
+
+def _cluster_text(c: OutlierCluster, names: tuple[str, ...], clock_unit: str) -> str:
+    """The report line of screened-out samples bunched in time, a joint's angle or its load."""
+    if c.joint_index is None:
+        where = f"rows acquired between {c.low:.4g} and {c.high:.4g} {clock_unit}"
+        what = "unexplained: a disturbance during the recording"
+    elif c.variable == "angle":
+        joint = names[c.joint_index]
+        where = f"{joint} between {np.degrees(c.low):.3g}° and {np.degrees(c.high):.3g}°"
+        what = (
+            f"unexplained, concentrated in {joint}: a local effect of its angle "
+            "(e.g. a damaged gear tooth)"
+        )
+    else:
+        joint = names[c.joint_index]
+        where = f"a gravity torque on {joint} of {c.low:.3g} to {c.high:.3g} N·m"
+        what = (
+            f"unexplained, concentrated in {joint}: an effect of its load that no library "
+            "term describes"
+        )
+    return (
+        f"{what} — the {c.n_outliers} samples the model cannot fit at all (left out as "
+        f"gross outliers) all lie at {where} (p = {c.p_value:.2g}); not named."
     )
 
 
