@@ -459,7 +459,7 @@ def _model(
             gravity = lie.so3_exp(tilt) @ gravity
         elif t.effect == "payload_mass":
             payload += float(values[t.key][0])
-        elif t.effect != UNEXPLAINED:
+        elif is_correction(t):
             corrections.append(label)
         else:
             not_carried.append(label)

@@ -61,9 +61,13 @@ def _overview(findings: FindingsResult) -> str:
     return f"<table>{body}</table>"
 
 
+def _cell(value: float | None, digits: int) -> str:
+    """A table cell: ``value`` with ``digits`` decimals, or a dash where there is none."""
+    return "<td>–</td>" if value is None else f"<td>{value:.{digits}f}</td>"
+
+
 def _pair_cells(pair: ErrorPair) -> str:
-    rot = "–" if pair.rot_deg is None else f"{pair.rot_deg:.4f}"
-    return f"<td>{pair.trans_mm:.3f}</td><td>{rot}</td>"
+    return f"<td>{pair.trans_mm:.3f}</td>{_cell(pair.rot_deg, 4)}"
 
 
 def _heldout(findings: FindingsResult) -> str:
@@ -115,17 +119,13 @@ def _ambiguous(findings: FindingsResult) -> str:
             names = list(dict.fromkeys(name for pose in a.separating_poses for name in pose))
             header = "".join(f"<th>{e(name)}</th>" for name in names)
             rows = "".join(
-                "<tr>" + "".join(_number_cell(pose.get(name), 3) for name in names) + "</tr>"
+                "<tr>" + "".join(_cell(pose.get(name), 3) for name in names) + "</tr>"
                 for pose in a.separating_poses
             )
             poses = f"<p>Poses (rad) that would separate them:</p><table><tr>{header}</tr>{rows}"
             poses += "</table>"
         parts.append(f'<p class="warn">{e(a.explanation)}</p>{poses}')
     return "".join(parts)
-
-
-def _number_cell(value: float | None, digits: int) -> str:
-    return "<td>–</td>" if value is None else f"<td>{value:.{digits}f}</td>"
 
 
 def _unexplained(findings: FindingsResult) -> str:
@@ -143,13 +143,10 @@ def _random_effects(findings: FindingsResult) -> str:
 
 
 def _health_row(label: str, health: Health) -> str:
-    def cell(value: float | None, digits: int) -> str:
-        return "–" if value is None else f"{value:.{digits}f}"
-
     return (
         f"<tr><td>{label}</td><td>{health.n_parameters}</td>"
-        f"<td>{cell(health.rms_translation_mm, 3)}</td><td>{cell(health.rms_rotation_deg, 4)}</td>"
-        f"<td>{cell(health.chi2_per_dof, 2)}</td><td>{len(health.dependences)}</td></tr>"
+        f"{_cell(health.rms_translation_mm, 3)}{_cell(health.rms_rotation_deg, 4)}"
+        f"{_cell(health.chi2_per_dof, 2)}<td>{len(health.dependences)}</td></tr>"
     )
 
 
@@ -168,18 +165,14 @@ def _steps(findings: FindingsResult) -> str:
     e = html.escape
     if not findings.steps:
         return "<p>No step: nothing was significant.</p>"
-
-    def mm(value: float | None) -> str:
-        return "–" if value is None else f"{value:.3f}"
-
     header = (
         "<tr><th>step</th><th>candidate</th><th>action</th><th>p-value</th>"
         "<th>held-out mm before</th><th>after</th></tr>"
     )
     rows = "".join(
         f"<tr><td>{s.step}</td><td>{e(s.candidate)}</td><td>{e(s.action)}</td>"
-        f"<td>{s.p_value:.3g}</td><td>{mm(s.heldout_before_mm)}</td>"
-        f"<td>{mm(s.heldout_after_mm)}</td></tr>"
+        f"<td>{s.p_value:.3g}</td>{_cell(s.heldout_before_mm, 3)}"
+        f"{_cell(s.heldout_after_mm, 3)}</tr>"
         for s in findings.steps
     )
     return f"<table>{header}{rows}</table>"
