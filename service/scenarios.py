@@ -112,7 +112,7 @@ def scenario(
         perturbation_sigma=perturbation,
         noise_sigma=noise,
         measurement_frame=_camera(chain) if "camera" in chosen else np.eye(4),
-        tool_offset=_marker() if "marker" in chosen else np.eye(4),
+        tool_offset=marker_offset() if "marker" in chosen else np.eye(4),
         outlier_fraction=0.1 if "outliers" in chosen else 0.0,
         **_hidden(chain, chosen),
     )
@@ -176,7 +176,8 @@ def _camera(chain: KinematicChain) -> np.ndarray:
     return look_at(eye, np.array([0.0, 0.0, 0.3 * reach_m]))
 
 
-def _marker() -> np.ndarray:
+def marker_offset() -> np.ndarray:
+    """The simulated marker in the flange frame (4, 4): 6 cm off, turned 0.62 rad."""
     marker = np.eye(4)
     marker[:3, :3] = lie.so3_exp(np.array([0.3, -0.2, 0.5]))
     marker[:3, 3] = [0.03, -0.02, 0.05]

@@ -197,15 +197,23 @@ def scale_term(chain: KinematicChain, j: int) -> Term:
 def drift_term(chain: KinematicChain, j: int | None, shape: str, clock_unit: str) -> Term:
     """Thermal drift of joint j's zero (``j`` None: of the measurement frame, 6 twist
     components) with time shape ``linear`` or ``warmup:<T>`` (see :func:`drift_variants`)."""
-    rate = "per_s" if clock_unit == "s" else "per_sample"
-    linear = shape == "linear"
     if j is None:
-        suffix = f"_{rate}" if linear else ""
-        names = tuple(f"{c}_{'m' if c.startswith('t') else 'rad'}{suffix}" for c in TWIST_NAMES)
+        names = measurement_drift_parameters(shape, clock_unit)
         return Term("thermal_drift", None, f"measurement_frame:{shape}", names)
     feature = f"time:{shape}"
-    unit = f"rad_{rate}" if linear else "rad"
+    unit = f"rad_{_rate(clock_unit)}" if shape == "linear" else "rad"
     return Term("thermal_drift", j, shape, (f"drift_{unit}",), (AxisSpec(j, "joint", feature),))
+
+
+def measurement_drift_parameters(shape: str, clock_unit: str) -> tuple[str, ...]:
+    """Names of the measurement frame's drift twist [v; w] (m and rad; per clock unit for the
+    ``linear`` shape), e.g. ``tx_m_per_s`` … ``rz_rad_per_s``."""
+    suffix = f"_{_rate(clock_unit)}" if shape == "linear" else ""
+    return tuple(f"{c}_{'m' if c.startswith('t') else 'rad'}{suffix}" for c in TWIST_NAMES)
+
+
+def _rate(clock_unit: str) -> str:
+    return "per_s" if clock_unit == "s" else "per_sample"
 
 
 def global_term(effect: str, variant: str = "") -> Term:
