@@ -12,21 +12,9 @@ import pandas as pd
 import pytest
 
 from schemas.calibration import CalibrationResult
-from service import cli, pipeline
+from service import pipeline
 from solver import lie
-
-
-def run(
-    args: list[str], capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
-) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["kincal", *args])
-    code = 0
-    try:
-        cli.main()
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
+from tests.service.cli_support import run
 
 
 @pytest.fixture(scope="module")

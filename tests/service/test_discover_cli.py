@@ -11,19 +11,7 @@ import pytest
 from schemas.discovery import EFFECTS, DiscoveryOptions, FindingsResult
 from service import cli, discovery, scenarios
 from tests.conftest import chain, robot
-
-
-def run(
-    args: list[str], capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
-) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["kincal", *args])
-    code = 0
-    try:
-        cli.main()
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
+from tests.service.cli_support import run
 
 
 @pytest.fixture(scope="module")

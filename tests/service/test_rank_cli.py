@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,12 +19,13 @@ from schemas.calibration import (
     CovarianceResult,
     SolverReport,
 )
-from service import cli, pipeline, ranking, scenarios
+from service import pipeline, ranking, scenarios
 from service.robots import load_robot
 from solver import lie
 from solver.evaluation import cross_validate
 from solver.model import sample_configurations
 from solver.ranking import TaskMetric, ee_covariance
+from tests.service.cli_support import run
 
 NOISE_STD = (2e-4, 2e-4, 2e-4, 3e-4, 3e-4, 3e-4)
 
@@ -81,19 +81,6 @@ def files(result: CalibrationResult, tmp_path_factory: pytest.TempPathFactory) -
         configs, index=False, float_format="%.17g"
     )
     return {"result": with_cov, "bare": without, "configs": configs, "folder": folder}
-
-
-def run(
-    args: list[object], capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
-) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["kincal", *map(str, args)])
-    code = 0
-    try:
-        cli.main()
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 def _rank(

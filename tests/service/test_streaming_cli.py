@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,21 +13,9 @@ from schemas.dataset import read_dataset, write_dataset
 from service import cli, pipeline, scenarios
 from solver.simulate import SimulationSpec, look_at, simulate_recording
 from tests.conftest import chain, robot
+from tests.service.cli_support import run
 
 ROBOT = "kinova"
-
-
-def run(
-    args: list[str], capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
-) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["kincal", *args])
-    code = 0
-    try:
-        cli.main()
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 @pytest.fixture(scope="module")
