@@ -10,8 +10,6 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
-
 import solver  # noqa: F401  (BLAS defaults)
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import PoseDataset, read_dataset
@@ -42,8 +40,7 @@ def evaluate(name: str, seeds: int) -> tuple[CalibrationResult, PoseDataset, flo
 
 def figure(result: CalibrationResult, dataset: PoseDataset, name: str, path: Path) -> Path:
     """Before/after residual histograms of the samples kept after outlier removal."""
-    removed = np.array(result.outliers.removed_rows, dtype=int) - 1
-    kept = dataset.subset(np.setdiff1d(np.arange(dataset.n_samples), removed))
+    kept = dataset.subset(result.outliers.kept_indices())
     return residual_histograms(
         pipeline.residuals(result, kept, baseline=True),
         pipeline.residuals(result, kept),

@@ -317,8 +317,7 @@ def calibration_options(
 
 def kept_rows(result: CalibrationResult) -> IndexArray:
     """0-based rows the calibration used (after outlier removal)."""
-    removed = np.array(result.outliers.removed_rows, dtype=np.intp) - 1
-    return np.setdiff1d(np.arange(result.outliers.n_input), removed).astype(np.intp)
+    return np.array(result.outliers.kept_indices(), dtype=np.intp)
 
 
 # --- Table II and Fig. 4b ----------------------------------------------------------------------

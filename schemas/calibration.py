@@ -217,6 +217,11 @@ class OutlierReport(_Model):
     n_used: int
     removed_rows: list[int] = Field(description="1-based data rows dropped as outliers.")
 
+    def kept_indices(self) -> list[int]:
+        """0-based indices of the samples the calibration used: all but ``removed_rows``."""
+        removed = set(self.removed_rows)
+        return [i for i in range(self.n_input) if i + 1 not in removed]
+
 
 class SolverReport(_Model):
     name: str

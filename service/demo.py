@@ -208,9 +208,7 @@ def _rank_candidates(
 
 def _residual_figure(result: CalibrationResult, dataset: PoseDataset, path: Path) -> None:
     """Paper Fig. 4a for the samples kept after outlier removal (the report embeds it too)."""
-    kept = dataset.subset(
-        np.setdiff1d(np.arange(dataset.n_samples), np.array(result.outliers.removed_rows) - 1)
-    )
+    kept = dataset.subset(result.outliers.kept_indices())
     residual_histograms(
         pipeline.residuals(result, kept, baseline=True),
         pipeline.residuals(result, kept),

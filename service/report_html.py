@@ -129,8 +129,7 @@ def _stats_row(model: str, split: str, stats: ErrorStats) -> str:
 
 
 def _residual_figure(result: CalibrationResult, dataset: PoseDataset) -> str:
-    removed = np.array(result.outliers.removed_rows, dtype=np.intp) - 1
-    kept = dataset.subset(np.setdiff1d(np.arange(dataset.n_samples), removed))
+    kept = dataset.subset(result.outliers.kept_indices())
     before = pipeline.residuals(result, kept, baseline=True)
     after = pipeline.residuals(result, kept)
     with tempfile.TemporaryDirectory() as folder:
