@@ -50,7 +50,7 @@ from solver.calibration import (
 from solver.covariance.estimate import CovarianceEstimate, FrameCovariance, estimate_covariances
 from solver.errors import KincalError
 from solver.evaluation import SplitError, cross_validate
-from solver.executors import Executor, InProcessExecutor
+from solver.executors import Executor, InProcessExecutor, preload_in_workers
 from solver.kinematics import (
     ChainParameters,
     evaluate_chain,
@@ -62,17 +62,24 @@ from solver.model import KinematicChain, build_chain, gravity_loads
 from solver.streaming import (
     STREAMED_ESTIMATOR_NOTE,
     ChunkArrays,
+    CovarianceSpec,
     ErrorSums,
+    PassCount,
     StreamedCalibration,
     StreamedFit,
     StreamProblem,
     StreamSettings,
     calibrate_streamed_fits,
+    covariance_spec,
     estimate_covariances_streamed,
     release,
 )
 
 FloatArray = NDArray[np.float64]
+
+# Streamed passes send DatasetChunkLoader to local worker processes: import this module once,
+# in their fork server, rather than in every worker on its first chunk.
+preload_in_workers(__name__)
 
 BEFORE = "before"
 CALIBRATED = "calibrated"
@@ -690,6 +697,7 @@ def calibrate_streamed(
     problem = stream_problem(path, chain, options, stream, marker=marker)
     executor = executor or InProcessExecutor()
     stage: dict[str, float] = {"plan": time.perf_counter() - started}
+    spec = _streamed_covariance_spec(problem, options)
     try:
         run = calibrate_streamed_fits(
             problem,
@@ -697,16 +705,16 @@ def calibrate_streamed(
             fit_options(options),
             fit_options(options, baseline=True, n_links=chain.n_links),
             StreamSettings(stream.warm_start_rows, options.outlier_sigma),
+            covariance=spec,
         )
         stage.update(run.stage_s)
-        fits = (run.first, run.fit, run.baseline) if run.rule else (run.first, run.baseline)
-        stage["passes"] = 1.0 + sum(fit.passes for fit in fits)
         progress("fit", 1, 1)
         progress("baseline", 1, 1)
         clock = time.perf_counter()
-        covariance = _streamed_covariance(problem, executor, run, options)
+        count = PassCount(run.passes)
+        covariance = _streamed_covariance(problem, executor, run, options, spec, count)
         stage["covariance"] = time.perf_counter() - clock
-        stage["passes"] += 2.0 if covariance is not None else 0.0
+        stage["passes"] = float(count.passes)
         progress("covariance", 1, 1)
     finally:
         release(problem, executor)
@@ -735,30 +743,47 @@ def calibrate_streamed(
     )
 
 
+def _streamed_covariance_spec(
+    problem: StreamProblem, options: CalibrationOptions
+) -> CovarianceSpec | None:
+    """The covariance statistics the streamed fit takes along (None: no covariances)."""
+    if options.covariance == "none":
+        return None
+    chosen, index = _covariance_frames(problem.chain, options)
+    return covariance_spec(
+        problem,
+        chosen,
+        index,
+        structure=options.covariance,
+        noise_covariance=_known_noise(options),
+    )
+
+
 def _streamed_covariance(
     problem: StreamProblem,
     executor: Executor,
     run: StreamedCalibration,
     options: CalibrationOptions,
+    spec: CovarianceSpec | None,
+    count: PassCount,
 ) -> CovarianceResult | None:
-    """§IV-C on the streamed fit (moment matching; the same samples as the fit)."""
-    if options.covariance == "none":
+    """§IV-C on the streamed fit (moment matching; the same samples as the fit; the
+    statistics from the fit's last pass when it took them)."""
+    if spec is None:
         return None
-    chosen, index = _covariance_frames(problem.chain, options)
     notes = [] if options.covariance_estimator == "moment" else [STREAMED_ESTIMATOR_NOTE]
     estimate = estimate_covariances_streamed(
         problem,
         executor,
         run.fit.params,
-        chosen,
-        index,
-        structure=options.covariance,
+        spec,
         solver=options.covariance_solver,
-        noise_covariance=_known_noise(options),
         rule=run.rule,
         notes=notes,
+        sums=run.covariance,
+        count=count,
     )
-    return _covariance_result(estimate, index)
+    return _covariance_result(estimate, list(spec.frames))
 
 
 def _sums_stats(sums: ErrorSums, position_only: bool) -> ErrorStats:

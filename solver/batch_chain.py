@@ -15,7 +15,7 @@ end-effector frame into the measurement frame; Jacobian columns map local twists
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +26,7 @@ from solver.kinematics import ChainParameters
 from solver.model import KinematicChain
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 
 _SERIES_ANGLE_RAD = 1e-2
 """Below this rotation angle the log map uses Taylor series (truncation < 1e-16 relative)."""
@@ -38,14 +39,35 @@ class ChainSweep:
     """Result of :func:`sweep_chain` for n samples.
 
     ``rotation`` (3, 3, n) and ``translation`` (3, n): the pose ``X_0E`` (Eq. 7).
-    ``columns`` (P, d, n) or None: column p of the stacked Jacobian (order of
-    :func:`solver.kinematics.parameter_names`, unweighted), residual component d, sample n.
-    For p < 6k these are also the frame Jacobians ``A_f = Ad_{B_f}⁻¹`` of the perturbations.
+    ``columns`` (C, d, n) or None: the requested columns of the stacked Jacobian (unweighted),
+    residual component d, sample n; column ``6f + i`` (f < k) is also column i of the frame
+    Jacobian ``A_f = Ad_{B_f}⁻¹`` of the perturbation ξ_f. ``leading_rows`` (C,): rows of each
+    column that can be non-zero; the rows after them are zero by structure (a translation
+    column has no rotation rows, the tip link's columns are unit vectors).
     """
 
     rotation: FloatArray
     translation: FloatArray
     columns: FloatArray | None
+    leading_rows: IntArray | None
+
+
+def column_rows(chain: KinematicChain, column: int, residual_dim: int) -> int:
+    """Rows of Jacobian column ``column`` that can be non-zero (a prefix; the others are zero
+    by structure): a link's translation column has no rotation rows, the tip link's column m
+    is the unit vector e_m, a compliance column is full."""
+    k = chain.n_joints
+    if column >= 6 * (k + 1):
+        return residual_dim
+    m = column % 6
+    if column >= 6 * k:
+        return m + 1 if m < residual_dim else 0
+    return min(3, residual_dim) if m < 3 else residual_dim
+
+
+def is_unit_column(chain: KinematicChain, column: int) -> bool:
+    """The tip link's columns are constant unit vectors (``J_{k+1} = I``)."""
+    return 6 * chain.n_joints <= column < 6 * (chain.n_joints + 1)
 
 
 def joint_motions(chain: KinematicChain, joint_positions: FloatArray) -> list[lie.ScrewMotion]:
@@ -64,63 +86,147 @@ def sweep_chain(
     loads_nm: FloatArray,
     *,
     residual_dim: int,
-    with_columns: bool,
-    column_links: Collection[int] | None = None,
-    compliance_columns: bool = True,
+    columns: Sequence[int] | None = None,
+    out: FloatArray | None = None,
 ) -> ChainSweep:
     """Eq. (7) and the Eq. (9) Jacobian in one backward sweep over the chain.
 
     ``motions``: :func:`joint_motions` of the read joint positions (N, k); ``loads_nm``
     (N, n_axes): gravity torque about each compliance axis (Eq. 6), so the joints sit at
     ``q + c τ``. ``residual_dim`` 6 (pose) or 3 (position-only: the first three rows).
-    ``column_links`` (link indices, None = all) and ``compliance_columns`` say which columns
-    to fill; the others stay zero (a fit of the measurement frame and tool needs two links).
+    ``columns``: indices (order of :func:`solver.kinematics.parameter_names`) of the Jacobian
+    columns to compute, in the order wanted (None: the pose only); ``out`` (C, d, N): where to
+    write them (a reusable workspace), else a new array. Only the requested columns are
+    formed, each written once.
     """
     n = loads_nm.shape[0]
     k = chain.n_joints
+    d = residual_dim
     axes = chain.compliance_axes
-    n_cols = 6 * (k + 1) + len(axes)
-    deflection = np.ascontiguousarray((loads_nm * params.compliance_rad_per_nm).T)
-    columns = np.zeros((n_cols, residual_dim, n)) if with_columns else None
+    slot = {} if columns is None else {int(c): s for s, c in enumerate(columns)}
+    jacobian: FloatArray | None = None
+    rows: IntArray | None = None
+    if columns is not None:
+        jacobian = np.empty((len(slot), d, n)) if out is None else out
+        if jacobian.shape != (len(slot), d, n):
+            raise ValueError(f"out must be {(len(slot), d, n)}, got {jacobian.shape}")
+        rows = np.array([column_rows(chain, c, d) for c in slot], dtype=np.intp)
+    loads = np.ascontiguousarray(np.asarray(loads_nm, dtype=float).T)  # (n_axes, N)
+    deflection = loads * params.compliance_rad_per_nm[:, None]
     suffix = np.empty((3, 4, n))
     suffix[:] = params.links[k][:3, :, None]
-    wanted = set(range(k + 1)) if column_links is None else set(column_links)
-    comp_columns = columns if compliance_columns else None
-    if columns is not None and k in wanted:
-        for m in range(residual_dim):  # J_{k+1} = I: the tip link's twist is the residual's
-            columns[6 * k + m, m] = 1.0
+    spare = np.empty_like(suffix)
+    scratch = np.empty((2, 4, n))
+    for m in range(6):  # J_{k+1} = I: the tip link's twist is the residual's
+        s = slot.get(6 * k + m)
+        if s is not None:
+            assert jacobian is not None
+            jacobian[s] = 0.0
+            if m < d:
+                jacobian[s, m] = 1.0
     for i in range(k - 1, -1, -1):
         motion = motions[i]
         own = [a for a, ax in enumerate(axes) if ax.joint_index == i and ax.is_joint_axis]
         for a in own:
             motion = motion.advanced(deflection[a])
-        suffix = _left_motion(suffix, motion)
-        if comp_columns is not None and own:
-            column = adjoint_inverse_apply(suffix, chain.joint_screws[i])[:residual_dim]
-            for a in own:
-                np.multiply(column, loads_nm[:, a], out=comp_columns[6 * (k + 1) + a])
+        _move(suffix, motion, scratch)
+        for a in own:
+            s = slot.get(6 * (k + 1) + a)
+            if s is not None:
+                assert jacobian is not None
+                _twist_column(suffix, chain.joint_screws[i], loads[a], jacobian[s], scratch)
         for a in reversed(range(len(axes))):
             if axes[a].joint_index != i or axes[a].is_joint_axis:
                 continue
             screw = np.r_[0.0, 0.0, 0.0, axes[a].axis]
-            suffix = _left_motion(suffix, lie.ScrewMotion.of(screw, deflection[a]))
-            if comp_columns is not None:
-                column = adjoint_inverse_apply(suffix, screw)[:residual_dim]
-                np.multiply(column, loads_nm[:, a], out=comp_columns[6 * (k + 1) + a])
-        if columns is not None and i in wanted:
-            link_columns(suffix, columns[6 * i : 6 * i + 6])
-        link = params.links[i]
-        suffix = lie.combine_rows(link[:3, :3], suffix)
-        suffix[:, 3] += link[:3, 3, None]
-    return ChainSweep(suffix[:, :3], suffix[:, 3], columns)
+            _move(suffix, lie.ScrewMotion.of(screw, deflection[a]), scratch)
+            s = slot.get(6 * (k + 1) + a)
+            if s is not None:
+                assert jacobian is not None
+                _twist_column(suffix, screw, loads[a], jacobian[s], scratch)
+        for m in range(6):
+            s = slot.get(6 * i + m)
+            if s is not None:
+                assert jacobian is not None
+                _link_column(suffix, m, jacobian[s], scratch)
+        _place(params.links[i], suffix, spare, scratch)
+        suffix, spare = spare, suffix
+    return ChainSweep(suffix[:, :3], suffix[:, 3], jacobian, rows)
 
 
-def _left_motion(suffix: FloatArray, motion: lie.ScrewMotion) -> FloatArray:
-    """``E · [R | t]`` for a batch-last suffix (3, 4, n)."""
-    out = motion.rotate(suffix)
+def _move(suffix: FloatArray, motion: lie.ScrewMotion, scratch: FloatArray) -> None:
+    """``suffix ← E · suffix`` in place for a batch-last ``[R | t]`` (3, 4, n)."""
+    axis = motion.axis
+    aligned = np.flatnonzero(axis != 0.0)
+    if aligned.size == 1:
+        u = int(aligned[0])
+        sin = motion.sin if axis[u] > 0.0 else -motion.sin
+        v, w = (u + 1) % 3, (u + 2) % 3
+        new_v, term = scratch[0], scratch[1]
+        np.multiply(motion.cos, suffix[v], out=new_v)
+        np.multiply(sin, suffix[w], out=term)
+        new_v -= term
+        np.multiply(sin, suffix[v], out=term)
+        suffix[w] *= motion.cos
+        suffix[w] += term
+        suffix[v] = new_v
+    else:
+        suffix[:] = motion.rotate(suffix)
     if motion.translation is not None:
-        out[:, 3] += motion.translation
-    return out
+        suffix[:, 3] += motion.translation
+
+
+def _place(link: FloatArray, suffix: FloatArray, out: FloatArray, scratch: FloatArray) -> None:
+    """``out ← L · suffix`` for a constant placement L (4, 4) (zero coefficients skipped, so
+    the URDF's exact zeros cost nothing; element by element, no BLAS: a sample's result does
+    not depend on where it sits in the batch)."""
+    term = scratch[0]
+    for p in range(3):
+        used = np.flatnonzero(link[p, :3])
+        if not used.size:
+            out[p] = 0.0
+        else:
+            np.multiply(suffix[used[0]], link[p, used[0]], out=out[p])
+            for j in used[1:]:
+                np.multiply(suffix[j], link[p, j], out=term)
+                out[p] += term
+        out[p, 3] += link[p, 3]
+
+
+def _link_column(suffix: FloatArray, m: int, out: FloatArray, scratch: FloatArray) -> None:
+    """Column m of ``J_i = Ad_{B_i}⁻¹ = [[Rᵀ, −Rᵀ[t]x], [0, Rᵀ]]`` into ``out`` (d, n).
+
+    Column m < 3 (translation twist) is row m of R on top and zeros below; column 3 + j
+    (rotation about axis j) is ``Rᵀ(e_j × t)`` on top and row j of R below.
+    """
+    d = out.shape[0]
+    if m < 3:
+        out[:3] = suffix[m, :3]
+        out[3:] = 0.0
+        return
+    j = m - 3
+    j1, j2 = (j + 1) % 3, (j + 2) % 3
+    t = suffix[:, 3]
+    term = scratch[0, :3]
+    np.multiply(suffix[j2, :3], t[j1], out=out[:3])
+    np.multiply(suffix[j1, :3], t[j2], out=term)
+    out[:3] -= term
+    if d > 3:
+        out[3:] = suffix[j, :3]
+
+
+def _twist_column(
+    suffix: FloatArray, twist: FloatArray, load: FloatArray, out: FloatArray, scratch: FloatArray
+) -> None:
+    """``Ad_B⁻¹ ξ · τ`` (d, n) for a constant twist ξ (6,) (a compliance axis) and its load
+    τ (n,): one column of :func:`_link_column` when ξ is a unit twist (every URDF joint
+    along a coordinate axis), the general product otherwise."""
+    used = np.flatnonzero(twist)
+    if used.size == 1 and twist[used[0]] == 1.0:
+        _link_column(suffix, int(used[0]), out, scratch)
+    else:
+        out[:] = adjoint_inverse_apply(suffix, twist)[: out.shape[0]]
+    out *= load
 
 
 def adjoint_inverse_apply(suffix: FloatArray, twist: FloatArray) -> FloatArray:
@@ -147,24 +253,6 @@ def _rotate_transposed(rotation: FloatArray, x: FloatArray) -> FloatArray:
     out += rotation[1] * x[1]
     out += rotation[2] * x[2]
     return out
-
-
-def link_columns(suffix: FloatArray, out: FloatArray) -> None:
-    """Write ``J_i = Ad_{B_i}⁻¹ = [[Rᵀ, −Rᵀ[t]x], [0, Rᵀ]]`` into ``out`` (6, d, n).
-
-    Column m < 3 (translation twist) is row m of R on top; column 3 + j (rotation about axis j)
-    is ``Rᵀ(e_j × t)`` on top and row j of R below (rows ≥ d are not written).
-    """
-    rotation, t = suffix[:, :3], suffix[:, 3]
-    out[0:3, 0:3] = rotation  # out[m, a] = R[m, a]
-    np.multiply(rotation[2], t[1], out=out[3, 0:3])
-    out[3, 0:3] -= rotation[1] * t[2]
-    np.multiply(rotation[0], t[2], out=out[4, 0:3])
-    out[4, 0:3] -= rotation[2] * t[0]
-    np.multiply(rotation[1], t[0], out=out[5, 0:3])
-    out[5, 0:3] -= rotation[0] * t[1]
-    if out.shape[1] == 6:
-        out[3:6, 3:6] = rotation
 
 
 def quaternion_rotation(quaternion_xyzw: FloatArray) -> FloatArray:

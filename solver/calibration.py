@@ -9,8 +9,10 @@ Every step reduces to sums over samples, so the same code serves in-memory array
 (:func:`fit_deterministic`) and data streamed in chunks (:mod:`solver.streaming`):
 
 - the Gauss–Newton step (Eq. 10) is solved from the normal equations :class:`NormalEquations`
-  (``JᵀJ``, ``Jᵀr``, ``rᵀr``), which add over chunks; :func:`gauss_newton` is the one iteration
-  loop (step halving included) and only asks a callable for the normal equations at a point;
+  (``JᵀJ``, ``Jᵀr``, ``rᵀr``), which add over chunks; :func:`gauss_newton_iteration` is the one
+  iteration (step halving included), a generator that yields each point where it needs the
+  normal equations — :func:`gauss_newton` feeds it from a callable, the streamed fit from
+  passes over the data that several fits share;
 - the pruning (:func:`identifiable_columns`) is a column-pivoted QR of an in-memory stacked
   Jacobian; the streamed fit runs it on its warm-start rows (see :mod:`solver.streaming`);
 - the outlier rule (§V-A) is :func:`within_spread` of a per-component :class:`ResidualSpread`,
@@ -21,7 +23,7 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
@@ -321,15 +323,41 @@ def gauss_newton(
     evaluate: Callable[[ChainParameters], tuple[NormalEquations, Payload]],
     options: FitOptions,
 ) -> GaussNewtonRun[Payload]:
-    """The iteration of Eq. (10) over the columns ``keep``: step from the normal equations,
-    halve it while the cost rises (at most 20 halvings), stop when the relative cost change —
-    achieved, or predicted by the linearisation before the step is tried — is below
-    ``options.tolerance``, or after ``options.max_iterations`` steps.
+    """The iteration of Eq. (10) over the columns ``keep`` (:func:`gauss_newton_iteration`)
+    with the normal equations (and payload) at ``start`` given as ``first`` and
+    ``evaluate(params)`` giving them at any other point — from arrays in memory or summed
+    over streamed chunks."""
+    iteration: Generator[
+        ChainParameters, tuple[NormalEquations, Payload], GaussNewtonRun[Payload]
+    ] = gauss_newton_iteration(chain, start, keep, options)
+    params = next(iteration)
+    answer = first
+    while True:
+        try:
+            params = iteration.send(answer)
+        except StopIteration as done:
+            run: GaussNewtonRun[Payload] = done.value
+            return run
+        answer = evaluate(params)
 
-    ``first``: the normal equations (and payload) at ``start``; ``evaluate(params)`` gives them
-    at any other point — from arrays in memory or summed over streamed chunks.
+
+def gauss_newton_iteration(
+    chain: KinematicChain,
+    start: ChainParameters,
+    keep: NDArray[np.intp],
+    options: FitOptions,
+) -> Generator[ChainParameters, tuple[NormalEquations, Payload], GaussNewtonRun[Payload]]:
+    """The iteration of Eq. (10) over the columns ``keep``, as a generator: it yields each
+    point where it needs the normal equations (``start`` first) and is sent them (with any
+    payload) back; it returns the :class:`GaussNewtonRun`.
+
+    Step from the normal equations, halve it while the cost rises (at most 20 halvings),
+    stop when the relative cost change — achieved, or predicted by the linearisation before
+    the step is tried — is below ``options.tolerance``, or after ``options.max_iterations``
+    steps. As a generator, several fits can share each pass over streamed data.
     """
-    params, (normal, payload) = start, first
+    params = start
+    normal, payload = yield start
     costs = [normal.cost]
     converged = False
     iterations = 0
@@ -341,8 +369,8 @@ def gauss_newton(
             converged = True
             break
         iterations += 1
-        params, normal, payload = _accept_step(
-            params, step, keep, (normal, payload), evaluate, chain
+        params, normal, payload = yield from _accept_step(
+            params, step, keep, (normal, payload), chain
         )
         costs.append(normal.cost)
         if abs(costs[-2] - normal.cost) <= options.tolerance * max(costs[-2], 1e-300):
@@ -356,11 +384,15 @@ def _accept_step(
     step: FloatArray,
     keep: NDArray[np.intp],
     current: tuple[NormalEquations, Payload],
-    evaluate: Callable[[ChainParameters], tuple[NormalEquations, Payload]],
     chain: KinematicChain,
-) -> tuple[ChainParameters, NormalEquations, Payload]:
+) -> Generator[
+    ChainParameters,
+    tuple[NormalEquations, Payload],
+    tuple[ChainParameters, NormalEquations, Payload],
+]:
     """Apply a Gauss–Newton step, shortened while the cost rises (at most 20 tries); if none
-    lowers the cost, stay (the caller then sees no change and stops).
+    lowers the cost, stay (the caller then sees no change and stops). Yields each trial point
+    for its normal equations.
 
     Each shorter trial goes to the minimum of the parabola through the current cost, its
     slope along the step (``−2 xᵀAᵀy``) and the failed trial, kept within [0.1, 0.5] of the
@@ -372,7 +404,7 @@ def _accept_step(
     scale = 1.0
     for _ in range(20):
         candidate = _apply_step(params, scale * step, keep, chain)
-        normal, payload = evaluate(candidate)
+        normal, payload = yield candidate
         if normal.cost <= cost:
             return candidate, normal, payload
         curvature = (normal.cost - cost - slope * scale) / scale**2

@@ -2,11 +2,13 @@
 processes, or on a Dask cluster — with the same numbers from each.
 
 ``executor.map(fn, shared, items)`` returns ``[fn(shared, item) for item in items]`` in item
-order. ``fn`` must be a module-level function and ``shared``/``items`` picklable for the process
-and Dask backends; ``shared`` (e.g. the kinematic chain and the current parameters of a
-Gauss–Newton pass) travels once per worker and call, each item once. The caller combines the
-results in item order, so the backends differ only in where the work runs, never in the
-arithmetic (results are bit-identical when the workers run the same numpy/BLAS).
+order; ``executor.map_async`` starts the same work and returns at once (:class:`Pending`),
+so the caller can do its own work meanwhile. ``fn`` must be a module-level function and
+``shared``/``items`` picklable for the process and Dask backends; ``shared`` (e.g. the
+kinematic chain and the current parameters of a Gauss–Newton pass) travels once per worker
+and call, each item once. The caller combines the results in item order, so the backends
+differ only in where the work runs, never in the arithmetic (results are bit-identical when
+the workers run the same numpy/BLAS).
 
 Items are split into contiguous blocks, block w always to worker w, so a process that read and
 prepared chunk i in one pass sees chunk i again in the next (per-process caches keep hitting).
@@ -18,9 +20,10 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
-from typing import Any, Literal, Protocol, TypeVar
+from typing import Any, Generic, Literal, Protocol, TypeVar
 
 from solver.errors import KincalError
 
@@ -30,6 +33,16 @@ R = TypeVar("R")
 
 ExecutorKind = Literal["inprocess", "processes", "dask"]
 EXECUTOR_KINDS: tuple[ExecutorKind, ...] = ("inprocess", "processes", "dask")
+
+
+class Pending(Generic[R]):
+    """Work started by :meth:`Executor.map_async`; :meth:`result` waits for its results."""
+
+    def __init__(self, collect: Callable[[], list[R]]) -> None:
+        self._collect = collect
+
+    def result(self) -> list[R]:
+        return self._collect()
 
 
 class Executor(Protocol):
@@ -42,6 +55,10 @@ class Executor(Protocol):
 
     def map(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> list[R]: ...
 
+    def map_async(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> Pending[R]:
+        """:meth:`map` started in the workers; the in-process executor does it at once."""
+        ...
+
     def run_on_workers(self, fn: Callable[[], R]) -> list[R]:
         """``fn()`` once in every worker process (e.g. to read its peak memory)."""
         ...
@@ -51,6 +68,19 @@ class Executor(Protocol):
     def __enter__(self) -> Executor: ...
 
     def __exit__(self, *exc: object) -> None: ...
+
+
+WORKER_MODULES: list[str] = ["solver.streaming"]
+"""Modules each local worker process has imported before its first task (imported once, in
+the fork server): the solver's, and those a layer above adds with :func:`preload_in_workers`
+— e.g. the module of its chunk loaders, which unpickling a pass's arguments would otherwise
+import again in every worker."""
+
+
+def preload_in_workers(module: str) -> None:
+    """Have local worker processes started from now on import ``module`` up front."""
+    if module not in WORKER_MODULES:
+        WORKER_MODULES.append(module)
 
 
 def blocks(n_items: int, n_workers: int) -> list[range]:
@@ -94,6 +124,10 @@ class InProcessExecutor:
     def map(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> list[R]:
         return _run_block(fn, shared, items)
 
+    def map_async(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> Pending[R]:
+        results = self.map(fn, shared, items)
+        return Pending(lambda: results)
+
     def run_on_workers(self, fn: Callable[[], R]) -> list[R]:
         return [fn()]
 
@@ -111,8 +145,10 @@ class ProcessExecutor:
     """``n_workers`` local worker processes (default: every core), started once and reused.
 
     One single-process pool per worker, so block w of every call lands on the same process.
-    Workers start with ``forkserver`` (clean interpreter, no inherited threads) and import the
-    solver once; BLAS runs one thread per worker (see :mod:`solver`).
+    Workers start with ``forkserver`` (clean interpreter, no inherited threads) from a server
+    that imported :data:`WORKER_MODULES` once; they are started at construction, in the
+    background, so their start overlaps the caller's own preparations. BLAS runs one thread
+    per worker (see :mod:`solver`).
     """
 
     name = "processes"
@@ -122,25 +158,37 @@ class ProcessExecutor:
         if count < 1:
             raise KincalError(f"processes executor needs at least 1 worker, got {count}")
         context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload(["solver.streaming"])
+        context.set_forkserver_preload(list(WORKER_MODULES))
         self._pools = [ProcessPoolExecutor(1, mp_context=context) for _ in range(count)]
+        # Starting the fork server (and its imports) blocks for a second: do it beside the
+        # caller, which meanwhile plans its work; a first task simply waits for its worker.
+        self._starting = threading.Thread(target=self._start, daemon=True)
+        self._starting.start()
+
+    def _start(self) -> None:
+        for pool in self._pools:
+            pool.submit(int)
 
     @property
     def n_workers(self) -> int:
         return len(self._pools)
 
     def map(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> list[R]:
+        return self.map_async(fn, shared, items).result()
+
+    def map_async(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> Pending[R]:
         futures: list[Future[list[R]]] = [
             pool.submit(_run_block, fn, shared, [items[i] for i in block])
             for pool, block in zip(self._pools, blocks(len(items), self.n_workers), strict=True)
             if len(block)
         ]
-        return [result for future in futures for result in future.result()]
+        return Pending(lambda: [result for future in futures for result in future.result()])
 
     def run_on_workers(self, fn: Callable[[], R]) -> list[R]:
         return [pool.submit(_call, fn).result() for pool in self._pools]
 
     def close(self) -> None:
+        self._starting.join()
         for pool in self._pools:
             pool.shutdown(wait=True, cancel_futures=True)
 
@@ -211,8 +259,11 @@ class DaskExecutor:
         return len(self._workers())
 
     def map(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> list[R]:
+        return self.map_async(fn, shared, items).result()
+
+    def map_async(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> Pending[R]:
         if not items:
-            return []
+            return Pending(list)
         workers = self._workers()
         if not workers:
             raise KincalError("the Dask cluster has no workers")
@@ -230,7 +281,8 @@ class DaskExecutor:
             for worker, block in zip(workers, blocks(len(items), len(workers)), strict=True)
             if len(block)
         ]
-        return [result for part in self._client.gather(futures) for result in part]
+        client = self._client
+        return Pending(lambda: [result for part in client.gather(futures) for result in part])
 
     def run_on_workers(self, fn: Callable[[], R]) -> list[R]:
         return list(self._client.run(fn).values())

@@ -25,10 +25,12 @@ from solver.kinematics import evaluate_chain, parameter_names
 from solver.simulate import SimulatedRecording, SimulationSpec, look_at, simulate_recording
 from solver.streaming import (
     ArrayChunks,
+    CovarianceSpec,
     StreamedCalibration,
     StreamProblem,
     StreamSettings,
     calibrate_streamed_fits,
+    covariance_spec,
     estimate_covariances_streamed,
     release,
     row_ranges,
@@ -83,18 +85,28 @@ def _fit_vector(cal: StreamedCalibration) -> np.ndarray:
     return np.concatenate(parts)
 
 
+def _spec(problem: StreamProblem) -> CovarianceSpec:
+    return covariance_spec(problem, chain(ROBOT).joint_names, range(chain(ROBOT).n_joints))
+
+
 def _run(problem: StreamProblem, executor, warm_rows: int):  # type: ignore[no-untyped-def]
+    spec = _spec(problem)
     cal = calibrate_streamed_fits(
-        problem, executor, FULL, _baseline_options(), StreamSettings(warm_start_rows=warm_rows)
+        problem,
+        executor,
+        FULL,
+        _baseline_options(),
+        StreamSettings(warm_start_rows=warm_rows),
+        covariance=spec,
     )
     cov = estimate_covariances_streamed(
         problem,
         executor,
         cal.fit.params,
-        chain(ROBOT).joint_names,
-        range(chain(ROBOT).n_joints),
+        spec,
         rule=cal.rule,
         solver="nnls",  # active set: the answer moves with G and h only by rounding
+        sums=cal.covariance,
     )
     release(problem, executor)
     return cal, cov
@@ -194,8 +206,8 @@ def test_statistics_of_two_recordings_merge_to_those_of_their_union() -> None:
     for rec in (a, b, union):
         problem = _problem(rec, 300, 128)
         fit_sums.append(streamed_fit_sums(problem, executor, params, keep, FULL))
-        frames = range(c.n_joints)
-        cov_sums.append(streamed_covariance_sums(problem, executor, params, frames, layout))
+        spec = CovarianceSpec(tuple(range(c.n_joints)), layout)
+        cov_sums.append(streamed_covariance_sums(problem, executor, params, spec))
         release(problem, executor)
     merged, whole = fit_sums[0] + fit_sums[1], fit_sums[2]
     assert _close(merged.normal.gram, whole.normal.gram)
@@ -255,3 +267,96 @@ def test_without_the_chunk_cache_the_numbers_are_the_same(
     assert np.array_equal(cal.removed_rows, ref_cal.removed_rows)
     assert _close(_fit_vector(cal), _fit_vector(ref_cal))
     assert _close(cov.theta, ref_cov.theta)
+
+
+def _problem_of(rec: SimulatedRecording, *, position_only: bool) -> StreamProblem:
+    pose = rec.measured_pose
+    quaternion = None if position_only else lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
+    source = ArrayChunks(rec.joint_positions, pose[:, :3, 3], quaternion)
+    rows = row_ranges(rec.joint_positions.shape[0], 300)
+    return StreamProblem(chain(ROBOT), source, rows, position_only=position_only, block_rows=128)
+
+
+@pytest.mark.parametrize(
+    "position_only, options",
+    [(True, FULL), (False, FitOptions(rotation_weight_m_per_rad=0.3))],
+    ids=["position-only", "rotation-weight"],
+)
+def test_streamed_fit_equals_in_memory_for_position_only_and_weighted_rotation(
+    recording: SimulatedRecording, position_only: bool, options: FitOptions
+) -> None:
+    """The structured normal equations (band Gram, unit tip columns, row weights) give the
+    in-memory fits; the covariance statistics are the in-memory ones."""
+    c = chain(ROBOT)
+    problem = _problem_of(recording, position_only=position_only)
+    spec = covariance_spec(problem, c.joint_names, range(c.n_joints))
+    executor = InProcessExecutor()
+    cal = calibrate_streamed_fits(problem, executor, options, _baseline_options(), covariance=spec)
+    sums = cal.covariance or streamed_covariance_sums(
+        problem, executor, cal.fit.params, spec, cal.rule
+    )
+    release(problem, executor)
+    q, pose = recording.joint_positions, recording.measured_pose
+    quaternion = None if position_only else lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
+    measured = lie.pose_matrix(pose[:, :3, 3], quaternion)
+    loads = static_gravity_loads(StaticGravityModel.from_chain(c), q)
+    first = fit_deterministic(c, q, measured, loads, position_only=position_only, options=options)
+    used = np.flatnonzero(outlier_mask(first.residuals, 2.0))
+    fit = fit_deterministic(
+        c, q[used], measured[used], loads[used], position_only=position_only, options=options
+    )
+    assert cal.fit.estimated == fit.estimated
+    assert _close(cal.fit.params.links, fit.params.links)
+    assert _close(cal.fit.params.compliance_rad_per_nm, fit.params.compliance_rad_per_nm)
+    assert _close(cal.fit.standard_errors, fit.standard_errors)
+    assert np.array_equal(cal.removed_rows, np.setdiff1d(np.arange(q.shape[0]), used))
+    d = 3 if position_only else 6
+    evaluation = evaluate_chain(c, cal.fit.params, q[used], loads[used])
+    layout = make_layout(c.joint_names, d)
+    memory = build_moment_statistics(fit.residuals, evaluation.link_jacobians[:, :-1, :d], layout)
+    assert sums.stats is not None
+    assert _close(sums.stats.gram, memory.gram, 1e-9)
+    assert _close(sums.stats.cross, memory.cross, 1e-9)
+
+
+@pytest.mark.parametrize(
+    "structure, known, position_only",
+    [
+        ("diag", False, False),
+        ("diag", True, False),
+        ("full", False, False),
+        ("full", True, False),
+        ("diag", False, True),
+    ],
+)
+def test_statistics_taken_along_the_fit_equal_a_pass_of_their_own(
+    recording: SimulatedRecording, structure: str, known: bool, position_only: bool
+) -> None:
+    """The refit's last pass takes the covariance statistics along (no pass of their own);
+    they equal the statistics pass at the same point, for diagonal and full Σ, with and
+    without a known noise covariance, pose or position-only; so do the Jacobian ranges."""
+    c = chain(ROBOT)
+    problem = _problem_of(recording, position_only=position_only)
+    noise = np.diag([4e-9] * 3 + [1e-8] * 3) if known else None
+    spec = covariance_spec(
+        problem, c.joint_names, range(c.n_joints), structure=structure, noise_covariance=noise
+    )
+    executor = InProcessExecutor()
+    cal = calibrate_streamed_fits(
+        problem, executor, FULL, _baseline_options(), StreamSettings(800), covariance=spec
+    )
+    assert cal.covariance is not None
+    alone = streamed_covariance_sums(problem, executor, cal.fit.params, spec, cal.rule)
+    release(problem, executor)
+    along = cal.covariance
+    assert along.stats is not None and alone.stats is not None
+    assert along.n == alone.n == cal.fit.sums.errors.n
+    assert _close(along.stats.gram, alone.stats.gram, 1e-12)
+    assert _close(along.stats.cross, alone.stats.cross, 1e-12)
+    assert along.stats.const == pytest.approx(alone.stats.const, rel=1e-12)
+    for got, want in [
+        (along.jacobian_sum, alone.jacobian_sum),
+        (along.jacobian_min, alone.jacobian_min),
+        (along.jacobian_max, alone.jacobian_max),
+    ]:
+        assert _close(got, want, 1e-12)
