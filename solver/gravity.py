@@ -22,7 +22,8 @@ per sample; arrays are batch-LAST (``(3, N)``) so every numpy call runs over con
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Collection
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,6 +55,10 @@ class StaticGravityModel:
     axis_joint: NDArray[np.intp]
     axis_vector: FloatArray
     rotation_world_base: FloatArray
+    plan: _GravityPlan = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "plan", _GravityPlan.of(self))
 
     @classmethod
     def from_chain(cls, chain: KinematicChain) -> StaticGravityModel:
@@ -78,6 +83,40 @@ class StaticGravityModel:
         )
 
 
+@dataclass(frozen=True, eq=False)
+class _GravityPlan:
+    """The constant parts of :func:`static_gravity_loads`, resolved once per model: joint
+    screws, placements as :class:`~solver.lie.RowCombination` (mostly signed permutations),
+    the compliance axes of each joint, and each body's first moment ``m_b c_b``. Same
+    arithmetic as the plain loops, a fraction of the numpy calls (small batches pay per call).
+    """
+
+    joints: tuple[lie.Screw, ...]
+    to_joint: tuple[lie.RowCombination, ...]  # R_i^T: parent frame -> frame after L_i
+    from_joint: tuple[lie.RowCombination, ...]  # R_i
+    axes_at: tuple[NDArray[np.intp], ...]
+    axis_rows: tuple[lie.RowCombination, ...]  # u_a^T of the axes at joint i
+    body_moment: FloatArray  # (k, 3, 1) m_b c_b
+
+    @classmethod
+    def of(cls, model: StaticGravityModel) -> _GravityPlan:
+        k = model.placements.shape[0]
+        axes_at = tuple(np.flatnonzero(model.axis_joint == i) for i in range(k))
+        return cls(
+            joints=tuple(lie.Screw.of(screw) for screw in model.screws),
+            to_joint=tuple(lie.RowCombination.of(p[:, :3].T) for p in model.placements),
+            from_joint=tuple(lie.RowCombination.of(p[:, :3]) for p in model.placements),
+            axes_at=axes_at,
+            axis_rows=tuple(lie.RowCombination.of(model.axis_vector[a]) for a in axes_at),
+            body_moment=np.array(
+                [
+                    m * com[:, None]
+                    for m, com in zip(model.body_mass_kg, model.body_com_m, strict=True)
+                ]
+            ).reshape(k, 3, 1),
+        )
+
+
 def static_gravity_loads(
     model: StaticGravityModel,
     joint_positions: FloatArray,
@@ -85,13 +124,16 @@ def static_gravity_loads(
     gravity_base: FloatArray = STANDARD_GRAVITY_BASE,
     payload_kg: FloatArray | float = 0.0,
     motions: list[lie.ScrewMotion] | None = None,
+    joints: Collection[int] | None = None,
 ) -> FloatArray:
     """Torque gravity exerts about every compliance axis, τ (N, n_axes) in N·m (paper Eq. 6).
 
     ``joint_positions`` (N, k) rad (m for prismatic joints); ``gravity_base`` (3,) m/s² in the
     chain's base frame; ``payload_kg`` scalar or (N,). ``motions``: the caller's
-    :func:`joint_motions` of the same configurations, to share their trigonometry. Equals
-    :func:`solver.model.gravity_loads` to rounding (tested to 1e-10 N·m on every built-in robot).
+    :func:`joint_motions` of the same configurations, to share their trigonometry. ``joints``:
+    only the axes at these chain joints are wanted (the others are returned as 0, and the
+    passes stop at the first and last of them). Equals :func:`solver.model.gravity_loads` to
+    rounding (tested to 1e-10 N·m on every built-in robot).
     """
     q = np.asarray(joint_positions, dtype=float)
     k, n = q.shape[1], q.shape[0]
@@ -99,51 +141,63 @@ def static_gravity_loads(
     gravity_world = model.rotation_world_base @ np.asarray(gravity_base, dtype=float)
     if motions is None:
         motions = joint_motions(model, q)
+    plan = model.plan
+    wanted = [i for i in range(k) if plan.axes_at[i].size and (joints is None or i in joints)]
+    if len(wanted) < k:
+        loads = np.zeros((n, model.axis_joint.size))
+        if not wanted:
+            return loads
+    else:
+        loads = np.empty((n, model.axis_joint.size))
     # Forward: gravity in the frame right after each L_i (before joint i moves), (3, N).
     gravity_pre = []
     g = np.broadcast_to(gravity_world[:, None], (3, n))
-    for i in range(k):
-        g = lie.combine_rows(model.placements[i, :, :3].T, g)
+    for i in range(wanted[-1] + 1):
+        g = plan.to_joint[i](g)
         gravity_pre.append(g)
-        g = motions[i].rotate_inverse(g)
+        if i < wanted[-1]:
+            g = motions[i].rotate_inverse(g)
     # Backward: mass and first moment of everything joint i carries, about the pre-motion origin.
-    loads = np.empty((n, model.axis_joint.size))
     mass = model.body_mass_kg[-1] + payload
-    first_moment = (
-        model.body_mass_kg[-1] * model.body_com_m[-1][:, None]
-        + payload * model.payload_com_m[:, None]
-    )
-    for i in range(k - 1, -1, -1):
+    first_moment = plan.body_moment[-1] + payload * model.payload_com_m[:, None]
+    for i in range(k - 1, wanted[0] - 1, -1):
         first_moment = motions[i].rotate(first_moment)  # about the pre-motion origin:
         if motions[i].translation is not None:  # R h + M t
             first_moment = first_moment + mass * motions[i].translation
-        axes_here = np.flatnonzero(model.axis_joint == i)
-        if axes_here.size:
-            moment = _cross(first_moment, gravity_pre[i])
-            for a in axes_here:
-                loads[:, a] = lie.combine_rows(model.axis_vector[a][None], moment)[0]
-        if i:
-            placement = model.placements[i]
+        if i in wanted:
+            loads[:, plan.axes_at[i]] = plan.axis_rows[i](_cross(first_moment, gravity_pre[i])).T
+        if i > wanted[0]:
             first_moment = (
-                lie.combine_rows(placement[:, :3], first_moment)
-                + mass * placement[:, 3, None]
-                + model.body_mass_kg[i - 1] * model.body_com_m[i - 1][:, None]
+                plan.from_joint[i](first_moment)
+                + mass * model.placements[i, :, 3, None]
+                + plan.body_moment[i - 1]
             )
             mass = mass + model.body_mass_kg[i - 1]
     return loads
 
 
 def joint_motions(model: StaticGravityModel, joint_positions: FloatArray) -> list[lie.ScrewMotion]:
-    """``Exp(s_i q_i)`` of every chain joint for configurations (N, k), batch-last."""
-    q = np.asarray(joint_positions, dtype=float)
+    """``Exp(s_i q_i)`` of every chain joint for configurations (N, k), batch-last (the
+    trigonometry of all joints in one pass)."""
+    angles = np.ascontiguousarray(np.asarray(joint_positions, dtype=float).T)  # (k, N)
+    joints = model.plan.joints
+    norms = np.array([joint.norm_w for joint in joints])[:, None]
+    cos, sin = lie.cos_sin_rows(angles if np.all(norms == 1.0) else norms * angles)
     return [
-        lie.ScrewMotion.of(model.screws[i], np.ascontiguousarray(q[:, i]))
-        for i in range(q.shape[1])
+        joint.motion(angles[i], (cos[i], sin[i])) if joint.norm_w else joint.motion(angles[i])
+        for i, joint in enumerate(joints)
     ]
 
 
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Row-wise cross product of batch-last (3, N) arrays."""
+    """Row-wise cross product of batch-last (3, N) arrays (one gathered product per term for
+    small N, component by component for large N: the same arithmetic)."""
+    if a.shape[1] <= lie.FUSED_MAX_ELEMENTS:
+        return a[_NEXT] * b[_PREV] - a[_PREV] * b[_NEXT]
     return np.stack(
         [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
     )
+
+
+_NEXT = np.array([1, 2, 0])
+_PREV = np.array([2, 0, 1])

@@ -11,13 +11,14 @@ them to 10^3..10^6 samples at once.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.intp]
 
 # Below this rotation angle the closed forms lose digits to cancellation; the Taylor series
 # (three terms, truncation error < 1e-16) are exact to double precision there.
@@ -163,19 +164,109 @@ def combine_rows(matrix: FloatArray, x: FloatArray) -> FloatArray:
 
     Element by element, without BLAS, so a sample's result never depends on where it sits in
     the batch (BLAS kernels round edge columns differently): identical inputs give identical
-    outputs. Zero coefficients (common in URDF placements) are skipped.
+    outputs. Zero coefficients (common in URDF placements) are skipped. For a matrix used
+    many times, build its :class:`RowCombination` once.
     """
-    matrix = np.asarray(matrix, dtype=float)
-    out = np.empty((matrix.shape[0], *x.shape[1:]))
-    for row in range(matrix.shape[0]):
-        used = np.flatnonzero(matrix[row])
-        if not used.size:
-            out[row] = 0.0
-            continue
-        np.multiply(x[used[0]], matrix[row, used[0]], out=out[row])
-        for j in used[1:]:
-            out[row] += matrix[row, j] * x[j]
-    return out
+    return RowCombination.of(matrix)(x)
+
+
+@dataclass(frozen=True, eq=False)
+class _CombinationStep:
+    """The s-th non-zero term of every row that has one: ``out[rows] (+)= coefficients ·
+    x[columns]``. ``rows``/``columns`` are slices or a single column where they can be (no
+    gather), index arrays otherwise."""
+
+    rows: slice | IndexArray
+    columns: int | slice | IndexArray
+    coefficients: FloatArray  # (len(rows),)
+    all_rows: bool
+
+
+@dataclass(frozen=True, eq=False)
+class RowCombination:
+    """:func:`combine_rows` for one constant matrix (P, M), its zero pattern resolved once.
+
+    Every output element is computed with the same operations in the same order as the
+    row-by-row definition (first used column times its coefficient, then ``+= m[p, j] x[j]``
+    column by column), so results are bit-identical whichever loop runs: for small batches
+    each term position is one numpy call over all rows (a ranking request's ~100
+    configurations pay per call, not per element); for large ones the row-by-row loop (its
+    temporaries are a P-th the size: big temporaries cost page faults, not just bandwidth).
+    """
+
+    n_rows: int
+    steps: tuple[_CombinationStep, ...]
+    rows: tuple[tuple[tuple[int, float], ...], ...]  # per row: (column, coefficient) used
+
+    @classmethod
+    def of(cls, matrix: FloatArray) -> RowCombination:
+        matrix = np.asarray(matrix, dtype=float)
+        used = [np.flatnonzero(row) for row in matrix]
+        steps = []
+        for s in range(max((u.size for u in used), default=0)):
+            rows = np.array([p for p, u in enumerate(used) if u.size > s], dtype=np.intp)
+            columns = np.array([used[p][s] for p in rows], dtype=np.intp)
+            steps.append(
+                _CombinationStep(
+                    _index(rows),
+                    _column_index(columns),
+                    matrix[rows, columns].copy(),
+                    rows.size == matrix.shape[0],
+                )
+            )
+        per_row = tuple(tuple((int(j), float(matrix[p, j])) for j in u) for p, u in enumerate(used))
+        return cls(matrix.shape[0], tuple(steps), per_row)
+
+    def __call__(self, x: FloatArray) -> FloatArray:
+        tail = x.shape[1:]
+        if x[0].size > FUSED_MAX_ELEMENTS:
+            return self._row_by_row(x)
+        if not self.steps:
+            return np.zeros((self.n_rows, *tail))
+        lead = (-1,) + (1,) * len(tail)
+        first = self.steps[0]
+        if first.all_rows:
+            out = np.multiply(x[first.columns], first.coefficients.reshape(lead))
+        else:
+            out = np.zeros((self.n_rows, *tail))
+            out[first.rows] = x[first.columns] * first.coefficients.reshape(lead)
+        for step in self.steps[1:]:
+            term = step.coefficients.reshape(lead) * x[step.columns]
+            if step.all_rows:
+                out += term
+            else:
+                out[step.rows] += term
+        return out
+
+    def _row_by_row(self, x: FloatArray) -> FloatArray:
+        out = np.empty((self.n_rows, *x.shape[1:]))
+        for p, used in enumerate(self.rows):
+            if not used:
+                out[p] = 0.0
+                continue
+            np.multiply(x[used[0][0]], used[0][1], out=out[p])
+            for j, coefficient in used[1:]:
+                out[p] += coefficient * x[j]
+        return out
+
+
+FUSED_MAX_ELEMENTS = 2048
+"""Above this many elements per row of a batch-last array, the batched helpers here loop row by
+row (bit-identical results either way; see :class:`RowCombination`)."""
+
+
+def _index(rows: IndexArray) -> slice | IndexArray:
+    """``rows`` (increasing) as a slice when they are a contiguous run."""
+    if rows.size and np.array_equal(rows, np.arange(rows[0], rows[0] + rows.size)):
+        return slice(int(rows[0]), int(rows[0]) + rows.size)
+    return rows
+
+
+def _column_index(columns: IndexArray) -> int | slice | IndexArray:
+    """One column for every row -> that column (x[c] broadcasts); a run -> a slice."""
+    if columns.size and np.all(columns == columns[0]):
+        return int(columns[0])
+    return _index(columns)
 
 
 def rotate_batch_last(
@@ -189,11 +280,23 @@ def rotate_batch_last(
     otherwise Rodrigues ``c x + s (a × x) + (1 - c)(a·x) a``.
     """
     axis = np.asarray(axis, dtype=float)
-    out = np.empty_like(x)
+    return _rotate(x, axis, _aligned_axis(axis), cos, sin)
+
+
+def _aligned_axis(axis: FloatArray) -> int:
+    """Index u if ``axis`` lies along coordinate axis u (sign included in the axis), else -1."""
     aligned = np.flatnonzero(axis != 0.0)
-    if aligned.size == 1:
-        u = int(aligned[0])
-        sin = sin * np.sign(axis[u])
+    return int(aligned[0]) if aligned.size == 1 else -1
+
+
+def _rotate(
+    x: FloatArray, axis: FloatArray, u: int, cos: FloatArray, sin: FloatArray
+) -> FloatArray:
+    """:func:`rotate_batch_last` with the axis classified (``u`` of :func:`_aligned_axis`)."""
+    out = np.empty_like(x)
+    if u >= 0:
+        if axis[u] < 0.0:
+            sin = -sin  # = sin * sign(axis[u]), exactly
         v, w = (u + 1) % 3, (u + 2) % 3
         out[u] = x[u]
         np.multiply(cos, x[v], out=out[v])
@@ -216,11 +319,73 @@ def cos_sin(angle_rad: FloatArray) -> tuple[FloatArray, FloatArray]:
     """
     angle = np.asarray(angle_rad, dtype=float)
     if angle.size and np.abs(angle).max() <= _SMALL_ANGLE_RAD:
-        t2 = angle * angle
-        cos = 1.0 - t2 * (0.5 - t2 * (1.0 / 24.0 - t2 * (1.0 / 720.0 - t2 / 40320.0)))
-        sin = angle * (1.0 - t2 * (1.0 / 6.0 - t2 * (1.0 / 120.0 - t2 / 5040.0)))
-        return cos, sin
+        return _cos_sin_series(angle)
     return np.cos(angle), np.sin(angle)
+
+
+def _cos_sin_series(angle: FloatArray) -> tuple[FloatArray, FloatArray]:
+    t2 = angle * angle
+    cos = 1.0 - t2 * (0.5 - t2 * (1.0 / 24.0 - t2 * (1.0 / 720.0 - t2 / 40320.0)))
+    sin = angle * (1.0 - t2 * (1.0 / 6.0 - t2 * (1.0 / 120.0 - t2 / 5040.0)))
+    return cos, sin
+
+
+def cos_sin_rows(angle_rad: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """:func:`cos_sin` of every row of a C-contiguous (R, N) array, in a few calls for all rows.
+
+    Row r gets exactly ``cos_sin(angle_rad[r])``: the series where that row's every |angle| is
+    <= 1e-2 rad, libm elsewhere (element-wise either way, so equal bit for bit).
+    """
+    angle = np.ascontiguousarray(angle_rad, dtype=float)
+    if not angle.size:
+        return np.cos(angle), np.sin(angle)
+    if angle.shape[1] > FUSED_MAX_ELEMENTS:
+        cos, sin = np.empty_like(angle), np.empty_like(angle)
+        for r, row in enumerate(angle):
+            cos[r], sin[r] = cos_sin(row)
+        return cos, sin
+    small = np.abs(angle).max(axis=1) <= _SMALL_ANGLE_RAD
+    if small.all():
+        return _cos_sin_series(angle)
+    cos, sin = np.cos(angle), np.sin(angle)
+    if small.any():
+        cos[small], sin[small] = _cos_sin_series(angle[small])
+    return cos, sin
+
+
+@dataclass(frozen=True, eq=False)
+class Screw:
+    """A constant screw ``[v; w]`` (6,) classified once, for its many ``Exp(screw · angle)``:
+    ``norm_w`` = |w|, unit ``axis`` (z for a prismatic screw), ``aligned`` = the coordinate axis
+    the axis lies along (-1 if none; then Rodrigues), ``translates``: v != 0 for a revolute
+    screw (its translation comes from :func:`screw_exp`)."""
+
+    vector: FloatArray
+    norm_w: float
+    axis: FloatArray
+    aligned: int
+    translates: bool
+
+    @classmethod
+    def of(cls, screw: FloatArray) -> Screw:
+        vector = np.asarray(screw, dtype=float)
+        norm_w = float(np.linalg.norm(vector[3:]))
+        axis = np.array([0.0, 0.0, 1.0]) if norm_w == 0.0 else vector[3:] / norm_w
+        return cls(vector, norm_w, axis, _aligned_axis(axis), bool(np.any(vector[:3] != 0.0)))
+
+    def motion(
+        self, angle: FloatArray, trig: tuple[FloatArray, FloatArray] | None = None
+    ) -> ScrewMotion:
+        """``Exp(screw · angle)`` for angles (N,); ``trig``: ``cos_sin(|w| · angle)`` if the
+        caller computed it (e.g. for all joints at once with :func:`cos_sin_rows`)."""
+        if self.norm_w == 0.0:  # prismatic
+            ones, zeros = np.ones_like(angle), np.zeros_like(angle)
+            return ScrewMotion(
+                self.vector, angle, self.axis, ones, zeros, self.vector[:3, None] * angle, self
+            )
+        translation = screw_exp(self.vector, angle)[:, :3, 3].T if self.translates else None
+        cos, sin = trig if trig is not None else cos_sin(self.norm_w * angle)
+        return ScrewMotion(self.vector, angle, self.axis, cos, sin, translation, self)
 
 
 @dataclass(frozen=True)
@@ -229,6 +394,7 @@ class ScrewMotion:
 
     ``axis`` (3,) unit rotation axis, ``cos``/``sin`` (N,) of the rotation angle
     ``|w| · angle``, ``translation`` (3, N) or None (pure rotation: every revolute URDF joint).
+    ``kind``: the screw classified (:class:`Screw`), None if constructed directly.
     """
 
     screw: FloatArray
@@ -237,27 +403,24 @@ class ScrewMotion:
     cos: FloatArray
     sin: FloatArray
     translation: FloatArray | None
+    kind: Screw | None = field(default=None, repr=False)
 
     @classmethod
     def of(cls, screw: FloatArray, angle: FloatArray) -> ScrewMotion:
-        screw = np.asarray(screw, dtype=float)
-        v, w = screw[:3], screw[3:]
-        norm_w = float(np.linalg.norm(w))
-        if norm_w == 0.0:  # prismatic
-            ones, zeros = np.ones_like(angle), np.zeros_like(angle)
-            return cls(screw, angle, np.array([0.0, 0.0, 1.0]), ones, zeros, v[:, None] * angle)
-        translation = screw_exp(screw, angle)[:, :3, 3].T if np.any(v != 0.0) else None
-        return cls(screw, angle, w / norm_w, *cos_sin(norm_w * angle), translation)
+        return Screw.of(screw).motion(angle)
 
-    def advanced(self, delta: FloatArray) -> ScrewMotion:
+    def advanced(
+        self, delta: FloatArray, trig: tuple[FloatArray, FloatArray] | None = None
+    ) -> ScrewMotion:
         """The same screw at ``angle + delta`` (N,); for small deltas (joint deflections) by
-        angle addition, without evaluating full-range trigonometry again."""
+        angle addition, without evaluating full-range trigonometry again. ``trig``:
+        ``cos_sin(|w| · delta)`` if the caller has it."""
         if not np.any(delta):
             return self
-        norm_w = float(np.linalg.norm(self.screw[3:]))
-        if self.translation is not None or norm_w == 0.0:
-            return ScrewMotion.of(self.screw, self.angle + delta)
-        cos_d, sin_d = cos_sin(norm_w * delta)
+        kind = self.kind if self.kind is not None else Screw.of(self.screw)
+        if self.translation is not None or kind.norm_w == 0.0:
+            return kind.motion(self.angle + delta)
+        cos_d, sin_d = trig if trig is not None else cos_sin(kind.norm_w * delta)
         return ScrewMotion(
             self.screw,
             self.angle + delta,
@@ -265,15 +428,21 @@ class ScrewMotion:
             self.cos * cos_d - self.sin * sin_d,
             self.sin * cos_d + self.cos * sin_d,
             None,
+            kind,
         )
 
     def rotate(self, x: FloatArray) -> FloatArray:
         """``R_E x`` for x (3, ..., N)."""
-        return rotate_batch_last(x, self.axis, self.cos, self.sin)
+        return self._rotate(x, self.sin)
 
     def rotate_inverse(self, x: FloatArray) -> FloatArray:
         """``R_E^T x`` for x (3, ..., N)."""
-        return rotate_batch_last(x, self.axis, self.cos, -self.sin)
+        return self._rotate(x, -self.sin)
+
+    def _rotate(self, x: FloatArray, sin: FloatArray) -> FloatArray:
+        if self.kind is None:
+            return rotate_batch_last(x, self.axis, self.cos, sin)
+        return _rotate(x, self.axis, self.kind.aligned, self.cos, sin)
 
 
 def screw_exp(screw: FloatArray, angle: FloatArray) -> FloatArray:

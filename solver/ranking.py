@@ -27,6 +27,13 @@ with Σ_j's zero entries skipped (for diagonal Σ_j: ``Σ_m σ_m² J[a, m]²``, 
 needs only ``diag(M^T M) · diag Σ_E``, any other uses factors ``Σ_j = L_j L_j^T``. No BLAS in
 the loop: every sample is computed element-wise, so its score does not depend on its position
 in the batch (duplicates score identically, reordering permutes the scores exactly).
+
+Small batches (a planner's ~100 candidates) pay per numpy call, not per element, so everything
+constant is resolved once per model (:class:`_ChainWalk`: link rotations as
+:class:`~solver.lie.RowCombination`, screws; :class:`_ScorePlan` per metric, kept on the model)
+and small arrays go through fused calls (a term of every row at once, the trigonometry of every
+joint at once, loads only of the joints that are compliant): ~0.5 ms per 100 UR10
+configurations instead of ~1.1 ms, the same bits.
 """
 
 from __future__ import annotations
@@ -53,6 +60,7 @@ PAPER_WEIGHTS = (0.4, 0.4, 0.0, 0.1, 0.1, 0.0)
 DEFAULT_CHUNK = 4096
 """Configurations per chunk: the working set (a few dozen 3×N arrays) stays in a 2 MB L2 cache."""
 
+_PLAN_CACHE_SIZE = 64
 _SYMMETRY_TOLERANCE = 1e-12
 _PSD_TOLERANCE = 1e-8
 """Relative: a covariance solver's output may be PSD only to its own tolerance."""
@@ -159,7 +167,8 @@ class TaskMetric:
             raise SolverError(f"weights must be 6 numbers or a 6×6 matrix, got shape {w.shape}")
         if not rotation_scale_m_per_rad > 0.0:
             raise SolverError("rotation scale must be positive (metres per radian)")
-        scale = np.r_[np.ones(3), np.full(3, float(rotation_scale_m_per_rad))]
+        s = float(rotation_scale_m_per_rad)
+        scale = np.array([1.0, 1.0, 1.0, s, s, s])
         unit = f"m² (1 rad = {rotation_scale_m_per_rad:g} m)"
         return cls(w * scale[None, :], include_noise, unit)
 
@@ -209,6 +218,23 @@ class UncertaintyModel:
     gravity: StaticGravityModel = field(repr=False)
     own_axes: tuple[tuple[int, ...], ...] = field(repr=False, default=())
     virtual_axes: tuple[tuple[int, ...], ...] = field(repr=False, default=())
+    walk: _ChainWalk = field(init=False, repr=False)
+    _plans: dict[tuple[object, ...], _ScorePlan] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "walk", _ChainWalk.of(self.chain, self.params))
+        object.__setattr__(self, "_plans", {})
+
+    def score_plan(self, metric: TaskMetric) -> _ScorePlan:
+        """The metric's :class:`_ScorePlan` for these effects, kept for the next request with
+        the same weights (planners send the same few; at most ``_PLAN_CACHE_SIZE`` are kept)."""
+        key = (metric.matrix.shape, metric.matrix.tobytes(), metric.include_noise)
+        plan = self._plans.get(key)
+        if plan is None:
+            if len(self._plans) >= _PLAN_CACHE_SIZE:
+                self._plans.clear()
+            plan = self._plans[key] = _ScorePlan.of(self.effects, metric)
+        return plan
 
     @classmethod
     def build(
@@ -328,7 +354,7 @@ def score_configurations(
         )
     n = q.shape[0]
     payload = np.broadcast_to(np.asarray(payload_kg, dtype=float), (n,))
-    plan = _ScorePlan.of(model.effects, metric)
+    plan = model.score_plan(metric)
     score = np.empty(n)
     variance = np.empty((n, 6))
     clock = _Clock(timings)
@@ -354,7 +380,93 @@ class _Clock:
         self.last = now
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
+class _ChainWalk:
+    """Constants of the backward chain walk, resolved once per model: each link's rotation as a
+    :class:`~solver.lie.RowCombination` and its translation, the virtual compliance axes as
+    screws, and ``|w|`` of the screw each compliance axis deflects (joint or virtual axis)."""
+
+    link_rotation: tuple[lie.RowCombination, ...]
+    link_translation: tuple[FloatArray, ...]  # (3, 1)
+    virtual: dict[int, lie.Screw]
+    axis_norms: FloatArray | None  # (n_axes, 1); None: all 1
+    compliant_joints: frozenset[int]  # chain joints with a compliant axis: their loads matter
+
+    @classmethod
+    def of(cls, chain: KinematicChain, params: ChainParameters) -> _ChainWalk:
+        axes = chain.compliance_axes
+        virtual = {
+            a: lie.Screw.of(np.r_[0.0, 0.0, 0.0, axis.axis])
+            for a, axis in enumerate(axes)
+            if not axis.is_joint_axis
+        }
+        norms = np.array(
+            [
+                virtual[a].norm_w
+                if a in virtual
+                else float(np.linalg.norm(chain.joint_screws[axis.joint_index][3:]))
+                for a, axis in enumerate(axes)
+            ]
+        ).reshape(-1, 1)
+        return cls(
+            link_rotation=tuple(lie.RowCombination.of(link[:3, :3]) for link in params.links),
+            link_translation=tuple(link[:3, 3, None].copy() for link in params.links),
+            virtual=virtual,
+            axis_norms=None if np.all(norms == 1.0) else norms,
+            compliant_joints=frozenset(
+                axis.joint_index
+                for axis, c in zip(axes, params.compliance_rad_per_nm, strict=True)
+                if c != 0.0
+            ),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class _Quadratic:
+    """``Σ_{m,m'} A[m, m'] x[m] y[m']`` (times 2 if ``twice``) for batch-last x, y (3, ...):
+    the non-zero terms of the (m, m') loop (each pair once for ``x is y`` and symmetric A), as
+    one gathered product and coefficient per term, added in the loop's order. Element-wise
+    (position independent)."""
+
+    left: slice | IndexArray
+    right: slice | IndexArray
+    coefficients: FloatArray  # (p, 1, 1)
+    pairs: tuple[tuple[int, int, float], ...]
+
+    @classmethod
+    def of(cls, matrix: FloatArray, *, symmetric: bool, twice: bool = False) -> _Quadratic | None:
+        pairs = []
+        for m in range(3):
+            for m2 in range(m if symmetric else 0, 3):
+                coefficient = matrix[m, m2] * (2.0 if twice or (symmetric and m2 != m) else 1.0)
+                if coefficient != 0.0:
+                    pairs.append((m, m2, coefficient))
+        if not pairs:
+            return None
+        left, right, coefficients = zip(*pairs, strict=True)
+
+        def index(rows: tuple[int, ...]) -> slice | IndexArray:
+            return slice(None) if rows == (0, 1, 2) else np.array(rows, dtype=np.intp)
+
+        return cls(
+            index(left), index(right), np.array(coefficients).reshape(-1, 1, 1), tuple(pairs)
+        )
+
+    def __call__(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        if x[0].size > lie.FUSED_MAX_ELEMENTS:  # term by term: smaller temporaries
+            m, m2, coefficient = self.pairs[0]
+            out = coefficient * (x[m] * y[m2])
+            for m, m2, coefficient in self.pairs[1:]:
+                out += coefficient * (x[m] * y[m2])
+            return out
+        terms = self.coefficients * (x[self.left] * y[self.right])
+        out = terms[0]
+        for term in terms[1:]:
+            out = out + term
+        return out
+
+
+@dataclass(frozen=True, eq=False)
 class _FrameTerm:
     """One random frame j < k with non-zero Σ_j = [[Σ_vv, Σ_vw], [Σ_wv, Σ_ww]].
 
@@ -365,13 +477,31 @@ class _FrameTerm:
     cov: FloatArray  # (6, 6)
     factor_v_t: FloatArray | None
     factor_w_t: FloatArray | None
+    vv: _Quadratic | None = field(init=False)
+    vw: _Quadratic | None = field(init=False)
+    ww: _Quadratic | None = field(init=False)
+    needs_cross: bool = field(init=False)
+    rank: int = field(init=False)
+    factor_v: lie.RowCombination | None = field(init=False)
+    factor_w: lie.RowCombination | None = field(init=False)
 
-    @property
-    def needs_cross(self) -> bool:
-        return bool(np.any(self.cov[:, 3:]))
+    def __post_init__(self) -> None:
+        cov = self.cov
+        fv, fw = self.factor_v_t, self.factor_w_t
+        derived = {
+            "vv": _Quadratic.of(cov[:3, :3], symmetric=True),
+            "vw": _Quadratic.of(cov[:3, 3:], symmetric=False, twice=True),
+            "ww": _Quadratic.of(cov[3:, 3:], symmetric=True),
+            "needs_cross": bool(np.any(cov[:, 3:])),
+            "rank": next((f.shape[0] for f in (fv, fw) if f is not None), 0),
+            "factor_v": None if fv is None else lie.RowCombination.of(fv),
+            "factor_w": None if fw is None else lie.RowCombination.of(fw),
+        }
+        for name, value in derived.items():
+            object.__setattr__(self, name, value)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class _ScorePlan:
     metric_diagonal: bool  # score = diag(M^T M) · diag Σ_E, no factors needed
     matrix: FloatArray  # M (d, 6)
@@ -379,6 +509,14 @@ class _ScorePlan:
     frames: tuple[_FrameTerm, ...]
     constant_var: FloatArray  # (6,) tip frame (+ noise) diagonal
     constant_score: float
+    weights_row: lie.RowCombination = field(init=False)  # diag(M^T M)^T
+    task: lie.RowCombination = field(init=False)  # M
+    terms: dict[int, _FrameTerm] = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "weights_row", lie.RowCombination.of(self.weights2[None]))
+        object.__setattr__(self, "task", lie.RowCombination.of(self.matrix))
+        object.__setattr__(self, "terms", {term.index: term for term in self.frames})
 
     @classmethod
     def of(cls, effects: RandomEffects, metric: TaskMetric) -> _ScorePlan:
@@ -422,42 +560,51 @@ def _score_chunk(
     clock: _Clock,
 ) -> tuple[FloatArray, FloatArray]:
     """Score (n,) and diag Σ_E (6, n) of one chunk."""
-    chain, params = model.chain, model.params
+    params, walk = model.params, model.walk
     n, k = q.shape
-    compliance = params.compliance_rad_per_nm
     clock.lap("other")
     motions = joint_motions(model.gravity, q)
-    if np.any(compliance):
+    if walk.compliant_joints:
+        # An axis without compliance does not deflect: its joint's loads are not needed.
         loads = static_gravity_loads(
-            model.gravity, q, gravity_base=model.gravity_base, payload_kg=payload, motions=motions
+            model.gravity,
+            q,
+            gravity_base=model.gravity_base,
+            payload_kg=payload,
+            motions=motions,
+            joints=walk.compliant_joints,
         )
-        deflection = np.ascontiguousarray((loads * compliance).T)  # (n_axes, n) rad, Eq. (6)
+        # (n_axes, n) rad, Eq. (6)
+        deflection = np.ascontiguousarray((loads * params.compliance_rad_per_nm).T)
     else:
-        deflection = np.zeros((compliance.size, n))
+        deflection = np.zeros((params.compliance_rad_per_nm.size, n))
+    # cos/sin of every deflection in one pass (each row exactly as ScrewMotion computes it)
+    cos_d, sin_d = lie.cos_sin_rows(
+        deflection if walk.axis_norms is None else walk.axis_norms * deflection
+    )
     clock.lap("gravity")
     last = plan.frames[0].index if plan.frames else k
     variance = np.zeros((6, n))
     score = np.zeros(n)
-    terms = {term.index: term for term in plan.frames}
     suffix = np.broadcast_to(params.links[k][:3, :, None], (3, 4, n)).copy()  # [R | t] of L_{k+1}
     for i in range(k - 1, last - 1, -1):
         motion = motions[i]
         for a in model.own_axes[i]:
-            motion = motion.advanced(deflection[a])
+            motion = motion.advanced(deflection[a], (cos_d[a], sin_d[a]))
         suffix = _left_motion(suffix, motion)
         for a in model.virtual_axes[i]:
-            screw = np.r_[0.0, 0.0, 0.0, chain.compliance_axes[a].axis]
-            suffix = _left_motion(suffix, lie.ScrewMotion.of(screw, deflection[a]))
+            virtual = walk.virtual[a].motion(deflection[a], (cos_d[a], sin_d[a]))
+            suffix = _left_motion(suffix, virtual)
         clock.lap("jacobians")
-        if i in terms:
-            _accumulate(plan, terms[i], suffix, variance, score)
+        term = plan.terms.get(i)
+        if term is not None:
+            _accumulate(plan, term, suffix, variance, score)
             clock.lap("score")
         if i > last:
-            link = params.links[i]
-            suffix = lie.combine_rows(link[:3, :3], suffix)
-            suffix[:, 3] += link[:3, 3, None]
+            suffix = walk.link_rotation[i](suffix)
+            suffix[:, 3] += walk.link_translation[i]
     if plan.metric_diagonal:
-        score = lie.combine_rows(plan.weights2[None], variance)[0]
+        score = plan.weights_row(variance)[0]
     variance += plan.constant_var[:, None]
     score += plan.constant_score
     clock.lap("score")
@@ -470,6 +617,24 @@ def _left_motion(suffix: FloatArray, motion: lie.ScrewMotion) -> FloatArray:
     if motion.translation is not None:
         out[:, 3] += motion.translation
     return out
+
+
+_NEXT = np.array([1, 2, 0])
+_PREV = np.array([2, 0, 1])
+
+
+def _cross_columns(suffix: FloatArray) -> FloatArray:
+    """``cross[m, a] = (t × R[:, a])_m = t[m+1] R[m+2, a] - t[m+2] R[m+1, a]`` (3, 3, n) for
+    ``[R | t]`` (3, 4, n): gathered for small n, component by component for large n."""
+    if suffix[0].size <= lie.FUSED_MAX_ELEMENTS:
+        ahead, behind = suffix[_NEXT], suffix[_PREV]
+        return ahead[:, 3:4] * behind[:, :3] - behind[:, 3:4] * ahead[:, :3]
+    rotation, t = suffix[:, :3], suffix[:, 3]
+    cross = np.empty((3, 3, suffix.shape[-1]))
+    cross[0] = t[1] * rotation[2] - t[2] * rotation[1]
+    cross[1] = t[2] * rotation[0] - t[0] * rotation[2]
+    cross[2] = t[0] * rotation[1] - t[1] * rotation[0]
+    return cross
 
 
 def _accumulate(
@@ -486,52 +651,30 @@ def _accumulate(
     ``diag_a = r Σ_vv r + 2 r Σ_vw c + c Σ_ww c`` and ``r Σ_ww r``: quadratic forms of 3-vectors,
     zero entries skipped (diagonal Σ_j: ``Σ_m σ_m² J[a, m]²``).
     """
-    n = suffix.shape[-1]
     rotation = suffix[:, :3]  # (3, 3, n): rotation[m] = row m of R, i.e. R[m, a] for every a
-    t = suffix[:, 3]
-    cov = term.cov
     cross = None
     if term.needs_cross:
-        # cross[m, a] = (t × R[:, a])_m
-        cross = np.empty((3, 3, n))
-        cross[0] = t[1] * rotation[2] - t[2] * rotation[1]
-        cross[1] = t[2] * rotation[0] - t[0] * rotation[2]
-        cross[2] = t[0] * rotation[1] - t[1] * rotation[0]
-    variance[:3] += _quadratic(cov[:3, :3], rotation, rotation)
+        cross = _cross_columns(suffix)
+    if term.vv is not None:
+        variance[:3] += term.vv(rotation, rotation)
     if cross is not None:
-        variance[:3] += _quadratic(cov[:3, 3:], rotation, cross, twice=True)
-        variance[:3] += _quadratic(cov[3:, 3:], cross, cross)
-        variance[3:] += _quadratic(cov[3:, 3:], rotation, rotation)
+        if term.vw is not None:
+            variance[:3] += term.vw(rotation, cross)
+        if term.ww is not None:
+            variance[:3] += term.ww(cross, cross)
+            variance[3:] += term.ww(rotation, rotation)
     if plan.metric_diagonal:
         return
     # Non-diagonal metric: G = J L (r, 6, n), score += ‖M G‖²_F.
-    r = next(f.shape[0] for f in (term.factor_v_t, term.factor_w_t) if f is not None)
-    g = np.zeros((r, 6, n))  # g[r, a] = (J L)[a, r]
-    if term.factor_v_t is not None:
-        g[:, :3] += lie.combine_rows(term.factor_v_t, rotation)
-    if term.factor_w_t is not None and cross is not None:
-        g[:, :3] += lie.combine_rows(term.factor_w_t, cross)
-        g[:, 3:] = lie.combine_rows(term.factor_w_t, rotation)
-    mg = lie.combine_rows(plan.matrix, g.transpose(1, 0, 2))  # (d, r, n)
+    g = np.zeros((term.rank, 6, suffix.shape[-1]))  # g[r, a] = (J L)[a, r]
+    if term.factor_v is not None:
+        g[:, :3] += term.factor_v(rotation)
+    if term.factor_w is not None and cross is not None:
+        g[:, :3] += term.factor_w(cross)
+        g[:, 3:] = term.factor_w(rotation)
+    mg = plan.task(g.transpose(1, 0, 2))  # (d, r, n)
     # Term by term in a fixed order: numpy's multi-axis sum picks its loop order (and thus its
     # rounding) from the batch size, so a sample's score would depend on its chunk.
-    for row in mg:
+    for row in mg * mg:
         for term_values in row:
-            score += term_values * term_values
-
-
-def _quadratic(
-    matrix: FloatArray, x: FloatArray, y: FloatArray, *, twice: bool = False
-) -> FloatArray:
-    """``Σ_{m,m'} A[m, m'] x[m] y[m']`` (times 2 if ``twice``) for batch-last x, y (3, ...).
-
-    Element-wise (position independent); for ``x is y`` and symmetric A each pair once.
-    """
-    out = np.zeros(x.shape[1:])
-    symmetric = x is y
-    for m in range(3):
-        for m2 in range(m if symmetric else 0, 3):
-            coefficient = matrix[m, m2] * (2.0 if twice or (symmetric and m2 != m) else 1.0)
-            if coefficient != 0.0:
-                out += coefficient * (x[m] * y[m2])
-    return out
+            score += term_values

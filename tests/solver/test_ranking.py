@@ -294,6 +294,54 @@ def test_vectorised_gravity_equals_pinocchio(builtin_name: str, virtual: bool) -
     assert np.abs(static_gravity_loads(model, q) - gravity_loads(c, q)).max() < 1e-10
 
 
+@pytest.mark.parametrize("label", sorted(METRICS))
+def test_small_and_large_batches_score_identically(label: str) -> None:
+    """Small batches (a ranking request) take the fused numpy paths, large ones the row-by-row
+    loops (lie.FUSED_MAX_ELEMENTS): the same arithmetic, so the same bits either way.
+
+    Deflections stay below 1e-2 rad: lie.cos_sin picks its series or libm for a whole array,
+    so above that a sample's last bit can depend on its chunk-mates (not this test's subject).
+    """
+    c = chain("panda", virtual_first=True)
+    params = _calibrated(c, 31)
+    compliance = params.compliance_rad_per_nm * 1e-2
+    compliance[[0, 3]] = 0.0  # joints whose loads are skipped
+    model = UncertaintyModel.build(
+        c, ChainParameters(params.links, compliance), _effects(c, 32, full=True)
+    )
+    q = sample_configurations(c, 2 * lie.FUSED_MAX_ELEMENTS, np.random.default_rng(33))
+    payload = np.linspace(0.0, 2.0, q.shape[0])
+    metric = METRICS[label]
+    large = score_configurations(model, q, metric, payload_kg=payload)
+    small = score_configurations(model, q, metric, payload_kg=payload, chunk_size=100)
+    assert np.array_equal(large.score, small.score)
+    assert np.array_equal(large.ee_variance, small.ee_variance)
+
+
+def test_score_plans_are_reused_per_metric_and_bounded() -> None:
+    c = chain("ur10")
+    model = UncertaintyModel.build(c, _calibrated(c, 34), _effects(c, 35, full=False))
+    first = model.score_plan(TaskMetric.pose_weights())
+    assert model.score_plan(TaskMetric.pose_weights()) is first
+    assert model.score_plan(TaskMetric.pose_weights(include_noise=True)) is not first
+    for scale in np.linspace(0.1, 10.0, 200):
+        model.score_plan(TaskMetric.pose_weights(rotation_scale_m_per_rad=scale))
+    assert len(model._plans) <= 64
+
+
+def test_gravity_loads_of_selected_joints_only() -> None:
+    c = chain("kinova", virtual_first=True)
+    model = StaticGravityModel.from_chain(c)
+    q = sample_configurations(c, 30, np.random.default_rng(36))
+    full = static_gravity_loads(model, q, payload_kg=0.7)
+    picked = {1, 3}
+    part = static_gravity_loads(model, q, payload_kg=0.7, joints=picked)
+    at = np.isin(model.axis_joint, list(picked))
+    assert np.array_equal(part[:, at], full[:, at])
+    assert not np.any(part[:, ~at])
+    assert not np.any(static_gravity_loads(model, q, joints=()))
+
+
 # --- batch-last SE(3) helpers added to solver.lie for this hot path ----------------------------
 
 
@@ -325,6 +373,48 @@ def test_batch_last_rotation_and_screw_exp_match_pinocchio(
         motion = lie.ScrewMotion.of(screw, np.array([angle - 1e-3])).advanced(np.array([1e-3]))
         moved = motion.rotate(np.eye(3)[:, :, None])[..., 0]
         assert np.allclose(moved, expected[:3, :3], atol=1e-12)
+
+
+def _row_by_row_reference(matrix: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """combine_rows' definition, literally: first used column times its coefficient, then
+    ``+= m[p, j] * x[j]`` in column order; zero coefficients skipped, empty rows 0."""
+    out = np.zeros((matrix.shape[0], *x.shape[1:]))
+    for p, row in enumerate(matrix):
+        used = [j for j in range(row.size) if row[j] != 0.0]
+        if used:
+            out[p] = x[used[0]] * row[used[0]]
+            for j in used[1:]:
+                out[p] += row[j] * x[j]
+    return out
+
+
+@given(
+    st.integers(1, 6),
+    st.integers(1, 6),
+    st.floats(0.0, 1.0),
+    st.sampled_from([5, 3 * lie.FUSED_MAX_ELEMENTS]),
+    st.integers(0, 2**32 - 1),
+)
+def test_row_combination_is_the_row_by_row_sum_bit_for_bit(
+    rows: int, columns: int, zeros: float, n: int, seed: int
+) -> None:
+    rng = np.random.default_rng(seed)
+    matrix = rng.normal(size=(rows, columns))
+    matrix[rng.random(matrix.shape) < zeros] = 0.0
+    x = rng.normal(size=(columns, 2, n))
+    expected = _row_by_row_reference(matrix, x)
+    assert np.array_equal(lie.RowCombination.of(matrix)(x), expected)
+    assert np.array_equal(lie.combine_rows(matrix, x[:, 0]), expected[:, 0])
+
+
+@pytest.mark.parametrize("n", [7, 2 * lie.FUSED_MAX_ELEMENTS])
+def test_cos_sin_rows_equal_cos_sin_of_each_row(n: int) -> None:
+    rng = np.random.default_rng(37)
+    angles = np.stack([rng.uniform(-3, 3, n), rng.uniform(-1e-3, 1e-3, n), np.zeros(n)])
+    cos, sin = lie.cos_sin_rows(angles)
+    for r, row in enumerate(angles):
+        expected_cos, expected_sin = lie.cos_sin(row)
+        assert np.array_equal(cos[r], expected_cos) and np.array_equal(sin[r], expected_sin)
 
 
 def test_adjoint_inverse_in_place_and_applied() -> None:
