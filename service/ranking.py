@@ -12,9 +12,11 @@ import io
 import json
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pydantic
+import pydantic_core
 from numpy.typing import NDArray
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
@@ -154,6 +156,18 @@ def calibration_reference(result: CalibrationResult) -> CalibrationReference:
     )
 
 
+class NonFiniteScoreError(KincalError):
+    """A ranked configuration's score or standard deviation is not a finite number (extreme
+    inputs can overflow the covariance arithmetic); ``index`` is its input row."""
+
+    def __init__(self, index: int) -> None:
+        super().__init__(
+            f"the predicted uncertainty of candidate {index} is not a finite number; check joint "
+            "positions (rad), payload_kg and the weights for extreme values"
+        )
+        self.index = index
+
+
 def rank_configurations(
     result: CalibrationResult,
     joint_positions: FloatArray,
@@ -162,13 +176,49 @@ def rank_configurations(
     payload_kg: FloatArray | float | None = None,
     model: UncertaintyModel | None = None,
     reference: CalibrationReference | None = None,
+    require_finite: bool = False,
 ) -> RankingResult:
     """Score configurations (N, k) rad and order them best first (Eq. 22–23).
 
     ``payload_kg`` per configuration or scalar (default: the calibration's payload option).
     ``index`` in the output is the 0-based input row. ``model`` and ``reference`` (of
     :func:`uncertainty_model` and :func:`calibration_reference`) may be built once per result.
+    ``require_finite``: raise :class:`NonFiniteScoreError` rather than rank a non-finite score.
     """
+    document = _configurations_document(
+        result, joint_positions, options, payload_kg, model, reference, require_finite
+    )
+    return RankingResult.model_validate(document)
+
+
+def rank_configurations_json(
+    result: CalibrationResult,
+    joint_positions: FloatArray,
+    options: RankingOptions,
+    *,
+    payload_kg: FloatArray | float | None = None,
+    model: UncertaintyModel | None = None,
+    reference: CalibrationReference | None = None,
+    require_finite: bool = False,
+) -> bytes:
+    """:func:`rank_configurations` serialised: the same bytes as its ``model_dump_json()``,
+    without building a pydantic model per entry (the planners' hot path: a hundred entry models
+    cost several times the scoring itself)."""
+    document = _configurations_document(
+        result, joint_positions, options, payload_kg, model, reference, require_finite
+    )
+    return pydantic_core.to_json(document, inf_nan_mode="null")
+
+
+def _configurations_document(
+    result: CalibrationResult,
+    joint_positions: FloatArray,
+    options: RankingOptions,
+    payload_kg: FloatArray | float | None,
+    model: UncertaintyModel | None,
+    reference: CalibrationReference | None,
+    require_finite: bool,
+) -> dict[str, Any]:
     model = model or uncertainty_model(result)
     q = _joint_array(joint_positions, model.chain)
     metric = task_metric(options)
@@ -177,8 +227,8 @@ def rank_configurations(
         scores = score_configurations(model, q, metric, payload_kg=payload)
     except SolverError as exc:
         raise KincalError(str(exc)) from exc
-    entries = _entries(scores, options.top, joint_positions=None)
-    return _result(result, model, metric, options, scores, entries, reference)
+    entries = _entries(scores, options.top, require_finite=require_finite)
+    return _document(result, model, metric, options, scores, entries, reference)
 
 
 def rank_target(
@@ -187,9 +237,11 @@ def rank_target(
     *,
     model: UncertaintyModel | None = None,
     reference: CalibrationReference | None = None,
+    require_finite: bool = False,
 ) -> RankingResult:
     """Distinct IK solutions for the target pose (measurement frame, as ``kincal predict``
-    reports poses), ranked. Each entry carries its joints and its IK pose error."""
+    reports poses), ranked. Each entry carries its joints and its IK pose error.
+    ``require_finite`` as for :func:`rank_configurations`."""
     model = model or uncertainty_model(result)
     axis = _free_axis(request)
     target = lie.pose_matrix(
@@ -215,9 +267,16 @@ def rank_target(
     metric = task_metric(request.options)
     q = np.array([c.joint_positions for c in candidates]).reshape(-1, model.chain.n_joints)
     scores = score_configurations(model, q, metric, payload_kg=request.payload_kg)
-    entries = _entries(scores, request.options.top, joint_positions=q, candidates=candidates)
-    out = _result(result, model, metric, request.options, scores, entries, reference)
-    return out.model_copy(update={"target": request.target, "free_axis": axis})
+    entries = _entries(
+        scores,
+        request.options.top,
+        require_finite=require_finite,
+        joint_positions=q,
+        candidates=candidates,
+    )
+    document = _document(result, model, metric, request.options, scores, entries, reference)
+    document |= {"target": request.target, "free_axis": axis}
+    return RankingResult.model_validate(document)
 
 
 def _free_axis(request: TargetRankingRequest) -> tuple[float, float, float] | None:
@@ -240,55 +299,89 @@ def _joint_array(joint_positions: FloatArray, chain: KinematicChain) -> FloatArr
     return q
 
 
+# Every field of an entry, in schema order, so that a plain dict serialises exactly like the
+# model (None fields included, as ``model_dump_json`` writes them).
+_ENTRY_DEFAULTS = {name: info.default for name, info in RankedConfiguration.model_fields.items()}
+
+
 def _entries(
     scores: ConfigurationScores,
     top: int | None,
     *,
-    joint_positions: FloatArray | None,
+    require_finite: bool = False,
+    joint_positions: FloatArray | None = None,
     candidates: Sequence[IKCandidate] = (),
-) -> list[RankedConfiguration]:
+) -> list[dict[str, Any]]:
+    """The ranked entries as plain dicts with every :class:`RankedConfiguration` field."""
     order = scores.order()[:top]
-    std = np.sqrt(np.maximum(scores.ee_variance[order], 0.0)).tolist()
+    std_array = np.sqrt(np.maximum(scores.ee_variance[order], 0.0))
+    score_array = scores.score[order]
+    if require_finite:
+        finite = np.isfinite(score_array) & np.isfinite(std_array).all(axis=1)
+        if not finite.all():
+            raise NonFiniteScoreError(int(order[int(np.argmin(finite))]))
+    std = std_array.tolist()
     trace_position = scores.trace_position_m2[order].tolist()
     trace_rotation = scores.trace_rotation_rad2[order].tolist()
-    score = scores.score[order].tolist()
+    score = score_array.tolist()
+    if joint_positions is None and not candidates:
+        # The hot path: a dict display per entry (several times faster than dict(zip(...))),
+        # keys in schema order; tests check it serialises exactly like the model.
+        return [
+            {
+                "rank": rank + 1,
+                "index": i,
+                "score": s,
+                "trace_position_m2": p,
+                "trace_rotation_rad2": r,
+                "ee_std": e,
+                "joint_positions_rad": None,
+                "free_rotation_rad": None,
+                "ik_translation_error_m": None,
+                "ik_rotation_error_rad": None,
+                "ik_source": None,
+            }
+            for rank, (i, s, p, r, e) in enumerate(
+                zip(order.tolist(), score, trace_position, trace_rotation, std, strict=True)
+            )
+        ]
     out = []
     for rank, i in enumerate(order.tolist()):
-        extra: dict[str, object] = {}
+        entry = {
+            **_ENTRY_DEFAULTS,
+            "rank": rank + 1,
+            "index": i,
+            "score": score[rank],
+            "trace_position_m2": trace_position[rank],
+            "trace_rotation_rad2": trace_rotation[rank],
+            "ee_std": std[rank],
+        }
         if joint_positions is not None:
-            extra["joint_positions_rad"] = joint_positions[i].tolist()
+            entry["joint_positions_rad"] = joint_positions[i].tolist()
         if candidates:
             c = candidates[i]
-            extra |= {
+            entry |= {
                 "free_rotation_rad": c.free_rotation_rad,
                 "ik_translation_error_m": c.translation_error_m,
                 "ik_rotation_error_rad": c.rotation_error_rad,
                 "ik_source": c.source,
             }
-        out.append(
-            RankedConfiguration(
-                rank=rank + 1,
-                index=i,
-                score=score[rank],
-                trace_position_m2=trace_position[rank],
-                trace_rotation_rad2=trace_rotation[rank],
-                ee_std=tuple(std[rank]),  # type: ignore[arg-type]
-                **extra,  # type: ignore[arg-type]
-            )
-        )
+        out.append(entry)
     return out
 
 
-def _result(
+def _document(
     result: CalibrationResult,
     model: UncertaintyModel,
     metric: TaskMetric,
     options: RankingOptions,
     scores: ConfigurationScores,
-    entries: list[RankedConfiguration],
+    entries: list[dict[str, Any]],
     reference: CalibrationReference | None = None,
-) -> RankingResult:
-    return RankingResult(
+) -> dict[str, Any]:
+    """The ranking as the plain data of :class:`RankingResult`, fields in schema order: the
+    head validated as a model (without entries), the entries added as dicts."""
+    head = RankingResult(
         kincal_version=pipeline.kincal_version(),
         calibration=reference or calibration_reference(result),
         joint_names=list(model.chain.joint_names),
@@ -298,8 +391,11 @@ def _result(
         include_noise=options.include_noise,
         n_configurations=int(scores.score.size),
         best_index=scores.best() if scores.score.size else None,
-        ranking=entries,
+        ranking=[],
     )
+    document = head.model_dump()
+    document["ranking"] = entries
+    return document
 
 
 def gp_calibration_method(

@@ -5,8 +5,10 @@ Synchronous, and the planners' hot path. A calibration's result and the
 :class:`solver.ranking.UncertaintyModel` built from it are cached per (tenant, calibration)
 (:func:`service.api.calibrations.cached_calibration`), so after the first request a ranking
 does no database query, file read or JSON parsing of the result. Scoring a few hundred
-configurations takes a few milliseconds of numpy, less than a thread hop under load costs, so
-it runs in the event loop; larger batches and inverse kinematics run in a worker thread.
+configurations takes well under a millisecond of numpy, less than a thread hop under load
+costs, so it runs in the event loop; larger batches and inverse kinematics run in a worker
+thread. The answer is serialised from plain data (:func:`service.ranking.rank_configurations_json`:
+the RankingResult's exact JSON without a pydantic model per entry).
 
 Rankings change nothing, so a repeated request (with or without ``Idempotency-Key``) gets
 the same answer.
@@ -170,31 +172,30 @@ def _payload(body: RankingCreate) -> NDArray[np.float64] | float | None:
     return body.payload_kg
 
 
-def _rank_configurations(context: RankingContext, body: RankingCreate) -> RankingResult:
+def _rank_configurations(context: RankingContext, body: RankingCreate) -> bytes:
     q = joint_matrix(body, context.joint_names)
-    return ranking.rank_configurations(
-        context.result,
-        q,
-        body.options,
-        payload_kg=_payload(body),
-        model=context.model,
-        reference=context.reference,
-    )
-
-
-def _require_finite(out: RankingResult) -> RankingResult:
-    """Extreme (finite) inputs can overflow the covariance arithmetic; answer 422, never NaN."""
-    numbers = np.array([(entry.score, *entry.ee_std) for entry in out.ranking]).reshape(-1, 7)
-    finite = np.isfinite(numbers).all(axis=1)
-    if not finite.all():
-        index = out.ranking[int(np.argmin(finite))].index
-        raise ProblemException(
-            422,
-            f"the predicted uncertainty of candidate {index} is not a finite number; "
-            "check joint positions (rad), payload_kg and options.weights for extreme values",
-            slug="invalid-configurations",
+    try:
+        return ranking.rank_configurations_json(
+            context.result,
+            q,
+            body.options,
+            payload_kg=_payload(body),
+            model=context.model,
+            reference=context.reference,
+            require_finite=True,
         )
-    return out
+    except ranking.NonFiniteScoreError as exc:
+        raise _non_finite(exc) from exc
+
+
+def _non_finite(exc: ranking.NonFiniteScoreError) -> ProblemException:
+    """Extreme (finite) inputs can overflow the covariance arithmetic; answer 422, never NaN."""
+    return ProblemException(
+        422,
+        f"the predicted uncertainty of candidate {exc.index} is not a finite number; "
+        "check joint positions (rad), payload_kg and options.weights for extreme values",
+        slug="invalid-configurations",
+    )
 
 
 def _rank_target(context: RankingContext, body: RankingCreate) -> RankingResult:
@@ -208,9 +209,16 @@ def _rank_target(context: RankingContext, body: RankingCreate) -> RankingResult:
         payload_kg=context.result.options.payload_kg if payload is None else payload,
         options=body.options,
     )
-    out = ranking.rank_target(
-        context.result, request, model=context.model, reference=context.reference
-    )
+    try:
+        out = ranking.rank_target(
+            context.result,
+            request,
+            model=context.model,
+            reference=context.reference,
+            require_finite=True,
+        )
+    except ranking.NonFiniteScoreError as exc:
+        raise _non_finite(exc) from exc
     if not out.ranking:
         raise ProblemException(
             422,
@@ -283,9 +291,10 @@ async def create_ranking(
     _check_limits(body, state.settings.max_ranking_candidates)
     context = await ranking_context(state, principal.tenant_id, body.calibration_id)
     if body.target is not None:
-        result = await run_in_threadpool(_rank_target, context, body)
+        target = await run_in_threadpool(_rank_target, context, body)
+        content = target.model_dump_json().encode()
     elif _count(body) <= INLINE_MAX_CONFIGURATIONS:
-        result = _rank_configurations(context, body)
+        content = _rank_configurations(context, body)
     else:
-        result = await run_in_threadpool(_rank_configurations, context, body)
-    return Response(_require_finite(result).model_dump_json(), media_type="application/json")
+        content = await run_in_threadpool(_rank_configurations, context, body)
+    return Response(content, media_type="application/json")

@@ -145,6 +145,47 @@ def test_payload_per_configuration(calibrated: Calibrated) -> None:
     assert over_http.ranking == direct.ranking
 
 
+@pytest.mark.parametrize(
+    ("options", "payload"),
+    [
+        ({}, None),
+        ({"top": 3, "include_noise": True}, 1.5),
+        ({"weights": {"kind": "task_point", "point_m": [0.0, 0.01, 0.05]}}, "per row"),
+        ({"weights": {"matrix": np.eye(6).tolist(), "rotation_scale_m_per_rad": 0.2}}, None),
+    ],
+)
+def test_served_bytes_are_the_ranking_models_json(
+    calibrated: Calibrated, options: dict[str, Any], payload: Any
+) -> None:
+    """The hot path serialises plain dicts (no model per entry): the same bytes as the
+    validated RankingResult's JSON, the documented response schema."""
+    q = calibrated.configurations(30, seed=12)
+    payload_kg = np.linspace(0.0, 2.0, 30) if payload == "per row" else payload
+    ranking_options = RankingOptions.model_validate(options)
+    served = ranking.rank_configurations_json(
+        calibrated.result, q, ranking_options, payload_kg=payload_kg, require_finite=True
+    )
+    model = ranking.rank_configurations(
+        calibrated.result, q, ranking_options, payload_kg=payload_kg
+    )
+    assert served == model.model_dump_json().encode()
+    body = {"calibration_id": calibrated.id, "joint_positions_rad": q.tolist(), "options": options}
+    if payload is not None:
+        body["payload_kg"] = payload_kg.tolist() if payload == "per row" else payload_kg
+    response = calibrated.client.post(URL, json=body)
+    assert response.status_code == 200 and response.content == served
+
+
+def test_non_finite_scores_are_refused_only_when_asked(calibrated: Calibrated) -> None:
+    q = calibrated.configurations(4, seed=13)
+    huge = RankingOptions.model_validate({"weights": {"diagonal": [1e300] * 6}})
+    with pytest.raises(ranking.NonFiniteScoreError) as refused:
+        ranking.rank_configurations_json(calibrated.result, q, huge, require_finite=True)
+    assert refused.value.index in range(4)
+    kept = ranking.rank_configurations(calibrated.result, q, huge)
+    assert not np.isfinite(kept.ranking[-1].score)
+
+
 def test_ranking_by_named_configurations_equals_ranking_by_rows(calibrated: Calibrated) -> None:
     q = calibrated.configurations(12, seed=6)
     names = list(calibrated.chain.joint_names)
