@@ -685,12 +685,15 @@ def calibrate_streamed(
     marker: int | None = None,
     progress: Progress = _no_progress,
     timings: dict[str, float] | None = None,
+    source: str | None = None,
 ) -> CalibrationResult:
     """:func:`calibrate` for a dataset file read in chunks, each pass mapped over ``executor``
     (default in-process); see :mod:`solver.streaming` for what differs: warm start and pruning
     on the head rows, moment-matching covariances, no held-out splits (``heldout`` is stored
-    as False). ``timings`` (optional) receives the wall time of each stage in seconds and
-    the number of passes over the data (``passes``).
+    as False). ``progress`` is called as the stages "read", "fit", "baseline" and
+    "covariance" end; ``timings`` (optional) receives the wall time of each stage in seconds
+    and the number of passes over the data (``passes``); ``source`` names the dataset in the
+    result (default: the file's name).
     """
     chain = chain_for(robot, options)
     started = time.perf_counter()
@@ -706,10 +709,9 @@ def calibrate_streamed(
             fit_options(options, baseline=True, n_links=chain.n_links),
             StreamSettings(stream.warm_start_rows, options.outlier_sigma),
             covariance=spec,
+            progress=lambda name: progress(name, 1, 1),
         )
         stage.update(run.stage_s)
-        progress("fit", 1, 1)
-        progress("baseline", 1, 1)
         clock = time.perf_counter()
         count = PassCount(run.passes)
         covariance = _streamed_covariance(problem, executor, run, options, spec, count)
@@ -721,7 +723,8 @@ def calibrate_streamed(
     if timings is not None:
         timings.update(stage)
     load = problem.load
-    source = load.plan.source if isinstance(load, DatasetChunkLoader) else str(path)
+    if source is None:
+        source = load.plan.source if isinstance(load, DatasetChunkLoader) else str(path)
     position_only = problem.position_only
     return _assemble_result(
         dataset=DatasetInfo(source=source, n_samples=run.n_rows, position_only=position_only),

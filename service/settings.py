@@ -93,8 +93,11 @@ class Settings(BaseSettings):
     )
     dask_address: str | None = Field(
         None,
-        description="Dask scheduler (tcp://host:8786) for streamed calibrations and fleets "
-        "(kincal calibrate/fleet --executor dask); None: a local cluster.",
+        description="Dask scheduler (tcp://host:8786). When set, the service's calibration "
+        "jobs run streamed on this cluster (each job reads it from its worker's environment; "
+        "the cluster's workers must see the data folder at the same path), and kincal "
+        "calibrate/fleet --executor dask use it; None: jobs run in the worker process, "
+        "--executor dask starts a local cluster.",
     )
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     log_format: Literal["json", "text"] = "json"

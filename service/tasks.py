@@ -2,6 +2,13 @@
 
 A job function reads its inputs from ``ctx.params`` and the data folder, calls the pipeline
 (the same one as the CLI), reports progress and writes its outputs as artifacts.
+
+Calibrations run in the worker process (:func:`service.pipeline.calibrate`), or — when the
+worker's environment names a Dask scheduler (``KINCAL_DASK_ADDRESS``, see
+:class:`service.settings.Settings`) — streamed on that cluster
+(:func:`service.pipeline.calibrate_streamed` with a :class:`solver.executors.DaskExecutor`,
+the same call as ``kincal calibrate --executor dask``): the cluster's workers read the stored
+dataset file themselves, so they need the service's data folder at the same path.
 """
 
 from __future__ import annotations
@@ -19,9 +26,11 @@ from service import discovery, pipeline
 from service.discovery_html import render_discovery_report
 from service.report_html import render_report
 from service.robots import RobotDescription, load_robot
+from service.settings import Settings
 from service.storage.files import FileStore
 from service.urdf_export import export_urdf
 from service.worker import JobContext
+from solver.executors import DaskExecutor
 
 
 class RobotRef(BaseModel):
@@ -97,22 +106,48 @@ def _progress(ctx: JobContext, heldout: bool) -> pipeline.Progress:
     return report
 
 
+# Overall fraction reached at the end of each stage of a streamed calibration (Dask).
+_STREAMED_STAGE_END = {"read": 0.15, "fit": 0.45, "baseline": 0.8, "covariance": 0.9}
+
+
+def _streamed_progress(ctx: JobContext) -> pipeline.Progress:
+    def report(stage: str, done: int, total: int) -> None:
+        ctx.progress(stage, _STREAMED_STAGE_END.get(stage), done)
+
+    return report
+
+
 def calibration_job(ctx: JobContext) -> None:
-    """Calibrate a stored dataset; artifacts: result JSON, HTML report, calibrated URDF."""
+    """Calibrate a stored dataset (on the Dask cluster of ``KINCAL_DASK_ADDRESS`` if set);
+    artifacts: result JSON, HTML report, calibrated URDF."""
     ctx.progress("loading", 0.0)
     params = CalibrationJobParams.model_validate(ctx.params)
     robot = robot_description(params.robot, ctx.files)
     chain = pipeline.chain_for(robot, params.options)
+    path = ctx.files.path(params.dataset.data_path)
     dataset = read_dataset(
-        ctx.files.path(params.dataset.data_path),
+        path,
         chain.joint_names,
         other_joint_names=chain.other_joint_names,
         source=params.dataset.name,
     )
-    ctx.progress("fit", 0.05)
-    result = pipeline.calibrate(
-        dataset, robot, params.options, _progress(ctx, params.options.heldout)
-    )
+    address = Settings().dask_address
+    if address:
+        ctx.progress("connecting", 0.02)
+        with DaskExecutor(address) as executor:
+            result = pipeline.calibrate_streamed(
+                path,
+                robot,
+                params.options,
+                executor,
+                progress=_streamed_progress(ctx),
+                source=params.dataset.name,
+            )
+    else:
+        ctx.progress("fit", 0.05)
+        result = pipeline.calibrate(
+            dataset, robot, params.options, _progress(ctx, params.options.heldout)
+        )
     ctx.progress("report", REPORT_FRACTION)
     ctx.write_artifact("result", "result.json", result.model_dump_json(indent=1).encode())
     ctx.write_artifact("urdf", "calibrated.urdf", export_urdf(result).encode())

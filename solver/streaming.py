@@ -1319,6 +1319,7 @@ def calibrate_streamed_fits(
     baseline_options: FitOptions,
     settings: StreamSettings = StreamSettings(),
     covariance: CovarianceSpec | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> StreamedCalibration:
     """Deterministic calibration of a streamed recording: warm start on the head rows, the
     first fit, the 2σ rule, the refit on the kept samples and the "before" fit (measurement
@@ -1327,8 +1328,11 @@ def calibrate_streamed_fits(
     Passes: one to prepare the chunks (while the driver fits the head rows), the first fit's
     (its last pass leaves the residuals the 2σ rule is applied to), then the refit's and the
     "before" fit's together; with ``covariance`` the refit's passes after the first also take
-    the covariance statistics (:attr:`StreamedCalibration.covariance`).
+    the covariance statistics (:attr:`StreamedCalibration.covariance`). ``progress(stage)`` is
+    called as "read", "fit" (the first fit) and "baseline" (the refit and the "before" fit)
+    end.
     """
+    report = progress or (lambda stage: None)
     count = PassCount()
     clock = time.perf_counter()
     scanning = executor.map_async(_count_chunk, problem, problem.refs)
@@ -1340,6 +1344,7 @@ def calibrate_streamed_fits(
     count.passes += 1
     check_sample_count(problem.chain, n_rows, position_only=problem.position_only, options=options)
     stage = {"read": time.perf_counter() - clock, "warm_start": 0.0}
+    report("read")
     clock = time.perf_counter()
     rule = None
     if settings.outlier_sigma is None:
@@ -1353,10 +1358,12 @@ def calibrate_streamed_fits(
             count,
         )
         fit = first
+        report("fit")
     else:
         (first,) = fit_streamed_together(
             problem, executor, [FitRequest(start, keep, options, keep_residuals=True)], count
         )
+        report("fit")
         spread = first.sums.spread
         rule = OutlierRule(first.params, spread.mean, spread.std, settings.outlier_sigma)
         warm = time.perf_counter()
@@ -1375,6 +1382,7 @@ def calibrate_streamed_fits(
             count,
         )
     stage["deterministic"] = time.perf_counter() - clock - stage["warm_start"]
+    report("baseline")
     removed = fit.sums.removed_rows if rule is not None else np.zeros(0, dtype=np.int64)
     return StreamedCalibration(
         n_rows,

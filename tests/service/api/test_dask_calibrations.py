@@ -1,0 +1,113 @@
+"""Issue 7: with ``KINCAL_DASK_ADDRESS`` set, the service's calibration jobs run streamed on
+that Dask cluster and give ``kincal calibrate --executor dask``'s result on the same data."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+from distributed import LocalCluster
+
+from schemas.calibration import CalibrationOptions, CalibrationResult
+from service import tasks
+from service.storage.files import FileStore
+from service.storage.models import Job
+from service.worker import JobContext
+from tests.service.api.conftest import (
+    AppFactory,
+    client_api,
+    database_of,
+    recording_bytes,
+    settings_of,
+)
+from tests.service.cli_support import run
+
+
+def _close(got: Any, want: Any, where: str = "") -> None:
+    """Equal structure; numbers equal to 1e-9 relative (the chunking may differ)."""
+    if isinstance(want, dict):
+        assert isinstance(got, dict) and got.keys() == want.keys(), where
+        for key in want:
+            _close(got[key], want[key], f"{where}.{key}")
+    elif isinstance(want, list):
+        assert isinstance(got, list) and len(got) == len(want), where
+        for i, (a, b) in enumerate(zip(got, want, strict=True)):
+            _close(a, b, f"{where}[{i}]")
+    elif isinstance(want, float) and not isinstance(got, bool):
+        assert isinstance(got, (int, float)), where
+        assert math.isclose(got, want, rel_tol=1e-9, abs_tol=1e-15), (where, got, want)
+    else:
+        assert got == want, (where, got, want)
+
+
+def _comparable(result: CalibrationResult) -> dict[str, Any]:
+    document = result.model_dump(mode="json")
+    document.pop("created_utc")
+    document["solver"].pop("time_s")
+    if document.get("covariance") is not None:
+        document["covariance"]["solver"].pop("time_s")
+    return document
+
+
+def test_calibration_job_runs_on_the_dask_cluster_of_the_setting(
+    make_client: AppFactory,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    csv = tmp_path / "recording.csv"
+    csv.write_bytes(recording_bytes(".csv", 300, 5))
+    options = CalibrationOptions(covariance_estimator="moment", heldout=False)
+    with LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tcp",
+        host="127.0.0.1",
+        dashboard_address=None,
+    ) as cluster:
+        address = cluster.scheduler_address
+        # the job worker reads the setting from its environment (spawned: it inherits ours)
+        monkeypatch.setenv("KINCAL_DASK_ADDRESS", address)
+        http = make_client(workers=1, worker_start_method="spawn")
+        api = client_api(http)
+        dataset = api.upload_dataset(csv, robot="ur10")
+        job = api.start_calibration(dataset["id"], options)
+        progress: list[dict[str, Any]] = []
+        api.wait(job["id"], poll_s=0.05, on_progress=progress.append)
+        served = api.result(job["id"])
+        assert "run_block" in cluster.scheduler.task_prefixes  # the passes ran on the cluster
+        # the same job function, called here, reports each streamed stage in order
+        with database_of(http).sessions() as session:
+            stored = session.get(Job, job["id"])
+            assert stored is not None
+            params = stored.params
+        messages: list[tuple[Any, ...]] = []
+        files = FileStore(settings_of(http).data_dir)
+        tasks.calibration_job(JobContext("again", "local", params, files, messages.append))
+
+        out = tmp_path / "cli.json"
+        args = ["calibrate", str(csv), "--robot", "ur10", "--executor", "dask"]
+        args += ["--dask", address, "--estimator", "moment", "--no-heldout", "-o", str(out)]
+        code, text, err = run(args, capsys, monkeypatch)
+    assert code == 0, err
+    assert "streamed on dask" in text
+    fractions = [p["fraction"] for p in progress if p["fraction"] is not None]
+    assert fractions == sorted(fractions) and progress[-1]["state"] == "succeeded"
+    reported = [(m[1], m[2]) for m in messages if m[0] == "progress"]
+    assert [stage for stage, _ in reported] == [
+        "loading",
+        "connecting",
+        "read",
+        "fit",
+        "baseline",
+        "covariance",
+        "report",
+    ]
+    assert [f for _, f in reported] == sorted(f for _, f in reported)
+    streamed = CalibrationResult.model_validate_json(out.read_text())
+    assert served.options.heldout is False and served.covariance is not None
+    assert served.covariance.estimator == "moment"
+    _close(_comparable(served), _comparable(streamed))
