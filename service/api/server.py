@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gc
+
 import uvicorn
 
 from service.api.app import create_app
@@ -16,8 +18,10 @@ def run_server(host: str | None = None, port: int | None = None) -> None:
     overrides = {name: value for name, value in (("host", host), ("port", port)) if value}
     settings = Settings(**overrides)  # type: ignore[arg-type]
     configure_logging(settings.log_level, settings.log_format)
+    app = create_app(settings)
+    freeze_startup_heap()
     uvicorn.run(
-        create_app(settings),
+        app,
         host=settings.host,
         port=settings.port,
         log_config=None,
@@ -25,6 +29,16 @@ def run_server(host: str | None = None, port: int | None = None) -> None:
         timeout_graceful_shutdown=int(settings.shutdown_grace_s) + 5,
         server_header=False,
     )
+
+
+def freeze_startup_heap() -> None:
+    """Move every object that exists now (the imports: numpy, Pinocchio, pandas, the pydantic
+    schemas, ~3·10^5 objects) to the garbage collector's permanent generation. A full
+    collection traversing them stalls the request loop for 100-170 ms, which is the rankings'
+    p99 under load; after this, full collections only traverse what the service allocated
+    since (startup garbage is collected first, and nothing frozen is ever freed)."""
+    gc.collect()
+    gc.freeze()
 
 
 def create_key(tenant: str) -> tuple[str, str]:
