@@ -7,9 +7,16 @@ read → deterministic (first fit, 2σ rule, refit, "before" fit) → covariance
 Eq. 13–14) — in a fresh process, so that peak memory is that run's: wall time per stage, peak
 resident memory of the driver and of the largest worker (VmHWM), CPU seconds of all its
 processes (on a machine shared with other work, CPU time / cores is what an idle machine would
-take), the number of passes over the data. The scaling exponents are log-log slopes of time
-and memory against N, over N ≥ 10⁴ and over the top decade; fixed costs (worker start, warm
-start) flatten them, so the table also fits CPU time = a + b·N (linear with an intercept).
+take), the number of passes over the data, and the 1-minute load average before and after
+(other work on the machine; the run itself adds up to its worker count). The scaling exponents
+are log-log slopes of time and memory against N, over N ≥ 10⁴ and over the top decade; fixed
+costs (worker start, warm start) flatten them, so the table also fits CPU time = a + b·N
+(linear with an intercept).
+
+Stages: "read" = planning, starting the workers and preparing every chunk (the first warm
+start runs beside it on the driver); "deterministic" = the refit's and "before" fit's warm
+starts and the streamed fits; "covariance" = the solve and the sandwich pass (the statistics
+come with the refit's last pass).
 Then a fleet of robots (one Parquet file each) is calibrated by ``kincal fleet``'s code on each
 backend.
 
@@ -125,6 +132,7 @@ class Run:
     rms_after_mm: float
     compliance_rad_per_nm: list[float] = field(default_factory=list)
     cache_mb: float = 512.0
+    load_average: tuple[float, float] = (0.0, 0.0)
 
     @property
     def label(self) -> str:
@@ -140,6 +148,7 @@ def run_one(
     options = CalibrationOptions(covariance_estimator="moment", heldout=False)
     stream = pipeline.StreamOptions(chunk_rows=chunk_rows, cache_mb=cache_mb)
     timings: dict[str, float] = {}
+    load_before = os.getloadavg()[0]
     started = time.perf_counter()
     executor = make_executor(backend, n_workers=workers)  # type: ignore[arg-type]
     ready = time.perf_counter()
@@ -172,6 +181,7 @@ def run_one(
         result.fit.after.train.translation_rms_mm,
         [c.value_rad_per_nm for c in result.compliance],
         cache_mb,
+        (load_before, os.getloadavg()[0]),
     )
 
 
@@ -195,7 +205,9 @@ def run_isolated(
     lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT")]
     if done.returncode or not lines:
         raise RuntimeError(f"{backend} at N={n} failed:\n{done.stderr[-3000:]}")
-    return Run(**json.loads(lines[-1][len("RESULT") :]))
+    values = json.loads(lines[-1][len("RESULT") :])
+    values["load_average"] = tuple(values["load_average"])
+    return Run(**values)
 
 
 def slope(x: Sequence[float], y: Sequence[float]) -> float:
@@ -250,7 +262,8 @@ def run_fleet(folder: Path, backend: str, workers: int) -> FleetRun:
 def table(runs: list[Run], fleets: list[FleetRun]) -> str:
     header = (
         f"{'backend':<18} {'N':>9} {'read s':>8} {'determ. s':>10} {'cov. s':>8} "
-        f"{'total s':>8} {'CPU s':>7} {'driver MiB':>11} {'worker MiB':>11} {'passes':>7}"
+        f"{'total s':>8} {'CPU s':>7} {'driver MiB':>11} {'worker MiB':>11} {'passes':>7} "
+        f"{'load':>9}"
     )
     lines = [header]
     for r in runs:
@@ -258,7 +271,7 @@ def table(runs: list[Run], fleets: list[FleetRun]) -> str:
             f"{r.label:<18} {r.n:>9} {r.stage_s['read']:>8.2f} "
             f"{r.stage_s['deterministic']:>10.2f} {r.stage_s['covariance']:>8.2f} "
             f"{r.total_s:>8.2f} {r.cpu_s:>7.1f} {r.driver_mib:>11.0f} {r.worker_mib:>11.0f} "
-            f"{r.passes:>7}"
+            f"{r.passes:>7} {r.load_average[0]:>4.1f}-{r.load_average[1]:<4.1f}"
         )
     for smallest in (10_000, 100_000):
         lines += ["", f"scaling exponents (log-log slopes over N >= {smallest:.0e})"]

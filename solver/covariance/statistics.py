@@ -310,14 +310,11 @@ def _whitened(
     t = left.transpose(1, 2, 0)  # (d, d, n)
     d = t.shape[0]
     out = np.zeros((layout.n_params, d, t.shape[2]))
-    for p, (f, i) in enumerate(zip(layout.param_frame, layout.param_row, strict=True)):
-        if layout.is_noise[p]:
-            if i < d:
-                out[p] = t[:, i]
-            continue
-        column = cols[6 * f + i]
-        for s in range(d):
-            out[p] += t[:, s] * column[s]
+    chain = np.flatnonzero(~layout.is_noise)
+    out[chain] = np.einsum("rsn,psn->prn", t, cols[layout.column_i[chain]])
+    for p in np.flatnonzero(layout.is_noise):
+        if layout.param_row[p] < d:
+            out[p] = t[:, layout.param_row[p]]
     r = None if residuals is None else np.einsum("rsn,sn->rn", t, residuals)
     return out, r
 
