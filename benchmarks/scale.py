@@ -7,16 +7,19 @@ read → deterministic (first fit, 2σ rule, refit, "before" fit) → covariance
 Eq. 13–14) — in a fresh process, so that peak memory is that run's: wall time per stage, peak
 resident memory of the driver and of the largest worker (VmHWM), CPU seconds of all its
 processes (on a machine shared with other work, CPU time / cores is what an idle machine would
-take), the number of passes over the data, and the 1-minute load average before and after
-(other work on the machine; the run itself adds up to its worker count). The scaling exponents
-are log-log slopes of time and memory against N, over N ≥ 10⁴ and over the top decade; fixed
-costs (worker start, warm start) flatten them, so the table also fits CPU time = a + b·N
-(linear with an intercept).
+take), the number of passes over the data, and what else ran meanwhile: the 1-minute load
+average before and after (the run itself adds up to its worker count) and the CPU seconds the
+rest of the machine used during the run (machine-wide busy time minus the run's own; Linux).
+``--idle F`` waits before each run until the machine's CPUs are at most a fraction F busy.
+The scaling exponents are log-log slopes of time and memory against N, over N ≥ 10⁴ and over
+the top decade; fixed costs (worker start, warm start) flatten them, so the table also fits CPU
+time = a + b·N (linear with an intercept).
 
 Stages: "read" = planning, starting the workers and preparing every chunk (the first warm
 start runs beside it on the driver); "deterministic" = the refit's and "before" fit's warm
 starts and the streamed fits; "covariance" = the solve and the sandwich pass (the statistics
 come with the refit's last pass).
+
 Then a fleet of robots (one Parquet file each) is calibrated by ``kincal fleet``'s code on each
 backend.
 
@@ -24,7 +27,7 @@ Prints a table, writes ``scale.json`` in ``--out`` and the log-log plot to ``--p
 
 Usage: ``python benchmarks/scale.py [--sizes 1e3,1e4,1e5,1e6] [--backends inprocess,processes,
 dask] [--uncached inprocess] [--fleet-robots 100] [--fleet-poses 2000] [--cache-mb 512]
-[--out out/scale] [--plot docs/scale.png]``.
+[--idle 0.1] [--out out/scale] [--plot docs/scale.png]``.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -116,6 +120,40 @@ def write_recording(path: Path, chain: KinematicChain, n: int, *, chunk_rows: in
     path.with_suffix(".tmp").replace(path)
 
 
+def machine_busy_s() -> float | None:
+    """CPU seconds every process of the machine has used since boot (Linux ``/proc/stat``),
+    None where that is not available."""
+    try:
+        with open("/proc/stat", encoding="ascii") as stat:
+            fields = [int(x) for x in stat.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    user, nice, system, _idle, _iowait, irq, softirq, steal = (fields + [0] * 8)[:8]
+    return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+
+def children_cpu_s() -> float:
+    """CPU seconds of this process's finished (waited-for) children and their descendants."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def wait_until_idle(max_busy: float, timeout_s: float, window_s: float = 2.0) -> float:
+    """Wait until the machine's CPUs are at most ``max_busy`` (fraction) busy over
+    ``window_s``, or ``timeout_s`` passed; returns the last busy fraction seen."""
+    deadline = time.monotonic() + timeout_s
+    cores = os.cpu_count() or 1
+    while True:
+        before = machine_busy_s()
+        if before is None:
+            return 0.0
+        time.sleep(window_s)
+        after = machine_busy_s() or before
+        busy = (after - before) / (window_s * cores)
+        if busy <= max_busy or time.monotonic() > deadline:
+            return busy
+
+
 @dataclass
 class Run:
     """One streamed calibration: N, backend, seconds per stage, peak memory (MiB)."""
@@ -133,6 +171,7 @@ class Run:
     compliance_rad_per_nm: list[float] = field(default_factory=list)
     cache_mb: float = 512.0
     load_average: tuple[float, float] = (0.0, 0.0)
+    other_cpu_s: float = 0.0
 
     @property
     def label(self) -> str:
@@ -195,6 +234,7 @@ def run_isolated(
         f"r = run_one(Path({str(path)!r}), {n}, {backend!r}, chunk_rows={chunk_rows}, "
         f"cache_mb={cache_mb}, workers={workers}); print('RESULT' + json.dumps(asdict(r)))"
     )
+    busy, own = machine_busy_s(), children_cpu_s()
     done = subprocess.run(
         [sys.executable, "-c", code],
         capture_output=True,
@@ -207,6 +247,9 @@ def run_isolated(
         raise RuntimeError(f"{backend} at N={n} failed:\n{done.stderr[-3000:]}")
     values = json.loads(lines[-1][len("RESULT") :])
     values["load_average"] = tuple(values["load_average"])
+    after = machine_busy_s()
+    if busy is not None and after is not None:
+        values["other_cpu_s"] = max(0.0, (after - busy) - (children_cpu_s() - own))
     return Run(**values)
 
 
@@ -223,6 +266,7 @@ class FleetRun:
     wall_s: float
     robots_per_s: float
     flagged: list[str]
+    other_cpu_s: float = 0.0
 
 
 def write_fleet(folder: Path, chain: KinematicChain, n_robots: int, n_poses: int) -> None:
@@ -250,20 +294,25 @@ def run_fleet(folder: Path, backend: str, workers: int) -> FleetRun:
     robot = load_robot(ROBOT)
     options = CalibrationOptions(covariance_estimator="moment", heldout=False)
     datasets = fleet_datasets(folder)
+    busy, own = machine_busy_s(), children_cpu_s() + time.process_time()
     started = time.perf_counter()
     with make_executor(backend, n_workers=workers) as executor:  # type: ignore[arg-type]
         report, _ = calibrate_fleet(datasets, robot, options, executor)
     wall = time.perf_counter() - started
+    after = machine_busy_s()
+    other = 0.0
+    if busy is not None and after is not None:
+        other = max(0.0, (after - busy) - (children_cpu_s() + time.process_time() - own))
     flagged = sorted({f"{o.serial}:{o.parameter}" for o in report.outliers})
     n_poses = report.robots[0].n_samples if report.robots else 0
-    return FleetRun(backend, len(datasets), n_poses, wall, len(datasets) / wall, flagged)
+    return FleetRun(backend, len(datasets), n_poses, wall, len(datasets) / wall, flagged, other)
 
 
 def table(runs: list[Run], fleets: list[FleetRun]) -> str:
     header = (
         f"{'backend':<18} {'N':>9} {'read s':>8} {'determ. s':>10} {'cov. s':>8} "
         f"{'total s':>8} {'CPU s':>7} {'driver MiB':>11} {'worker MiB':>11} {'passes':>7} "
-        f"{'load':>9}"
+        f"{'load':>9} {'other CPU s':>11}"
     )
     lines = [header]
     for r in runs:
@@ -271,7 +320,8 @@ def table(runs: list[Run], fleets: list[FleetRun]) -> str:
             f"{r.label:<18} {r.n:>9} {r.stage_s['read']:>8.2f} "
             f"{r.stage_s['deterministic']:>10.2f} {r.stage_s['covariance']:>8.2f} "
             f"{r.total_s:>8.2f} {r.cpu_s:>7.1f} {r.driver_mib:>11.0f} {r.worker_mib:>11.0f} "
-            f"{r.passes:>7} {r.load_average[0]:>4.1f}-{r.load_average[1]:<4.1f}"
+            f"{r.passes:>7} {r.load_average[0]:>4.1f}-{r.load_average[1]:<4.1f} "
+            f"{r.other_cpu_s:>11.1f}"
         )
     for smallest in (10_000, 100_000):
         lines += ["", f"scaling exponents (log-log slopes over N >= {smallest:.0e})"]
@@ -300,11 +350,12 @@ def table(runs: list[Run], fleets: list[FleetRun]) -> str:
     if fleets:
         lines += [
             "",
-            f"{'fleet':<10} {'robots':>7} {'poses':>6} {'wall s':>8} {'robots/s':>9}  flagged",
+            f"{'fleet':<10} {'robots':>7} {'poses':>6} {'wall s':>8} {'robots/s':>9} "
+            f"{'other CPU s':>11}  flagged",
         ]
         lines += [
             f"{f.backend:<10} {f.n_robots:>7} {f.n_poses:>6} {f.wall_s:>8.1f} "
-            f"{f.robots_per_s:>9.2f}  {', '.join(f.flagged) or '-'}"
+            f"{f.robots_per_s:>9.2f} {f.other_cpu_s:>11.1f}  {', '.join(f.flagged) or '-'}"
             for f in fleets
         ]
     return "\n".join(lines)
@@ -356,9 +407,19 @@ def main(
     cache_mb: float = 512.0,
     workers: int | None = None,
     uncached: Sequence[str] = (),
+    idle: float | None = None,
+    idle_timeout_s: float = 600.0,
     echo=print,  # type: ignore[no-untyped-def]
 ) -> tuple[str, list[Run], list[FleetRun]]:
-    """Run the benchmark; returns the table and the measurements."""
+    """Run the benchmark; returns the table and the measurements. ``idle``: before each run,
+    wait (up to ``idle_timeout_s``) until the machine is at most that fraction busy."""
+
+    def settle() -> None:
+        if idle is not None:
+            busy = wait_until_idle(idle, idle_timeout_s)
+            if busy > idle:
+                echo(f"machine still {100 * busy:.0f} % busy after {idle_timeout_s:.0f} s")
+
     workers = workers or os.cpu_count() or 1
     out.mkdir(parents=True, exist_ok=True)
     chain = pipeline.chain_for(load_robot(ROBOT), CalibrationOptions())
@@ -371,6 +432,7 @@ def main(
             echo(f"simulated N={n} in {time.perf_counter() - clock:.1f} s -> {path}")
         plan = [(b, cache_mb) for b in backends] + [(b, 0.0) for b in uncached]
         for backend, cache in plan:
+            settle()
             run = run_isolated(
                 path, n, backend, chunk_rows=chunk_rows, cache_mb=cache, workers=workers
             )
@@ -384,6 +446,7 @@ def main(
         folder = out / f"fleet_{fleet_robots}x{fleet_poses}"
         write_fleet(folder, chain, fleet_robots, fleet_poses)
         for backend in backends:
+            settle()
             fleets.append(run_fleet(folder, backend, workers))
             echo(f"fleet on {backend}: {fleets[-1].wall_s:.1f} s")
     summary = table(runs, fleets)
@@ -409,6 +472,12 @@ if __name__ == "__main__":
     parser.add_argument(
         "--uncached", default="", help="Backends to run again without the chunk cache."
     )
+    parser.add_argument(
+        "--idle",
+        type=float,
+        default=None,
+        help="Before each run wait until the CPUs are at most this fraction busy (e.g. 0.1).",
+    )
     args = parser.parse_args()
     report = main(
         [int(float(s)) for s in args.sizes.split(",")],
@@ -421,5 +490,6 @@ if __name__ == "__main__":
         cache_mb=args.cache_mb,
         workers=args.workers,
         uncached=[b for b in args.uncached.split(",") if b],
+        idle=args.idle,
     )[0]
     print(report)

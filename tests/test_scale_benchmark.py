@@ -30,3 +30,10 @@ def test_scale_benchmark_prints_its_table_and_finds_the_worn_robot(tmp_path: Pat
     assert len(saved["runs"]) == 2 and len(saved["fleets"]) == 1
     (fleet,) = fleets
     assert fleet.n_robots == 8 and "SN0007:compliance.j2s6s200_joint_3" in fleet.flagged
+    assert all(r.other_cpu_s >= 0.0 and r.load_average[0] >= 0.0 for r in runs)
+    assert "other CPU s" in text
+
+
+def test_idle_wait_reports_how_busy_the_machine_is() -> None:
+    busy = scale.wait_until_idle(1.0, 0.0, window_s=0.2)
+    assert 0.0 <= busy <= 1.25  # whole clock ticks: a short window can round above 1
