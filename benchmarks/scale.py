@@ -172,6 +172,9 @@ class Run:
     cache_mb: float = 512.0
     load_average: tuple[float, float] = (0.0, 0.0)
     other_cpu_s: float = 0.0
+    unreaped_cpu_s: float = 0.0
+    """CPU of workers that ``RUSAGE_CHILDREN`` never sees: the ``processes`` backend's
+    workers are children of the forkserver, which nobody waits for."""
 
     @property
     def label(self) -> str:
@@ -201,6 +204,7 @@ def run_one(
     finally:
         executor.close()
     cpu_s = time.process_time() + (sum(worker_cpu) if backend != "inprocess" else 0.0)
+    unreaped_cpu_s = sum(worker_cpu) if backend == "processes" else 0.0
     stage = {
         "start": ready - started,
         "read": timings.get("plan", 0.0) + timings.get("read", 0.0),
@@ -221,6 +225,7 @@ def run_one(
         [c.value_rad_per_nm for c in result.compliance],
         cache_mb,
         (load_before, os.getloadavg()[0]),
+        unreaped_cpu_s=unreaped_cpu_s,
     )
 
 
@@ -249,7 +254,8 @@ def run_isolated(
     values["load_average"] = tuple(values["load_average"])
     after = machine_busy_s()
     if busy is not None and after is not None:
-        values["other_cpu_s"] = max(0.0, (after - busy) - (children_cpu_s() - own))
+        own_cpu_s = children_cpu_s() - own + values["unreaped_cpu_s"]
+        values["other_cpu_s"] = max(0.0, (after - busy) - own_cpu_s)
     return Run(**values)
 
 
@@ -298,11 +304,14 @@ def run_fleet(folder: Path, backend: str, workers: int) -> FleetRun:
     started = time.perf_counter()
     with make_executor(backend, n_workers=workers) as executor:  # type: ignore[arg-type]
         report, _ = calibrate_fleet(datasets, robot, options, executor)
-    wall = time.perf_counter() - started
+        wall = time.perf_counter() - started
+        worker_cpu = executor.run_on_workers(time.process_time)
     after = machine_busy_s()
+    unreaped_cpu_s = sum(worker_cpu) if backend == "processes" else 0.0  # see Run
     other = 0.0
     if busy is not None and after is not None:
-        other = max(0.0, (after - busy) - (children_cpu_s() + time.process_time() - own))
+        own_cpu_s = children_cpu_s() + time.process_time() - own + unreaped_cpu_s
+        other = max(0.0, (after - busy) - own_cpu_s)
     flagged = sorted({f"{o.serial}:{o.parameter}" for o in report.outliers})
     n_poses = report.robots[0].n_samples if report.robots else 0
     return FleetRun(backend, len(datasets), n_poses, wall, len(datasets) / wall, flagged, other)
