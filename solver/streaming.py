@@ -96,6 +96,7 @@ from solver.covariance.estimate import (
     SolverName,
     _fixed_frame,
     _frames,
+    known_noise_covariance,
 )
 from solver.covariance.identifiability import (
     RANK_RTOL,
@@ -1045,16 +1046,9 @@ def covariance_spec(
     the chain joints ``frame_index``, the noise frame (or a known noise covariance, 6×6 or
     d×d), diagonal or full Σ."""
     d = problem.residual_dim
-    known = None
-    include_noise = True
-    if noise_covariance is not None:
-        known = np.asarray(noise_covariance, dtype=float)
-        if known.shape not in ((6, 6), (d, d)):
-            raise SolverError(f"noise_covariance must be 6×6 or {d}×{d}, got {known.shape}")
-        known = 0.5 * (known + known.T)[:d, :d]
-        include_noise = False
+    known = known_noise_covariance(noise_covariance, d)
     layout = make_layout(
-        frame_names, d, structure=structure, include_noise=include_noise, noise_name=noise_name
+        frame_names, d, structure=structure, include_noise=known is None, noise_name=noise_name
     )
     return CovarianceSpec(tuple(int(f) for f in frame_index), layout, known, noise_name)
 
@@ -1081,54 +1075,43 @@ def covariance_chunk(request: _CovariancePass, ref: Any) -> CovarianceSums:
     position = {c: s for s, c in enumerate(columns)}
     for index, block in enumerate(blocks):
         used = _used(problem, request.rule, ref, index, blocks)
-        if request.theta is None:
-            sweep = sweep_chain(
-                problem.chain,
-                request.params,
-                block.motions,
-                block.loads_nm,
-                residual_dim=d,
-                columns=columns,
-            )
-            assert sweep.columns is not None and sweep.leading_rows is not None
-            residual = pose_residuals(sweep, block.rotation, block.translation).residual
-            frame_range = _frame_range(spec, sweep.columns, position, used)
-            n_used = block.n
-            if used is not None:
-                residual[:, ~used] = 0.0
-                sweep.columns[:, :, ~used] = 0.0
-                n_used = int(np.count_nonzero(used))
-            total = total + _covariance_sums(
-                spec,
-                sweep.columns,
-                sweep.leading_rows,
-                position,
-                residual,
-                used,
-                frame_range,
-                n_used,
-            )
-            continue
-        rows = block.first_row + np.arange(block.n)
-        chosen = np.flatnonzero((rows % request.stride == 0) & (True if used is None else used))
-        if not chosen.size:
-            continue
-        part = block.subset(chosen)
+        chosen = None
+        if request.theta is not None:  # sandwich pass: only its rows are swept
+            rows = block.first_row + np.arange(block.n)
+            chosen = np.flatnonzero((rows % request.stride == 0) & (True if used is None else used))
+            if not chosen.size:
+                continue
+            block = block.subset(chosen)
         sweep = sweep_chain(
             problem.chain,
             request.params,
-            part.motions,
-            part.loads_nm,
+            block.motions,
+            block.loads_nm,
             residual_dim=d,
             columns=columns,
         )
-        assert sweep.columns is not None
-        jacobians = sweep.columns.reshape(len(spec.frames), 6, d, -1).transpose(3, 0, 2, 1)
-        meat = moment_sandwich_meat(
-            request.theta, np.ascontiguousarray(jacobians), spec.layout, known_covariance=spec.known
+        assert sweep.columns is not None and sweep.leading_rows is not None
+        if request.theta is not None and chosen is not None:
+            jacobians = sweep.columns.reshape(len(spec.frames), 6, d, -1).transpose(3, 0, 2, 1)
+            meat = moment_sandwich_meat(
+                request.theta,
+                np.ascontiguousarray(jacobians),
+                spec.layout,
+                known_covariance=spec.known,
+            )
+            empty = CovarianceSums.empty(spec, sandwich=True)
+            total = total + dataclasses.replace(empty, meat=meat, n=int(chosen.size))
+            continue
+        residual = pose_residuals(sweep, block.rotation, block.translation).residual
+        frame_range = _frame_range(spec, sweep.columns, position, used)
+        n_used = block.n
+        if used is not None:
+            residual[:, ~used] = 0.0
+            sweep.columns[:, :, ~used] = 0.0
+            n_used = int(np.count_nonzero(used))
+        total = total + _covariance_sums(
+            spec, sweep.columns, sweep.leading_rows, position, residual, used, frame_range, n_used
         )
-        empty = CovarianceSums.empty(spec, sandwich=True)
-        total = total + dataclasses.replace(empty, meat=meat, n=int(chosen.size))
     return total
 
 

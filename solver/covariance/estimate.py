@@ -170,12 +170,8 @@ def estimate_covariances(
     frame_jacobians = np.asarray(frame_jacobians, dtype=float)
     _check_inputs(residuals, frame_jacobians, frame_names, estimator, fit_jacobian)
     d = residuals.shape[1]
-    known = None
-    if noise_covariance is not None:
-        known = np.asarray(noise_covariance, dtype=float)
-        if known.shape not in ((6, 6), (d, d)):
-            raise SolverError(f"noise_covariance must be 6×6 or {d}×{d}, got {known.shape}")
-        known = 0.5 * (known + known.T)[:d, :d]
+    known = known_noise_covariance(noise_covariance, d)
+    if known is not None:
         include_noise = False
     layout = make_layout(
         frame_names,
@@ -277,6 +273,24 @@ _SE_METHOD = {
     "ml": "inverse expected Fisher information of Eq. (16)",
     "reml": "inverse expected Fisher information of the restricted likelihood",
 }
+
+
+def known_noise_covariance(
+    noise_covariance: FloatArray | None, residual_dim: int
+) -> FloatArray | None:
+    """A known measurement-noise covariance Σ_n as the (d, d) block of the residual space.
+
+    ``noise_covariance``: 6×6 ([v; w], m² and rad², end-effector frame) or already d×d; it is
+    symmetrised, and for position-only residuals (d = 3) its translational block is kept.
+    None stays None (Σ_n is then estimated as one more frame, Eq. 13).
+    """
+    if noise_covariance is None:
+        return None
+    d = residual_dim
+    known = np.asarray(noise_covariance, dtype=float)
+    if known.shape not in ((6, 6), (d, d)):
+        raise SolverError(f"noise_covariance must be 6×6 or {d}×{d}, got {known.shape}")
+    return np.asarray(0.5 * (known + known.T)[:d, :d])
 
 
 def _theta_covariance(
