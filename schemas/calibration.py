@@ -290,6 +290,57 @@ class DatasetInfo(_Model):
     position_only: bool
 
 
+class ModelCorrection(_Model):
+    """A discovered term undone on the recording before the fit (``calibrate --model``).
+
+    Joint-angle terms: the joint stands at ``q_j + Σ_a c_a (φ_a(q) − mean_a)``, the features
+    φ_a of :mod:`solver.discovery.features` (keys such as ``sin2:<joint>``, ``q:<joint>``,
+    ``sign_tau:<joint>``), ``mean_a`` their mean over the calibration's recording.
+    """
+
+    effect: str
+    joint: str | None = Field(description="URDF joint name; None for the measurement frame.")
+    variant: str
+    description: str
+    parameters: dict[str, float] = Field(
+        description="Discovered values, held fixed (names and units as in findings.json)."
+    )
+    feature_means: dict[str, float] = Field(
+        default_factory=dict,
+        description="Recording mean of each driving feature (rad for q:<joint>, else "
+        "dimensionless): the centring that makes the correction at a new configuration "
+        "equal to what was undone on the recording.",
+    )
+    applied_in_prediction: bool = Field(
+        description="A function of the configuration alone: predict and rank evaluate the "
+        "calibrated model at the corrected joint positions."
+    )
+    reason: str | None = Field(
+        None, description="Why predict/rank cannot apply it to a new configuration."
+    )
+
+
+class ModelCorrections(_Model):
+    """What ``calibrate --model findings.json`` undid on the recording, and what it could not."""
+
+    gravity_base_m_s2: Vector3 = Field(
+        description="Gravity (base frame) of the load-sign backlash features (the discovery's)."
+    )
+    payload_kg: float = Field(
+        description="Payload of those features when the configurations give none."
+    )
+    corrections: list[ModelCorrection]
+    not_carried: list[str] = Field(description="Terms not carried, each with the reason.")
+
+    def applied(self) -> list[ModelCorrection]:
+        """The corrections predict and rank apply at new configurations."""
+        return [c for c in self.corrections if c.applied_in_prediction]
+
+    def not_applicable(self) -> list[ModelCorrection]:
+        """The corrections that cannot be applied to a new configuration."""
+        return [c for c in self.corrections if not c.applied_in_prediction]
+
+
 class CalibrationResult(_Model):
     format: Literal["kincal.calibration/1"] = RESULT_FORMAT
     kincal_version: str
@@ -311,6 +362,11 @@ class CalibrationResult(_Model):
     solver: SolverReport
     covariance: CovarianceResult | None = Field(
         None, description="Random-effect covariances; None until that stage has run."
+    )
+    model_corrections: ModelCorrections | None = Field(
+        None,
+        description="Discovered terms undone on the recording (calibrate --model); None "
+        "without --model.",
     )
 
     @field_validator("links")

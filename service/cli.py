@@ -20,6 +20,7 @@ from service.flags import numbers
 from service.report import summary
 from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
 from service.urdf_export import export_urdf
+from service.urdf_export import refusal as urdf_refusal
 from solver import lie
 from solver.errors import KincalError
 from solver.executors import Executor
@@ -247,7 +248,8 @@ def calibrate(
             "--model",
             help="findings.json of 'kincal discover': calibrate the discovered model (its "
             "compliance, flex axes, gravity and payload; its other named terms undone on the "
-            "recording at their discovered values). Replaces --compliant-joints, --rigid, "
+            "recording at their discovered values and recorded in the result, so that predict "
+            "and rank apply them). Replaces --compliant-joints, --rigid, "
             "--virtual-axes, --gravity, --payload-kg and --payload-com.",
         ),
     ] = None,
@@ -289,6 +291,9 @@ def calibrate(
             data, first.joint_names, other_joint_names=first.other_joint_names, marker=marker
         )
         carried = discovery.carry_model(findings, dataset, description)
+        refused = urdf_refusal(carried.record) if export_urdf_to is not None else None
+        if refused is not None:
+            raise KincalError(refused)
         model_values = {
             "compliant_joints": carried.compliant_joints,
             "virtual_axes_at": carried.virtual_axes_at,
@@ -334,6 +339,8 @@ def calibrate(
         for note in carried.notes:
             typer.echo(f"--model: {note}")
     result = pipeline.calibrate(dataset, description, options)
+    if carried is not None:
+        result = result.model_copy(update={"model_corrections": carried.record})
     _write_json(output, result.model_dump_json(indent=1))
     if export_urdf_to is not None:
         export_urdf_to.parent.mkdir(parents=True, exist_ok=True)
@@ -349,6 +356,17 @@ def _options(**values: object) -> CalibrationOptions:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "options"
         raise KincalError(f"option {where}: {first['msg']}") from exc
+
+
+def _prediction_note(result: CalibrationResult) -> None:
+    """Say once (stderr) which carried corrections a prediction cannot apply."""
+    if result.model_corrections is None:
+        return
+    from service.corrections import prediction_note
+
+    note = prediction_note(result)
+    if note is not None:
+        typer.echo(note, err=True)
 
 
 @app.command()
@@ -368,6 +386,7 @@ def predict(
     when the result has covariances, the predicted 6×6 EE covariance (cov_00..cov_55, row-major,
     EE frame, [v; w], m and rad; Eq. 12)."""
     result = read_result(result_path)
+    _prediction_note(result)
     chain, _ = pipeline.result_chain(result)
     configurations = read_configurations(
         configs, chain.joint_names, other_joint_names=chain.other_joint_names
@@ -440,6 +459,7 @@ def rank(
         include_noise=include_noise,
         top=top,
     )
+    _prediction_note(result)
     model = ranking.uncertainty_model(result)
     if configs is not None:
         chain = model.chain

@@ -16,7 +16,12 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from schemas.calibration import CalibrationOptions, DatasetInfo
+from schemas.calibration import (
+    CalibrationOptions,
+    DatasetInfo,
+    ModelCorrection,
+    ModelCorrections,
+)
 from schemas.dataset import PoseDataset
 from schemas.discovery import (
     EFFECTS,
@@ -42,7 +47,11 @@ from service.pipeline import kincal_version
 from service.robots import RobotDescription
 from solver import discovery as solver_discovery
 from solver import lie
-from solver.discovery.carry import correct_recording, is_correction
+from solver.discovery.carry import (
+    applicable_at_new_configurations,
+    correct_recording,
+    is_correction,
+)
 from solver.discovery.explain import describe, reported_parameters
 from solver.discovery.features import FeatureBank, probe_chain
 from solver.discovery.health import HealthReport
@@ -204,7 +213,8 @@ class CarriedModel:
     ``options`` carry the discovered compliance, flex axes, gravity and payload (the
     calibration estimates those afresh); ``dataset`` is the recording with the other named
     terms undone at their discovered values (:mod:`solver.discovery.carry`); ``notes`` say
-    what was carried and how, one line each.
+    what was carried and how, one line each; ``record`` goes into the result JSON
+    (``model_corrections``) so that predict and rank apply the corrections too.
     """
 
     dataset: PoseDataset
@@ -215,6 +225,7 @@ class CarriedModel:
     payload_com_m: tuple[float, float, float]
     corrections: list[str]
     notes: list[str]
+    record: ModelCorrections
 
 
 def carry_model(
@@ -235,9 +246,10 @@ def carry_model(
     notes: list[str] = []
     terms: list[tuple[Term, np.ndarray]] = []
     extra_payload_kg = 0.0
+    not_carried: list[str] = []
     for entry in model.terms:
         if entry.effect == UNEXPLAINED:
-            notes.append(f"not carried: unexplained {entry.variant} structure (no physical name)")
+            not_carried.append(f"unexplained {entry.variant} structure (no physical name)")
             continue
         index = None if entry.joint is None else names.index(entry.joint)
         term = library_term(bank.probe, entry.effect, index, entry.variant, bank.clock_unit)
@@ -247,17 +259,26 @@ def carry_model(
             continue
         missing = [p for p in term.parameters if p not in entry.parameters]
         if missing:
-            notes.append(
-                f"not carried: {describe(term, names)} (no {', '.join(missing)} — recorded "
-                "with another clock?)"
+            not_carried.append(
+                f"{describe(term, names)} (no {', '.join(missing)} — recorded with another clock?)"
             )
             continue
         terms.append((term, np.array([entry.parameters[p] for p in term.parameters])))
     corrected = correct_recording(bank, terms)
     for term in corrected.applied:
         notes.append(f"undone on the recording at its discovered value: {describe(term, names)}")
-    for term, reason in corrected.skipped:
-        notes.append(f"not carried: {describe(term, names)} ({reason})")
+    not_carried += [f"{describe(term, names)} ({reason})" for term, reason in corrected.skipped]
+    notes = [f"not carried: {line}" for line in not_carried] + notes
+    values = {term.key: v for term, v in terms}
+    record = ModelCorrections(
+        gravity_base_m_s2=findings.options.gravity_base_m_s2,
+        payload_kg=findings.options.payload_kg,
+        corrections=[
+            _model_correction(term, values[term.key], corrected.feature_means, names)
+            for term in corrected.applied
+        ],
+        not_carried=not_carried,
+    )
     pose = corrected.measured_pose
     payload = dataset.payload_kg
     out = dataclasses.replace(
@@ -286,6 +307,32 @@ def carry_model(
         payload_com_m=findings.options.payload_com_m,
         corrections=[describe(term, names) for term in corrected.applied],
         notes=notes,
+        record=record,
+    )
+
+
+def _model_correction(
+    term: Term, values: np.ndarray, feature_means: dict[str, float], names: tuple[str, ...]
+) -> ModelCorrection:
+    """One carried term as the result JSON records it, with why predict cannot apply it."""
+    applicable = applicable_at_new_configurations(term)
+    reason = None
+    if not applicable:
+        if term.joint_index is None:
+            reason = "changes what the sensor reports, not where the robot stands"
+        elif term.effect == "thermal_drift":
+            reason = "depends on the time since the recording started"
+        else:
+            reason = "depends on the direction the joint was approached from (execution order)"
+    return ModelCorrection(
+        effect=term.effect,
+        joint=None if term.joint_index is None else names[term.joint_index],
+        variant=term.variant,
+        description=describe(term, names),
+        parameters={p: float(v) for p, v in zip(term.parameters, values, strict=True)},
+        feature_means={a.feature: feature_means[a.feature] for a in term.axes},
+        applied_in_prediction=applicable,
+        reason=reason,
     )
 
 

@@ -416,19 +416,37 @@ def residuals(
     return pose_residuals(predicted, data.measured_pose, position_only=data.position_only)
 
 
+def true_configurations(
+    result: CalibrationResult,
+    chain: KinematicChain,
+    joint_readings: FloatArray,
+    payload_kg: FloatArray | float | None = None,
+) -> FloatArray:
+    """Joint positions (N, k) rad the robot stands at for raw readings (N, k) rad: the
+    readings with the result's carried joint corrections applied (``calibrate --model``,
+    :mod:`service.corrections`), the readings themselves when it carries none."""
+    if result.model_corrections is None:
+        return joint_readings
+    from service import corrections  # lazy: only results of calibrate --model need it
+
+    return corrections.true_configurations(result, chain, joint_readings, payload_kg)
+
+
 def predict_poses(
     result: CalibrationResult, joint_positions: FloatArray, payload_kg: FloatArray | None = None
 ) -> FloatArray:
-    """Calibrated mean pose (N, 4, 4) of the marker in the measurement frame."""
+    """Calibrated mean pose (N, 4, 4) of the marker in the measurement frame for joint
+    readings (N, k) rad (corrected by the result's carried joint corrections first)."""
     chain, params = result_chain(result)
+    q = true_configurations(result, chain, joint_positions, payload_kg)
     payload = payload_kg if payload_kg is not None else result.options.payload_kg
     loads = gravity_loads(
         chain,
-        joint_positions,
+        q,
         gravity_base=np.asarray(result.options.gravity_base_m_s2),
         payload_kg=payload,
     )
-    return forward_kinematics(chain, params, joint_positions, loads)
+    return forward_kinematics(chain, params, q, loads)
 
 
 # --- result assembly -------------------------------------------------------------------------

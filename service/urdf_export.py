@@ -9,7 +9,10 @@
 Forward kinematics from ``kincal_measurement_frame`` to ``kincal_marker`` then equals kincal's
 calibrated prediction with zero gravity load. Gravity-dependent joint compliance cannot be
 expressed in URDF; its calibrated values are written in an XML comment and stay in the result JSON
-(``kincal predict`` applies them).
+(``kincal predict`` applies them). Joint corrections carried from a discovered model
+(``calibrate --model``: gear_periodic, joint_scale, load-sign backlash) are functions of the joint
+angle that a URDF cannot express either, and without them its forward kinematics would be wrong
+for raw readings: such results are refused (:func:`refusal`).
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import numpy as np
 import pinocchio as pin
 from numpy.typing import NDArray
 
-from schemas.calibration import CalibrationResult
+from schemas.calibration import CalibrationResult, ModelCorrections
 from service.pipeline import result_chain
 from solver import lie
 from solver.errors import ModelError
@@ -31,8 +34,25 @@ MARKER_LINK = "kincal_marker"
 FloatArray = NDArray[np.float64]
 
 
+def refusal(corrections: ModelCorrections | None) -> str | None:
+    """Why a result carrying these corrections cannot be a plain URDF (one line), or None."""
+    applied = [] if corrections is None else corrections.applied()
+    if not applied:
+        return None
+    terms = ", ".join(c.description for c in applied)
+    return (
+        f"cannot export a URDF: the calibration corrects the joint readings by {terms} "
+        "(a function of the joint angle a URDF cannot express); use kincal predict/rank with "
+        "the result JSON, or calibrate without --model for a plain URDF"
+    )
+
+
 def export_urdf(result: CalibrationResult) -> str:
-    """The calibrated URDF as text (see module docstring for what changes)."""
+    """The calibrated URDF as text (see module docstring for what changes); raises
+    :class:`ModelError` for a result carrying joint corrections (:func:`refusal`)."""
+    reason = refusal(result.model_corrections)
+    if reason is not None:
+        raise ModelError(reason)
     chain, params = result_chain(result)
     root = ET.fromstring(result.robot.urdf)
     joints = {j.get("name"): j for j in root.findall("joint")}

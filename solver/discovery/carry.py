@@ -18,6 +18,13 @@ the discovery model (:mod:`solver.discovery.fitting`)::
   twist [v; w], m and rad).
 
 Generic "unexplained" structure is never carried: it has no physical name to carry.
+
+A calibration fitted on the corrected recording predicts from the joint positions the robot
+really stands at. Where the correction is a function of the configuration alone (gear_periodic,
+joint_scale, load-sign backlash), :func:`corrected_configurations` gives them for new readings
+from the same features (:func:`solver.discovery.features.configuration_feature`) and the
+recording's feature means; time, execution order and the sensor cannot be known for a new
+configuration, so those corrections are not applicable there.
 """
 
 from __future__ import annotations
@@ -28,9 +35,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver import lie
-from solver.discovery.features import DiscoveryData, FeatureBank
+from solver.discovery.features import (
+    DiscoveryData,
+    FeatureBank,
+    configuration_feature,
+    gravity_basis,
+    is_configuration_feature,
+)
 from solver.discovery.fitting import depth_direction
 from solver.discovery.library import Term, drift_feature
+from solver.model import KinematicChain
 
 FloatArray = NDArray[np.float64]
 
@@ -44,13 +58,31 @@ class CorrectedRecording:
     """The recording as the discovered model says it really was.
 
     ``joint_positions`` (N, k) rad, ``measured_pose`` (N, 4, 4) marker in the measurement frame;
-    ``applied`` the terms undone; ``skipped`` (term, reason) for those that could not be.
+    ``applied`` the terms undone; ``skipped`` (term, reason) for those that could not be;
+    ``feature_means`` the recording mean of each joint-angle term's feature (the centring of
+    :meth:`FeatureBank.column`; rad for ``q:<joint>``, else dimensionless).
     """
 
     joint_positions: FloatArray
     measured_pose: FloatArray
     applied: list[Term]
     skipped: list[tuple[Term, str]]
+    feature_means: dict[str, float]
+
+
+@dataclass(frozen=True)
+class ConfigurationCorrection:
+    """One axis of a joint-angle correction that is a function of the configuration alone.
+
+    Joint ``joint_index`` stands at ``q_j + coefficient · (φ(q) − mean)`` with φ the feature
+    ``feature`` (:func:`configuration_feature`); ``coefficient`` rad per unit feature (per rad
+    for ``q:<joint>``), ``mean`` the feature's mean over the recording it was estimated on.
+    """
+
+    joint_index: int
+    feature: str
+    coefficient: float
+    mean: float
 
 
 def is_correction(term: Term) -> bool:
@@ -72,12 +104,14 @@ def correct_recording(
     gravity = np.asarray(data.gravity_base, dtype=float)
     applied: list[Term] = []
     skipped: list[tuple[Term, str]] = []
+    means: dict[str, float] = {}
     for term, values in terms:
         if not is_correction(term):
             continue
         if term.axes:
             for spec, value in zip(term.axes, values, strict=True):
                 q[:, spec.joint_index] += float(value) * bank.column(spec.feature, gravity, 0.0)
+                means[spec.feature] = bank.mean(spec.feature, gravity, 0.0)
             applied.append(term)
     for term, values in terms:
         if term.effect == "depth_scale":
@@ -91,7 +125,96 @@ def correct_recording(
             shape = bank.column(drift_feature(term), gravity, 0.0)
             pose = lie.se3_exp(-shape[:, None] * np.asarray(values)[None, :]) @ pose
             applied.append(term)
-    return CorrectedRecording(q, pose, applied, skipped)
+    return CorrectedRecording(q, pose, applied, skipped, means)
+
+
+def applicable_at_new_configurations(term: Term) -> bool:
+    """A joint-angle correction that is a function of the configuration alone (not of time,
+    execution order or the sensor), so it can be evaluated at configurations never recorded."""
+    return bool(term.axes) and all(is_configuration_feature(a.feature) for a in term.axes)
+
+
+def configuration_corrections(
+    term: Term, values: FloatArray, feature_means: dict[str, float]
+) -> list[ConfigurationCorrection]:
+    """The axes of an applicable term (:func:`applicable_at_new_configurations`) with its
+    coefficients ``values`` and the recording's feature means."""
+    if not applicable_at_new_configurations(term):
+        raise ValueError(f"{term.key} depends on more than the configuration")
+    return [
+        ConfigurationCorrection(a.joint_index, a.feature, float(v), feature_means[a.feature])
+        for a, v in zip(term.axes, values, strict=True)
+    ]
+
+
+def correction_offsets_rad(
+    probe: KinematicChain,
+    corrections: list[ConfigurationCorrection],
+    joint_positions: FloatArray,
+    gravity_base: FloatArray,
+    payload_kg: FloatArray | float,
+) -> FloatArray:
+    """Σ c (φ(q) − mean) per joint (N, k), rad, at joint readings ``joint_positions`` (N, k).
+
+    ``probe`` is :func:`solver.discovery.features.probe_chain` of the nominal chain (load
+    features are gravity moments about its axes); ``gravity_base`` (3,) m/s² in the base
+    frame and ``payload_kg`` (N,) or scalar are the load the features were defined under.
+    """
+    q = np.asarray(joint_positions, dtype=float)
+    offsets = np.zeros_like(q)
+    loads: dict[str, FloatArray] = {}  # gravity moments by probe axis, swept on first use
+
+    def moment_nm(axis_name: str) -> FloatArray:
+        if not loads:
+            basis = gravity_basis(probe, q)
+            payload = np.broadcast_to(np.asarray(payload_kg, dtype=float), (q.shape[0],))
+            moments = basis.moments(np.asarray(gravity_base, dtype=float), payload)
+            loads.update({name: moments[:, i] for i, name in enumerate(basis.axis_names)})
+        return loads[axis_name]
+
+    for c in corrections:
+        feature = configuration_feature(c.feature, q, probe.joint_names, moment_nm)
+        offsets[:, c.joint_index] += c.coefficient * (feature - c.mean)
+    return offsets
+
+
+def corrected_configurations(
+    probe: KinematicChain,
+    corrections: list[ConfigurationCorrection],
+    joint_readings: FloatArray,
+    gravity_base: FloatArray,
+    payload_kg: FloatArray | float,
+) -> FloatArray:
+    """Joint positions (N, k) rad the robot stands at for raw readings (N, k) rad:
+    ``q + Σ c (φ(q) − mean)`` (arguments as :func:`correction_offsets_rad`)."""
+    q = np.asarray(joint_readings, dtype=float)
+    return q + correction_offsets_rad(probe, corrections, q, gravity_base, payload_kg)
+
+
+def readings_for(
+    probe: KinematicChain,
+    corrections: list[ConfigurationCorrection],
+    joint_positions: FloatArray,
+    gravity_base: FloatArray,
+    payload_kg: FloatArray | float,
+    *,
+    max_iterations: int = 50,
+) -> FloatArray:
+    """Raw readings (N, k) rad at which the robot stands at ``joint_positions`` (N, k) rad: the
+    inverse of :func:`corrected_configurations` by fixed-point iteration
+    ``r ← q − offsets(r)``, which contracts because the offsets are tiny functions of q (mrad).
+    Load-sign backlash jumps where the load changes sign; a position inside the jump has no
+    reading, and the last iterate is returned."""
+    target = np.asarray(joint_positions, dtype=float)
+    readings = target.copy()
+    for _ in range(max_iterations):
+        offsets = correction_offsets_rad(probe, corrections, readings, gravity_base, payload_kg)
+        updated = target - offsets
+        step_rad = float(np.max(np.abs(updated - readings), initial=0.0))
+        readings = updated
+        if step_rad < 1e-15:
+            break
+    return readings
 
 
 def undo_depth_scale(measured_pose: FloatArray, scale: float, variant: str) -> FloatArray:

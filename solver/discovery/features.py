@@ -19,7 +19,10 @@ so every feature here is a plain (N,) array in execution order:
                       (:func:`angle_basis`, :func:`load_basis`): unexplained structure;
 * ``one``             1: gives the Jacobian column per unit angle of an axis (plots, designs).
 
-All but ``one`` are centred over the recording (see :meth:`FeatureBank.column`).
+All but ``one`` are centred over the recording (see :meth:`FeatureBank.column`). The
+``sign_tau``, ``deadzone_tau``, ``q``, ``sin``/``cos`` features are functions of one configuration
+alone (:func:`configuration_feature`): the recording's columns and a single configuration's
+value (``kincal predict`` of a result carrying discovered corrections) come from that function.
 
 Gravity moments are linear in the gravity vector and in the payload mass, so they are kept as
 a basis (unit gravity along base x, y, z; robot and 1 kg payload) and recombined for any tilted
@@ -28,6 +31,7 @@ gravity or extra payload without new RNEA sweeps.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -212,6 +216,44 @@ def deadzone_sign(tau: FloatArray, zone: float) -> FloatArray:
     return np.where(np.abs(tau) > zone, 0.5 * np.sign(tau), 0.0)
 
 
+CONFIGURATION_KINDS = ("sign_tau", "deadzone_tau", "q")
+
+
+def is_configuration_feature(key: str) -> bool:
+    """A feature that is a function of the configuration (and its gravity load) alone: not of
+    time, execution order or the recording's range."""
+    kind = key.partition(":")[0]
+    return kind in CONFIGURATION_KINDS or (kind.startswith(("sin", "cos")) and kind[3:].isdigit())
+
+
+def configuration_feature(
+    key: str,
+    joint_positions: FloatArray,
+    joint_names: tuple[str, ...],
+    gravity_moment_nm: Callable[[str], FloatArray],
+) -> FloatArray:
+    """Uncentred value (N,) of a configuration feature (:func:`is_configuration_feature`).
+
+    ``joint_positions`` (N, k) rad in chain order; ``gravity_moment_nm(axis_name)`` the gravity
+    moment (N,) N·m about a probe axis (:func:`probe_chain`) at those configurations. Values:
+    ``q`` rad, ``sin``/``cos`` and the ½·sign load features dimensionless.
+    """
+    kind, _, rest = key.partition(":")
+    if kind == "deadzone_tau":
+        name, _, zone = rest.rpartition(":")
+        return deadzone_sign(gravity_moment_nm(name), float(zone))
+    if kind == "sign_tau":
+        return deadzone_sign(gravity_moment_nm(rest), 0.0)
+    q = joint_positions[:, joint_names.index(rest)]
+    if kind == "q":
+        return np.array(q, dtype=float)
+    if kind.startswith("sin") and kind[3:].isdigit():
+        return np.sin(int(kind[3:]) * q)
+    if kind.startswith("cos") and kind[3:].isdigit():
+        return np.cos(int(kind[3:]) * q)
+    raise ValueError(f"{key!r} is not a function of the configuration alone")
+
+
 class FeatureBank:
     """Feature columns by key for one whole recording; gravity features for any (g, m).
 
@@ -268,6 +310,10 @@ class FeatureBank:
             self._cache[key] = values
         return values
 
+    def mean(self, key: str, gravity_base: FloatArray, extra_payload_kg: float) -> float:
+        """The recording mean of feature ``key`` that :meth:`column` subtracts."""
+        return float(self._raw(key, gravity_base, extra_payload_kg).mean())
+
     def _raw(self, key: str, gravity_base: FloatArray, extra_payload_kg: float) -> FloatArray:
         kind, _, rest = key.partition(":")
         q = self.data.joint_positions
@@ -283,21 +329,11 @@ class FeatureBank:
         if kind == "time":
             shape, _, constant = rest.partition(":")
             return time_shape(self.clock, float(constant) if shape == "warmup" else None)
-        if kind == "deadzone_tau":
-            name, _, zone = rest.rpartition(":")
-            return deadzone_sign(self.nominal_tau(name), float(zone))
         if kind == "basis":
             family, name, index = rest.split(":")
             return self.generic_basis(family, name)[:, int(index)]
-        j = self.joint_names.index(rest)
-        if kind == "sign_tau":
-            return 0.5 * np.sign(self.nominal_tau(rest))
         if kind == "dir":
-            return self.direction[:, j]
-        if kind == "q":
-            return q[:, j].copy()
-        if kind.startswith("sin"):
-            return np.sin(int(kind[3:]) * q[:, j])
-        if kind.startswith("cos"):
-            return np.cos(int(kind[3:]) * q[:, j])
+            return self.direction[:, self.joint_names.index(rest)]
+        if is_configuration_feature(key):
+            return configuration_feature(key, q, self.joint_names, self.nominal_tau)
         raise ValueError(f"unknown feature key {key!r}")

@@ -9,7 +9,15 @@ import pytest
 
 from solver import lie
 from solver.discovery import DiscoveryData
-from solver.discovery.carry import correct_recording, is_correction, undo_depth_scale
+from solver.discovery.carry import (
+    applicable_at_new_configurations,
+    configuration_corrections,
+    correct_recording,
+    corrected_configurations,
+    is_correction,
+    readings_for,
+    undo_depth_scale,
+)
 from solver.discovery.features import FeatureBank, probe_chain
 from solver.discovery.library import EFFECTS, library_term
 from solver.simulate import JointEffect, SimulationSpec, simulate_recording
@@ -124,3 +132,50 @@ def test_calibration_terms_are_options_not_corrections() -> None:
         ("gravity_direction", None),
     ]:
         assert not is_correction(library_term(probe, effect, j, "", "s"))
+
+
+@pytest.mark.parametrize(
+    ("effect", "variant", "values", "applicable"),
+    [
+        (JointEffect("j2s6s200_joint_3", "gear_periodic", 3e-4, 2), "h2", [3e-4, 1e-4], True),
+        (JointEffect("j2s6s200_joint_2", "backlash_load", 1e-3), "load", [1e-3], True),
+        (JointEffect("j2s6s200_joint_2", "backlash_load", 1e-3), "load:2.5", [1e-3], True),
+        (JointEffect("j2s6s200_joint_2", "joint_scale", 5e-4), "", [5e-4], True),
+        (JointEffect("j2s6s200_joint_3", "backlash_direction", 1e-3), "direction", [1e-3], False),
+        (JointEffect("j2s6s200_joint_2", "drift_linear", 1e-6), "linear", [1e-6], False),
+    ],
+)
+def test_correction_at_single_configurations_equals_the_recording_correction(
+    effect: JointEffect, variant: str, values: list[float], applicable: bool
+) -> None:
+    """Configuration by configuration, with the recording's feature means, the correction is
+    what was undone on the recording (the same feature code); time and order terms refuse."""
+    recording = simulate_recording(chain("kinova"), SimulationSpec(n_samples=40, seed=6))
+    bank = _bank(recording)
+    kind = {"gear_periodic": "gear_periodic", "joint_scale": "joint_scale"}.get(
+        effect.kind, "thermal_drift" if effect.kind.startswith("drift") else "backlash"
+    )
+    j = bank.joint_names.index(effect.joint)
+    term = library_term(bank.probe, kind, j, variant, bank.clock_unit)
+    corrected = correct_recording(bank, [(term, np.array(values))])
+    assert applicable_at_new_configurations(term) == applicable
+    if not applicable:
+        with pytest.raises(ValueError, match="more than the configuration"):
+            configuration_corrections(term, np.array(values), corrected.feature_means)
+        return
+    axes = configuration_corrections(term, np.array(values), corrected.feature_means)
+    q = recording.joint_positions
+    gravity = bank.data.gravity_base
+    one_by_one = np.vstack(
+        [corrected_configurations(bank.probe, axes, q[n : n + 1], gravity, 0.0) for n in range(40)]
+    )
+    np.testing.assert_allclose(one_by_one, corrected.joint_positions, rtol=0, atol=1e-15)
+    assert np.abs(one_by_one - q).max() > 1e-5
+    np.testing.assert_allclose(
+        corrected_configurations(
+            bank.probe, axes, readings_for(bank.probe, axes, q, gravity, 0.0), gravity, 0.0
+        ),
+        q,
+        rtol=0,
+        atol=1e-15,
+    )

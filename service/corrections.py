@@ -1,0 +1,112 @@
+"""Discovered corrections a result carries (``calibrate --model``), applied where it predicts.
+
+A calibration fitted on a recording whose joint readings were corrected (gear_periodic,
+joint_scale, load-sign backlash) predicts from the joint positions the robot really stands at,
+so ``kincal predict``, ``kincal rank`` and the HTTP rankings turn raw readings into those
+positions first (:func:`true_configurations`). Corrections that depend on time, execution order
+or the sensor cannot be evaluated at a new configuration: :func:`prediction_note` says so.
+The maths is :mod:`solver.discovery.carry`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas.calibration import CalibrationResult, ModelCorrection
+from solver.discovery.carry import (
+    ConfigurationCorrection,
+    configuration_corrections,
+    corrected_configurations,
+    readings_for,
+)
+from solver.discovery.features import probe_chain
+from solver.discovery.library import library_term
+from solver.errors import KincalError
+from solver.model import KinematicChain
+
+FloatArray = NDArray[np.float64]
+
+
+def applied_corrections(result: CalibrationResult) -> list[ModelCorrection]:
+    """The result's corrections that predict and rank apply at new configurations."""
+    record = result.model_corrections
+    return [] if record is None else record.applied()
+
+
+def solver_corrections(
+    result: CalibrationResult, probe: KinematicChain
+) -> list[ConfigurationCorrection]:
+    """The applied corrections as solver axes on ``probe`` (:func:`probe_chain` of the
+    result's chain)."""
+    out: list[ConfigurationCorrection] = []
+    for entry in applied_corrections(result):
+        if entry.joint is None or entry.joint not in probe.joint_names:
+            raise KincalError(
+                f"model correction {entry.description!r} names no joint of the chain "
+                f"({', '.join(probe.joint_names)}); the result is inconsistent, re-run calibrate"
+            )
+        j = probe.joint_names.index(entry.joint)
+        try:
+            term = library_term(probe, entry.effect, j, entry.variant, "s")
+            values = np.array([entry.parameters[p] for p in term.parameters])
+            out += configuration_corrections(term, values, entry.feature_means)
+        except (KeyError, ValueError) as exc:
+            raise KincalError(
+                f"model correction {entry.description!r} is incomplete ({exc}); re-run calibrate"
+            ) from exc
+    return out
+
+
+def _load(
+    result: CalibrationResult, payload_kg: FloatArray | float | None
+) -> tuple[FloatArray, FloatArray | float]:
+    record = result.model_corrections
+    assert record is not None
+    payload = record.payload_kg if payload_kg is None else payload_kg
+    return np.asarray(record.gravity_base_m_s2, dtype=float), payload
+
+
+def true_configurations(
+    result: CalibrationResult,
+    chain: KinematicChain,
+    joint_readings: FloatArray,
+    payload_kg: FloatArray | float | None = None,
+) -> FloatArray:
+    """Joint positions (N, k) rad the robot stands at for raw readings (N, k) rad under the
+    result's applied corrections (the readings themselves when there are none).
+    ``payload_kg`` (N,) or scalar: the load of load-sign backlash (default: the discovery's)."""
+    if not applied_corrections(result):
+        return np.asarray(joint_readings, dtype=float)
+    probe = probe_chain(chain)
+    gravity, payload = _load(result, payload_kg)
+    corrections = solver_corrections(result, probe)
+    return corrected_configurations(probe, corrections, joint_readings, gravity, payload)
+
+
+def raw_readings(
+    result: CalibrationResult,
+    chain: KinematicChain,
+    joint_positions: FloatArray,
+    payload_kg: FloatArray | float | None = None,
+) -> FloatArray:
+    """The inverse of :func:`true_configurations`: the readings (N, k) rad at which the robot
+    stands at ``joint_positions`` (N, k) rad (what a controller is sent, e.g. IK solutions)."""
+    if not applied_corrections(result):
+        return np.asarray(joint_positions, dtype=float)
+    probe = probe_chain(chain)
+    gravity, payload = _load(result, payload_kg)
+    corrections = solver_corrections(result, probe)
+    return readings_for(probe, corrections, joint_positions, gravity, payload)
+
+
+def prediction_note(result: CalibrationResult) -> str | None:
+    """One line naming the carried corrections a prediction cannot apply, or None."""
+    record = result.model_corrections
+    if record is None or not record.not_applicable():
+        return None
+    terms = "; ".join(f"{c.description} ({c.reason})" for c in record.not_applicable())
+    return (
+        f"note: the calibration undid {terms} on its recording; predictions at new "
+        "configurations cannot include that"
+    )
