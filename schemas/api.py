@@ -224,7 +224,7 @@ class RankingCreate(_In):
         description="Target only: distinct IK solutions wanted (8 restarts each); the search "
         "runs in the request, hence the limit.",
     )
-    seed: int = Field(0, description="Target only: seed of the IK restarts.")
+    seed: int = Field(0, ge=0, description="Target only: seed of the IK restarts.")
     free_axis: Literal["auto", "x", "y", "z", "none"] = Field(
         "auto", description="Target only: end-effector axis the task lets the target turn about."
     )

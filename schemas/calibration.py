@@ -50,7 +50,11 @@ class CalibrationOptions(_Model):
     tolerance: float = Field(1e-10, gt=0.0)
     rank_tolerance: float = Field(1e-7, gt=0.0, lt=1.0)
     heldout: bool = Field(True, description="Run the 10-split held-out evaluation.")
-    seeds: list[int] = Field(default_factory=lambda: list(range(1, 11)), min_length=1)
+    seeds: list[Annotated[int, Field(ge=0)]] = Field(
+        default_factory=lambda: list(range(1, 11)),
+        min_length=1,
+        description="Seeds of the held-out splits (non-negative integers, one split each).",
+    )
     train_fraction: float = Field(0.9, gt=0.0, lt=1.0)
     covariance: Literal["diag", "full", "none"] = Field(
         "diag",

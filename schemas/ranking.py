@@ -134,7 +134,7 @@ class TargetRankingRequest(_Model):
 
     target: TargetPose
     n_candidates: int = Field(16, ge=1, le=512)
-    seed: int = 0
+    seed: int = Field(0, ge=0)
     free_axis: Literal["auto", "x", "y", "z", "none"] = "auto"
     n_free_rotations: int = Field(12, ge=1, le=360)
     payload_kg: float = Field(0.0, ge=0.0)
