@@ -10,6 +10,8 @@ The maths is :mod:`solver.discovery.carry`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -58,13 +60,23 @@ def solver_corrections(
     return out
 
 
-def _load(
-    result: CalibrationResult, payload_kg: FloatArray | float | None
-) -> tuple[FloatArray, FloatArray | float]:
+def _map_joints(
+    result: CalibrationResult,
+    chain: KinematicChain,
+    joint_positions: FloatArray,
+    payload_kg: FloatArray | float | None,
+    direction: Callable[..., FloatArray],
+) -> FloatArray:
+    """``direction`` (:func:`corrected_configurations` or :func:`readings_for`) of the result's
+    applied corrections on ``joint_positions`` (N, k) rad; unchanged when there are none."""
     record = result.model_corrections
-    assert record is not None
+    q = np.asarray(joint_positions, dtype=float)
+    if record is None or not record.applied() or len(q) == 0:
+        return q
+    probe = probe_chain(chain)
     payload = record.payload_kg if payload_kg is None else payload_kg
-    return np.asarray(record.gravity_base_m_s2, dtype=float), payload
+    gravity = np.asarray(record.gravity_base_m_s2, dtype=float)
+    return direction(probe, solver_corrections(result, probe), q, gravity, payload)
 
 
 def true_configurations(
@@ -76,12 +88,7 @@ def true_configurations(
     """Joint positions (N, k) rad the robot stands at for raw readings (N, k) rad under the
     result's applied corrections (the readings themselves when there are none).
     ``payload_kg`` (N,) or scalar: the load of load-sign backlash (default: the discovery's)."""
-    if not applied_corrections(result):
-        return np.asarray(joint_readings, dtype=float)
-    probe = probe_chain(chain)
-    gravity, payload = _load(result, payload_kg)
-    corrections = solver_corrections(result, probe)
-    return corrected_configurations(probe, corrections, joint_readings, gravity, payload)
+    return _map_joints(result, chain, joint_readings, payload_kg, corrected_configurations)
 
 
 def raw_readings(
@@ -92,12 +99,7 @@ def raw_readings(
 ) -> FloatArray:
     """The inverse of :func:`true_configurations`: the readings (N, k) rad at which the robot
     stands at ``joint_positions`` (N, k) rad (what a controller is sent, e.g. IK solutions)."""
-    if not applied_corrections(result):
-        return np.asarray(joint_positions, dtype=float)
-    probe = probe_chain(chain)
-    gravity, payload = _load(result, payload_kg)
-    corrections = solver_corrections(result, probe)
-    return readings_for(probe, corrections, joint_positions, gravity, payload)
+    return _map_joints(result, chain, joint_positions, payload_kg, readings_for)
 
 
 def prediction_note(result: CalibrationResult) -> str | None:

@@ -38,6 +38,7 @@ from schemas.calibration import (
     Transform,
 )
 from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_chunks
+from service import corrections
 from service.robots import RobotDescription
 from solver import lie
 from solver.calibration import (
@@ -416,29 +417,13 @@ def residuals(
     return pose_residuals(predicted, data.measured_pose, position_only=data.position_only)
 
 
-def true_configurations(
-    result: CalibrationResult,
-    chain: KinematicChain,
-    joint_readings: FloatArray,
-    payload_kg: FloatArray | float | None = None,
-) -> FloatArray:
-    """Joint positions (N, k) rad the robot stands at for raw readings (N, k) rad: the
-    readings with the result's carried joint corrections applied (``calibrate --model``,
-    :mod:`service.corrections`), the readings themselves when it carries none."""
-    if result.model_corrections is None:
-        return joint_readings
-    from service import corrections  # lazy: only results of calibrate --model need it
-
-    return corrections.true_configurations(result, chain, joint_readings, payload_kg)
-
-
 def predict_poses(
     result: CalibrationResult, joint_positions: FloatArray, payload_kg: FloatArray | None = None
 ) -> FloatArray:
     """Calibrated mean pose (N, 4, 4) of the marker in the measurement frame for joint
     readings (N, k) rad (corrected by the result's carried joint corrections first)."""
     chain, params = result_chain(result)
-    q = true_configurations(result, chain, joint_positions, payload_kg)
+    q = corrections.true_configurations(result, chain, joint_positions, payload_kg)
     payload = payload_kg if payload_kg is not None else result.options.payload_kg
     loads = gravity_loads(
         chain,

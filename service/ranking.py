@@ -29,7 +29,7 @@ from schemas.ranking import (
     TargetRankingRequest,
     TaskWeights,
 )
-from service import pipeline
+from service import corrections, pipeline
 from service.flags import numbers
 from solver import lie
 from solver.calibration import fit_deterministic
@@ -104,7 +104,7 @@ def predict_covariances(
     own spread). ``payload_kg`` (N,) or None for the result's default payload.
     """
     model = uncertainty_model(result)
-    q = pipeline.true_configurations(result, model.chain, joint_positions, payload_kg)
+    q = corrections.true_configurations(result, model.chain, joint_positions, payload_kg)
     payload = payload_kg if payload_kg is not None else result.options.payload_kg
     return ee_covariance(model, q, payload_kg=payload, include_noise=include_noise)
 
@@ -222,7 +222,7 @@ def _configurations_document(
 ) -> dict[str, Any]:
     model = model or uncertainty_model(result)
     q = _joint_array(joint_positions, model.chain)
-    q = pipeline.true_configurations(result, model.chain, q, payload_kg)
+    q = corrections.true_configurations(result, model.chain, q, payload_kg)
     metric = task_metric(options)
     payload = result.options.payload_kg if payload_kg is None else payload_kg
     try:
@@ -273,24 +273,13 @@ def rank_target(
         scores,
         request.options.top,
         require_finite=require_finite,
-        joint_positions=_readings(result, model.chain, q, request.payload_kg),
+        # IK solved for where the robot stands; a controller is sent the raw readings
+        joint_positions=corrections.raw_readings(result, model.chain, q, request.payload_kg),
         candidates=candidates,
     )
     document = _document(result, model, metric, request.options, scores, entries, reference)
     document |= {"target": request.target, "free_axis": axis}
     return RankingResult.model_validate(document)
-
-
-def _readings(
-    result: CalibrationResult, chain: KinematicChain, q: FloatArray, payload_kg: float
-) -> FloatArray:
-    """IK solves for where the robot stands; a controller is sent the raw readings that put it
-    there (the inverse of the result's carried joint corrections)."""
-    if result.model_corrections is None or len(q) == 0:
-        return q
-    from service import corrections
-
-    return corrections.raw_readings(result, chain, q, payload_kg)
 
 
 def _free_axis(request: TargetRankingRequest) -> tuple[float, float, float] | None:

@@ -21,3 +21,14 @@ def run(
         code = int(exc.code or 0)
     captured = capsys.readouterr()
     return code, captured.out, captured.err
+
+
+def run_ok(args: list[object]) -> None:
+    """``kincal *args`` that must succeed (exit 0), for module-scoped fixtures that have no
+    ``capsys``/``monkeypatch`` of their own; output goes to pytest's capture."""
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        monkeypatch.setattr(sys, "argv", ["kincal", *map(str, args)])
+        try:
+            cli.main()
+        except SystemExit as exc:
+            assert exc.code in (0, None), f"kincal {' '.join(map(str, args))} exited {exc.code}"

@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
 from schemas.discovery import EFFECTS, DiscoveryOptions, FindingsResult
-from service import cli, discovery, scenarios
+from service import discovery, scenarios
 from tests.conftest import chain, robot
-from tests.service.cli_support import run
+from tests.service.cli_support import run, run_ok
 
 
 @pytest.fixture(scope="module")
@@ -19,32 +18,10 @@ def findings_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A Jaco2 recording with a hidden 2nd-harmonic gear error on joint 3, discovered."""
     folder = tmp_path_factory.mktemp("discover")
     data = folder / "gear.csv"
-    monkeypatch = pytest.MonkeyPatch()
-    try:
-        effects = [f"--effect={e}" for e in ("geometry", "camera", "marker", "gear_error")]
-        output = str(folder / "out" / "findings.json")
-        for args in (
-            [
-                "simulate",
-                "--robot",
-                "kinova",
-                "--n",
-                "150",
-                "--seed",
-                "5",
-                "-o",
-                str(data),
-                *effects,
-            ],
-            ["discover", str(data), "--robot", "kinova", "--bootstrap", "10", "-o", output],
-        ):
-            monkeypatch.setattr(sys, "argv", ["kincal", *args])
-            with pytest.raises(SystemExit) as exit_info:
-                cli.main()
-                raise SystemExit(0)
-            assert exit_info.value.code in (0, None)
-    finally:
-        monkeypatch.undo()
+    effects = [f"--effect={e}" for e in ("geometry", "camera", "marker", "gear_error")]
+    output = folder / "out" / "findings.json"
+    run_ok(["simulate", "--robot", "kinova", "--n", 150, "--seed", 5, "-o", data, *effects])
+    run_ok(["discover", data, "--robot", "kinova", "--bootstrap", 10, "-o", output])
     return folder / "out" / "findings.json"
 
 

@@ -3,7 +3,6 @@ rank and the URDF export use them (a hidden 2nd-harmonic gear error on the Jaco2
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +11,7 @@ import pytest
 
 from schemas.calibration import CalibrationResult, ModelCorrection
 from schemas.ranking import RankingOptions
-from service import cli, discovery, pipeline, ranking, scenarios
+from service import corrections, discovery, pipeline, ranking, scenarios
 from service.urdf_export import export_urdf
 from solver import lie
 from solver.discovery.features import probe_chain
@@ -21,22 +20,10 @@ from solver.errors import ModelError
 from solver.kinematics import forward_kinematics
 from solver.model import gravity_loads, sample_configurations
 from tests.conftest import robot
-from tests.service.cli_support import run
+from tests.service.cli_support import run, run_ok
 
 EFFECTS = ("geometry", "camera", "marker", "gear_error")
 N_SAMPLES, SEED = 150, 5
-
-
-def _kincal(args: list[str]) -> None:
-    monkeypatch = pytest.MonkeyPatch()
-    try:
-        monkeypatch.setattr(sys, "argv", ["kincal", *args])
-        with pytest.raises(SystemExit) as exit_info:
-            cli.main()
-            raise SystemExit(0)
-        assert exit_info.value.code in (0, None)
-    finally:
-        monkeypatch.undo()
 
 
 @pytest.fixture(scope="module")
@@ -46,10 +33,10 @@ def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
     data, findings = str(out / "gear.csv"), str(out / "findings.json")
     effects = [f"--effect={e}" for e in EFFECTS]
     size = ["--n", str(N_SAMPLES), "--seed", str(SEED)]
-    _kincal(["simulate", "--robot", "kinova", *size, "-o", data, *effects])
-    _kincal(["discover", data, "--robot", "kinova", "--bootstrap", "10", "-o", findings])
+    run_ok(["simulate", "--robot", "kinova", *size, "-o", data, *effects])
+    run_ok(["discover", data, "--robot", "kinova", "--bootstrap", "10", "-o", findings])
     model = ["--model", findings, "--outlier-sigma", "0", "-o", str(out / "model.json")]
-    _kincal(["calibrate", data, "--robot", "kinova", *model])
+    run_ok(["calibrate", data, "--robot", "kinova", *model])
     return out
 
 
@@ -165,7 +152,7 @@ def test_rank_and_covariances_score_the_corrected_configurations(
 ) -> None:
     q, _ = _held_out(30)
     chain, _ = pipeline.result_chain(result)
-    q_true = pipeline.true_configurations(result, chain, q)
+    q_true = corrections.true_configurations(result, chain, q)
     assert 5e-5 < np.abs(q_true - q).max() < 5e-4
     plain = result.model_copy(update={"model_corrections": None})
     options = RankingOptions()
@@ -195,7 +182,7 @@ def test_rank_target_reports_the_raw_readings_that_reach_the_target(
     readings = corrections.raw_readings(result, chain, q_true)
     assert np.abs(readings - q_true).max() > 5e-5
     np.testing.assert_allclose(
-        pipeline.true_configurations(result, chain, readings), q_true, rtol=0, atol=1e-14
+        corrections.true_configurations(result, chain, readings), q_true, rtol=0, atol=1e-14
     )
 
 
