@@ -159,6 +159,16 @@ class JobStatus(BaseModel):
 class CalibrationCreate(_In):
     dataset_id: str = Field(min_length=1, max_length=64)
     options: CalibrationOptions = Field(default_factory=CalibrationOptions)
+    discovery_id: str | None = Field(
+        None,
+        min_length=1,
+        max_length=64,
+        description="A succeeded discovery (POST /api/v1/discoveries) of the dataset's robot "
+        "whose findings the calibration carries, as `kincal calibrate --model`: its compliance, "
+        "flex axes, gravity and payload replace those options (leave them at their defaults); "
+        "its other named terms are undone on the recording and recorded in the result "
+        "(`model_corrections`).",
+    )
 
     @field_validator("options")
     @classmethod
@@ -177,6 +187,9 @@ class CalibrationLinks(BaseModel):
 class CalibrationPublic(BaseModel):
     id: str
     dataset_id: str | None
+    discovery_id: str | None = Field(
+        None, description="The discovery whose findings the calibration carries, if any."
+    )
     status: JobStatus
     options: CalibrationOptions
     links: CalibrationLinks

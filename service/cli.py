@@ -257,29 +257,37 @@ def calibrate(
     """Calibrate geometry, joint compliance (paper Eq. 8–10) and the covariances of the random
     perturbations (Eq. 13–17) from recorded poses."""
     description = _robot(robot, urdf, base, tip)
-    model_values: dict[str, object] = {
-        "compliant_joints": [] if rigid else _names(compliant_joints),
-        "virtual_axes_at": _names(virtual_axes) or [],
-        "gravity_base_m_s2": _vector3(gravity, "--gravity"),
-        "payload_kg": payload_kg,
-        "payload_com_m": _vector3(payload_com, "--payload-com"),
-    }
+    options = _options(
+        compliant_joints=[] if rigid else _names(compliant_joints),
+        virtual_axes_at=_names(virtual_axes) or [],
+        gravity_base_m_s2=_vector3(gravity, "--gravity"),
+        payload_kg=payload_kg,
+        payload_com_m=_vector3(payload_com, "--payload-com"),
+        outlier_sigma=outlier_sigma or None,
+        rotation_weight_m_per_rad=rotation_weight,
+        heldout=heldout,
+        max_iterations=max_iterations,
+        covariance=covariance,
+        covariance_solver=solver,
+        covariance_estimator=estimator,
+        covariance_frames=_names(covariance_frames),
+        noise_std=None if noise_std is None else tuple(numbers(noise_std, "--noise-std", 6)),
+        noise_covariance=None
+        if noise_covariance is None
+        else read_noise_covariance(noise_covariance),
+    )
     carried = None
     if model is not None:
         from service import discovery
 
-        given = [
-            flag
-            for flag, value, default in (
-                ("--compliant-joints", compliant_joints, None),
-                ("--rigid", rigid, False),
-                ("--virtual-axes", virtual_axes, None),
-                ("--gravity", _vector3(gravity, "--gravity"), (0.0, 0.0, -9.81)),
-                ("--payload-kg", payload_kg, 0.0),
-                ("--payload-com", _vector3(payload_com, "--payload-com"), (0.0, 0.0, 0.0)),
-            )
-            if value != default
-        ]
+        flags = {
+            "compliant_joints": "--rigid" if rigid else "--compliant-joints",
+            "virtual_axes_at": "--virtual-axes",
+            "gravity_base_m_s2": "--gravity",
+            "payload_kg": "--payload-kg",
+            "payload_com_m": "--payload-com",
+        }
+        given = [flags[name] for name in discovery.model_options_set(options)]
         if given:
             raise KincalError(
                 f"--model sets the model; do not also pass {', '.join(given)} "
@@ -294,34 +302,11 @@ def calibrate(
         refused = urdf_refusal(carried.record) if export_urdf_to is not None else None
         if refused is not None:
             raise KincalError(refused)
-        model_values = {
-            "compliant_joints": carried.compliant_joints,
-            "virtual_axes_at": carried.virtual_axes_at,
-            "gravity_base_m_s2": carried.gravity_base_m_s2,
-            "payload_kg": carried.payload_kg,
-            "payload_com_m": carried.payload_com_m,
-        }
-    options = _options(
-        **model_values,
-        outlier_sigma=outlier_sigma or None,
-        rotation_weight_m_per_rad=rotation_weight,
-        heldout=heldout,
-        max_iterations=max_iterations,
-        covariance=covariance,
-        covariance_solver=solver,
-        covariance_estimator=estimator,
-        covariance_frames=_names(covariance_frames),
-        noise_std=None if noise_std is None else tuple(numbers(noise_std, "--noise-std", 6)),
-        noise_covariance=None
-        if noise_covariance is None
-        else read_noise_covariance(noise_covariance),
-    )
+        options = discovery.carried_options(options, carried)
     if executor is not None or dask is not None or chunk_rows is not None:
-        if carried is not None and carried.corrections:
-            raise KincalError(
-                f"--model undoes {', '.join(carried.corrections)} on the recording, which the "
-                "streamed calibration cannot; drop --executor/--dask/--chunk-rows"
-            )
+        streaming = None if carried is None else discovery.streamed_refusal(carried.corrections)
+        if streaming is not None:
+            raise KincalError(f"--model {streaming}; drop --executor/--dask/--chunk-rows")
         _calibrate_streamed(
             data, output, description, options, executor, dask, chunk_rows, workers, marker
         )
@@ -334,13 +319,11 @@ def calibrate(
         dataset = read_dataset(
             data, chain.joint_names, other_joint_names=chain.other_joint_names, marker=marker
         )
+        result = pipeline.calibrate(dataset, description, options)
     else:
-        dataset = carried.dataset
         for note in carried.notes:
             typer.echo(f"--model: {note}")
-    result = pipeline.calibrate(dataset, description, options)
-    if carried is not None:
-        result = result.model_copy(update={"model_corrections": carried.record})
+        result = discovery.calibrate_carried(carried, description, options)
     _write_json(output, result.model_dump_json(indent=1))
     if export_urdf_to is not None:
         export_urdf_to.parent.mkdir(parents=True, exist_ok=True)

@@ -175,12 +175,17 @@ class KincalClient:
         dataset_id: str,
         options: CalibrationOptions | Mapping[str, Any] | None = None,
         *,
+        discovery_id: str | None = None,
         idempotency_key: str | None = None,
     ) -> dict[str, Any]:
-        """Queue a calibration job; retrying with the same ``idempotency_key`` is safe."""
+        """Queue a calibration job, carrying the findings of the succeeded discovery
+        ``discovery_id`` if given (as ``kincal calibrate --model``); retrying with the same
+        ``idempotency_key`` is safe."""
         if isinstance(options, CalibrationOptions):
             options = options.model_dump(mode="json", exclude_defaults=True)
-        body = {"dataset_id": dataset_id, "options": dict(options or {})}
+        body: dict[str, Any] = {"dataset_id": dataset_id, "options": dict(options or {})}
+        if discovery_id is not None:
+            body["discovery_id"] = discovery_id
         headers = self._idempotency(idempotency_key)
         return dict(self._request("POST", f"{API}/calibrations", json=body, headers=headers).json())
 

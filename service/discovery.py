@@ -14,10 +14,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pydantic
 from matplotlib.figure import Figure
 
 from schemas.calibration import (
     CalibrationOptions,
+    CalibrationResult,
     DatasetInfo,
     ModelCorrection,
     ModelCorrections,
@@ -43,6 +45,7 @@ from schemas.discovery import (
     Step,
     Unexplained,
 )
+from service import pipeline
 from service.pipeline import kincal_version
 from service.robots import RobotDescription
 from solver import discovery as solver_discovery
@@ -228,10 +231,9 @@ class CarriedModel:
     record: ModelCorrections
 
 
-def carry_model(
-    findings: FindingsResult, dataset: PoseDataset, robot: RobotDescription
-) -> CarriedModel:
-    """The discovered model of ``findings`` applied to ``dataset`` for the calibration."""
+def findings_chain(findings: FindingsResult, robot: RobotDescription) -> KinematicChain:
+    """The chain the discovery of ``findings`` used, built for ``robot``; :class:`ModelError`
+    when ``robot`` has other joints than the findings name."""
     chain = chain_for(robot, findings.options)
     if list(chain.joint_names) != findings.robot.joint_names:
         raise ModelError(
@@ -239,6 +241,14 @@ def carry_model(
             f"{findings.robot.name}, not {', '.join(chain.joint_names)}; pass the same robot "
             "to calibrate as to discover"
         )
+    return chain
+
+
+def carry_model(
+    findings: FindingsResult, dataset: PoseDataset, robot: RobotDescription
+) -> CarriedModel:
+    """The discovered model of ``findings`` applied to ``dataset`` for the calibration."""
+    chain = findings_chain(findings, robot)
     names = chain.joint_names
     data = solver_data(dataset, findings.options)
     bank = FeatureBank(probe_chain(chain), data)
@@ -309,6 +319,66 @@ def carry_model(
         notes=notes,
         record=record,
     )
+
+
+MODEL_OPTIONS = (
+    "compliant_joints",
+    "virtual_axes_at",
+    "gravity_base_m_s2",
+    "payload_kg",
+    "payload_com_m",
+)
+"""The calibration options a carried model sets (``calibrate --model``, ``discovery_id``)."""
+
+
+def model_options_set(options: CalibrationOptions) -> list[str]:
+    """The :data:`MODEL_OPTIONS` of ``options`` away from their defaults. A carried model
+    replaces them, so they are refused rather than silently dropped."""
+    default = CalibrationOptions()
+    return [name for name in MODEL_OPTIONS if getattr(options, name) != getattr(default, name)]
+
+
+def carried_options(options: CalibrationOptions, carried: CarriedModel) -> CalibrationOptions:
+    """``options`` with the carried model's compliance, flex axes, gravity and payload: the
+    one merge of ``calibrate --model`` and of the service's calibrations with a discovery.
+    :class:`ModelError` naming the :data:`MODEL_OPTIONS` set as well."""
+    given = model_options_set(options)
+    if given:
+        raise ModelError(
+            f"the discovered model sets {', '.join(given)}; leave them at their defaults "
+            "(discover with them instead)"
+        )
+    values = {name: getattr(carried, name) for name in MODEL_OPTIONS}
+    try:
+        return CalibrationOptions.model_validate({**options.model_dump(), **values})
+    except pydantic.ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise ModelError(f"the discovered model gives an invalid {where}: {first['msg']}") from exc
+
+
+def streamed_refusal(corrections: list[str]) -> str | None:
+    """Why a streamed calibration cannot carry a model undoing ``corrections`` (named terms,
+    :attr:`CarriedModel.corrections`) on the recording, or None when there are none."""
+    if not corrections:
+        return None
+    return (
+        f"undoes {', '.join(corrections)} on the recording, which the streamed calibration cannot"
+    )
+
+
+def calibrate_carried(
+    carried: CarriedModel,
+    robot: RobotDescription,
+    options: CalibrationOptions,
+    progress: pipeline.Progress | None = None,
+) -> CalibrationResult:
+    """Calibrate the carried recording with ``options`` (:func:`carried_options`); the result
+    records the carried corrections (``model_corrections``) so that predict and rank apply
+    them. The CLI's ``calibrate --model`` and the service's calibration jobs call this."""
+    extra = () if progress is None else (progress,)
+    result = pipeline.calibrate(carried.dataset, robot, options, *extra)
+    return result.model_copy(update={"model_corrections": carried.record})
 
 
 def _model_correction(

@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict
 
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import read_dataset
-from schemas.discovery import DiscoveryOptions
+from schemas.discovery import DiscoveryOptions, FindingsResult
 from service import discovery, pipeline
 from service.discovery_html import render_discovery_report
 from service.report_html import render_report
@@ -29,7 +29,9 @@ from service.robots import RobotDescription, load_robot
 from service.settings import Settings
 from service.storage.files import FileStore
 from service.urdf_export import export_urdf
+from service.urdf_export import refusal as urdf_refusal
 from service.worker import JobContext
+from solver.errors import ModelError
 from solver.executors import DaskExecutor
 
 
@@ -53,6 +55,15 @@ class DatasetRef(BaseModel):
     data_path: str
 
 
+class DiscoveryRef(BaseModel):
+    """A succeeded discovery whose findings a calibration carries (``calibrate --model``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: str
+    findings_path: str
+
+
 class CalibrationJobParams(BaseModel):
     """``jobs.params`` of a calibration: everything resolved when the job was accepted."""
 
@@ -61,6 +72,7 @@ class CalibrationJobParams(BaseModel):
     dataset: DatasetRef
     robot: RobotRef
     options: CalibrationOptions
+    discovery: DiscoveryRef | None = None
 
 
 class DiscoveryJobParams(BaseModel):
@@ -118,12 +130,15 @@ def _streamed_progress(ctx: JobContext) -> pipeline.Progress:
 
 
 def calibration_job(ctx: JobContext) -> None:
-    """Calibrate a stored dataset (on the Dask cluster of ``KINCAL_DASK_ADDRESS`` if set);
-    artifacts: result JSON, HTML report, calibrated URDF."""
+    """Calibrate a stored dataset (on the Dask cluster of ``KINCAL_DASK_ADDRESS`` if set),
+    carrying a discovery's findings if the job names one (as ``kincal calibrate --model``);
+    artifacts: result JSON, HTML report, calibrated URDF (none when the result corrects the
+    joint readings, which a URDF cannot express: see :func:`service.urdf_export.refusal`)."""
     ctx.progress("loading", 0.0)
     params = CalibrationJobParams.model_validate(ctx.params)
     robot = robot_description(params.robot, ctx.files)
-    chain = pipeline.chain_for(robot, params.options)
+    options = params.options
+    chain = pipeline.chain_for(robot, options)
     path = ctx.files.path(params.dataset.data_path)
     dataset = read_dataset(
         path,
@@ -131,27 +146,47 @@ def calibration_job(ctx: JobContext) -> None:
         other_joint_names=chain.other_joint_names,
         source=params.dataset.name,
     )
+    carried = None
+    if params.discovery is not None:
+        findings = FindingsResult.model_validate_json(
+            ctx.files.read(params.discovery.findings_path)
+        )
+        carried = discovery.carry_model(findings, dataset, robot)
+        options = discovery.carried_options(options, carried)
     address = Settings().dask_address
     if address:
+        refused = None if carried is None else discovery.streamed_refusal(carried.corrections)
+        if refused is not None:
+            raise ModelError(f"discovery_id: the discovery's model {refused}; {STREAMED_FIX}")
         ctx.progress("connecting", 0.02)
         with DaskExecutor(address) as executor:
             result = pipeline.calibrate_streamed(
                 path,
                 robot,
-                params.options,
+                options,
                 executor,
                 progress=_streamed_progress(ctx),
                 source=params.dataset.name,
             )
     else:
         ctx.progress("fit", 0.05)
-        result = pipeline.calibrate(
-            dataset, robot, params.options, _progress(ctx, params.options.heldout)
-        )
+        progress = _progress(ctx, options.heldout)
+        if carried is None:
+            result = pipeline.calibrate(dataset, robot, options, progress)
+        else:
+            result = discovery.calibrate_carried(carried, robot, options, progress)
+            dataset = carried.dataset  # what the calibration fitted (the report's residuals)
     ctx.progress("report", REPORT_FRACTION)
     ctx.write_artifact("result", "result.json", result.model_dump_json(indent=1).encode())
-    ctx.write_artifact("urdf", "calibrated.urdf", export_urdf(result).encode())
+    if urdf_refusal(result.model_corrections) is None:
+        ctx.write_artifact("urdf", "calibrated.urdf", export_urdf(result).encode())
     ctx.write_artifact("report", "report.html", render_report(result, dataset).encode())
+
+
+STREAMED_FIX = (
+    "this service streams its calibrations on the Dask cluster of KINCAL_DASK_ADDRESS: "
+    "calibrate without discovery_id, or on a service without that setting"
+)
 
 
 DISCOVERY_FRACTION = 0.1

@@ -34,16 +34,21 @@ MARKER_LINK = "kincal_marker"
 FloatArray = NDArray[np.float64]
 
 
-def refusal(corrections: ModelCorrections | None) -> str | None:
-    """Why a result carrying these corrections cannot be a plain URDF (one line), or None."""
+CLI_FIX = (
+    "use kincal predict/rank with the result JSON, or calibrate without --model for a plain URDF"
+)
+
+
+def refusal(corrections: ModelCorrections | None, fix: str = CLI_FIX) -> str | None:
+    """Why a result carrying these corrections cannot be a plain URDF (one line ending in
+    ``fix``, what to do instead), or None."""
     applied = [] if corrections is None else corrections.applied()
     if not applied:
         return None
     terms = ", ".join(c.description for c in applied)
     return (
         f"cannot export a URDF: the calibration corrects the joint readings by {terms} "
-        "(a function of the joint angle a URDF cannot express); use kincal predict/rank with "
-        "the result JSON, or calibrate without --model for a plain URDF"
+        f"(a function of the joint angle a URDF cannot express); {fix}"
     )
 
 

@@ -17,17 +17,28 @@ from schemas.api import (
     CalibrationsPublic,
 )
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from service import pipeline
+from schemas.discovery import FindingsResult
+from service import discovery, pipeline
 from service.api import jobs_common
-from service.api.deps import API_PREFIX, PrincipalDep, StateDep
+from service.api.deps import API_PREFIX, PrincipalDep, ServiceState, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.results import CachedResult
+from service.api.robots import one_line
+from service.robots import RobotDescription
+from service.storage import repository
 from service.storage.models import Job
-from service.tasks import CalibrationJobParams
+from service.tasks import STREAMED_FIX, CalibrationJobParams, DiscoveryRef
+from service.urdf_export import refusal as urdf_refusal
+from solver.errors import ModelError
 
 PREFIX = f"{API_PREFIX}/calibrations"
+DISCOVERIES = f"{API_PREFIX}/discoveries"
+HTTP_URDF_FIX = (
+    "rank and predict with its result (POST /api/v1/rankings applies the corrections), or "
+    "calibrate without discovery_id for a plain URDF"
+)
 router = APIRouter(prefix=PREFIX, tags=["calibrations"])
 
 # The HTML report may not run scripts; its images are data URIs.
@@ -39,9 +50,11 @@ REPORT_HEADERS = {
 
 def public(job: Job) -> CalibrationPublic:
     base = f"{PREFIX}/{job.id}"
+    carried = job.params.get("discovery")
     return CalibrationPublic(
         id=job.id,
         dataset_id=job.dataset_id,
+        discovery_id=None if carried is None else carried["id"],
         status=jobs_common.job_status(job),
         options=CalibrationOptions.model_validate(job.params["options"]),
         links=CalibrationLinks(
@@ -88,11 +101,71 @@ def result_of(state: StateDep, tenant_id: str, calibration_id: str) -> Calibrati
     return cached_calibration(state, tenant_id, calibration_id).result
 
 
+def carried_discovery(
+    state: ServiceState, tenant_id: str, body: CalibrationCreate, robot: RobotDescription
+) -> DiscoveryRef:
+    """The succeeded discovery ``body.discovery_id`` of this tenant whose findings fit the
+    dataset's robot and options: 404, 409 (not succeeded) or 422 naming discovery_id otherwise."""
+    discovery_id = body.discovery_id
+    assert discovery_id is not None
+    with state.database.sessions() as session:
+        job = repository.get_job(session, tenant_id, "discovery", discovery_id)
+    if job is None:
+        raise ProblemException(
+            404,
+            f"discovery_id: discovery {discovery_id!r} not found; start one with "
+            "POST /api/v1/discoveries or list yours with GET /api/v1/discoveries",
+            slug="not-found",
+        )
+    if job.state != repository.SUCCEEDED:
+        if job.state in repository.ACTIVE_STATES:
+            fix = f"wait for it (poll GET {DISCOVERIES}/{job.id} until state is 'succeeded')"
+        else:
+            fix = "start a new discovery"
+        raise ProblemException(
+            409,
+            f"discovery_id: discovery {job.id} is {job.state}, its findings are not ready; {fix}",
+            slug="not-ready",
+            headers=jobs_common.poll_headers(job) or None,
+        )
+    findings = FindingsResult.model_validate_json(state.files.read(job.artifacts["result"]))
+    try:
+        discovery.findings_chain(findings, robot)
+    except ModelError as exc:
+        raise ProblemException(
+            422,
+            f"discovery_id: discovery {job.id} does not fit the dataset's robot ({one_line(exc)}"
+            f"); name a discovery of a dataset of robot {robot.name}",
+            slug="invalid-discovery",
+        ) from exc
+    given = discovery.model_options_set(body.options)
+    if given:
+        fields = ", ".join(f"options.{name}" for name in given)
+        raise ProblemException(
+            422,
+            f"{fields}: discovery_id sets the model; leave {fields} at the default (run the "
+            "discovery with them instead)",
+            slug="invalid-options",
+        )
+    streamed = discovery.streamed_refusal(findings.model.corrections)
+    if state.settings.dask_address and streamed is not None:
+        raise ProblemException(
+            422,
+            f"discovery_id: the model of discovery {job.id} {streamed}; {STREAMED_FIX}",
+            slug="invalid-discovery",
+        )
+    return DiscoveryRef(id=job.id, findings_path=job.artifacts["result"])
+
+
 @router.post(
     "",
     status_code=202,
     response_model=CalibrationPublic,
-    responses={**STANDARD_PROBLEMS, **IDEMPOTENCY_PROBLEMS, **problem_responses(404)},
+    responses={
+        **STANDARD_PROBLEMS,
+        **IDEMPOTENCY_PROBLEMS,
+        **problem_responses(404, 409),
+    },
 )
 def create_calibration(
     body: CalibrationCreate,
@@ -100,7 +173,15 @@ def create_calibration(
     state: StateDep,
     idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
 ) -> Response:
-    """Start calibrating a dataset; poll the Location for progress."""
+    """Start calibrating a dataset (carrying a discovery's findings if given); poll the
+    Location for progress."""
+
+    def check(robot: RobotDescription) -> DiscoveryRef | None:
+        pipeline.chain_for(robot, body.options)
+        if body.discovery_id is None:
+            return None
+        return carried_discovery(state, principal.tenant_id, body, robot)
+
     return jobs_common.accept_dataset_job(
         state,
         principal.tenant_id,
@@ -108,11 +189,17 @@ def create_calibration(
         body,
         idempotency_key,
         dataset_id=body.dataset_id,
-        check_options=lambda robot: pipeline.chain_for(robot, body.options),
-        make_params=lambda dataset, robot: CalibrationJobParams(
-            dataset=dataset, robot=robot, options=body.options
+        check_options=check,
+        make_params=lambda dataset, robot, carried: CalibrationJobParams(
+            dataset=dataset, robot=robot, options=body.options, discovery=carried
         ),
     )
+
+
+def urdf_absent(state: ServiceState, job: Job) -> str | None:
+    """Why a succeeded calibration has no URDF: it corrects the joint readings."""
+    result = CalibrationResult.model_validate_json(state.files.read(job.artifacts["result"]))
+    return urdf_refusal(result.model_corrections, HTTP_URDF_FIX)
 
 
 jobs_common.add_job_routes(
@@ -129,8 +216,10 @@ jobs_common.add_job_routes(
         Artifact(
             "urdf",
             "application/xml",
-            "The calibrated robot as a plain URDF.",
+            "The calibrated robot as a plain URDF (409 for a calibration carrying joint "
+            "corrections of a discovery, which a URDF cannot express).",
             download_suffix=".urdf",
+            absent=urdf_absent,
         ),
     ],
 )

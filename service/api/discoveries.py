@@ -71,7 +71,7 @@ def create_discovery(
         idempotency_key,
         dataset_id=body.dataset_id,
         check_options=lambda robot: discovery.chain_for(robot, body.options),
-        make_params=lambda dataset, robot: DiscoveryJobParams(
+        make_params=lambda dataset, robot, _chain: DiscoveryJobParams(
             dataset=dataset, robot=robot, options=body.options
         ),
     )

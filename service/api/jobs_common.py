@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 from fastapi import APIRouter, Header, Path, Query, Response
 from pydantic import BaseModel
@@ -26,6 +26,7 @@ from service.tasks import DatasetRef, RobotRef
 from solver.errors import ModelError
 
 RETRY_AFTER_S = "1"
+CheckedT = TypeVar("CheckedT")
 
 
 def submit_job(
@@ -88,24 +89,24 @@ def accept_dataset_job(
     idempotency_key: str | None,
     *,
     dataset_id: str,
-    check_options: Callable[[RobotDescription], object],
-    make_params: Callable[[DatasetRef, RobotRef], BaseModel],
+    check_options: Callable[[RobotDescription], CheckedT],
+    make_params: Callable[[DatasetRef, RobotRef, CheckedT], BaseModel],
 ) -> Response:
     """The POST of a job on a stored dataset: 202 + Location (the same answer again for a
     repeated ``Idempotency-Key``), 404 for a dataset the tenant does not have, 422 when
     ``check_options`` finds options naming joints the robot lacks (now, rather than a failed
-    job later)."""
+    job later; it may raise its own problems too). ``make_params`` gets what it returned."""
     idempotency = Idempotency(state.database, tenant_id, idempotency_key, f"POST {resource.prefix}")
 
     def create() -> Response:
         dataset, robot = dataset_for_job(state, tenant_id, dataset_id)
         try:
-            check_options(robot.description)
+            checked = check_options(robot.description)
         except ModelError as exc:
             raise ProblemException(
                 422, f"options: {one_line(exc)}", slug="invalid-options"
             ) from exc
-        params = make_params(dataset, robot.ref)
+        params = make_params(dataset, robot.ref, checked)
         job = submit_job(
             state, tenant_id, resource.kind, params.model_dump(mode="json"), dataset_id=dataset.id
         )
@@ -140,8 +141,15 @@ def poll_headers(job: Job) -> dict[str, str]:
     return {"Retry-After": RETRY_AFTER_S} if job.state in repository.ACTIVE_STATES else {}
 
 
-def artifact(state: ServiceState, job: Job, name: str, noun: str) -> bytes:
-    """A succeeded job's artifact; 409 (with the state and what to do) otherwise."""
+def artifact(
+    state: ServiceState,
+    job: Job,
+    name: str,
+    noun: str,
+    absent: Callable[[ServiceState, Job], str | None] | None = None,
+) -> bytes:
+    """A succeeded job's artifact; 409 (with the state and what to do) otherwise, or when
+    ``absent`` says why a succeeded job has none."""
     if job.state != repository.SUCCEEDED:
         if job.state in repository.ACTIVE_STATES:
             detail = (
@@ -154,6 +162,9 @@ def artifact(state: ServiceState, job: Job, name: str, noun: str) -> bytes:
             detail = f"{noun} {job.id} was cancelled; start a new one"
         raise ProblemException(409, detail, slug="not-ready", headers=poll_headers(job) or None)
     if name not in job.artifacts:
+        reason = None if absent is None else absent(state, job)
+        if reason is not None:
+            raise ProblemException(409, f"{noun} {job.id}: {reason}", slug="no-" + name)
         raise ProblemException(404, f"{noun} {job.id} has no {name}", slug="not-found")
     return state.files.read(job.artifacts[name])
 
@@ -201,6 +212,8 @@ class Artifact:
     summary: str
     headers: Mapping[str, str] = field(default_factory=dict)
     download_suffix: str | None = None  # set: served as an attachment "<id><suffix>"
+    # Why a succeeded job has none (answered as 409), or None (404): a job may skip an artifact.
+    absent: Callable[[ServiceState, Job], str | None] | None = None
 
 
 @dataclass(frozen=True)
@@ -227,8 +240,16 @@ class JobResource:
         with state.database.sessions() as session:
             return job_or_404(session, tenant_id, self.kind, job_id, self.noun)
 
-    def artifact(self, state: ServiceState, tenant_id: str, job_id: str, name: str) -> bytes:
-        return artifact(state, self.lookup(state, tenant_id, job_id), name, self.noun)
+    def artifact(
+        self,
+        state: ServiceState,
+        tenant_id: str,
+        job_id: str,
+        name: str,
+        absent: Callable[[ServiceState, Job], str | None] | None = None,
+    ) -> bytes:
+        job = self.lookup(state, tenant_id, job_id)
+        return artifact(state, job, name, self.noun, absent)
 
 
 def add_job_routes(router: APIRouter, resource: JobResource, artifacts: Sequence[Artifact]) -> None:
@@ -330,7 +351,7 @@ def _artifact_endpoint(resource: JobResource, item: Artifact) -> Callable[..., A
         principal: PrincipalDep, state: StateDep, job_id: str = id_path
     ) -> Response:
         body = await run_in_threadpool(
-            resource.artifact, state, principal.tenant_id, job_id, item.name
+            resource.artifact, state, principal.tenant_id, job_id, item.name, item.absent
         )
         headers = dict(item.headers)
         if item.download_suffix:
