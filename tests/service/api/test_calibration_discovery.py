@@ -8,7 +8,6 @@ refused with a reason. Unknown, foreign, unfinished or unfitting discoveries are
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -20,7 +19,7 @@ from fastapi.testclient import TestClient
 from schemas.calibration import CalibrationResult
 from schemas.discovery import DiscoveryOptions
 from schemas.ranking import RankingOptions
-from service import cli, pipeline, ranking, tasks
+from service import pipeline, ranking, tasks
 from service.api import create_app
 from service.storage.files import FileStore
 from service.storage.models import Job
@@ -37,6 +36,7 @@ from tests.service.api.conftest import (
     recording_bytes,
     upload_csv,
 )
+from tests.service.cli_support import run_ok
 
 URL = "/api/v1/calibrations"
 EFFECTS = ("geometry", "camera", "marker", "gear_error")
@@ -70,29 +70,15 @@ class Carried:
         self.result = self.api.result(self.id)
 
 
-def _kincal(args: list[object]) -> None:
-    monkeypatch = pytest.MonkeyPatch()
-    try:
-        monkeypatch.setattr(sys, "argv", ["kincal", *map(str, args)])
-        with pytest.raises(SystemExit) as exit_info:
-            cli.main()
-            raise SystemExit(0)
-        assert exit_info.value.code in (0, None)
-    finally:
-        monkeypatch.undo()
-
-
 @pytest.fixture(scope="module")
 def carried(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Carried]:
     folder = tmp_path_factory.mktemp("carried")
     data, findings, model = folder / "gear.csv", folder / "findings.json", folder / "model.json"
     size = ["--n", str(N_SAMPLES), "--seed", str(SEED)]
     effects = [f"--effect={e}" for e in EFFECTS]
-    _kincal(["simulate", "--robot", "kinova", *size, *effects, "-o", data])
-    _kincal(["discover", data, "--robot", "kinova", "--bootstrap", "10", "-o", findings])
-    _kincal(
-        ["calibrate", data, "--robot", "kinova", "--model", findings, *CLI_OPTIONS, "-o", model]
-    )
+    run_ok(["simulate", "--robot", "kinova", *size, *effects, "-o", data])
+    run_ok(["discover", data, "--robot", "kinova", "--bootstrap", "10", "-o", findings])
+    run_ok(["calibrate", data, "--robot", "kinova", "--model", findings, *CLI_OPTIONS, "-o", model])
     cli_result = CalibrationResult.model_validate_json(model.read_bytes())
     with fresh_database_url(folder) as url:
         settings = make_settings(folder, url, workers=1)
