@@ -7,7 +7,6 @@ refused with a reason. Unknown, foreign, unfinished or unfitting discoveries are
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -28,8 +27,10 @@ from solver.errors import ModelError
 from solver.model import sample_configurations
 from tests.service.api.conftest import (
     AppFactory,
+    assert_documents_close,
     assert_problem,
     client_api,
+    comparable_result,
     fresh_database_url,
     make_settings,
     new_key,
@@ -86,33 +87,6 @@ def carried(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Carried]:
             yield Carried(client, folder, cli_result)
 
 
-def _close(got: Any, want: Any, where: str = "") -> None:
-    """Equal structure; numbers equal to 1e-9 relative."""
-    if isinstance(want, dict):
-        assert isinstance(got, dict) and got.keys() == want.keys(), where
-        for key in want:
-            _close(got[key], want[key], f"{where}.{key}")
-    elif isinstance(want, list):
-        assert isinstance(got, list) and len(got) == len(want), where
-        for i, (a, b) in enumerate(zip(got, want, strict=True)):
-            _close(a, b, f"{where}[{i}]")
-    elif isinstance(want, float) and not isinstance(got, bool):
-        assert isinstance(got, (int, float)), where
-        assert math.isclose(got, want, rel_tol=1e-9, abs_tol=1e-15), (where, got, want)
-    else:
-        assert got == want, (where, got, want)
-
-
-def _comparable(result: CalibrationResult) -> dict[str, Any]:
-    document = result.model_dump(mode="json")
-    document.pop("created_utc")
-    document["solver"].pop("time_s")
-    document["dataset"].pop("source")
-    if document.get("covariance") is not None:
-        document["covariance"]["solver"].pop("time_s")
-    return document
-
-
 def test_calibration_with_a_discovery_equals_calibrate_model(carried: Carried) -> None:
     assert carried.created["discovery_id"] == carried.discovery_id
     assert carried.api.status(carried.id)["discovery_id"] == carried.discovery_id
@@ -122,9 +96,10 @@ def test_calibration_with_a_discovery_equals_calibrate_model(carried: Carried) -
     third = carried.result.robot.joint_names[2]
     assert (entry.effect, entry.joint, entry.variant) == ("gear_periodic", third, "h2")
     assert entry.applied_in_prediction
-    _close(record.model_dump(mode="json"), carried.cli.model_corrections.model_dump(mode="json"))
+    cli_record = carried.cli.model_corrections.model_dump(mode="json")
+    assert_documents_close(record.model_dump(mode="json"), cli_record)
     # the rest of the result too: the service adds no maths of its own
-    _close(_comparable(carried.result), _comparable(carried.cli))
+    assert_documents_close(comparable_result(carried.result), comparable_result(carried.cli))
     assert carried.result.options.compliant_joints == carried.cli.options.compliant_joints
 
 

@@ -22,8 +22,12 @@ from service.client import KincalClient
 from service.storage.db import Database
 from service.storage.models import Job
 from tests.conftest import robot
-from tests.service.api.conftest import fresh_database_url, recording, recording_bytes
-from tests.service.api.test_jobs import comparable
+from tests.service.api.conftest import (
+    comparable_result,
+    fresh_database_url,
+    recording,
+    recording_bytes,
+)
 
 # A job long enough (about 4 s, 3 s of it in the held-out stage) that the test sees it running
 # on any machine, however fast: 2000 samples, 60 held-out fits.
@@ -144,7 +148,7 @@ def test_kill_9_during_a_job_then_restart_completes_it_with_the_same_result(
         api = KincalClient(second.url)
         final = api.wait(calibration["id"], timeout_s=120)
         assert final["attempts"] == 2
-        assert comparable(api.result(calibration["id"])) == comparable(undisturbed)
+        assert comparable_result(api.result(calibration["id"])) == comparable_result(undisturbed)
         assert "re-queued 1 job(s)" in second.log_path.read_text()
     finally:
         # uvicorn re-raises the signal after a graceful shutdown, so the exit status shows it.

@@ -3,7 +3,6 @@ that Dask cluster and give ``kincal calibrate --executor dask``'s result on the 
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
@@ -17,38 +16,14 @@ from service.storage.models import Job
 from service.worker import JobContext
 from tests.service.api.conftest import (
     AppFactory,
+    assert_documents_close,
     client_api,
+    comparable_result,
     database_of,
     recording_bytes,
     settings_of,
 )
 from tests.service.cli_support import run
-
-
-def _close(got: Any, want: Any, where: str = "") -> None:
-    """Equal structure; numbers equal to 1e-9 relative (the chunking may differ)."""
-    if isinstance(want, dict):
-        assert isinstance(got, dict) and got.keys() == want.keys(), where
-        for key in want:
-            _close(got[key], want[key], f"{where}.{key}")
-    elif isinstance(want, list):
-        assert isinstance(got, list) and len(got) == len(want), where
-        for i, (a, b) in enumerate(zip(got, want, strict=True)):
-            _close(a, b, f"{where}[{i}]")
-    elif isinstance(want, float) and not isinstance(got, bool):
-        assert isinstance(got, (int, float)), where
-        assert math.isclose(got, want, rel_tol=1e-9, abs_tol=1e-15), (where, got, want)
-    else:
-        assert got == want, (where, got, want)
-
-
-def _comparable(result: CalibrationResult) -> dict[str, Any]:
-    document = result.model_dump(mode="json")
-    document.pop("created_utc")
-    document["solver"].pop("time_s")
-    if document.get("covariance") is not None:
-        document["covariance"]["solver"].pop("time_s")
-    return document
 
 
 def test_calibration_job_runs_on_the_dask_cluster_of_the_setting(
@@ -110,4 +85,5 @@ def test_calibration_job_runs_on_the_dask_cluster_of_the_setting(
     streamed = CalibrationResult.model_validate_json(out.read_text())
     assert served.options.heldout is False and served.covariance is not None
     assert served.covariance.estimator == "moment"
-    _close(_comparable(served), _comparable(streamed))
+    assert served.dataset.source == streamed.dataset.source
+    assert_documents_close(comparable_result(served), comparable_result(streamed))

@@ -25,6 +25,7 @@ from tests.conftest import robot
 from tests.service.api.conftest import (
     assert_problem,
     client_api,
+    comparable_result,
     database_of,
     fresh_database_url,
     make_settings,
@@ -69,17 +70,6 @@ def wait_for(
         time.sleep(0.05)
 
 
-def comparable(result: CalibrationResult) -> dict[str, Any]:
-    """The result without what legitimately differs between two identical runs."""
-    document = result.model_dump(mode="json")
-    document.pop("created_utc")
-    document["solver"].pop("time_s")
-    if document.get("covariance") is not None:
-        document["covariance"]["solver"].pop("time_s")
-    document["dataset"].pop("source")
-    return document
-
-
 def test_upload_calibrate_poll_result_report_urdf_round_trip(
     worker_client: TestClient, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -101,7 +91,8 @@ def test_upload_calibrate_poll_result_report_urdf_round_trip(
 
     result = api.result(calibration["id"])
     direct = pipeline.calibrate(recording(), robot("ur10"), CalibrationOptions())
-    assert comparable(result) == comparable(direct)  # the service adds no maths of its own
+    # the service adds no maths of its own
+    assert comparable_result(result) == comparable_result(direct)
 
     report = api.report(calibration["id"])
     assert report.count("data:image/png;base64,") >= 1
