@@ -66,7 +66,6 @@ from solver.model import KinematicChain, build_chain
 __all__ = [
     "EFFECTS",
     "CarriedModel",
-    "calibration_options",
     "carry_model",
     "chain_for",
     "discover",
@@ -194,18 +193,6 @@ def solver_data(dataset: PoseDataset, options: DiscoveryOptions) -> solver_disco
         if payload is not None
         else np.full(dataset.n_samples, options.payload_kg),
         gravity_base=np.asarray(options.gravity_base_m_s2, dtype=float),
-    )
-
-
-def calibration_options(findings: FindingsResult) -> CalibrationOptions:
-    """Calibration options that carry the discovered compliance, flex, tilt and payload."""
-    model = findings.model
-    return CalibrationOptions(
-        compliant_joints=model.calibrate_compliant_joints,
-        virtual_axes_at=model.calibrate_virtual_axes_at,
-        gravity_base_m_s2=model.calibrate_gravity_base_m_s2,
-        payload_kg=model.calibrate_payload_kg,
-        payload_com_m=findings.options.payload_com_m,
     )
 
 
