@@ -241,6 +241,12 @@ def carry_model(
     bank = FeatureBank(probe_chain(chain), data)
     model = findings.model
     notes: list[str] = []
+    if chain.urdf_sha256 != findings.robot.urdf_sha256:
+        notes.append(
+            f"the findings were made with another URDF of {findings.robot.name} (sha256 "
+            f"{findings.robot.urdf_sha256[:12]}…, this one {chain.urdf_sha256[:12]}…) with the "
+            "same joints: make sure it is the same robot"
+        )
     terms: list[tuple[Term, np.ndarray]] = []
     extra_payload_kg = 0.0
     not_carried: list[str] = []

@@ -9,7 +9,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from schemas.calibration import CalibrationResult, ModelCorrection
+from schemas.calibration import CalibrationOptions, CalibrationResult, ModelCorrection
+from schemas.dataset import read_dataset
+from schemas.discovery import FindingsResult
 from schemas.ranking import RankingOptions
 from service import corrections, discovery, pipeline, ranking, scenarios
 from service.urdf_export import export_urdf
@@ -236,3 +238,18 @@ def test_export_urdf_refuses_a_result_with_joint_corrections(
     code, _, err = run([*args, "-o", folder / "refused.json"], capsys, monkeypatch)
     assert code == 2 and err.count("\n") == 1 and "cannot export a URDF" in err
     assert not (folder / "refused.json").exists()  # refused before calibrating
+
+
+def test_findings_made_with_another_urdf_are_carried_with_a_note(folder: Path) -> None:
+    findings = FindingsResult.model_validate_json((folder / "findings.json").read_bytes())
+    description = robot("kinova")
+    chain = pipeline.chain_for(description, CalibrationOptions())
+    dataset = read_dataset(folder / "gear.csv", chain.joint_names)
+    same = discovery.carry_model(findings, dataset, description)
+    assert not any("another URDF" in note for note in same.notes)
+    edited = findings.model_copy(
+        update={"robot": findings.robot.model_copy(update={"urdf_sha256": "0" * 64})}
+    )
+    carried = discovery.carry_model(edited, dataset, description)
+    assert any("another URDF" in note and "000000000000" in note for note in carried.notes)
+    assert carried.corrections == same.corrections  # noted, still carried
