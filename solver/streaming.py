@@ -91,11 +91,10 @@ from solver.calibration import (
     within_spread,
 )
 from solver.covariance.estimate import (
-    _SE_METHOD,
+    SE_METHOD,
     CovarianceEstimate,
     SolverName,
-    _fixed_frame,
-    _frames,
+    frame_results,
     known_noise_covariance,
 )
 from solver.covariance.identifiability import (
@@ -1209,25 +1208,17 @@ def estimate_covariances_streamed(
             report,
             layout.is_variance,
             confidence=confidence,
-            method=_SE_METHOD["moment"],
+            method=SE_METHOD["moment"],
         )
     except CalibrationError as exc:
         notes.append(f"no standard errors: {exc}")
-    frames = _frames(layout, theta, unc)
-    noise = None
-    d = layout.residual_dim
-    if layout.noise_frame is not None:
-        noise, frames = frames[-1], frames[:-1]
-    elif spec.known is not None:
-        full = np.zeros((6, 6))
-        full[:d, :d] = spec.known
-        noise = _fixed_frame(spec.noise_name, full)
+    frames, noise = frame_results(layout, theta, unc, spec.known, spec.noise_name)
     return CovarianceEstimate(
         "moment",
         structure,
         solver_used,
         sums.n,
-        tuple(frames),
+        frames,
         noise,
         theta,
         layout,

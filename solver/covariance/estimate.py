@@ -236,25 +236,17 @@ def estimate_covariances(
                 report,
                 layout.is_variance,
                 confidence=confidence,
-                method=_SE_METHOD[estimator],
+                method=SE_METHOD[estimator],
             )
         except CalibrationError as exc:
             notes.append(f"no standard errors: {exc}")
-    frames = _frames(layout, theta, unc)
-    noise = None
-    if layout.noise_frame is not None:
-        noise = frames[-1]
-        frames = frames[:-1]
-    elif known is not None:
-        full = np.zeros((6, 6))
-        full[:d, :d] = known
-        noise = _fixed_frame(noise_name, full)
+    frames, noise = frame_results(layout, theta, unc, known, noise_name)
     return CovarianceEstimate(
         estimator,
         structure,
         solver_used,
         residuals.shape[0],
-        tuple(frames),
+        frames,
         noise,
         theta,
         layout,
@@ -268,7 +260,8 @@ def estimate_covariances(
     )
 
 
-_SE_METHOD = {
+SE_METHOD = {
+    # how each estimator's standard errors are computed, as the result reports it
     "moment": "sandwich G⁺·2ΣK̃ᵀK̃·G⁺ (Gaussian fourth moments)",
     "ml": "inverse expected Fisher information of Eq. (16)",
     "reml": "inverse expected Fisher information of the restricted likelihood",
@@ -314,6 +307,27 @@ def _theta_covariance(
             theta, frame_jacobians, fit_basis, layout, known_covariance=known
         )
     return theta_covariance(info, report)
+
+
+def frame_results(
+    layout: CovarianceLayout,
+    theta: FloatArray,
+    unc: ThetaUncertainty | None,
+    known_noise: FloatArray | None,
+    noise_name: str,
+) -> tuple[tuple[FrameCovariance, ...], FrameCovariance | None]:
+    """The estimated θ as per-frame covariances (6×6, [v; w], m² and rad², each frame's own
+    axes) with their uncertainties, and the noise frame: estimated (the layout's last frame),
+    the known (d, d) Σ_n padded to 6×6, or None."""
+    frames = _frames(layout, theta, unc)
+    if layout.noise_frame is not None:
+        return tuple(frames[:-1]), frames[-1]
+    if known_noise is None:
+        return tuple(frames), None
+    d = layout.residual_dim
+    full = np.zeros((6, 6))
+    full[:d, :d] = known_noise
+    return tuple(frames), _fixed_frame(noise_name, full)
 
 
 def _frames(
