@@ -259,13 +259,25 @@ def _sensor(pose: FloatArray, spec: SimulationSpec, time_s: FloatArray) -> Float
     if spec.depth_scale == 0.0:
         return pose
     out = pose.copy()
-    p, rotation = pose[:, :3, 3], pose[:, :3, :3]
-    if spec.depth_axis == "measurement_z":
-        out[:, 2, 3] += spec.depth_scale * p[:, 2]
-    else:
-        depth = np.einsum("nji,nj->ni", rotation, p)[:, 2]
-        out[:, :3, 3] += spec.depth_scale * depth[:, None] * rotation[:, :, 2]
+    out[:, :3, 3] += spec.depth_scale * depth_direction(pose, spec.depth_axis)
     return out
+
+
+def depth_direction(pose: FloatArray, variant: str) -> FloatArray:
+    """Position shift (n, 3), measurement frame, per unit depth scale: ``(zᵀp) z`` for the unit
+    depth axis ``z`` and the positions ``p`` of ``pose`` (n, 4, 4), m.
+
+    ``measurement_z``: the depth along the measurement frame's z (a fixed camera) is scaled.
+    ``marker_z``: the depth along the marker frame's z (a camera on the flange looking at a
+    fixed target, which is then the measurement frame) is scaled.
+    """
+    p, rotation = pose[:, :3, 3], pose[:, :3, :3]
+    if variant == "measurement_z":
+        shift = np.zeros_like(p)
+        shift[:, 2] = p[:, 2]
+        return shift
+    depth = np.einsum("nji,nj->ni", rotation, p)[:, 2]
+    return depth[:, None] * rotation[:, :, 2]
 
 
 def gross_error_twists(

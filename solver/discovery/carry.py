@@ -42,9 +42,9 @@ from solver.discovery.features import (
     gravity_basis,
     is_configuration_feature,
 )
-from solver.discovery.fitting import depth_direction
 from solver.discovery.library import Term, drift_feature
 from solver.model import KinematicChain
+from solver.simulate import depth_direction
 
 FloatArray = NDArray[np.float64]
 

@@ -33,6 +33,7 @@ from solver.discovery.library import Term, drift_feature
 from solver.errors import CalibrationError
 from solver.kinematics import ChainParameters, evaluate_chain, pose_residuals
 from solver.model import ComplianceAxis, KinematicChain
+from solver.simulate import depth_direction
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
@@ -236,23 +237,6 @@ def _weighted_sum(comp: FloatArray, pairs: list[tuple[int, float]]) -> FloatArra
     for index, coefficient in pairs:
         out += coefficient * comp[:, index]
     return out
-
-
-def depth_direction(pose: FloatArray, variant: str) -> FloatArray:
-    """Position shift (n, 3), measurement frame, per unit depth scale: ``(zᵀp) z`` for the unit
-    depth axis ``z`` and the positions ``p`` of ``pose`` (n, 4, 4), m.
-
-    ``measurement_z``: the depth along the measurement frame's z (a fixed camera) is scaled.
-    ``marker_z``: the depth along the marker frame's z (a camera on the flange looking at a
-    fixed target, which is then the measurement frame) is scaled.
-    """
-    p, rotation = pose[:, :3, 3], pose[:, :3, :3]
-    if variant == "measurement_z":
-        shift = np.zeros_like(p)
-        shift[:, 2] = p[:, 2]
-        return shift
-    depth = np.einsum("nji,nj->ni", rotation, p)[:, 2]
-    return depth[:, None] * rotation[:, :, 2]
 
 
 # --- fitting -------------------------------------------------------------------------------
