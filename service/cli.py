@@ -7,7 +7,7 @@ import os
 import sys
 import traceback
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, TypeVar
 
 import pandas as pd
 import pydantic
@@ -27,6 +27,8 @@ from solver.executors import Executor
 
 if TYPE_CHECKING:
     from schemas.discovery import FindingsResult
+
+DocumentT = TypeVar("DocumentT", bound=pydantic.BaseModel)
 
 app = typer.Typer(
     add_completion=False,
@@ -89,19 +91,25 @@ def _write_json(path: Path, document: str) -> None:
     tmp.replace(path)
 
 
-def read_result(path: Path) -> CalibrationResult:
-    """Load a result JSON written by ``kincal calibrate``, with a one-line error otherwise."""
+def _read_document(path: Path, model: type[DocumentT], what: str, producer: str) -> DocumentT:
+    """A JSON document of ``model`` from ``path`` (what: "calibration result"; producer: the
+    command that writes it), with a one-line error naming the first bad field otherwise."""
     try:
-        return CalibrationResult.model_validate_json(path.read_bytes())
+        return model.model_validate_json(path.read_bytes())
     except OSError as exc:
-        raise KincalError(f"cannot read result {path}: {exc.strerror}") from exc
+        raise KincalError(f"cannot read {what} {path}: {exc.strerror}") from exc
     except pydantic.ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "document"
         raise KincalError(
-            f"{path} is not a kincal calibration result ({where}: {first['msg']}); "
-            "pass the -o file of 'kincal calibrate'"
+            f"{path} is not a kincal {what} ({where}: {first['msg']}); "
+            f"pass the -o file of 'kincal {producer}'"
         ) from exc
+
+
+def read_result(path: Path) -> CalibrationResult:
+    """Load a result JSON written by ``kincal calibrate``, with a one-line error otherwise."""
+    return _read_document(path, CalibrationResult, "calibration result", "calibrate")
 
 
 def read_noise_covariance(path: Path) -> object:
@@ -121,17 +129,7 @@ def read_findings(path: Path) -> FindingsResult:
     """Load a findings JSON written by ``kincal discover``, with a one-line error otherwise."""
     from schemas.discovery import FindingsResult
 
-    try:
-        return FindingsResult.model_validate_json(path.read_bytes())
-    except OSError as exc:
-        raise KincalError(f"cannot read findings {path}: {exc.strerror}") from exc
-    except pydantic.ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"]) or "document"
-        raise KincalError(
-            f"{path} is not a kincal findings file ({where}: {first['msg']}); "
-            "pass the -o file of 'kincal discover'"
-        ) from exc
+    return _read_document(path, FindingsResult, "findings file", "discover")
 
 
 @app.command()

@@ -10,6 +10,7 @@ The maths is :mod:`solver.discovery.carry`.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 
 import numpy as np
@@ -28,6 +29,17 @@ from solver.errors import KincalError
 from solver.model import KinematicChain
 
 FloatArray = NDArray[np.float64]
+
+_PROBES: weakref.WeakKeyDictionary[KinematicChain, KinematicChain] = weakref.WeakKeyDictionary()
+
+
+def _probe(chain: KinematicChain) -> KinematicChain:
+    """:func:`probe_chain` of ``chain``, built once per chain (0.5 ms, and rankings reuse a
+    cached result's chain on every request)."""
+    probe = _PROBES.get(chain)
+    if probe is None:
+        probe = _PROBES[chain] = probe_chain(chain)
+    return probe
 
 
 def applied_corrections(result: CalibrationResult) -> list[ModelCorrection]:
@@ -73,7 +85,7 @@ def _map_joints(
     q = np.asarray(joint_positions, dtype=float)
     if record is None or not record.applied() or len(q) == 0:
         return q
-    probe = probe_chain(chain)
+    probe = _probe(chain)
     payload = record.payload_kg if payload_kg is None else payload_kg
     gravity = np.asarray(record.gravity_base_m_s2, dtype=float)
     return direction(probe, solver_corrections(result, probe), q, gravity, payload)
