@@ -733,10 +733,12 @@ def compare(
 @dataclasses.dataclass(frozen=True)
 class Ablation:
     """The first recording's candidates re-scored with another covariance model in place of
-    ours; ``comparison`` as in :func:`compare` (its "ours" is this model)."""
+    ours; ``comparison`` as in :func:`compare` (its "ours" is this model) with the paper's W,
+    ``docking`` with the docking task's own score."""
 
     label: str
     comparison: Comparison
+    docking: Comparison
 
 
 def rescored(
@@ -761,7 +763,8 @@ def ablation_models(
     """Covariance models to compare with ours on the first recording's candidates.
 
     The paper's estimator (moment matching solved by PGD, Eq. 14–15) on the same data; the
-    product's estimator on larger recordings of the same true robot; and the true Σ on the
+    product's estimator with rotational perturbations only (``covariance_axes='rotation'``) on
+    the same data and on larger recordings of the same true robot; and the true Σ on the
     calibrated geometry (what a perfect covariance calibration would give). The product's
     estimator told Σ_n is the known-noise variant (:class:`KnownNoise`).
     """
@@ -778,6 +781,12 @@ def ablation_models(
             )
         )
         echo("  ablation: paper estimator")
+    rotation = options.model_copy(update={"covariance_axes": "rotation"})
+    label = "ours, rotational perturbations only (`--covariance-axes rotation`)"
+    models[f"{label}, N = {settings.n_samples}"] = service_ranking.uncertainty_model(
+        pipeline.calibrate(recording.dataset, recording.robot, rotation)
+    )
+    echo("  ablation: rotational perturbations only")
     for n in settings.ablation_samples:
         larger = simulate_study_recording(
             dataclasses.replace(settings, n_samples=n), recording.seed
@@ -1064,16 +1073,22 @@ def run_study(
     if settings.split_covariances:
         sigma_splits = split_covariance_std(first.result, first.recording)
         lap("Fig. 4b covariances per split")
+    docking = task_scoring(recordings, settings, DOCKING_TASK)
+    lap("docking task's own score (re-scoring)")
+    docking_metric = service_ranking.task_metric(DOCKING_TASK)
+    docking_first = [run for run in docking.runs if run.recording == first.recording.seed]
     models = ablation_models(settings, first, echo=echo)
     ablations = tuple(
-        Ablation(label, compare(rescored(first.runs, model, metric), bootstrap=settings.bootstrap))
+        Ablation(
+            label,
+            compare(rescored(first.runs, model, metric), bootstrap=settings.bootstrap),
+            compare(rescored(docking_first, model, docking_metric), bootstrap=settings.bootstrap),
+        )
         for label, model in models.items()
     )
     lap("ablations")
     known_noise = known_noise_variant(recordings, settings, metric)
     lap("known-noise variant (noise experiment, calibration, re-scoring)")
-    docking = task_scoring(recordings, settings, DOCKING_TASK)
-    lap("docking task's own score (re-scoring)")
     runs = [run for study in recordings for run in study.runs]
     return StudyResult(
         settings=settings,
@@ -1457,12 +1472,13 @@ def ablation_markdown(study: StudyResult) -> str:
         "share of oracle",
         "share, random part",
         "mean Pearson r",
+        "docking score: share of oracle",
     ]
-    first = study.per_recording[0]
-    entries = [(f"ours (product default), N = {study.settings.n_samples}", first)]
-    entries += [(a.label, a.comparison) for a in study.ablations]
+    first = study.per_recording[0], study.docking.per_recording[0]
+    entries = [(f"ours (product default), N = {study.settings.n_samples}", *first)]
+    entries += [(a.label, a.comparison, a.docking) for a in study.ablations]
     rows = []
-    for label, c in entries:
+    for label, c, docking in entries:
         s = c.selections["ours"]
         rows.append(
             [
@@ -1471,6 +1487,7 @@ def ablation_markdown(study: StudyResult) -> str:
                 _share(c.share_of_oracle, c.share_ci),
                 _share(c.random_share, c.random_share_ci),
                 f"{s.mean_pearson:.2f}",
+                _share(docking.share_of_oracle, docking.share_ci),
             ]
         )
     return _table(header, rows)

@@ -76,6 +76,13 @@ class CalibrationOptions(_Model):
     covariance_frames: list[str] | None = Field(
         None, description="Joints whose frame carries a random perturbation; None = every joint."
     )
+    covariance_axes: Literal["all", "rotation"] = Field(
+        "all",
+        description="Which axes of a joint frame's perturbation are random: all six, or "
+        "'rotation' only (backlash, friction and bearing play rotate a joint frame; the paper "
+        "found almost only rotational uncertainty in the chain, §V-B). Fewer parameters for the "
+        "same residuals; the measurement noise Σ_n keeps all axes.",
+    )
     noise_std: Vector6 | None = Field(
         None,
         description="Known measurement-noise standard deviations (x,y,z m; rx,ry,rz rad) in the "

@@ -222,6 +222,13 @@ def calibrate(
         str | None,
         typer.Option(help="Comma-separated joints whose frame is perturbed (default: all)."),
     ] = None,
+    covariance_axes: Annotated[
+        str,
+        typer.Option(
+            help="Random axes of a joint frame's perturbation: all (default) or rotation "
+            "(backlash, friction, bearing play; fewer parameters for small recordings)."
+        ),
+    ] = "all",
     noise_std: Annotated[
         str | None,
         typer.Option(
@@ -269,6 +276,7 @@ def calibrate(
         covariance_solver=solver,
         covariance_estimator=estimator,
         covariance_frames=_names(covariance_frames),
+        covariance_axes=covariance_axes,
         noise_std=None if noise_std is None else tuple(numbers(noise_std, "--noise-std", 6)),
         noise_covariance=None
         if noise_covariance is None

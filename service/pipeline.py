@@ -8,7 +8,7 @@ from __future__ import annotations
 import datetime as dt
 import functools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -49,6 +49,7 @@ from solver.calibration import (
     pose_errors,
 )
 from solver.covariance.estimate import CovarianceEstimate, FrameCovariance, estimate_covariances
+from solver.covariance.layout import ROTATION_AXIS_NAMES
 from solver.errors import KincalError
 from solver.evaluation import SplitError, cross_validate
 from solver.executors import Executor, InProcessExecutor, preload_in_workers
@@ -318,6 +319,7 @@ def covariance_stage(
         solver=options.covariance_solver,
         fit_jacobian=fit_jacobian,
         noise_covariance=noise,
+        free_axes=_free_axes(chosen, options),
     )
     return _covariance_result(estimate, index)
 
@@ -336,6 +338,15 @@ def _covariance_frames(
             f"choose among {', '.join(names)}"
         )
     return list(chosen), [names.index(name) for name in chosen]
+
+
+def _free_axes(
+    chosen: Sequence[str], options: CalibrationOptions
+) -> dict[str, tuple[str, ...]] | None:
+    """The random axes of each perturbed joint frame (``covariance_axes``); None = all six."""
+    if options.covariance_axes == "all":
+        return None
+    return {name: ROTATION_AXIS_NAMES for name in chosen}
 
 
 def _known_noise(options: CalibrationOptions) -> FloatArray | None:
@@ -762,6 +773,7 @@ def _streamed_covariance_spec(
         index,
         structure=options.covariance,
         noise_covariance=_known_noise(options),
+        free_axes=_free_axes(chosen, options),
     )
 
 

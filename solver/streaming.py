@@ -62,7 +62,7 @@ import threading
 import time
 import uuid
 from collections import OrderedDict
-from collections.abc import Callable, Generator, Sequence
+from collections.abc import Callable, Generator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -1040,14 +1040,20 @@ def covariance_spec(
     structure: Structure = "diag",
     noise_covariance: FloatArray | None = None,
     noise_name: str = "noise",
+    free_axes: Mapping[str, Sequence[str]] | None = None,
 ) -> CovarianceSpec:
     """The covariance statistics to take of ``problem``: frames ``frame_names`` perturbing
     the chain joints ``frame_index``, the noise frame (or a known noise covariance, 6×6 or
-    d×d), diagonal or full Σ."""
+    d×d), diagonal or full Σ; ``free_axes`` as in :func:`make_layout`."""
     d = problem.residual_dim
     known = known_noise_covariance(noise_covariance, d)
     layout = make_layout(
-        frame_names, d, structure=structure, include_noise=known is None, noise_name=noise_name
+        frame_names,
+        d,
+        structure=structure,
+        include_noise=known is None,
+        noise_name=noise_name,
+        free_axes=free_axes,
     )
     return CovarianceSpec(tuple(int(f) for f in frame_index), layout, known, noise_name)
 

@@ -31,6 +31,8 @@ BoolArray = NDArray[np.bool_]
 
 Structure = Literal["diag", "full"]
 POSE_AXES = ("v_x", "v_y", "v_z", "w_x", "w_y", "w_z")
+ROTATION_AXIS_NAMES = POSE_AXES[3:]
+"""The rotational axes of a frame's twist, for ``free_axes`` of a rotation-only perturbation."""
 TRANSLATION_AXES = (0, 1, 2)
 ROTATION_AXES = (3, 4, 5)
 

@@ -97,6 +97,28 @@ def test_frames_subset_and_none() -> None:
     assert none.covariance is None
 
 
+def test_rotation_only_perturbations_fix_the_translations_of_joint_frames() -> None:
+    """``covariance_axes='rotation'``: every joint frame's translational rows and columns are
+    exactly zero, the noise frame keeps all six axes, and the isotropic translational variance
+    that "all" cannot tell from Σ_n is no longer a null direction."""
+    _, _, dataset = _simulated(200)
+    options = CalibrationOptions(heldout=False, covariance_axes="rotation")
+    result = pipeline.calibrate(dataset, robot("kinova"), options)
+    assert result.covariance is not None and result.options.covariance_axes == "rotation"
+    for frame in result.covariance.frames:
+        matrix = np.array(frame.matrix)
+        assert not matrix[:3].any() and not matrix[:, :3].any()
+    assert any(max(frame.std[3:]) > 0.0 for frame in result.covariance.frames)
+    assert max(result.covariance.noise.std[:3]) > 0.0
+    statements = " ".join(result.covariance.identifiability.null_directions)
+    assert "isotropic translational variance" not in statements
+    everything = pipeline.calibrate(
+        dataset, robot("kinova"), options.model_copy(update={"covariance_axes": "all"})
+    )
+    assert everything.covariance is not None
+    assert any(np.array(f.matrix)[:3, :3].any() for f in everything.covariance.frames)
+
+
 def test_position_only_recording_gets_covariances() -> None:
     _, _, dataset = _simulated(300, position_only=True)
     result = pipeline.calibrate(dataset, robot("kinova"), CalibrationOptions(heldout=False))
@@ -252,6 +274,7 @@ def test_cli_calibrate_with_a_measured_noise_covariance(
         (["--noise-covariance", "{asymmetric}"], "option noise_covariance: Value error, must be"),
         (["--noise-covariance", "{measured}", "--noise-std", "0,0,0,0,0,0"], "not both"),
         (["--covariance-frames", "elbow"], "covariance_frames"),
+        (["--covariance-axes", "twist"], "covariance_axes"),
     ],
 )
 def test_bad_covariance_options_are_one_line_errors(

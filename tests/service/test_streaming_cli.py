@@ -35,7 +35,9 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
+@pytest.mark.parametrize("axes", ["all", "rotation"])
 def test_streamed_calibrate_matches_the_in_memory_pipeline(
+    axes: str,
     recording: Path,
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
@@ -43,13 +45,13 @@ def test_streamed_calibrate_matches_the_in_memory_pipeline(
 ) -> None:
     out = tmp_path / "streamed.json"
     args = ["calibrate", str(recording), "--robot", ROBOT, "--estimator", "moment"]
-    args += ["--solver", "nnls", "--chunk-rows", "400", "-o", str(out)]
+    args += ["--solver", "nnls", "--chunk-rows", "400", "--covariance-axes", axes, "-o", str(out)]
     code, text, err = run(args, capsys, monkeypatch)
     assert code == 0, err
     assert "streamed on inprocess" in text and "held-out splits skipped" in text
     streamed = CalibrationResult.model_validate_json(out.read_text())
     options = CalibrationOptions(
-        covariance_estimator="moment", covariance_solver="nnls", heldout=False
+        covariance_estimator="moment", covariance_solver="nnls", heldout=False, covariance_axes=axes
     )
     c = chain(ROBOT)
     dataset = read_dataset(recording, c.joint_names)
