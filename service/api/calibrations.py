@@ -198,7 +198,7 @@ def create_calibration(
 
 def urdf_absent(state: ServiceState, job: Job) -> str | None:
     """Why a succeeded calibration has no URDF: it corrects the joint readings."""
-    result = CalibrationResult.model_validate_json(state.files.read(job.artifacts["result"]))
+    result = result_of(state, job.tenant_id, job.id)
     return urdf_refusal(result.model_corrections, HTTP_URDF_FIX)
 
 
