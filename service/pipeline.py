@@ -61,21 +61,11 @@ from solver.kinematics import (
     pose_residuals,
 )
 from solver.model import KinematicChain, build_chain, gravity_loads
-from solver.streaming import (
-    STREAMED_ESTIMATOR_NOTE,
-    ChunkArrays,
-    CovarianceSpec,
-    ErrorSums,
-    PassCount,
-    StreamedCalibration,
-    StreamedFit,
-    StreamProblem,
-    StreamSettings,
-    calibrate_streamed_fits,
-    covariance_spec,
-    estimate_covariances_streamed,
-    release,
-)
+from solver.stream.calibrate import StreamedCalibration, StreamSettings, calibrate_streamed_fits
+from solver.stream.chunks import ChunkArrays, StreamProblem, release
+from solver.stream.covariance import STREAMED_ESTIMATOR_NOTE, estimate_covariances_streamed
+from solver.stream.fit import PassCount, StreamedFit
+from solver.stream.sums import CovarianceSpec, ErrorSums, covariance_spec
 
 FloatArray = NDArray[np.float64]
 
@@ -645,7 +635,7 @@ class StreamOptions:
 
 @dataclass(frozen=True)
 class DatasetChunkLoader:
-    """:data:`solver.streaming.ChunkLoader` of a dataset file; picklable, so worker processes
+    """:data:`solver.stream.chunks.ChunkLoader` of a dataset file; picklable, so worker processes
     and Dask workers read and validate their own chunks."""
 
     plan: DatasetChunks
@@ -702,7 +692,7 @@ def calibrate_streamed(
     source: str | None = None,
 ) -> CalibrationResult:
     """:func:`calibrate` for a dataset file read in chunks, each pass mapped over ``executor``
-    (default in-process); see :mod:`solver.streaming` for what differs: warm start and pruning
+    (default in-process); see :mod:`solver.stream` for what differs: warm start and pruning
     on the head rows, moment-matching covariances, no held-out splits (``heldout`` is stored
     as False). ``progress`` is called as the stages "read", "fit", "baseline" and
     "covariance" end; ``timings`` (optional) receives the wall time of each stage in seconds

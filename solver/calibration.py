@@ -6,7 +6,7 @@ and tool offset. Columns that the data cannot identify are removed once, up fron
 column-pivoted QR and reported by name; the same columns stay fixed through the iterations.
 
 Every step reduces to sums over samples, so the same code serves in-memory arrays
-(:func:`fit_deterministic`) and data streamed in chunks (:mod:`solver.streaming`):
+(:func:`fit_deterministic`) and data streamed in chunks (:mod:`solver.stream`):
 
 - the Gauss–Newton step (Eq. 10) is solved from the normal equations :class:`NormalEquations`
   (``JᵀJ``, ``Jᵀr``, ``rᵀr``), which add over chunks; :func:`gauss_newton_iteration` is the one
@@ -14,7 +14,7 @@ Every step reduces to sums over samples, so the same code serves in-memory array
   normal equations — :func:`gauss_newton` feeds it from a callable, the streamed fit from
   passes over the data that several fits share;
 - the pruning (:func:`identifiable_columns`) is a column-pivoted QR of an in-memory stacked
-  Jacobian; the streamed fit runs it on its warm-start rows (see :mod:`solver.streaming`);
+  Jacobian; the streamed fit runs it on its warm-start rows (see :mod:`solver.stream`);
 - the outlier rule (§V-A) is :func:`within_spread` of a per-component :class:`ResidualSpread`,
   which also merges over chunks.
 """

@@ -70,7 +70,7 @@ class Executor(Protocol):
     def __exit__(self, *exc: object) -> None: ...
 
 
-WORKER_MODULES: list[str] = ["solver.streaming"]
+WORKER_MODULES: list[str] = ["solver.stream.fit", "solver.stream.covariance"]
 """Modules each local worker process has imported before its first task (imported once, in
 the fork server): the solver's, and those a layer above adds with :func:`preload_in_workers`
 — e.g. the module of its chunk loaders, which unpickling a pass's arguments would otherwise

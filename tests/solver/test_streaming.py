@@ -23,20 +23,11 @@ from solver.executors import InProcessExecutor, blocks, make_executor
 from solver.gravity import StaticGravityModel, static_gravity_loads
 from solver.kinematics import evaluate_chain, parameter_names
 from solver.simulate import SimulatedRecording, SimulationSpec, look_at, simulate_recording
-from solver.streaming import (
-    ArrayChunks,
-    CovarianceSpec,
-    StreamedCalibration,
-    StreamProblem,
-    StreamSettings,
-    calibrate_streamed_fits,
-    covariance_spec,
-    estimate_covariances_streamed,
-    release,
-    row_ranges,
-    streamed_covariance_sums,
-    streamed_fit_sums,
-)
+from solver.stream.calibrate import StreamedCalibration, StreamSettings, calibrate_streamed_fits
+from solver.stream.chunks import ArrayChunks, StreamProblem, release, row_ranges
+from solver.stream.covariance import estimate_covariances_streamed, streamed_covariance_sums
+from solver.stream.fit import streamed_fit_sums
+from solver.stream.sums import CovarianceSpec, covariance_spec
 from tests.conftest import chain
 
 REL = 1e-10

@@ -1,0 +1,499 @@
+"""Streamed Gauss–Newton (paper Eq. 8–10): one pass per iterate, several fits in lockstep,
+and the in-memory warm start on the head rows.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import itertools
+import operator
+import time
+from collections.abc import Generator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver import lie
+from solver.batch_chain import (
+    column_rows,
+    is_unit_column,
+    joint_motions,
+    pose_residuals,
+    sweep_chain,
+)
+from solver.calibration import (
+    FitOptions,
+    GaussNewtonRun,
+    NormalEquations,
+    ResidualSpread,
+    fit_deterministic,
+    gauss_newton_iteration,
+    parameter_standard_errors,
+    removed_names,
+)
+from solver.executors import Executor
+from solver.gravity import static_gravity_loads
+from solver.kinematics import ChainParameters, parameter_names
+from solver.model import KinematicChain
+from solver.stream.chunks import (
+    Block,
+    ChunkArrays,
+    StreamProblem,
+    gravity_model,
+    keep_residuals,
+    prepared_blocks,
+)
+from solver.stream.screening import OutlierRule, parameters_key, rule_mask, used_mask
+from solver.stream.sums import (
+    CovarianceSpec,
+    ErrorSums,
+    FitSums,
+    covariance_sums,
+    frame_range,
+)
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass(frozen=True, eq=False)
+class _Evaluation:
+    """One point of one fit in a pass: normal equations over the columns ``keep`` at
+    ``params`` of the samples ``rule`` keeps (their dropped rows listed when
+    ``collect_removed``); ``keep_residuals``: remember each block's residuals in this process
+    (the outlier rule is applied to them later without another sweep); ``covariance``: also
+    the Eq. (13–14) statistics at this point."""
+
+    params: ChainParameters
+    keep: IntArray
+    rotation_weight: float
+    rule: OutlierRule | None
+    collect_removed: bool = False
+    keep_residuals: bool = False
+    covariance: CovarianceSpec | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class _FitPass:
+    problem: StreamProblem
+    evaluations: tuple[_Evaluation, ...]
+
+
+def fit_chunk(request: _FitPass, ref: Any) -> tuple[FitSums, ...]:
+    """Eq. (9–10) sums of one chunk at each evaluation's point: FK, Jacobian columns,
+    residuals (and the covariance statistics where asked), block by block."""
+    problem = request.problem
+    blocks = prepared_blocks(problem, ref)
+    out = []
+    for evaluation in request.evaluations:
+        parts = []
+        residuals = []
+        for index, block in enumerate(blocks):
+            used = used_mask(problem, evaluation.rule, ref, index, blocks)
+            part, residual = _evaluate_block(problem, evaluation, block, used)
+            parts.append(part)
+            residuals.append(residual)
+        if evaluation.keep_residuals:
+            keep_residuals(problem, ref, blocks, parameters_key(evaluation.params), residuals)
+        out.append(functools.reduce(operator.add, parts))
+    return tuple(out)
+
+
+@dataclass(frozen=True, eq=False)
+class _ColumnPlan:
+    """Which Jacobian columns one evaluation sweeps, in which order, and what they are.
+
+    ``requested``: the fit's general columns, those with every row first (the link
+    translation columns, without rotation rows, after them), then the columns only the
+    covariance statistics need; the fit's unit columns (the tip link's ``e_m``) are not swept.
+    ``general``/``units``: positions in ``keep`` of the general columns (sweep order) and of
+    the unit columns, with ``unit_rows`` the row of each unit column's 1.
+    """
+
+    requested: list[int]
+    rows: IntArray
+    general: IntArray
+    units: IntArray
+    unit_rows: IntArray
+    position: dict[int, int]
+
+    @classmethod
+    def of(
+        cls, chain: KinematicChain, keep: IntArray, d: int, spec: CovarianceSpec | None
+    ) -> _ColumnPlan:
+        kept = [int(c) for c in keep]
+        units = [i for i, c in enumerate(kept) if is_unit_column(chain, c)]
+        general = [i for i, c in enumerate(kept) if not is_unit_column(chain, c)]
+        general.sort(key=lambda i: -column_rows(chain, kept[i], d))  # stable: full rows first
+        fitted = {kept[i] for i in general}
+        extra = [] if spec is None else [c for c in spec.frame_columns if c not in fitted]
+        requested = [kept[i] for i in general] + extra
+        return cls(
+            requested,
+            np.array([column_rows(chain, c, d) for c in requested], dtype=np.intp),
+            np.array(general, dtype=np.intp),
+            np.array(units, dtype=np.intp),
+            np.array([kept[i] % 6 for i in units], dtype=np.intp),
+            {c: s for s, c in enumerate(requested)},
+        )
+
+
+def _evaluate_block(
+    problem: StreamProblem, evaluation: _Evaluation, block: Block, used: BoolArray | None
+) -> tuple[FitSums, FloatArray]:
+    """:func:`fit_chunk` for one block: the sums, and the unweighted residuals (d, b)."""
+    d = problem.residual_dim
+    spec = evaluation.covariance
+    plan = _ColumnPlan.of(problem.chain, evaluation.keep, d, spec)
+    sweep = sweep_chain(
+        problem.chain,
+        evaluation.params,
+        block.motions,
+        block.loads_nm,
+        residual_dim=d,
+        columns=plan.requested,
+    )
+    assert sweep.columns is not None
+    res = pose_residuals(sweep, block.rotation, block.translation)
+    residual = res.residual
+    columns = sweep.columns
+    translation_mm, rotation = 1e3 * res.translation_error_m, res.rotation_error_rad
+    removed = np.zeros(0, dtype=np.int64)
+    fitted = residual
+    covariance = None
+    if spec is not None:
+        ranges = frame_range(spec, columns, plan.position, used)
+    if used is not None:  # zero the dropped samples: they add nothing to any sum
+        skip = ~used
+        fitted = residual.copy()
+        fitted[:, skip] = 0.0
+        columns[:, :, skip] = 0.0
+        translation_mm = translation_mm[used]
+        rotation = None if rotation is None else rotation[used]
+        if evaluation.collect_removed:
+            removed = block.first_row + np.flatnonzero(skip).astype(np.int64)
+    n_used = block.n if used is None else int(np.count_nonzero(used))
+    if spec is not None:
+        covariance = covariance_sums(
+            spec, columns, plan.rows, plan.position, fitted, used, ranges, n_used
+        )
+    weights = _row_weights(d, evaluation.rotation_weight)
+    design = columns[: plan.general.size]
+    if evaluation.rotation_weight != 1.0 and d == 6:
+        design[:, 3:] *= evaluation.rotation_weight
+        fitted = fitted * weights[:, None]
+    normal = _normal_equations(design, plan, fitted, weights, n_used, evaluation.keep.size)
+    spread = ResidualSpread.of(residual.T if used is None else residual.T[used])
+    errors = ErrorSums.of(translation_mm, None if rotation is None else np.degrees(rotation))
+    return FitSums(normal, spread, errors, removed, covariance), residual
+
+
+def _row_weights(d: int, rotation_weight: float) -> FloatArray:
+    """Weights of the residual rows (d,): rotation rows times the weight (full pose only)."""
+    weights = np.ones(d)
+    weights[3:] = rotation_weight
+    return weights
+
+
+def _normal_equations(
+    design: FloatArray,
+    plan: _ColumnPlan,
+    target: FloatArray,
+    weights: FloatArray,
+    n_used: int,
+    size: int,
+) -> NormalEquations:
+    """Eq. (10) sums ``AᵀA, Aᵀy, yᵀy`` of one block, in ``keep`` order, from the general
+    columns ``design`` (g, d, b) (weighted, rows beyond ``plan.rows`` zero, full ones first),
+    the unit columns ``weights[m] e_m`` of ``plan`` and the weighted residuals (d, b).
+
+    The Gram is taken band by band of rows, each over the columns that can be non-zero there
+    (a link translation column has no rotation rows): for 6-row residuals about half the
+    products of a plain ``AᵀA``; the unit columns' entries are row sums.
+    """
+    g, d, _ = design.shape
+    rows = plan.rows[:g]
+    gram = np.zeros((size, size))
+    general, units = plan.general, plan.units
+    inner = np.zeros((g, g))
+    bounds = sorted({0, *rows.tolist()})
+    for low, high in itertools.pairwise(bounds):
+        active = int(np.count_nonzero(rows >= high))
+        band = design[:active, low:high].reshape(active, -1)
+        inner[:active, :active] += band @ band.T
+    gram[np.ix_(general, general)] = inner
+    flat = design.reshape(g, -1)
+    cross = np.zeros(size)
+    cross[general] = flat @ target.reshape(-1)
+    if units.size:
+        row_sums = design.sum(axis=2)[:, plan.unit_rows]  # (g, u): Σ_n a_g[m]
+        unit_weights = weights[plan.unit_rows]
+        gram[np.ix_(general, units)] = row_sums * unit_weights
+        gram[np.ix_(units, general)] = (row_sums * unit_weights).T
+        gram[units, units] = unit_weights**2 * n_used
+        cross[units] = unit_weights * target[plan.unit_rows].sum(axis=-1)
+    gram = 0.5 * (gram + gram.T)
+    return NormalEquations(gram, cross, float(np.vdot(target, target)), d * n_used)
+
+
+# --- streamed deterministic fit ----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StreamedFit:
+    """A deterministic fit (Eq. 8–10) over a streamed recording; the fields shared with
+    :class:`solver.calibration.DeterministicFit` mean the same. ``sums``: normal equations,
+    residual spread and errors at the solution over the used samples (and the covariance
+    statistics there, when they were asked for and came with a pass); ``passes``: passes over
+    the data that evaluated this fit (shared with the fits run beside it)."""
+
+    params: ChainParameters
+    estimated: list[str]
+    removed: list[str]
+    standard_errors: FloatArray
+    rank: int
+    condition_number: float
+    iterations: int
+    converged: bool
+    cost_history: list[float]
+    sums: FitSums
+    passes: int
+    elapsed_s: float
+
+
+def scaled_condition_number(gram: FloatArray) -> float:
+    """Condition number of the unit-norm-scaled columns from their Gram (p, p)."""
+    norms = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
+    eigenvalues = np.linalg.eigvalsh(gram / np.outer(norms, norms))
+    return float(np.sqrt(eigenvalues[-1] / max(eigenvalues[0], 1e-300)))
+
+
+def _run_pass(
+    problem: StreamProblem, executor: Executor, evaluations: Sequence[_Evaluation]
+) -> list[FitSums]:
+    """One pass over the chunks evaluating every point of ``evaluations``; per evaluation the
+    chunk sums added in chunk order."""
+    per_chunk = executor.map(fit_chunk, _FitPass(problem, tuple(evaluations)), problem.refs)
+    return [
+        functools.reduce(operator.add, [chunk[e] for chunk in per_chunk])
+        for e in range(len(evaluations))
+    ]
+
+
+def streamed_fit_sums(
+    problem: StreamProblem,
+    executor: Executor,
+    params: ChainParameters,
+    keep: IntArray,
+    options: FitOptions,
+    *,
+    rule: OutlierRule | None = None,
+    collect_removed: bool = False,
+) -> FitSums:
+    """One pass: the Eq. (10) normal equations over the columns ``keep`` at ``params`` (and the
+    residual spread and errors), summed over the chunks in order; samples failing ``rule`` are
+    left out (and listed when ``collect_removed``)."""
+    evaluation = _Evaluation(
+        params, keep, options.rotation_weight_m_per_rad, rule, collect_removed=collect_removed
+    )
+    return _run_pass(problem, executor, [evaluation])[0]
+
+
+@dataclass(frozen=True, eq=False)
+class FitRequest:
+    """A streamed Gauss–Newton fit to run: from ``start`` over the columns ``keep``, on the
+    samples ``rule`` keeps; ``keep_residuals``: leave each chunk's residuals at the last point
+    in the workers (the outlier rule of this fit is then applied without another sweep);
+    ``covariance``: take the covariance statistics along in every pass after the first (the
+    final point's are the covariance stage's, without a pass of their own)."""
+
+    start: ChainParameters
+    keep: IntArray
+    options: FitOptions
+    rule: OutlierRule | None = None
+    keep_residuals: bool = False
+    covariance: CovarianceSpec | None = None
+
+
+@dataclass
+class PassCount:
+    """Passes over the data so far (a pass may serve several fits)."""
+
+    passes: int = 0
+
+
+def fit_streamed_together(
+    problem: StreamProblem,
+    executor: Executor,
+    requests: Sequence[FitRequest],
+    count: PassCount | None = None,
+) -> list[StreamedFit]:
+    """Gauss–Newton (Eq. 10, :func:`solver.calibration.gauss_newton_iteration`) for each
+    request, in lockstep: every pass over the data evaluates the next point of every fit
+    still running, so fits that do not depend on each other (the refit and the "before" fit)
+    share their passes. Each fit's iterates are exactly those it would take alone."""
+    count = count if count is not None else PassCount()
+    started = time.perf_counter()
+    chain = problem.chain
+    iterations: list[
+        Generator[ChainParameters, tuple[NormalEquations, FitSums], GaussNewtonRun[FitSums]]
+    ] = [gauss_newton_iteration(chain, r.start, r.keep, r.options) for r in requests]
+    pending: list[ChainParameters | None] = [next(it) for it in iterations]
+    runs: list[GaussNewtonRun[FitSums] | None] = [None] * len(requests)
+    first_sums: list[FitSums | None] = [None] * len(requests)
+    passes = [0] * len(requests)
+    while any(p is not None for p in pending):
+        active = [i for i, p in enumerate(pending) if p is not None]
+        evaluations = []
+        for i in active:
+            request, point = requests[i], pending[i]
+            assert point is not None
+            evaluations.append(
+                _Evaluation(
+                    point,
+                    request.keep,
+                    request.options.rotation_weight_m_per_rad,
+                    request.rule,
+                    collect_removed=request.rule is not None and passes[i] == 0,
+                    keep_residuals=request.keep_residuals,
+                    covariance=request.covariance if passes[i] > 0 else None,
+                )
+            )
+        results = _run_pass(problem, executor, evaluations)
+        count.passes += 1
+        for i, sums in zip(active, results, strict=True):
+            passes[i] += 1
+            if first_sums[i] is None:
+                first_sums[i] = sums
+            try:
+                pending[i] = iterations[i].send((sums.normal, sums))
+            except StopIteration as done:
+                runs[i], pending[i] = done.value, None
+    names = parameter_names(chain)
+    fits = []
+    for request, run, first, n_passes in zip(requests, runs, first_sums, passes, strict=True):
+        assert run is not None and first is not None
+        sums = dataclasses.replace(run.payload, removed_rows=first.removed_rows)
+        fits.append(
+            StreamedFit(
+                params=run.params,
+                estimated=[names[i] for i in request.keep],
+                removed=removed_names(names, request.keep),
+                standard_errors=parameter_standard_errors(run.normal),
+                rank=int(request.keep.size),
+                condition_number=scaled_condition_number(run.normal.gram),
+                iterations=run.iterations,
+                converged=run.converged,
+                cost_history=run.cost_history,
+                sums=sums,
+                passes=n_passes,
+                elapsed_s=time.perf_counter() - started,
+            )
+        )
+    return fits
+
+
+def fit_streamed(
+    problem: StreamProblem,
+    executor: Executor,
+    *,
+    start: ChainParameters,
+    keep: IntArray,
+    options: FitOptions,
+    rule: OutlierRule | None = None,
+) -> StreamedFit:
+    """Gauss–Newton (Eq. 10) over the columns ``keep`` from ``start``, each iterate's normal
+    equations summed over the chunks; samples failing ``rule`` are left out (their rows are
+    collected on the first pass)."""
+    return fit_streamed_together(problem, executor, [FitRequest(start, keep, options, rule)])[0]
+
+
+# --- warm start ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class HeadSample:
+    """The first rows of a recording, in memory, as the in-memory fit takes them."""
+
+    joint_positions: FloatArray
+    measured_pose: FloatArray
+    loads_nm: FloatArray
+
+    def kept_by(self, problem: StreamProblem, rule: OutlierRule) -> HeadSample:
+        """The rows ``rule`` keeps (the same computation as on streamed chunks)."""
+        keep = rule_mask(
+            problem,
+            rule,
+            joint_motions(problem.chain, self.joint_positions),
+            self.loads_nm,
+            None if problem.position_only else self.measured_pose[:, :3, :3].transpose(1, 2, 0),
+            np.ascontiguousarray(self.measured_pose[:, :3, 3].T),
+        )
+        return HeadSample(self.joint_positions[keep], self.measured_pose[keep], self.loads_nm[keep])
+
+
+def read_head(problem: StreamProblem, n_rows: int) -> HeadSample:
+    """The first ``n_rows`` rows (fewer if the recording is shorter), with gravity loads."""
+    chunks: list[ChunkArrays] = []
+    total = 0
+    for ref in problem.refs:
+        if total >= n_rows:
+            break
+        chunk = problem.load(ref)
+        chunks.append(chunk)
+        total += chunk.n_rows
+    q = np.concatenate([c.joint_positions for c in chunks])[:n_rows]
+    position = np.concatenate([c.position_m for c in chunks])[:n_rows]
+    quaternion = (
+        None
+        if problem.position_only
+        else np.concatenate([c.quaternion_xyzw for c in chunks if c.quaternion_xyzw is not None])
+    )
+    payload: FloatArray | float = problem.payload_kg
+    if chunks and chunks[0].payload_kg is not None:
+        payload = np.concatenate([c.payload_kg for c in chunks if c.payload_kg is not None])
+        payload = payload[:n_rows]
+    loads = static_gravity_loads(
+        gravity_model(problem), q, gravity_base=problem.gravity_base_m_s2, payload_kg=payload
+    )
+    pose = lie.pose_matrix(position, None if quaternion is None else quaternion[:n_rows])
+    return HeadSample(q, pose, loads)
+
+
+def warm_start(
+    problem: StreamProblem, head: HeadSample, options: FitOptions
+) -> tuple[ChainParameters, IntArray]:
+    """In-memory fit of the head rows (closed-form alignment, pivoted-QR pruning, Eq. 10):
+    its parameters start the streamed fit and its kept columns are the streamed fit's."""
+    fit = fit_deterministic(
+        problem.chain,
+        head.joint_positions,
+        head.measured_pose,
+        head.loads_nm,
+        position_only=problem.position_only,
+        options=options,
+    )
+    names = parameter_names(problem.chain)
+    keep = np.array([names.index(name) for name in fit.estimated], dtype=np.intp)
+    return fit.params, keep
+
+
+def _warm_start_task(
+    shared: tuple[StreamProblem, HeadSample], options: FitOptions
+) -> tuple[ChainParameters, IntArray]:
+    return warm_start(*shared, options)
+
+
+def warm_starts(
+    problem: StreamProblem,
+    executor: Executor,
+    head: HeadSample,
+    options: Sequence[FitOptions],
+) -> list[tuple[ChainParameters, IntArray]]:
+    """:func:`warm_start` for each of ``options`` on the executor's workers, side by side
+    (the same numbers as one after the other on the driver)."""
+    return executor.map(_warm_start_task, (problem, head), list(options))
