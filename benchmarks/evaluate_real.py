@@ -13,7 +13,7 @@ from pathlib import Path
 import solver  # noqa: F401  (BLAS defaults)
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import PoseDataset, read_dataset
-from service import pipeline
+from service import pipeline, result_json
 from service.plots import residual_histograms
 from service.report import table_ii
 from service.robots import load_robot
@@ -29,7 +29,7 @@ def evaluate(name: str, seeds: int) -> tuple[CalibrationResult, PoseDataset, flo
     robot_name, relative = RECORDINGS[name]
     robot = load_robot(robot_name)
     options = CalibrationOptions(seeds=list(range(1, seeds + 1)))
-    chain = pipeline.chain_for(robot, options)
+    chain = result_json.chain_for(robot, options)
     dataset = read_dataset(
         DATA / relative, chain.joint_names, other_joint_names=chain.other_joint_names
     )
@@ -42,8 +42,8 @@ def figure(result: CalibrationResult, dataset: PoseDataset, name: str, path: Pat
     """Before/after residual histograms of the samples kept after outlier removal."""
     kept = dataset.subset(result.outliers.kept_indices())
     return residual_histograms(
-        pipeline.residuals(result, kept, baseline=True),
-        pipeline.residuals(result, kept),
+        result_json.residuals(result, kept, baseline=True),
+        result_json.residuals(result, kept),
         path,
         title=f"{name}: end-effector-frame residuals, nominal robot vs calibrated "
         f"({kept.n_samples} samples, all used for training)",

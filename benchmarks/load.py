@@ -48,7 +48,7 @@ import numpy as np
 
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import write_dataset
-from service import pipeline, scenarios
+from service import result_json, scenarios
 from service.client import KincalClient
 from service.robots import load_robot
 from service.security import create_api_key
@@ -176,7 +176,7 @@ def prepare(api: KincalClient, folder: Path, samples: int) -> tuple[str, str, li
     calibration = api.start_calibration(dataset["id"], RANKING_CALIBRATION)
     api.wait(calibration["id"], poll_s=0.1)
     result = api.result(calibration["id"])
-    chain, _ = pipeline.result_chain(result)
+    chain, _ = result_json.result_chain(result)
     return dataset["id"], calibration["id"], list(chain.joint_names)
 
 

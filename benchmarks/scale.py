@@ -50,7 +50,7 @@ import pyarrow.parquet as pq
 import solver  # noqa: F401  (BLAS defaults)
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import PoseDataset, dataset_to_frame, write_dataset
-from service import pipeline, scenarios
+from service import pipeline, result_json, scenarios
 from service.robots import load_robot
 from solver import lie
 from solver.executors import make_executor, peak_rss_bytes
@@ -189,15 +189,14 @@ def run_one(
     robot = load_robot(ROBOT)
     options = CalibrationOptions(covariance_estimator="moment", heldout=False)
     stream = pipeline.StreamOptions(chunk_rows=chunk_rows, cache_mb=cache_mb)
-    timings: dict[str, float] = {}
     load_before = os.getloadavg()[0]
     started = time.perf_counter()
     executor = make_executor(backend, n_workers=workers)  # type: ignore[arg-type]
     ready = time.perf_counter()
     try:
-        result = pipeline.calibrate_streamed(
-            path, robot, options, executor, stream, timings=timings
-        )
+        setup = pipeline.check_calibration(robot, options)
+        run = pipeline.calibrate_source(path, setup, executor=executor, stream=stream)
+        result, timings = run.result, run.timings
         total = time.perf_counter() - started
         worker_peaks = executor.run_on_workers(peak_rss_bytes)
         worker_cpu = executor.run_on_workers(time.process_time)
@@ -207,7 +206,7 @@ def run_one(
     unreaped_cpu_s = sum(worker_cpu) if backend == "processes" else 0.0
     stage = {
         "start": ready - started,
-        "read": timings.get("plan", 0.0) + timings.get("read", 0.0),
+        "read": timings.get("open", 0.0) + timings.get("read", 0.0),
         "deterministic": timings.get("warm_start", 0.0) + timings.get("deterministic", 0.0),
         "covariance": timings.get("covariance", 0.0),
     }
@@ -431,7 +430,7 @@ def main(
 
     workers = workers or os.cpu_count() or 1
     out.mkdir(parents=True, exist_ok=True)
-    chain = pipeline.chain_for(load_robot(ROBOT), CalibrationOptions())
+    chain = result_json.chain_for(load_robot(ROBOT), CalibrationOptions())
     runs: list[Run] = []
     for n in sizes:
         path = out / f"kinova_{n}.parquet"

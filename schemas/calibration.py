@@ -12,7 +12,7 @@ import math
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 RESULT_FORMAT: Literal["kincal.calibration/1"] = "kincal.calibration/1"
 
@@ -27,7 +27,12 @@ class _Model(BaseModel):
 
 
 class CalibrationOptions(_Model):
-    """Everything a calibration run can be told (CLI flags and HTTP body share this)."""
+    """Everything a calibration run can be told: the HTTP body, the CLI flags
+    (:data:`service.flags.CALIBRATION_FLAGS`) and a ``--config`` TOML file share this model, so
+    each field is checked here once (and against the robot by
+    :func:`service.pipeline.check_calibration`)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     compliant_joints: list[str] | None = Field(
         None, description="Joints with an elastic axis; None = every revolute joint."
@@ -37,25 +42,44 @@ class CalibrationOptions(_Model):
         description="Joints that get two virtual compliant axes orthogonal to their axis "
         "(flex of the structure carrying them, paper §V-A).",
     )
-    gravity_base_m_s2: Vector3 = (0.0, 0.0, -9.81)
+    gravity_base_m_s2: Vector3 = Field(
+        (0.0, 0.0, -9.81), description="Gravity in the robot's base frame, m/s²."
+    )
     payload_kg: float = Field(0.0, ge=0.0, description="Used when the data has no payload_kg.")
-    payload_com_m: Vector3 = (0.0, 0.0, 0.0)
+    payload_com_m: Vector3 = Field(
+        (0.0, 0.0, 0.0), description="Payload centre of mass in the tip frame, m."
+    )
     rotation_weight_m_per_rad: float = Field(
         1.0, gt=0.0, description="How much 1 rad of rotation residual counts against 1 m."
     )
     outlier_sigma: float | None = Field(
-        2.0, gt=0.0, description="Paper §V-A outlier rule (None disables)."
+        2.0,
+        ge=0.0,
+        description="Paper §V-A outlier rule: drop samples with a residual component beyond "
+        "this many standard deviations (0 or null disables).",
     )
-    max_iterations: int = Field(50, ge=1, le=1000)
-    tolerance: float = Field(1e-10, gt=0.0)
-    rank_tolerance: float = Field(1e-7, gt=0.0, lt=1.0)
+    max_iterations: int = Field(
+        50, ge=1, le=1000, description="Gauss-Newton iterations at most (Eq. 10)."
+    )
+    tolerance: float = Field(
+        1e-10, gt=0.0, lt=1.0, description="Relative cost change at which Gauss-Newton stops."
+    )
+    rank_tolerance: float = Field(
+        1e-7,
+        gt=0.0,
+        lt=1.0,
+        description="A parameter is unidentifiable when its pivoted-QR diagonal, relative to "
+        "the largest, falls below this.",
+    )
     heldout: bool = Field(True, description="Run the 10-split held-out evaluation.")
     seeds: list[Annotated[int, Field(ge=0)]] = Field(
         default_factory=lambda: list(range(1, 11)),
         min_length=1,
         description="Seeds of the held-out splits (non-negative integers, one split each).",
     )
-    train_fraction: float = Field(0.9, gt=0.0, lt=1.0)
+    train_fraction: float = Field(
+        0.9, gt=0.0, lt=1.0, description="Share of the rows each held-out split trains on."
+    )
     covariance: Literal["diag", "full", "none"] = Field(
         "diag",
         description="Structure of the random-effect covariances Σ_n, Σ_1..Σ_k (paper §IV-C); "
@@ -95,6 +119,20 @@ class CalibrationOptions(_Model):
         "static marker (paper §V-B); symmetric positive semidefinite. Not together with "
         "noise_std; None = estimate Σ_n with the rest.",
     )
+
+    @model_validator(mode="after")
+    def _solver_fits_structure(self) -> CalibrationOptions:
+        if self.covariance == "full" and self.covariance_solver == "nnls":
+            raise ValueError(
+                "covariance_solver 'nnls' handles diagonal covariances only; use 'auto' or "
+                "'clarabel' with covariance 'full'"
+            )
+        return self
+
+    @field_validator("outlier_sigma")
+    @classmethod
+    def _zero_disables(cls, value: float | None) -> float | None:
+        return None if value == 0.0 else value
 
     @field_validator("noise_std")
     @classmethod

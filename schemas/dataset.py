@@ -758,7 +758,13 @@ def plan_dataset_chunks(
         raise DatasetError(f"{source}: {problem} ({path}); check the path")
     header: tuple[str, ...] = ()
     if suffix == ".parquet":
-        refs = _parquet_chunks(path, chunk_rows)
+        try:
+            refs = _parquet_chunks(path, chunk_rows)
+        except Exception as exc:  # pyarrow's errors become one line, never a traceback
+            raise DatasetError(
+                f"{source}: cannot read as parquet ({type(exc).__name__}: {_one_line(exc)}); "
+                "check that the file is a valid parquet file"
+            ) from exc
     elif suffix == ".csv":
         header, refs = _csv_chunks(path, source, chunk_rows)
     else:

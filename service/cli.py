@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -13,14 +14,12 @@ import pandas as pd
 import pydantic
 import typer
 
-from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.calibration import CalibrationResult
 from schemas.dataset import read_configurations, read_dataset, write_dataset
-from service import pipeline, scenarios
-from service.flags import numbers
+from service import pipeline, result_json, scenarios
+from service.flags import CALIBRATION_FLAGS, calibration_options, numbers, option_help, read_config
 from service.report import summary
 from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
-from service.urdf_export import export_urdf
-from service.urdf_export import refusal as urdf_refusal
 from solver import lie
 from solver.errors import KincalError
 from solver.executors import Executor
@@ -48,9 +47,9 @@ OutputOpt = Annotated[Path, typer.Option("-o", "--output", help="Output file.")]
 ExecutorOpt = Annotated[
     str | None,
     typer.Option(
-        help="Stream the recording in chunks; run each pass inprocess, on local processes (all "
-        "cores) or on dask. Any of --executor/--dask/--chunk-rows streams (no held-out splits; "
-        "covariances by moment matching)."
+        help="Where the passes over the data run: inprocess, processes (local, one per core) "
+        "or dask. Default: local processes for a file of more than one chunk on a machine with "
+        "several cores, else in this process. The numbers do not depend on it."
     ),
 ]
 DaskOpt = Annotated[
@@ -182,70 +181,71 @@ def calibrate(
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
     tip: TipOpt = None,
-    compliant_joints: Annotated[
-        str | None, typer.Option(help="Comma-separated elastic joints (default: all revolute).")
+    config: Annotated[
+        Path | None,
+        typer.Option(
+            help="TOML file of calibration options (the option names in [brackets] below as "
+            "keys); flags given as well override it."
+        ),
     ] = None,
-    rigid: Annotated[bool, typer.Option(help="No joint compliance at all.")] = False,
+    compliant_joints: Annotated[
+        str | None, typer.Option(help=option_help("compliant_joints", "; comma-separated"))
+    ] = None,
+    rigid: Annotated[
+        bool, typer.Option(help="No joint compliance at all (compliant_joints = []).")
+    ] = False,
     virtual_axes: Annotated[
-        str | None, typer.Option(help="Joints that get two virtual flex axes (paper §V-A).")
+        str | None, typer.Option(help=option_help("virtual_axes_at", "; comma-separated"))
+    ] = None,
+    gravity: Annotated[str | None, typer.Option(help=option_help("gravity_base_m_s2"))] = None,
+    payload_kg: Annotated[float | None, typer.Option(help=option_help("payload_kg"))] = None,
+    payload_com: Annotated[str | None, typer.Option(help=option_help("payload_com_m"))] = None,
+    rotation_weight: Annotated[
+        float | None, typer.Option(help=option_help("rotation_weight_m_per_rad"))
     ] = None,
     outlier_sigma: Annotated[
-        float, typer.Option(min=0.0, help="Paper §V-A rule; 0 disables.")
-    ] = 2.0,
-    rotation_weight: Annotated[
-        float, typer.Option(min=0.0, help="Weight of 1 rad against 1 m in the fit.")
-    ] = 1.0,
-    gravity: Annotated[str, typer.Option(help="Gravity in the base frame, m/s².")] = "0,0,-9.81",
-    payload_kg: Annotated[float, typer.Option(min=0.0, help="Payload if not in the data.")] = 0.0,
-    payload_com: Annotated[str, typer.Option(help="Payload centre in the tip frame, m.")] = "0,0,0",
+        float | None, typer.Option(help=option_help("outlier_sigma", "; 0 disables"))
+    ] = None,
+    max_iterations: Annotated[int | None, typer.Option(help=option_help("max_iterations"))] = None,
+    tolerance: Annotated[float | None, typer.Option(help=option_help("tolerance"))] = None,
+    rank_tolerance: Annotated[
+        float | None, typer.Option(help=option_help("rank_tolerance"))
+    ] = None,
+    heldout: Annotated[
+        bool | None, typer.Option("--heldout/--no-heldout", help=option_help("heldout"))
+    ] = None,
+    seeds: Annotated[
+        str | None, typer.Option(help=option_help("seeds", "; comma-separated"))
+    ] = None,
+    train_fraction: Annotated[
+        float | None, typer.Option(help=option_help("train_fraction"))
+    ] = None,
+    covariance: Annotated[str | None, typer.Option(help=option_help("covariance"))] = None,
+    solver: Annotated[str | None, typer.Option(help=option_help("covariance_solver"))] = None,
+    estimator: Annotated[str | None, typer.Option(help=option_help("covariance_estimator"))] = None,
+    covariance_frames: Annotated[
+        str | None, typer.Option(help=option_help("covariance_frames", "; comma-separated"))
+    ] = None,
+    covariance_axes: Annotated[
+        str | None, typer.Option(help=option_help("covariance_axes"))
+    ] = None,
+    noise_std: Annotated[
+        str | None, typer.Option(help=option_help("noise_std", "; x,y,z,rx,ry,rz"))
+    ] = None,
+    noise_covariance: Annotated[
+        Path | None,
+        typer.Option(help=option_help("noise_covariance", "; a JSON file holding the 6×6 array")),
+    ] = None,
     marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
-    heldout: Annotated[bool, typer.Option(help="Run the 10-split held-out evaluation.")] = True,
-    max_iterations: Annotated[int, typer.Option(min=1)] = 50,
     executor: ExecutorOpt = None,
     dask: DaskOpt = None,
     chunk_rows: ChunkRowsOpt = None,
     workers: WorkersOpt = None,
-    covariance: Annotated[
-        str, typer.Option(help="Random-effect covariances: diag, full or none (§IV-C).")
-    ] = "diag",
-    solver: Annotated[
-        str,
-        typer.Option(
-            help="Covariance solver: auto (nnls for diag, clarabel for full), clarabel, "
-            "pgd (paper Eq. 15) or nnls."
-        ),
-    ] = "auto",
-    estimator: Annotated[
-        str, typer.Option(help="Covariance estimator: reml (default), ml or moment (paper).")
-    ] = "reml",
-    covariance_frames: Annotated[
-        str | None,
-        typer.Option(help="Comma-separated joints whose frame is perturbed (default: all)."),
-    ] = None,
-    covariance_axes: Annotated[
-        str,
-        typer.Option(
-            help="Random axes of a joint frame's perturbation: all (default) or rotation "
-            "(backlash, friction, bearing play; fewer parameters for small recordings)."
-        ),
-    ] = "all",
-    noise_std: Annotated[
-        str | None,
-        typer.Option(
-            help="Known measurement-noise std x,y,z (m),rx,ry,rz (rad) in the EE frame; "
-            "default: estimated."
-        ),
-    ] = None,
-    noise_covariance: Annotated[
-        Path | None,
-        typer.Option(
-            help="JSON file with the known measurement-noise covariance: a 6×6 array, [v; w] "
-            "in the EE frame, m², m·rad, rad² (e.g. measured on repeated detections of a "
-            "static marker); instead of --noise-std. Default: estimated."
-        ),
-    ] = None,
     export_urdf_to: Annotated[
         Path | None, typer.Option("--export-urdf", help="Also write the calibrated URDF.")
+    ] = None,
+    report: Annotated[
+        Path | None, typer.Option(help="Also write the HTML report (figures embedded).")
     ] = None,
     model: Annotated[
         Path | None,
@@ -258,93 +258,98 @@ def calibrate(
             "--virtual-axes, --gravity, --payload-kg and --payload-com.",
         ),
     ] = None,
+    show_options: Annotated[
+        bool,
+        typer.Option(
+            help="Print the options the calibration would run with (config file, flags and "
+            "--model merged, checked against the robot) as JSON, and stop."
+        ),
+    ] = False,
 ) -> None:
     """Calibrate geometry, joint compliance (paper Eq. 8–10) and the covariances of the random
     perturbations (Eq. 13–17) from recorded poses."""
     description = _robot(robot, urdf, base, tip)
-    options = _options(
-        compliant_joints=[] if rigid else _names(compliant_joints),
-        virtual_axes_at=_names(virtual_axes) or [],
-        gravity_base_m_s2=_vector3(gravity, "--gravity"),
-        payload_kg=payload_kg,
-        payload_com_m=_vector3(payload_com, "--payload-com"),
-        outlier_sigma=outlier_sigma or None,
-        rotation_weight_m_per_rad=rotation_weight,
-        heldout=heldout,
-        max_iterations=max_iterations,
-        covariance=covariance,
-        covariance_solver=solver,
-        covariance_estimator=estimator,
-        covariance_frames=_names(covariance_frames),
-        covariance_axes=covariance_axes,
-        noise_std=None if noise_std is None else tuple(numbers(noise_std, "--noise-std", 6)),
-        noise_covariance=None
-        if noise_covariance is None
-        else read_noise_covariance(noise_covariance),
+    if rigid and compliant_joints is not None:
+        raise KincalError("give --rigid or --compliant-joints, not both")
+    options = calibration_options(
+        None if config is None else read_config(config),
+        {
+            "compliant_joints": [] if rigid else _names(compliant_joints),
+            "virtual_axes_at": _names(virtual_axes),
+            "gravity_base_m_s2": None if gravity is None else _vector3(gravity, "--gravity"),
+            "payload_kg": payload_kg,
+            "payload_com_m": None
+            if payload_com is None
+            else _vector3(payload_com, "--payload-com"),
+            "rotation_weight_m_per_rad": rotation_weight,
+            "outlier_sigma": outlier_sigma,
+            "max_iterations": max_iterations,
+            "tolerance": tolerance,
+            "rank_tolerance": rank_tolerance,
+            "heldout": heldout,
+            "seeds": None if seeds is None else _integers(seeds, "--seeds"),
+            "train_fraction": train_fraction,
+            "covariance": covariance,
+            "covariance_solver": solver,
+            "covariance_estimator": estimator,
+            "covariance_frames": _names(covariance_frames),
+            "covariance_axes": covariance_axes,
+            "noise_std": None if noise_std is None else numbers(noise_std, "--noise-std", 6),
+            "noise_covariance": None
+            if noise_covariance is None
+            else read_noise_covariance(noise_covariance),
+        },
     )
-    carried = None
+    findings = None
     if model is not None:
         from service import discovery
 
-        flags = {
-            "compliant_joints": "--rigid" if rigid else "--compliant-joints",
-            "virtual_axes_at": "--virtual-axes",
-            "gravity_base_m_s2": "--gravity",
-            "payload_kg": "--payload-kg",
-            "payload_com_m": "--payload-com",
-        }
-        given = [flags[name] for name in discovery.model_options_set(options)]
+        given = [
+            "--rigid" if rigid and name == "compliant_joints" else CALIBRATION_FLAGS[name]
+            for name in discovery.model_options_set(options)
+        ]
         if given:
             raise KincalError(
                 f"--model sets the model; do not also pass {', '.join(given)} "
                 "(run kincal discover with them instead)"
             )
         findings = read_findings(model)
-        first = pipeline.chain_for(description, CalibrationOptions(compliant_joints=[]))
-        dataset = read_dataset(
-            data, first.joint_names, other_joint_names=first.other_joint_names, marker=marker
-        )
-        carried = discovery.carry_model(findings, dataset, description)
-        refused = urdf_refusal(carried.record) if export_urdf_to is not None else None
-        if refused is not None:
-            raise KincalError(refused)
-        options = discovery.carried_options(options, carried)
-    if executor is not None or dask is not None or chunk_rows is not None:
-        streaming = None if carried is None else discovery.streamed_refusal(carried.corrections)
-        if streaming is not None:
-            raise KincalError(f"--model {streaming}; drop --executor/--dask/--chunk-rows")
-        _calibrate_streamed(
-            data, output, description, options, executor, dask, chunk_rows, workers, marker
-        )
-        if export_urdf_to is not None:
-            export_urdf_to.parent.mkdir(parents=True, exist_ok=True)
-            export_urdf_to.write_text(export_urdf(read_result(output)), encoding="utf-8")
+    setup = pipeline.check_calibration(description, options, findings)
+    if show_options:
+        typer.echo(setup.options.model_dump_json(indent=1))
         return
-    if carried is None:
-        chain = pipeline.chain_for(description, options)
-        dataset = read_dataset(
-            data, chain.joint_names, other_joint_names=chain.other_joint_names, marker=marker
-        )
-        result = pipeline.calibrate(dataset, description, options)
-    else:
-        for note in carried.notes:
-            typer.echo(f"--model: {note}")
-        result = discovery.calibrate_carried(carried, description, options)
-    _write_json(output, result.model_dump_json(indent=1))
+    stream = pipeline.StreamOptions()
+    if chunk_rows is not None:
+        stream = pipeline.StreamOptions(chunk_rows=chunk_rows)
+    chosen = _executor(executor, dask, workers)
+    with chosen or contextlib.nullcontext():
+        run = pipeline.calibrate_source(data, setup, executor=chosen, stream=stream, marker=marker)
+    for note in run.notes:
+        typer.echo(f"--model: {note}")
+    _write_json(output, run.result.model_dump_json(indent=1))
+    if report is not None:
+        _write_text(report, run.report_html())
     if export_urdf_to is not None:
-        export_urdf_to.parent.mkdir(parents=True, exist_ok=True)
-        export_urdf_to.write_text(export_urdf(result), encoding="utf-8")
-    typer.echo(summary(result))
-    typer.echo(f"\nresult written to {output}")
+        _write_text(export_urdf_to, run.urdf())
+    typer.echo(summary(run.result))
+    passes = int(run.timings.get("passes", 0))
+    typer.echo(
+        f"\nran on {run.execution} in {sum(v for k, v in run.timings.items() if k != 'passes'):.2f}"
+        f" s ({passes} passes over the data)"
+    )
+    typer.echo(f"result written to {output}")
 
 
-def _options(**values: object) -> CalibrationOptions:
-    try:
-        return CalibrationOptions(**values)  # type: ignore[arg-type]
-    except pydantic.ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"]) or "options"
-        raise KincalError(f"option {where}: {first['msg']}") from exc
+def _integers(text: str, option: str) -> list[int]:
+    values = numbers(text, option)
+    if not all(v == int(v) for v in values):
+        raise KincalError(f"{option} takes comma-separated integers, got {text!r}")
+    return [int(v) for v in values]
+
+
+def _write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")
 
 
 def _prediction_note(result: CalibrationResult) -> None:
@@ -376,11 +381,13 @@ def predict(
     EE frame, [v; w], m and rad; Eq. 12)."""
     result = read_result(result_path)
     _prediction_note(result)
-    chain, _ = pipeline.result_chain(result)
+    chain, _ = result_json.result_chain(result)
     configurations = read_configurations(
         configs, chain.joint_names, other_joint_names=chain.other_joint_names
     )
-    pose = pipeline.predict_poses(result, configurations.joint_positions, configurations.payload_kg)
+    pose = result_json.predict_poses(
+        result, configurations.joint_positions, configurations.payload_kg
+    )
     frame = pd.DataFrame(pose[:, :3, 3], columns=["x", "y", "z"])
     frame[["qx", "qy", "qz", "qw"]] = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
     if result.covariance is not None:
@@ -596,50 +603,22 @@ def keys_revoke(key_id: Annotated[str, typer.Argument(help="The key id (kc_<id>_
 # --- streaming and fleets (issue 7) ------------------------------------------------------
 
 
-def _executor(kind: str | None, dask: str | None, workers: int | None) -> Executor:
-    """The executor asked for: ``--dask ADDRESS`` (or KINCAL_DASK_ADDRESS with ``dask``)
-    reaches a running cluster; ``dask`` alone starts a local one."""
+def _executor(kind: str | None, dask: str | None, workers: int | None) -> Executor | None:
+    """The executor asked for (None: the calibration chooses): ``--dask ADDRESS`` (or
+    KINCAL_DASK_ADDRESS with ``--executor dask``) reaches a running cluster; ``dask`` alone
+    starts a local one; ``--workers`` alone means local processes."""
     from service.settings import Settings
     from solver.executors import EXECUTOR_KINDS, make_executor
 
-    name = "dask" if dask is not None and kind is None else kind or "inprocess"
+    if kind is None and dask is None and workers is None:
+        return None
+    name = "dask" if dask is not None and kind is None else kind or "processes"
     if name not in EXECUTOR_KINDS:
         raise KincalError(f"--executor {name!r}: choose one of {', '.join(EXECUTOR_KINDS)}")
     if dask is not None and name != "dask":
         raise KincalError(f"--dask needs --executor dask (got --executor {name})")
     address = dask or (Settings().dask_address if name == "dask" else None)
     return make_executor(name, n_workers=workers, dask_address=address)  # type: ignore[arg-type]
-
-
-def _calibrate_streamed(
-    data: Path,
-    output: Path,
-    description: RobotDescription,
-    options: CalibrationOptions,
-    kind: str | None,
-    dask: str | None,
-    chunk_rows: int | None,
-    workers: int | None,
-    marker: int | None,
-) -> None:
-    stream = pipeline.StreamOptions()
-    if chunk_rows is not None:
-        stream = pipeline.StreamOptions(chunk_rows=chunk_rows)
-    timings: dict[str, float] = {}
-    with _executor(kind, dask, workers) as executor:
-        where = f"{executor.name} ({executor.n_workers} worker(s))"
-        result = pipeline.calibrate_streamed(
-            data, description, options, executor, stream, marker=marker, timings=timings
-        )
-    _write_json(output, result.model_dump_json(indent=1))
-    typer.echo(summary(result))
-    if options.heldout:
-        typer.echo("\nstreamed: held-out splits skipped (pass --no-heldout to silence this)")
-    passes = int(timings.pop("passes", 0))
-    stages = ", ".join(f"{name} {seconds:.2f} s" for name, seconds in timings.items())
-    stages += f"; {passes} passes over the data"
-    typer.echo(f"streamed on {where}: {stages}")
-    typer.echo(f"\nresult written to {output}")
 
 
 @app.command()
@@ -652,18 +631,25 @@ def fleet(
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
     tip: TipOpt = None,
-    compliant_joints: Annotated[
-        str | None, typer.Option(help="Comma-separated elastic joints (default: all revolute).")
+    config: Annotated[
+        Path | None,
+        typer.Option(help="TOML file of calibration options, as for kincal calibrate."),
     ] = None,
-    rigid: Annotated[bool, typer.Option(help="No joint compliance at all.")] = False,
-    outlier_sigma: Annotated[
-        float, typer.Option(min=0.0, help="Paper §V-A rule; 0 disables.")
-    ] = 2.0,
-    covariance: Annotated[str, typer.Option(help="diag, full or none (§IV-C).")] = "diag",
-    estimator: Annotated[str, typer.Option(help="Covariance estimator: reml, ml, moment.")] = (
-        "reml"
-    ),
-    heldout: Annotated[bool, typer.Option(help="Held-out splits per robot (slow).")] = False,
+    compliant_joints: Annotated[
+        str | None, typer.Option(help=option_help("compliant_joints", "; comma-separated"))
+    ] = None,
+    rigid: Annotated[
+        bool, typer.Option(help="No joint compliance at all (compliant_joints = []).")
+    ] = False,
+    outlier_sigma: Annotated[float | None, typer.Option(help=option_help("outlier_sigma"))] = None,
+    covariance: Annotated[str | None, typer.Option(help=option_help("covariance"))] = None,
+    estimator: Annotated[str | None, typer.Option(help=option_help("covariance_estimator"))] = None,
+    heldout: Annotated[
+        bool | None,
+        typer.Option(
+            "--heldout/--no-heldout", help="Held-out splits per robot (slower; off for fleets)."
+        ),
+    ] = None,
     z_threshold: Annotated[
         float, typer.Option(min=0.0, help="Robust z-score beyond which a robot is an outlier.")
     ] = 3.5,
@@ -684,17 +670,24 @@ def fleet(
     from service import fleet as fleet_mode
 
     description = _robot(robot, urdf, base, tip)
-    options = _options(
-        compliant_joints=[] if rigid else _names(compliant_joints),
-        outlier_sigma=outlier_sigma or None,
-        heldout=heldout,
-        covariance=covariance,
-        covariance_estimator=estimator,
+    if rigid and compliant_joints is not None:
+        raise KincalError("give --rigid or --compliant-joints, not both")
+    options = calibration_options(
+        None if config is None else read_config(config),
+        {
+            "compliant_joints": [] if rigid else _names(compliant_joints),
+            "outlier_sigma": outlier_sigma,
+            "heldout": heldout,
+            "covariance": covariance,
+            "covariance_estimator": estimator,
+        },
+        defaults={"heldout": False},
     )
     datasets = fleet_mode.fleet_datasets(directory)
-    with _executor(executor, dask, workers) as runner:
+    chosen = _executor(executor, dask, workers)
+    with chosen or contextlib.nullcontext():
         report, outcomes = fleet_mode.calibrate_fleet(
-            datasets, description, options, runner, marker=marker, z_threshold=z_threshold
+            datasets, description, options, chosen, marker=marker, z_threshold=z_threshold
         )
     _write_json(output, report.to_json())
     if results_dir is not None:

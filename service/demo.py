@@ -28,7 +28,7 @@ import uvicorn
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import PoseDataset, read_dataset, write_dataset
 from schemas.ranking import RankingResult
-from service import pipeline, scenarios
+from service import result_json, scenarios
 from service.api.app import create_app
 from service.client import KincalClient
 from service.plots import residual_histograms
@@ -174,7 +174,7 @@ def run_demo(output_dir: Path, *, echo: Callable[[str], None] = print) -> dict[s
     (output_dir / "ranking.json").write_text(ranking.model_dump_json(indent=1), encoding="utf-8")
     frame = pd.DataFrame(candidates, columns=ranking.joint_names)  # `kincal rank` reads this
     frame.to_csv(output_dir / "candidates.csv", index=False, float_format="%.17g")
-    chain = pipeline.chain_for(robot, options)
+    chain = result_json.chain_for(robot, options)
     dataset_read = read_dataset(data_path, chain.joint_names)
     _residual_figure(result, dataset_read, output_dir / "residuals.png")
 
@@ -200,7 +200,7 @@ def _rank_candidates(
     api: KincalClient, calibration_id: str, result: CalibrationResult
 ) -> tuple[RankingResult, list[list[float]]]:
     """Rank random configurations within the joint limits over HTTP."""
-    chain, _ = pipeline.result_chain(result)
+    chain, _ = result_json.result_chain(result)
     q = sample_configurations(chain, N_CANDIDATES, np.random.default_rng(2), range_fraction=0.8)
     candidates = q.tolist()
     return api.rank(calibration_id, candidates), candidates
@@ -210,8 +210,8 @@ def _residual_figure(result: CalibrationResult, dataset: PoseDataset, path: Path
     """Paper Fig. 4a for the samples kept after outlier removal (the report embeds it too)."""
     kept = dataset.subset(result.outliers.kept_indices())
     residual_histograms(
-        pipeline.residuals(result, kept, baseline=True),
-        pipeline.residuals(result, kept),
+        result_json.residuals(result, kept, baseline=True),
+        result_json.residuals(result, kept),
         path,
         title=f"Simulated Jaco2: end-effector-frame residuals of the {kept.n_samples} samples "
         f"kept after outlier removal, nominal robot vs calibrated",
@@ -239,7 +239,7 @@ def _compare_with_truth(
         shown = f"{entry.value_rad_per_nm: .2e}" if entry.estimated else "  (not identifiable)"
         echo(f"  {entry.axis:<28} {shown}   true {true_value: .2e}")
     clean = np.setdiff1d(np.arange(n_samples), recording.outliers)
-    predicted = pipeline.predict_poses(result, recording.joint_positions[clean])
+    predicted = result_json.predict_poses(result, recording.joint_positions[clean])
     error_mm, error_deg = pose_errors(
         predicted, recording.true_mean_pose[clean], position_only=False
     )

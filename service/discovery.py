@@ -19,7 +19,6 @@ from matplotlib.figure import Figure
 
 from schemas.calibration import (
     CalibrationOptions,
-    CalibrationResult,
     DatasetInfo,
     ModelCorrection,
     ModelCorrections,
@@ -45,8 +44,7 @@ from schemas.discovery import (
     Step,
     Unexplained,
 )
-from service import pipeline
-from service.pipeline import kincal_version
+from service.result_json import kincal_version
 from service.robots import RobotDescription
 from solver import discovery as solver_discovery
 from solver import lie
@@ -200,19 +198,14 @@ def solver_data(dataset: PoseDataset, options: DiscoveryOptions) -> solver_disco
 class CarriedModel:
     """What ``kincal calibrate --model findings.json`` calibrates.
 
-    ``options`` carry the discovered compliance, flex axes, gravity and payload (the
-    calibration estimates those afresh); ``dataset`` is the recording with the other named
-    terms undone at their discovered values (:mod:`solver.discovery.carry`); ``notes`` say
-    what was carried and how, one line each; ``record`` goes into the result JSON
-    (``model_corrections``) so that predict and rank apply the corrections too.
+    ``dataset`` is the recording with the discovered named terms undone at their discovered
+    values (:mod:`solver.discovery.carry`; the compliance, flex axes, gravity and payload go
+    into the options instead, :func:`carried_options`); ``notes`` say what was carried and
+    how, one line each; ``record`` goes into the result JSON (``model_corrections``) so that
+    predict and rank apply the corrections too.
     """
 
     dataset: PoseDataset
-    compliant_joints: list[str]
-    virtual_axes_at: list[str]
-    gravity_base_m_s2: tuple[float, float, float]
-    payload_kg: float
-    payload_com_m: tuple[float, float, float]
     corrections: list[str]
     notes: list[str]
     record: ModelCorrections
@@ -303,11 +296,6 @@ def carry_model(
         )
     return CarriedModel(
         dataset=out,
-        compliant_joints=list(model.calibrate_compliant_joints),
-        virtual_axes_at=list(model.calibrate_virtual_axes_at),
-        gravity_base_m_s2=model.calibrate_gravity_base_m_s2,
-        payload_kg=model.calibrate_payload_kg,
-        payload_com_m=findings.options.payload_com_m,
         corrections=[describe(term, names) for term in corrected.applied],
         notes=notes,
         record=record,
@@ -331,47 +319,37 @@ def model_options_set(options: CalibrationOptions) -> list[str]:
     return [name for name in MODEL_OPTIONS if getattr(options, name) != getattr(default, name)]
 
 
-def carried_options(options: CalibrationOptions, carried: CarriedModel) -> CalibrationOptions:
-    """``options`` with the carried model's compliance, flex axes, gravity and payload: the
+def model_options(findings: FindingsResult) -> dict[str, object]:
+    """The :data:`MODEL_OPTIONS` a discovery's model sets: its compliant joints and flex axes,
+    gravity and payload (calibrated afresh by the calibration that carries it)."""
+    model = findings.model
+    return {
+        "compliant_joints": list(model.calibrate_compliant_joints),
+        "virtual_axes_at": list(model.calibrate_virtual_axes_at),
+        "gravity_base_m_s2": model.calibrate_gravity_base_m_s2,
+        "payload_kg": model.calibrate_payload_kg,
+        "payload_com_m": findings.options.payload_com_m,
+    }
+
+
+def carried_options(options: CalibrationOptions, findings: FindingsResult) -> CalibrationOptions:
+    """``options`` with the discovered model's compliance, flex axes, gravity and payload: the
     one merge of ``calibrate --model`` and of the service's calibrations with a discovery.
     :class:`ModelError` naming the :data:`MODEL_OPTIONS` set as well."""
     given = model_options_set(options)
     if given:
         raise ModelError(
-            f"the discovered model sets {', '.join(given)}; leave them at their defaults "
+            f"{', '.join(given)}: the discovered model sets them; leave them at their defaults "
             "(discover with them instead)"
         )
-    values = {name: getattr(carried, name) for name in MODEL_OPTIONS}
     try:
-        return CalibrationOptions.model_validate({**options.model_dump(), **values})
+        return CalibrationOptions.model_validate(
+            {**options.model_dump(), **model_options(findings)}
+        )
     except pydantic.ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
         raise ModelError(f"the discovered model gives an invalid {where}: {first['msg']}") from exc
-
-
-def streamed_refusal(corrections: list[str]) -> str | None:
-    """Why a streamed calibration cannot carry a model undoing ``corrections`` (named terms,
-    :attr:`CarriedModel.corrections`) on the recording, or None when there are none."""
-    if not corrections:
-        return None
-    return (
-        f"undoes {', '.join(corrections)} on the recording, which the streamed calibration cannot"
-    )
-
-
-def calibrate_carried(
-    carried: CarriedModel,
-    robot: RobotDescription,
-    options: CalibrationOptions,
-    progress: pipeline.Progress | None = None,
-) -> CalibrationResult:
-    """Calibrate the carried recording with ``options`` (:func:`carried_options`); the result
-    records the carried corrections (``model_corrections``) so that predict and rank apply
-    them. The CLI's ``calibrate --model`` and the service's calibration jobs call this."""
-    extra = () if progress is None else (progress,)
-    result = pipeline.calibrate(carried.dataset, robot, options, *extra)
-    return result.model_copy(update={"model_corrections": carried.record})
 
 
 def _model_correction(

@@ -1,9 +1,16 @@
-"""Parsing of comma-separated CLI flags, shared by every command."""
+"""Parsing of CLI flags shared by the commands, and the calibration options as flags and as a
+TOML configuration file."""
 
 from __future__ import annotations
 
 import math
+import tomllib
+from pathlib import Path
+from typing import Any
 
+import pydantic
+
+from schemas.calibration import CalibrationOptions
 from solver.errors import KincalError
 
 
@@ -19,3 +26,87 @@ def numbers(text: str, option: str, count: int | None = None) -> list[float]:
     if not all(math.isfinite(v) for v in values):
         raise KincalError(f"{option} must be finite numbers, got {text!r}")
     return values
+
+
+# --- the calibration options as CLI flags and a TOML file -------------------------------------
+
+CALIBRATION_FLAGS: dict[str, str] = {
+    "compliant_joints": "--compliant-joints",
+    "virtual_axes_at": "--virtual-axes",
+    "gravity_base_m_s2": "--gravity",
+    "payload_kg": "--payload-kg",
+    "payload_com_m": "--payload-com",
+    "rotation_weight_m_per_rad": "--rotation-weight",
+    "outlier_sigma": "--outlier-sigma",
+    "max_iterations": "--max-iterations",
+    "tolerance": "--tolerance",
+    "rank_tolerance": "--rank-tolerance",
+    "heldout": "--heldout",
+    "seeds": "--seeds",
+    "train_fraction": "--train-fraction",
+    "covariance": "--covariance",
+    "covariance_solver": "--solver",
+    "covariance_estimator": "--estimator",
+    "covariance_frames": "--covariance-frames",
+    "covariance_axes": "--covariance-axes",
+    "noise_std": "--noise-std",
+    "noise_covariance": "--noise-covariance",
+}
+"""The ``kincal calibrate`` flag of every field of :class:`CalibrationOptions` (the HTTP body
+and a ``--config`` TOML file use the field names themselves); a test keeps this table, the
+model and the command's flags in step."""
+
+
+def option_help(field: str, extra: str = "") -> str:
+    """A calibrate flag's help: the option's description and its default, from the model."""
+    info = CalibrationOptions.model_fields[field]
+    default = info.get_default(call_default_factory=True)
+    if isinstance(default, (tuple, list)):
+        shown = ",".join(str(v) for v in default) if default else "none"
+    else:
+        shown = "none" if default is None else str(default)
+    text = (info.description or field).rstrip(".")
+    return f"{text}{extra} [{field}; default {shown}]"
+
+
+def read_config(path: Path) -> dict[str, Any]:
+    """The calibration options of a TOML file: the fields of :class:`CalibrationOptions` as
+    top-level keys (a ``[calibration]`` table is accepted too); a one-line error otherwise."""
+    try:
+        document = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise KincalError(f"cannot read config {path}: {exc.strerror}") from exc
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise KincalError(f"{path} is not TOML ({exc}); --config takes a TOML file") from exc
+    table = document.get("calibration", document)
+    if not isinstance(table, dict):
+        raise KincalError(f"{path}: [calibration] must be a table of options")
+    unknown = [key for key in table if key not in CALIBRATION_FLAGS]
+    if unknown:
+        raise KincalError(
+            f"{path}: unknown option(s) {', '.join(unknown)}; the options are "
+            f"{', '.join(CALIBRATION_FLAGS)}"
+        )
+    return dict(table)
+
+
+def calibration_options(
+    config: dict[str, Any] | None,
+    flags: dict[str, Any],
+    defaults: dict[str, Any] | None = None,
+) -> CalibrationOptions:
+    """The options of a config file (or none) overridden by the flags given (``None`` values
+    are flags not given), on top of a command's own ``defaults`` where it differs from the
+    model's; a one-line error naming the option and its flag otherwise."""
+    values = {**(defaults or {}), **(config or {})}
+    values.update({name: value for name, value in flags.items() if value is not None})
+    try:
+        return CalibrationOptions.model_validate(values)
+    except pydantic.ValidationError as exc:
+        first = exc.errors()[0]
+        loc = [str(p) for p in first["loc"]]
+        name = loc[0] if loc else ""
+        where = ".".join(loc) or "options"
+        flag = CALIBRATION_FLAGS.get(name)
+        hint = f" ({flag})" if flag else ""
+        raise KincalError(f"option {where}{hint}: {first['msg']}") from exc

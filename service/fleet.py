@@ -1,7 +1,7 @@
 """Fleet mode: calibrate one dataset per robot serial in parallel and compare the robots.
 
-Each robot is calibrated by :func:`service.pipeline.calibrate` (the in-memory pipeline; a
-robot's recording fits in memory, the fleet need not), robots spread over an executor
+Each robot is calibrated by :func:`service.pipeline.calibrate_source` (in the worker that
+takes it: the fleet is parallel over robots, not within one), robots spread over an executor
 (:mod:`solver.executors`: in-process, local processes, Dask). The summary compares what is
 comparable between robots of one model:
 
@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from schemas.dataset import SUFFIXES, read_dataset
+from schemas.dataset import SUFFIXES
 from service import pipeline
 from service.robots import RobotDescription
 from solver.errors import KincalError
@@ -70,17 +70,16 @@ class RobotOutcome:
 
 
 def calibrate_one(job: FleetJob, item: tuple[str, str]) -> RobotOutcome:
-    """Read and calibrate one robot's dataset (runs in a worker)."""
+    """Calibrate one robot's dataset (runs in a worker; its passes in that worker)."""
     serial, path = item
-    chain = pipeline.chain_for(job.robot, job.options)
     try:
-        dataset = read_dataset(
-            path, chain.joint_names, other_joint_names=chain.other_joint_names, marker=job.marker
+        setup = pipeline.check_calibration(job.robot, job.options)
+        run = pipeline.calibrate_source(
+            path, setup, executor=InProcessExecutor(), marker=job.marker
         )
-        result = pipeline.calibrate(dataset, job.robot, job.options)
     except KincalError as exc:
         return RobotOutcome(serial, path, None, str(exc))
-    return RobotOutcome(serial, path, result)
+    return RobotOutcome(serial, path, run.result)
 
 
 def fleet_datasets(directory: str | Path) -> dict[str, str]:
@@ -294,7 +293,9 @@ def calibrate_fleet(
     marker: int | None = None,
     z_threshold: float = DEFAULT_Z_THRESHOLD,
 ) -> tuple[FleetReport, list[RobotOutcome]]:
-    """Calibrate every robot (serial → dataset path) on ``executor`` and summarise the fleet."""
+    """Calibrate every robot (serial → dataset path) on ``executor`` and summarise the fleet;
+    the options are checked against the robot before any robot starts."""
+    pipeline.check_calibration(robot, options)
     items = sorted(datasets.items())
     outcomes = (executor or InProcessExecutor()).map(
         calibrate_one, FleetJob(robot, options, marker), items

@@ -1,87 +1,57 @@
-"""The calibration pipeline: validated dataset -> solver -> result schema.
+"""The one calibration entry point: ``kincal calibrate``, the HTTP calibration jobs, ``kincal
+fleet``, the demo and the benchmarks all calibrate through :func:`calibrate_source`.
 
-The CLI and the HTTP service both call these functions; nothing is computed anywhere else.
+:func:`check_calibration` validates every option against the robot (and a carried discovery)
+before any data is read — the HTTP service calls it when it accepts a calibration, so every
+option error is a 422 before the 202. :func:`calibrate_source` then reads the recording (or
+plans its chunks), carries a discovery's model, chooses where the passes over the data run from
+the recording's size and the machine's cores, and runs
+:func:`solver.stream.calibrate.calibrate_recording`: the same stages for 100 poses in memory
+and for 10⁶ poses streamed from a Parquet file on several processes, so the path never changes
+the numbers beyond rounding. The result JSON is assembled by :mod:`service.result_json`.
 """
 
 from __future__ import annotations
 
-import datetime as dt
-import functools
+import multiprocessing
+import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
-from schemas.calibration import (
-    BaselineFit,
-    CalibrationOptions,
-    CalibrationResult,
-    ComplianceCalibration,
-    CovarianceFrame,
-    CovarianceIdentifiability,
-    CovarianceResult,
-    DatasetInfo,
-    ErrorStats,
-    Evaluation,
-    FitPhase,
-    FitStatistics,
-    HeldoutSplit,
-    Identifiability,
-    LinkCalibration,
-    OutlierReport,
-    RobotInfo,
-    SolverReport,
-    Transform,
-)
-from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_chunks
-from service import corrections
+from schemas.calibration import CalibrationOptions, CalibrationResult, ModelCorrections
+from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_chunks, read_dataset
+from schemas.discovery import FindingsResult
+from service import discovery
+from service.result_json import ResidualSample, assemble_result, chain_for, sample_residuals
 from service.robots import RobotDescription
-from solver import lie
-from solver.calibration import (
-    DeterministicFit,
-    FitOptions,
-    fit_deterministic,
-    outlier_mask,
-    pose_errors,
-)
-from solver.covariance.estimate import CovarianceEstimate, FrameCovariance, estimate_covariances
+from service.urdf_export import export_urdf
+from service.urdf_export import refusal as urdf_refusal
+from solver.calibration import FitOptions
 from solver.covariance.layout import ROTATION_AXIS_NAMES
-from solver.errors import KincalError
-from solver.evaluation import SplitError, cross_validate
-from solver.executors import Executor, InProcessExecutor, preload_in_workers
-from solver.kinematics import (
-    ChainParameters,
-    evaluate_chain,
-    forward_kinematics,
-    parameter_names,
-    pose_residuals,
+from solver.errors import KincalError, ModelError
+from solver.executors import Executor, InProcessExecutor, ProcessExecutor, preload_in_workers
+from solver.model import KinematicChain
+from solver.stream.calibrate import (
+    CovarianceSettings,
+    HeldoutSettings,
+    StreamSettings,
+    calibrate_recording,
 )
-from solver.model import KinematicChain, build_chain, gravity_loads
-from solver.stream.calibrate import StreamedCalibration, StreamSettings, calibrate_streamed_fits
-from solver.stream.chunks import ChunkArrays, StreamProblem, release
-from solver.stream.covariance import STREAMED_ESTIMATOR_NOTE, estimate_covariances_streamed
-from solver.stream.fit import PassCount, StreamedFit
-from solver.stream.sums import CovarianceSpec, ErrorSums, covariance_spec
+from solver.stream.chunks import ArrayChunks, ChunkArrays, StreamProblem, release, row_ranges
+from solver.stream.sums import covariance_spec
 
-FloatArray = NDArray[np.float64]
-
-# Streamed passes send DatasetChunkLoader to local worker processes: import this module once,
-# in their fork server, rather than in every worker on its first chunk.
+# Passes on local worker processes send DatasetChunkLoader: import this module once, in their
+# fork server, rather than in every worker on its first chunk.
 preload_in_workers(__name__)
 
-BEFORE = "before"
-CALIBRATED = "calibrated"
-
-FitLike = DeterministicFit | StreamedFit
-"""A deterministic fit, in memory or streamed: what the result JSON is assembled from."""
-
 Progress = Callable[[str, int, int], None]
-"""``progress(stage, done, total)``, called after each solver run of a stage ("fit", "baseline",
-"heldout"); the HTTP job runner turns it into job progress."""
+"""``progress(stage, done, total)`` as the stages end: "read", "fit", "baseline",
+"covariance" and each held-out split ("heldout"); the HTTP job runner turns it into job
+progress."""
 
 
 def _no_progress(stage: str, done: int, total: int) -> None:
@@ -89,51 +59,66 @@ def _no_progress(stage: str, done: int, total: int) -> None:
 
 
 @dataclass(frozen=True)
-class PreparedData:
-    """A dataset turned into solver arrays for one chain."""
+class StreamOptions:
+    """How a recording is cut and held: ``chunk_rows`` rows per task (Parquet: whole row
+    groups up to this); ``block_rows`` samples per vectorised block inside a task;
+    ``warm_start_rows`` head rows fitted in memory for the start and the pruning;
+    ``cache_mb`` prepared chunks each worker process keeps between passes (0: re-read each
+    pass; memory then does not grow with N)."""
 
+    chunk_rows: int = 65_536
+    block_rows: int = 8192
+    warm_start_rows: int = 10_000
+    cache_mb: float = 512.0
+
+
+# --- checking a calibration before it runs ------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CalibrationSetup:
+    """A calibration checked before any data is read: the robot, its chain (built once), the
+    options (with a carried discovery's compliance, flex axes, gravity and payload), the
+    joints whose frames carry random perturbations, and the findings carried (if any)."""
+
+    robot: RobotDescription
     chain: KinematicChain
-    joint_positions: FloatArray
-    measured_pose: FloatArray
-    loads_nm: FloatArray
-    position_only: bool
+    options: CalibrationOptions
+    covariance_frames: tuple[str, ...]
+    covariance_index: tuple[int, ...]
+    findings: FindingsResult | None = None
 
 
-@functools.cache  # reading package metadata costs milliseconds; rankings stamp every answer
-def kincal_version() -> str:
-    try:
-        return metadata.version("kincal")
-    except metadata.PackageNotFoundError:
-        return "0+unknown"
-
-
-def chain_for(robot: RobotDescription, options: CalibrationOptions) -> KinematicChain:
-    return build_chain(
-        robot.urdf_xml,
-        robot.base_frame,
-        robot.tip_frame,
-        compliant_joints=options.compliant_joints,
-        virtual_axes_at=options.virtual_axes_at,
-        payload_com_m=options.payload_com_m,
-    )
-
-
-def prepare(
-    chain: KinematicChain, dataset: PoseDataset, options: CalibrationOptions
-) -> PreparedData:
-    payload = dataset.payload_kg if dataset.payload_kg is not None else options.payload_kg
-    loads = gravity_loads(
+def check_calibration(
+    robot: RobotDescription,
+    options: CalibrationOptions,
+    findings: FindingsResult | None = None,
+) -> CalibrationSetup:
+    """Every check of ``options`` that needs the robot (the schema checks the rest):
+    :class:`~solver.errors.ModelError` / :class:`~solver.errors.KincalError` naming the
+    option and the fix. With ``findings`` (``calibrate --model``, an HTTP ``discovery_id``) the
+    discovery must be of this robot's joints and the options it sets must be left at their
+    defaults."""
+    if findings is not None:
+        discovery.findings_chain(findings, robot)
+        options = discovery.carried_options(options, findings)
+    chain = chain_for(robot, options)
+    names = list(chain.joint_names)
+    chosen = options.covariance_frames if options.covariance_frames is not None else names
+    unknown = [name for name in chosen if name not in names]
+    if unknown or len(set(chosen)) != len(chosen):
+        raise ModelError(
+            f"covariance_frames: {unknown or 'duplicates'} "
+            f"{'are not joints of the chain' if unknown else 'given twice'}; "
+            f"choose among {', '.join(names)}"
+        )
+    return CalibrationSetup(
+        robot,
         chain,
-        dataset.joint_positions,
-        gravity_base=np.asarray(options.gravity_base_m_s2),
-        payload_kg=payload,
-    )
-    return PreparedData(
-        chain=chain,
-        joint_positions=dataset.joint_positions,
-        measured_pose=lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw),
-        loads_nm=loads,
-        position_only=dataset.is_position_only,
+        options,
+        tuple(chosen),
+        tuple(names.index(name) for name in chosen),
+        findings,
     )
 
 
@@ -151,492 +136,13 @@ def fit_options(
     )
 
 
-def _fit(data: PreparedData, rows: NDArray[np.intp], options: FitOptions) -> DeterministicFit:
-    return fit_deterministic(
-        data.chain,
-        data.joint_positions[rows],
-        data.measured_pose[rows],
-        data.loads_nm[rows],
-        position_only=data.position_only,
-        options=options,
-    )
-
-
-def calibrate(
-    dataset: PoseDataset,
-    robot: RobotDescription,
-    options: CalibrationOptions,
-    progress: Progress = _no_progress,
-) -> CalibrationResult:
-    """Deterministic calibration (Eq. 8–10) with outlier removal (§V-A) and held-out scores."""
-    chain = chain_for(robot, options)
-    data = prepare(chain, dataset, options)
-    everything = np.arange(dataset.n_samples)
-    full = fit_options(options)
-    first = _fit(data, everything, full)
-    progress("fit", 1, 1)
-    used = everything
-    if options.outlier_sigma is not None:
-        used = everything[outlier_mask(first.residuals, options.outlier_sigma)]
-    fit = first if used.size == everything.size else _fit(data, used, full)
-    baseline = _fit(data, used, fit_options(options, baseline=True, n_links=chain.n_links))
-    progress("baseline", 1, 1)
-    covariance = covariance_stage(data, used, fit, options)
-    progress("covariance", 1, 1)
-    splits = heldout_splits(data, used, options, progress) if options.heldout else []
-    return _assemble_result(
-        dataset=DatasetInfo(
-            source=dataset.source, n_samples=dataset.n_samples, position_only=data.position_only
-        ),
-        robot=robot,
-        chain=chain,
-        options=options,
-        fit=fit,
-        baseline_params=baseline.params,
-        train_before=_stats(data, used, baseline.params),
-        train_after=_stats(data, used, fit.params),
-        splits=splits,
-        covariance=covariance,
-        outliers=OutlierReport(
-            sigma=options.outlier_sigma,
-            n_input=dataset.n_samples,
-            n_used=int(used.size),
-            removed_rows=[int(i) + 1 for i in np.setdiff1d(everything, used)],
-        ),
-    )
-
-
-def _assemble_result(
-    *,
-    dataset: DatasetInfo,
-    robot: RobotDescription,
-    chain: KinematicChain,
-    options: CalibrationOptions,
-    fit: FitLike,
-    baseline_params: ChainParameters,
-    train_before: ErrorStats,
-    train_after: ErrorStats,
-    splits: list[SplitError],
-    covariance: CovarianceResult | None,
-    outliers: OutlierReport,
-) -> CalibrationResult:
-    """The result JSON of a calibration, in memory or streamed."""
-    return CalibrationResult(
-        kincal_version=kincal_version(),
-        created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        dataset=dataset,
-        robot=RobotInfo(
-            name=robot.name,
-            base_frame=robot.base_frame,
-            tip_frame=robot.tip_frame,
-            joint_names=list(chain.joint_names),
-            urdf_sha256=chain.urdf_sha256,
-            urdf=robot.urdf_xml,
-        ),
-        options=options,
-        measurement_frame=_transform(
-            fit.params.links[0] @ lie.inverse(chain.nominal_links[0]), *_link_stderr(fit, chain, 0)
-        ),
-        tool=_transform(
-            lie.inverse(chain.nominal_links[-1]) @ fit.params.links[-1],
-            *_link_stderr(fit, chain, chain.n_links - 1),
-        ),
-        baseline=BaselineFit(
-            measurement_frame=_transform(
-                baseline_params.links[0] @ lie.inverse(chain.nominal_links[0])
-            ),
-            tool=_transform(lie.inverse(chain.nominal_links[-1]) @ baseline_params.links[-1]),
-        ),
-        links=_links(chain, fit),
-        compliance=_compliance(chain, fit),
-        identifiability=Identifiability(
-            n_parameters=len(parameter_names(chain)),
-            rank=fit.rank,
-            condition_number=fit.condition_number,
-            removed=fit.removed,
-        ),
-        fit=FitStatistics(
-            before=FitPhase(
-                train=train_before,
-                heldout=_heldout_stats(splits, BEFORE, dataset.position_only),
-            ),
-            after=FitPhase(
-                train=train_after,
-                heldout=_heldout_stats(splits, CALIBRATED, dataset.position_only),
-            ),
-        ),
-        covariance=covariance,
-        evaluation=_evaluation(splits, options) if splits else None,
-        outliers=outliers,
-        solver=SolverReport(
-            name="gauss_newton",
-            status="optimal" if fit.converged else "iteration_limit",
-            iterations=fit.iterations,
-            time_s=fit.elapsed_s,
-            objective=fit.cost_history[-1],
-        ),
-    )
-
-
-def covariance_stage(
-    data: PreparedData, used: NDArray[np.intp], fit: DeterministicFit, options: CalibrationOptions
-) -> CovarianceResult | None:
-    """Covariances of the random perturbations (paper §IV-C) from the calibrated fit's residuals.
-
-    Residuals are end-effector-frame (``fit.residuals``, outliers removed); the perturbation of
-    joint j enters through its frame Jacobian ``J_j = Ad_{B_j}^-1`` at the calibrated geometry
-    (Eq. 12); REML gets the deterministic fit's Jacobian with the rotation weighting undone so
-    its column space is in residual units.
-    """
-    if options.covariance == "none":
-        return None
-    chain = data.chain
-    chosen, index = _covariance_frames(chain, options)
-    rows = 3 if data.position_only else 6
-    evaluation = evaluate_chain(chain, fit.params, data.joint_positions[used], data.loads_nm[used])
-    frame_jacobians = evaluation.link_jacobians[:, index, :rows, :]
-    unweight = np.ones(rows)
-    if not data.position_only:
-        unweight[3:] = 1.0 / options.rotation_weight_m_per_rad
-    fit_jacobian = fit.jacobian * unweight[None, :, None]
-    noise = _known_noise(options)
-    estimate = estimate_covariances(
-        fit.residuals,
-        frame_jacobians,
-        chosen,
-        structure=options.covariance,
-        estimator=options.covariance_estimator,
-        solver=options.covariance_solver,
-        fit_jacobian=fit_jacobian,
-        noise_covariance=noise,
-        free_axes=_free_axes(chosen, options),
-    )
-    return _covariance_result(estimate, index)
-
-
-def _covariance_frames(
-    chain: KinematicChain, options: CalibrationOptions
-) -> tuple[list[str], list[int]]:
-    """Joints whose frame carries a perturbation (names, chain indices), checked."""
-    names = list(chain.joint_names)
-    chosen = options.covariance_frames if options.covariance_frames is not None else names
-    unknown = [name for name in chosen if name not in names]
-    if unknown or len(set(chosen)) != len(chosen):
-        raise KincalError(
-            f"covariance_frames: {unknown or 'duplicates'} "
-            f"{'are not joints of the chain' if unknown else 'given twice'}; "
-            f"choose among {', '.join(names)}"
-        )
-    return list(chosen), [names.index(name) for name in chosen]
-
-
-def _free_axes(
-    chosen: Sequence[str], options: CalibrationOptions
-) -> dict[str, tuple[str, ...]] | None:
-    """The random axes of each perturbed joint frame (``covariance_axes``); None = all six."""
-    if options.covariance_axes == "all":
-        return None
-    return {name: ROTATION_AXIS_NAMES for name in chosen}
-
-
-def _known_noise(options: CalibrationOptions) -> FloatArray | None:
-    """The known measurement-noise covariance (6, 6) from ``noise_covariance`` or
-    ``noise_std`` (validated exclusive by the schema), or None."""
-    if options.noise_covariance is not None:
-        return np.array(options.noise_covariance, dtype=float)
-    if options.noise_std is None:
-        return None
-    return np.diag(np.square(np.asarray(options.noise_std, dtype=float)))
-
-
-def heldout_splits(
-    data: PreparedData,
-    used: NDArray[np.intp],
-    options: CalibrationOptions,
-    progress: Progress = _no_progress,
-) -> list[SplitError]:
-    """DESIGN.md §4: nominal robot (frame + tool fitted) vs calibrated, on identical splits."""
-    n_links = data.chain.n_links
-    total, done = 2 * len(options.seeds), [0]
-
-    def method(baseline: bool) -> Callable[[NDArray[np.intp], NDArray[np.intp]], FloatArray]:
-        settings = fit_options(options, baseline=baseline, n_links=n_links)
-
-        def predict_test(train: NDArray[np.intp], test: NDArray[np.intp]) -> FloatArray:
-            params = _fit(data, used[train], settings).params
-            done[0] += 1
-            progress("heldout", done[0], total)
-            rows = used[test]
-            return forward_kinematics(
-                data.chain, params, data.joint_positions[rows], data.loads_nm[rows]
-            )
-
-        return predict_test
-
-    return cross_validate(
-        data.measured_pose[used],
-        {BEFORE: method(True), CALIBRATED: method(False)},
-        position_only=data.position_only,
-        seeds=options.seeds,
-        train_fraction=options.train_fraction,
-    )
-
-
-def result_chain(
-    result: CalibrationResult, *, baseline: bool = False
-) -> tuple[KinematicChain, ChainParameters]:
-    """Rebuild the calibrated chain from a result JSON (it embeds the URDF).
-
-    ``baseline=True`` gives the "before" model: nominal robot, fitted measurement frame and tool.
-    """
-    chain = build_chain(
-        result.robot.urdf,
-        result.robot.base_frame,
-        result.robot.tip_frame,
-        compliant_joints=result.options.compliant_joints,
-        virtual_axes_at=result.options.virtual_axes_at,
-        payload_com_m=result.options.payload_com_m,
-    )
-    if baseline:
-        links = chain.nominal_links.copy()
-        links[0] = np.array(result.baseline.measurement_frame.matrix) @ links[0]
-        links[-1] = links[-1] @ np.array(result.baseline.tool.matrix)
-        return chain, ChainParameters(links, np.zeros(len(chain.compliance_axes)))
-    links = np.array([link.placement for link in result.links], dtype=float)
-    compliance = np.array([c.value_rad_per_nm for c in result.compliance], dtype=float)
-    return chain, ChainParameters(links, compliance)
-
-
-def residuals(
-    result: CalibrationResult, dataset: PoseDataset, *, baseline: bool = False
-) -> FloatArray:
-    """End-effector-frame residuals (N, 6 or 3) of a dataset under the calibrated (or "before")
-    model, in m and rad."""
-    chain, params = result_chain(result, baseline=baseline)
-    data = prepare(chain, dataset, result.options)
-    predicted = forward_kinematics(chain, params, data.joint_positions, data.loads_nm)
-    return pose_residuals(predicted, data.measured_pose, position_only=data.position_only)
-
-
-def predict_poses(
-    result: CalibrationResult, joint_positions: FloatArray, payload_kg: FloatArray | None = None
-) -> FloatArray:
-    """Calibrated mean pose (N, 4, 4) of the marker in the measurement frame for joint
-    readings (N, k) rad (corrected by the result's carried joint corrections first)."""
-    chain, params = result_chain(result)
-    q = corrections.true_configurations(result, chain, joint_positions, payload_kg)
-    payload = payload_kg if payload_kg is not None else result.options.payload_kg
-    loads = gravity_loads(
-        chain,
-        q,
-        gravity_base=np.asarray(result.options.gravity_base_m_s2),
-        payload_kg=payload,
-    )
-    return forward_kinematics(chain, params, q, loads)
-
-
-# --- result assembly -------------------------------------------------------------------------
-
-
-def _transform(
-    matrix: FloatArray,
-    stderr_translation: tuple[float | None, ...] | None = None,
-    stderr_rotation: tuple[float | None, ...] | None = None,
-) -> Transform:
-    def complete(values: tuple[float | None, ...] | None) -> tuple[float, float, float] | None:
-        if values is None or any(v is None for v in values):
-            return None
-        return (float(values[0]), float(values[1]), float(values[2]))  # type: ignore[arg-type]
-
-    return Transform(
-        matrix=matrix.tolist(),
-        xyz_m=tuple(matrix[:3, 3].tolist()),
-        quaternion_xyzw=tuple(lie.matrix_to_quaternion_xyzw(matrix[:3, :3]).tolist()),
-        stderr_translation_m=complete(stderr_translation),
-        stderr_rotation_rad=complete(stderr_rotation),
-    )
-
-
-def _link_stderr(
-    fit: FitLike, chain: KinematicChain, link: int
-) -> tuple[tuple[float | None, ...], tuple[float | None, ...]]:
-    """Standard errors of link ``link``'s local twist components (None where not estimated)."""
-    lookup = dict(zip(fit.estimated, fit.standard_errors.tolist(), strict=True))
-    name = chain.link_names[link]
-    values = [lookup.get(f"{name}.{c}") for c in ("tx", "ty", "tz", "rx", "ry", "rz")]
-    return tuple(values[:3]), tuple(values[3:])
-
-
-def _links(chain: KinematicChain, fit: FitLike) -> list[LinkCalibration]:
-    out = []
-    for i, name in enumerate(chain.link_names):
-        correction = lie.se3_log(lie.inverse(chain.nominal_links[i]) @ fit.params.links[i])
-        inner = 0 < i < chain.n_links - 1
-        stderr_t, stderr_r = _link_stderr(fit, chain, i)
-        out.append(
-            LinkCalibration(
-                link=name,
-                placement=fit.params.links[i].tolist(),
-                correction_translation_m=tuple(correction[:3].tolist()) if inner else None,
-                correction_rotation_rad=tuple(correction[3:].tolist()) if inner else None,
-                stderr_translation_m=stderr_t,  # type: ignore[arg-type]
-                stderr_rotation_rad=stderr_r,  # type: ignore[arg-type]
-            )
-        )
-    return out
-
-
-def _compliance(chain: KinematicChain, fit: FitLike) -> list[ComplianceCalibration]:
-    lookup = dict(zip(fit.estimated, fit.standard_errors.tolist(), strict=True))
-    out = []
-    for a, axis in enumerate(chain.compliance_axes):
-        stderr = lookup.get(f"compliance.{axis.name}")
-        out.append(
-            ComplianceCalibration(
-                axis=axis.name,
-                joint=chain.joint_names[axis.joint_index],
-                kind="joint" if axis.is_joint_axis else "virtual",
-                axis_vector=tuple(axis.axis.tolist()),
-                value_rad_per_nm=float(fit.params.compliance_rad_per_nm[a]),
-                stderr_rad_per_nm=stderr,
-                estimated=stderr is not None,
-                significant=stderr is not None
-                and abs(float(fit.params.compliance_rad_per_nm[a])) > 2.0 * stderr,
-            )
-        )
-    return out
-
-
-def _covariance_result(estimate: CovarianceEstimate, joint_index: list[int]) -> CovarianceResult:
-    solution, moment = estimate.solution, estimate.moment_solution
-    extra_time = moment.wall_time_s if solution is not moment else 0.0
-    report = estimate.identifiability
-    fixed = [
-        f"{label}: no effect on the data, fixed at 0"
-        for label, silent in zip(report.labels, report.silent, strict=True)
-        if silent
-    ]
-    if report.statements:
-        fixed.append(f"rule for the unidentifiable combinations: {report.rule}")
-    assert estimate.noise is not None  # estimated, or the known one (fixed)
-    return CovarianceResult(
-        structure=estimate.structure,
-        estimator=estimate.estimator,
-        n_samples=estimate.n_samples,
-        confidence=estimate.uncertainty.confidence if estimate.uncertainty else 0.95,
-        stderr_method=estimate.uncertainty.method if estimate.uncertainty else None,
-        solver=SolverReport(
-            name=f"{estimate.solver}+{estimate.estimator}",
-            status=solution.status,
-            iterations=moment.iterations + (solution.iterations if solution is not moment else 0),
-            time_s=solution.wall_time_s + extra_time,
-            objective=solution.objective,
-        ),
-        noise=_covariance_frame(estimate.noise, None),
-        frames=[
-            _covariance_frame(frame, j)
-            for frame, j in zip(estimate.frames, joint_index, strict=True)
-        ],
-        identifiability=CovarianceIdentifiability(
-            rank=report.rank,
-            n_parameters=report.n_params,
-            condition_number=report.condition_number,
-            null_directions=list(report.statements)
-            + [f"weakly identified: {s}" for s in report.weak_statements],
-            fixed=fixed,
-            warnings=list(estimate.warnings),
-        ),
-    )
-
-
-def _covariance_frame(frame: FrameCovariance, joint_index: int | None) -> CovarianceFrame:
-    def optional(values: FloatArray) -> tuple[float | None, ...]:
-        return tuple(float(v) if np.isfinite(v) else None for v in values)
-
-    return CovarianceFrame(
-        name=frame.name,
-        joint_index=joint_index,
-        matrix=frame.covariance.tolist(),
-        std=tuple(float(v) for v in frame.std),  # type: ignore[arg-type]
-        std_stderr=optional(frame.std_se),
-        std_ci_low=optional(frame.std_ci_low),
-        std_ci_high=optional(frame.std_ci_high),
-        identifiable=tuple(bool(v) for v in frame.identifiable),
-    )
-
-
-def _stats(data: PreparedData, rows: NDArray[np.intp], params: ChainParameters) -> ErrorStats:
-    predicted = forward_kinematics(
-        data.chain, params, data.joint_positions[rows], data.loads_nm[rows]
-    )
-    translation, rotation = pose_errors(
-        predicted, data.measured_pose[rows], position_only=data.position_only
-    )
-    return _error_stats(translation, rotation)
-
-
-def _error_stats(translation_mm: FloatArray, rotation_deg: FloatArray | None) -> ErrorStats:
-    return ErrorStats(
-        n_samples=int(translation_mm.size),
-        translation_mean_mm=float(translation_mm.mean()),
-        translation_rms_mm=float(np.sqrt(np.mean(translation_mm**2))),
-        rotation_mean_deg=None if rotation_deg is None else float(rotation_deg.mean()),
-        rotation_rms_deg=None if rotation_deg is None else float(np.sqrt(np.mean(rotation_deg**2))),
-    )
-
-
-def _heldout_stats(splits: list[SplitError], method: str, position_only: bool) -> ErrorStats | None:
-    """Mean over splits of the per-split mean errors (RMS over the split means)."""
-    mine = [s for s in splits if s.method == method]
-    if not mine:
-        return None
-    translation = np.array([s.translation_mm for s in mine])
-    rotation = None if position_only else np.array([s.rotation_deg for s in mine], dtype=float)
-    stats = _error_stats(translation, rotation)
-    return stats.model_copy(update={"n_samples": sum(s.n_test for s in mine)})
-
-
-def _evaluation(splits: list[SplitError], options: CalibrationOptions) -> Evaluation:
-    return Evaluation(
-        protocol=f"{len(options.seeds)} random train/test splits "
-        f"({options.train_fraction:.0%} train), seeds {options.seeds}, after outlier removal",
-        splits=[
-            HeldoutSplit(
-                method=s.method,
-                seed=s.seed,
-                n_train=s.n_train,
-                n_test=s.n_test,
-                translation_mm=s.translation_mm,
-                rotation_deg=s.rotation_deg,
-            )
-            for s in splits
-        ],
-    )
-
-
-# --- streamed calibration (issue 7): recordings larger than memory ------------------------
-
-
-@dataclass(frozen=True)
-class StreamOptions:
-    """How :func:`calibrate_streamed` cuts and holds a recording.
-
-    ``chunk_rows``: rows per task (Parquet: whole row groups up to this); ``block_rows``:
-    samples per vectorised block inside a task; ``warm_start_rows``: head rows fitted in
-    memory for the start and the pruning; ``cache_mb``: prepared chunks each worker process
-    keeps between passes (0: re-read each pass; memory then does not grow with N).
-    """
-
-    chunk_rows: int = 65_536
-    block_rows: int = 8192
-    warm_start_rows: int = 10_000
-    cache_mb: float = 512.0
+# --- reading a recording ---------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class DatasetChunkLoader:
-    """:data:`solver.stream.chunks.ChunkLoader` of a dataset file; picklable, so worker processes
-    and Dask workers read and validate their own chunks."""
+    """:data:`solver.stream.chunks.ChunkLoader` of a dataset file; picklable, so worker
+    processes and Dask workers read and validate their own chunks."""
 
     plan: DatasetChunks
 
@@ -651,155 +157,241 @@ class DatasetChunkLoader:
         )
 
 
-def stream_problem(
-    path: str | Path,
-    chain: KinematicChain,
-    options: CalibrationOptions,
+@dataclass(frozen=True)
+class Recording:
+    """A recording opened for one calibration: the chunks the engine passes over, the
+    dataset in memory (None when the workers read the file's chunks themselves), the name the
+    result gives it, and what carrying a discovery did to it (``corrections`` go into the
+    result; ``notes`` one line each for the user)."""
+
+    problem: StreamProblem
+    dataset: PoseDataset | None
+    source: str
+    corrections: ModelCorrections | None
+    notes: tuple[str, ...]
+
+
+IN_MEMORY_ROWS = 65_536
+"""Files up to this many rows are read whole (every check across rows, e.g. that ``t`` does
+not decrease, sees the whole file); larger ones are read chunk by chunk by the workers."""
+
+
+def open_recording(
+    source: str | Path | PoseDataset,
+    setup: CalibrationSetup,
     stream: StreamOptions = StreamOptions(),
     *,
     marker: int | None = None,
-) -> StreamProblem:
-    """Plan the chunks of a dataset file (first chunk validated) for one chain."""
-    plan = plan_dataset_chunks(
-        path,
-        chain.joint_names,
-        chunk_rows=stream.chunk_rows,
-        other_joint_names=chain.other_joint_names,
-        marker=marker,
-    )
-    return StreamProblem(
+    name: str | None = None,
+) -> Recording:
+    """Read ``source`` (a dataset file or a dataset already in memory) for ``setup``'s chain,
+    or plan its chunks when it is large; with findings, undo the discovered terms on it."""
+    chain, options = setup.chain, setup.options
+    if isinstance(source, PoseDataset):
+        dataset = source
+    else:
+        plan = plan_dataset_chunks(
+            source,
+            chain.joint_names,
+            chunk_rows=stream.chunk_rows,
+            other_joint_names=chain.other_joint_names,
+            marker=marker,
+            source=name,
+        )
+        if plan.n_rows > IN_MEMORY_ROWS and setup.findings is None:
+            problem = StreamProblem(
+                chain,
+                DatasetChunkLoader(plan),
+                plan.refs,
+                position_only=plan.position_only,
+                gravity_base_m_s2=np.asarray(options.gravity_base_m_s2, dtype=float),
+                payload_kg=options.payload_kg,
+                block_rows=stream.block_rows,
+                cache_bytes=int(stream.cache_mb * 1024 * 1024),
+            )
+            return Recording(problem, None, plan.source, None, ())
+        dataset = read_dataset(
+            source,
+            chain.joint_names,
+            other_joint_names=chain.other_joint_names,
+            marker=marker,
+            source=name,
+        )
+    corrections: ModelCorrections | None = None
+    notes: tuple[str, ...] = ()
+    if setup.findings is not None:
+        carried = discovery.carry_model(setup.findings, dataset, setup.robot)
+        dataset, corrections, notes = carried.dataset, carried.record, tuple(carried.notes)
+    problem = StreamProblem(
         chain,
-        DatasetChunkLoader(plan),
-        plan.refs,
-        position_only=plan.position_only,
+        ArrayChunks(
+            dataset.joint_positions,
+            dataset.position_m,
+            dataset.quaternion_xyzw,
+            dataset.payload_kg,
+        ),
+        row_ranges(dataset.n_samples, stream.chunk_rows),
+        position_only=dataset.is_position_only,
         gravity_base_m_s2=np.asarray(options.gravity_base_m_s2, dtype=float),
         payload_kg=options.payload_kg,
         block_rows=stream.block_rows,
         cache_bytes=int(stream.cache_mb * 1024 * 1024),
     )
+    return Recording(problem, dataset, name or dataset.source, corrections, notes)
 
 
-def calibrate_streamed(
-    path: str | Path,
-    robot: RobotDescription,
-    options: CalibrationOptions,
+# --- where the passes run ----------------------------------------------------------------------
+
+
+def available_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def default_executor(recording: Recording) -> Executor:
+    """Where the passes run when the caller does not say: local processes (one per core, at
+    most one per chunk) for a file of several chunks on a machine with several cores, this
+    process otherwise (a recording in memory would travel to the workers with every pass; a
+    daemonic process, e.g. a service job worker, may not start processes)."""
+    chunks = len(recording.problem.refs)
+    cores = available_cores()
+    if (
+        recording.dataset is None
+        and chunks > 1
+        and cores > 1
+        and not multiprocessing.current_process().daemon
+    ):
+        return ProcessExecutor(min(cores, chunks))
+    return InProcessExecutor()
+
+
+# --- the calibration ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CalibrationRun:
+    """What one calibration produced: the result JSON, the residuals a report plots, what
+    carrying a discovery did (``notes``, one line each), where the passes ran
+    (``execution``), and the wall time of each stage in seconds with the passes over the
+    data (``timings``)."""
+
+    result: CalibrationResult
+    residuals: ResidualSample
+    notes: tuple[str, ...]
+    execution: str
+    timings: dict[str, float]
+
+    def urdf(self) -> str:
+        """The calibrated URDF; :class:`KincalError` saying why when the result corrects
+        the joint readings (a URDF cannot express that)."""
+        refused = urdf_refusal(self.result.model_corrections)
+        if refused is not None:
+            raise KincalError(refused)
+        return export_urdf(self.result)
+
+    @property
+    def urdf_refusal(self) -> str | None:
+        return urdf_refusal(self.result.model_corrections)
+
+    def report_html(self) -> str:
+        from service.report_html import render_report
+
+        return render_report(self.result, self.residuals)
+
+
+def calibrate_source(
+    source: str | Path | PoseDataset,
+    setup: CalibrationSetup,
+    *,
     executor: Executor | None = None,
     stream: StreamOptions = StreamOptions(),
-    *,
     marker: int | None = None,
+    name: str | None = None,
     progress: Progress = _no_progress,
-    timings: dict[str, float] | None = None,
-    source: str | None = None,
-) -> CalibrationResult:
-    """:func:`calibrate` for a dataset file read in chunks, each pass mapped over ``executor``
-    (default in-process); see :mod:`solver.stream` for what differs: warm start and pruning
-    on the head rows, moment-matching covariances, no held-out splits (``heldout`` is stored
-    as False). ``progress`` is called as the stages "read", "fit", "baseline" and
-    "covariance" end; ``timings`` (optional) receives the wall time of each stage in seconds
-    and the number of passes over the data (``passes``); ``source`` names the dataset in the
-    result (default: the file's name).
+) -> CalibrationRun:
+    """Calibrate geometry, compliance (Eq. 8–10) and the covariances of the random
+    perturbations (§IV-C) of a recording, with the held-out evaluation of DESIGN.md §4.
+
+    ``source``: a dataset file (CSV, Parquet, JSON; ``marker`` picks a FIGAROH marker) or a
+    dataset in memory; ``setup``: :func:`check_calibration` of the robot, the options and the
+    findings of a discovery whose model to calibrate (``calibrate --model``); ``executor``:
+    where the passes run (default :func:`default_executor`; the caller keeps ownership of one
+    it passes); ``name``: the recording's name in the result (default: the file's).
     """
-    chain = chain_for(robot, options)
     started = time.perf_counter()
-    problem = stream_problem(path, chain, options, stream, marker=marker)
-    executor = executor or InProcessExecutor()
-    stage: dict[str, float] = {"plan": time.perf_counter() - started}
-    spec = _streamed_covariance_spec(problem, options)
+    recording = open_recording(source, setup, stream, marker=marker, name=name)
+    timings = {"open": time.perf_counter() - started}
+    owned = executor is None
+    runner = default_executor(recording) if executor is None else executor
     try:
-        run = calibrate_streamed_fits(
-            problem,
-            executor,
-            fit_options(options),
-            fit_options(options, baseline=True, n_links=chain.n_links),
-            StreamSettings(stream.warm_start_rows, options.outlier_sigma),
-            covariance=spec,
-            progress=lambda name: progress(name, 1, 1),
+        calibrated = calibrate_recording(
+            recording.problem,
+            runner,
+            fit_options(setup.options),
+            fit_options(setup.options, baseline=True, n_links=setup.chain.n_links),
+            StreamSettings(stream.warm_start_rows, setup.options.outlier_sigma),
+            covariance=_covariance_settings(recording.problem, setup),
+            heldout=HeldoutSettings(tuple(setup.options.seeds), setup.options.train_fraction)
+            if setup.options.heldout
+            else None,
+            progress=progress,
         )
-        stage.update(run.stage_s)
-        clock = time.perf_counter()
-        count = PassCount(run.passes)
-        covariance = _streamed_covariance(problem, executor, run, options, spec, count)
-        stage["covariance"] = time.perf_counter() - clock
-        stage["passes"] = float(count.passes)
-        progress("covariance", 1, 1)
+        execution = f"{runner.name} ({runner.n_workers} worker(s))"
     finally:
-        release(problem, executor)
-    if timings is not None:
-        timings.update(stage)
-    load = problem.load
-    if source is None:
-        source = load.plan.source if isinstance(load, DatasetChunkLoader) else str(path)
-    position_only = problem.position_only
-    return _assemble_result(
-        dataset=DatasetInfo(source=source, n_samples=run.n_rows, position_only=position_only),
-        robot=robot,
-        chain=chain,
-        options=options.model_copy(update={"heldout": False}),
-        fit=run.fit,
-        baseline_params=run.baseline.params,
-        train_before=_sums_stats(run.baseline.sums.errors, position_only),
-        train_after=_sums_stats(run.fit.sums.errors, position_only),
-        splits=[],
-        covariance=covariance,
-        outliers=OutlierReport(
-            sigma=options.outlier_sigma,
-            n_input=run.n_rows,
-            n_used=run.fit.sums.errors.n,
-            removed_rows=[int(i) + 1 for i in run.removed_rows],
-        ),
+        release(recording.problem, runner)
+        if owned:
+            runner.close()
+    timings.update(calibrated.stage_s)
+    timings["passes"] = float(calibrated.passes)
+    result = assemble_result(
+        source=recording.source,
+        robot=setup.robot,
+        chain=setup.chain,
+        options=setup.options,
+        calibrated=calibrated,
+        frame_index=list(setup.covariance_index),
+        position_only=recording.problem.position_only,
     )
+    if recording.corrections is not None:
+        result = result.model_copy(update={"model_corrections": recording.corrections})
+    residuals = sample_residuals(setup.chain, calibrated, recording.problem.position_only)
+    return CalibrationRun(result, residuals, recording.notes, execution, timings)
 
 
-def _streamed_covariance_spec(
-    problem: StreamProblem, options: CalibrationOptions
-) -> CovarianceSpec | None:
-    """The covariance statistics the streamed fit takes along (None: no covariances)."""
+def calibrate(
+    dataset: PoseDataset,
+    robot: RobotDescription,
+    options: CalibrationOptions,
+    progress: Progress = _no_progress,
+) -> CalibrationResult:
+    """:func:`calibrate_source` of a dataset in memory, its result JSON."""
+    setup = check_calibration(robot, options)
+    return calibrate_source(dataset, setup, progress=progress).result
+
+
+def _covariance_settings(
+    problem: StreamProblem, setup: CalibrationSetup
+) -> CovarianceSettings | None:
+    """The covariance stage of ``setup`` (None: ``covariance`` "none")."""
+    options = setup.options
     if options.covariance == "none":
         return None
-    chosen, index = _covariance_frames(problem.chain, options)
-    return covariance_spec(
+    free_axes = None
+    if options.covariance_axes == "rotation":
+        free_axes = {name: ROTATION_AXIS_NAMES for name in setup.covariance_frames}
+    noise = None
+    if options.noise_covariance is not None:
+        noise = np.array(options.noise_covariance, dtype=float)
+    elif options.noise_std is not None:
+        noise = np.diag(np.square(np.asarray(options.noise_std, dtype=float)))
+    spec = covariance_spec(
         problem,
-        chosen,
-        index,
+        setup.covariance_frames,
+        setup.covariance_index,
         structure=options.covariance,
-        noise_covariance=_known_noise(options),
-        free_axes=_free_axes(chosen, options),
+        noise_covariance=noise,
+        free_axes=free_axes,
     )
-
-
-def _streamed_covariance(
-    problem: StreamProblem,
-    executor: Executor,
-    run: StreamedCalibration,
-    options: CalibrationOptions,
-    spec: CovarianceSpec | None,
-    count: PassCount,
-) -> CovarianceResult | None:
-    """§IV-C on the streamed fit (moment matching; the same samples as the fit; the
-    statistics from the fit's last pass when it took them)."""
-    if spec is None:
-        return None
-    notes = [] if options.covariance_estimator == "moment" else [STREAMED_ESTIMATOR_NOTE]
-    estimate = estimate_covariances_streamed(
-        problem,
-        executor,
-        run.fit.params,
-        spec,
-        solver=options.covariance_solver,
-        rule=run.rule,
-        notes=notes,
-        sums=run.covariance,
-        count=count,
-    )
-    return _covariance_result(estimate, list(spec.frames))
-
-
-def _sums_stats(sums: ErrorSums, position_only: bool) -> ErrorStats:
-    mean_mm, rms_mm, mean_deg, rms_deg = sums.summary(position_only)
-    return ErrorStats(
-        n_samples=sums.n,
-        translation_mean_mm=mean_mm,
-        translation_rms_mm=rms_mm,
-        rotation_mean_deg=mean_deg,
-        rotation_rms_deg=rms_deg,
-    )
+    return CovarianceSettings(spec, options.covariance_estimator, options.covariance_solver)

@@ -29,7 +29,7 @@ from schemas.ranking import (
     TargetRankingRequest,
     TaskWeights,
 )
-from service import corrections, pipeline
+from service import corrections, pipeline, result_json
 from service.flags import numbers
 from solver import lie
 from solver.calibration import fit_deterministic
@@ -84,7 +84,7 @@ def random_effects(result: CalibrationResult, chain: KinematicChain) -> RandomEf
 
 def uncertainty_model(result: CalibrationResult) -> UncertaintyModel:
     """Calibrated chain + random effects + gravity settings of a result, ready to score."""
-    chain, params = pipeline.result_chain(result)
+    chain, params = result_json.result_chain(result)
     effects = random_effects(result, chain)
     return UncertaintyModel.build(
         chain, params, effects, np.asarray(result.options.gravity_base_m_s2, dtype=float)
@@ -385,7 +385,7 @@ def _document(
     """The ranking as the plain data of :class:`RankingResult`, fields in schema order: the
     head validated as a model (without entries), the entries added as dicts."""
     head = RankingResult(
-        kincal_version=pipeline.kincal_version(),
+        kincal_version=result_json.kincal_version(),
         calibration=reference or calibration_reference(result),
         joint_names=list(model.chain.joint_names),
         weights=options.weights,
@@ -402,7 +402,7 @@ def _document(
 
 
 def gp_calibration_method(
-    data: pipeline.PreparedData,
+    data: result_json.PreparedData,
     used: IndexArray,
     options: CalibrationOptions,
     settings: GPSettings | None = None,

@@ -18,10 +18,9 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from schemas.calibration import CalibrationResult, CovarianceResult, ErrorStats
-from schemas.dataset import PoseDataset
-from service import pipeline
 from service.plots import residual_histograms
 from service.report import table_ii
+from service.result_json import ResidualSample
 
 _STYLE = """
 body { font: 14px/1.45 system-ui, sans-serif; margin: 2rem auto; max-width: 72rem; color: #222; }
@@ -36,8 +35,8 @@ code { background: #f2f2f2; padding: 0 .2rem; }
 """
 
 
-def render_report(result: CalibrationResult, dataset: PoseDataset) -> str:
-    """The HTML report of ``result``; ``dataset`` is the recording it was calibrated on."""
+def render_report(result: CalibrationResult, residuals: ResidualSample) -> str:
+    """The HTML report of ``result``; ``residuals`` of (some of) the samples it used."""
     e = html.escape
     sections = [
         f"<h1>kincal calibration report: {e(result.robot.name)}</h1>",
@@ -45,7 +44,7 @@ def render_report(result: CalibrationResult, dataset: PoseDataset) -> str:
         "<h2>Fit (mean and RMS error)</h2>",
         _fit_table(result),
         "<h2>Residuals before and after calibration (paper Fig. 4a)</h2>",
-        _residual_figure(result, dataset),
+        _residual_figure(residuals),
         "<h2>Identifiability</h2>",
         _identifiability(result),
         "<h2>Joint compliance</h2>",
@@ -128,16 +127,13 @@ def _stats_row(model: str, split: str, stats: ErrorStats) -> str:
     )
 
 
-def _residual_figure(result: CalibrationResult, dataset: PoseDataset) -> str:
-    kept = dataset.subset(result.outliers.kept_indices())
-    before = pipeline.residuals(result, kept, baseline=True)
-    after = pipeline.residuals(result, kept)
+def _residual_figure(residuals: ResidualSample) -> str:
     with tempfile.TemporaryDirectory() as folder:
         path = residual_histograms(
-            before,
-            after,
+            residuals.before,
+            residuals.after,
             Path(folder) / "residuals.png",
-            title=f"End-effector-frame residuals of the {kept.n_samples} samples used: "
+            title=f"End-effector-frame residuals of {residuals.description}: "
             "nominal robot (frame and tool fitted) vs calibrated",
         )
         png = path.read_bytes()

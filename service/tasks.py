@@ -3,12 +3,11 @@
 A job function reads its inputs from ``ctx.params`` and the data folder, calls the pipeline
 (the same one as the CLI), reports progress and writes its outputs as artifacts.
 
-Calibrations run in the worker process (:func:`service.pipeline.calibrate`), or — when the
-worker's environment names a Dask scheduler (``KINCAL_DASK_ADDRESS``, see
-:class:`service.settings.Settings`) — streamed on that cluster
-(:func:`service.pipeline.calibrate_streamed` with a :class:`solver.executors.DaskExecutor`,
-the same call as ``kincal calibrate --executor dask``): the cluster's workers read the stored
-dataset file themselves, so they need the service's data folder at the same path.
+Calibrations go through :func:`service.pipeline.calibrate_source`, the CLI's entry point; their
+passes run in the worker process, or — when the worker's environment names a Dask scheduler
+(``KINCAL_DASK_ADDRESS``, see :class:`service.settings.Settings`) — on that cluster (the same
+call as ``kincal calibrate --executor dask``): for a large dataset the cluster's workers read
+the stored file themselves, so they need the service's data folder at the same path.
 """
 
 from __future__ import annotations
@@ -24,15 +23,11 @@ from schemas.dataset import read_dataset
 from schemas.discovery import DiscoveryOptions, FindingsResult
 from service import discovery, pipeline
 from service.discovery_html import render_discovery_report
-from service.report_html import render_report
 from service.robots import RobotDescription, load_robot
 from service.settings import Settings
 from service.storage.files import FileStore
-from service.urdf_export import export_urdf
-from service.urdf_export import refusal as urdf_refusal
 from service.worker import JobContext
-from solver.errors import ModelError
-from solver.executors import DaskExecutor
+from solver.executors import DaskExecutor, Executor, InProcessExecutor
 
 
 class RobotRef(BaseModel):
@@ -99,94 +94,66 @@ def robot_description(ref: RobotRef, files: FileStore) -> RobotDescription:
     return RobotDescription(ref.name, xml, ref.base_frame, ref.tip_frame)
 
 
-# Overall fraction reached at the end of each pipeline stage, (with, without) held-out splits.
-_STAGE_END = {"fit": (0.15, 0.5), "baseline": (0.2, 0.85), "heldout": (0.9, 0.9)}
-_STAGE_START = {"fit": (0.05, 0.05), "baseline": (0.15, 0.5), "heldout": (0.2, 0.85)}
+# Overall fraction reached at the end of each stage, (with, without) held-out splits; held-out
+# splits report done/total and fill the interval up to their end.
+_STAGE_END = {
+    "read": (0.05, 0.05),
+    "fit": (0.15, 0.35),
+    "baseline": (0.25, 0.6),
+    "covariance": (0.35, 0.9),
+    "heldout": (0.9, 0.9),
+}
 REPORT_FRACTION = 0.92
 
 
 def _progress(ctx: JobContext, heldout: bool) -> pipeline.Progress:
     column = 0 if heldout else 1
+    stages = list(_STAGE_END)
 
     def report(stage: str, done: int, total: int) -> None:
         if stage not in _STAGE_END:  # a stage this mapping does not know yet
             ctx.progress(stage, None, done)
             return
-        start, end = _STAGE_START[stage][column], _STAGE_END[stage][column]
+        end = _STAGE_END[stage][column]
+        index = stages.index(stage)
+        start = _STAGE_END[stages[index - 1]][column] if index else 0.0
         ctx.progress(stage, start + (end - start) * done / max(total, 1), done)
 
     return report
 
 
-# Overall fraction reached at the end of each stage of a streamed calibration (Dask).
-_STREAMED_STAGE_END = {"read": 0.15, "fit": 0.45, "baseline": 0.8, "covariance": 0.9}
-
-
-def _streamed_progress(ctx: JobContext) -> pipeline.Progress:
-    def report(stage: str, done: int, total: int) -> None:
-        ctx.progress(stage, _STREAMED_STAGE_END.get(stage), done)
-
-    return report
-
-
 def calibration_job(ctx: JobContext) -> None:
-    """Calibrate a stored dataset (on the Dask cluster of ``KINCAL_DASK_ADDRESS`` if set),
+    """Calibrate a stored dataset through :func:`service.pipeline.calibrate_source` (its
+    passes on the Dask cluster of ``KINCAL_DASK_ADDRESS`` if set, else in this worker),
     carrying a discovery's findings if the job names one (as ``kincal calibrate --model``);
     artifacts: result JSON, HTML report, calibrated URDF (none when the result corrects the
     joint readings, which a URDF cannot express: see :func:`service.urdf_export.refusal`)."""
     ctx.progress("loading", 0.0)
     params = CalibrationJobParams.model_validate(ctx.params)
     robot = robot_description(params.robot, ctx.files)
-    options = params.options
-    chain = pipeline.chain_for(robot, options)
-    path = ctx.files.path(params.dataset.data_path)
-    dataset = read_dataset(
-        path,
-        chain.joint_names,
-        other_joint_names=chain.other_joint_names,
-        source=params.dataset.name,
-    )
-    carried = None
+    findings = None
     if params.discovery is not None:
         findings = FindingsResult.model_validate_json(
             ctx.files.read(params.discovery.findings_path)
         )
-        carried = discovery.carry_model(findings, dataset, robot)
-        options = discovery.carried_options(options, carried)
+    setup = pipeline.check_calibration(robot, params.options, findings)
     address = Settings().dask_address
     if address:
-        refused = None if carried is None else discovery.streamed_refusal(carried.corrections)
-        if refused is not None:
-            raise ModelError(f"discovery_id: the discovery's model {refused}; {STREAMED_FIX}")
         ctx.progress("connecting", 0.02)
-        with DaskExecutor(address) as executor:
-            result = pipeline.calibrate_streamed(
-                path,
-                robot,
-                options,
-                executor,
-                progress=_streamed_progress(ctx),
-                source=params.dataset.name,
-            )
-    else:
-        ctx.progress("fit", 0.05)
-        progress = _progress(ctx, options.heldout)
-        if carried is None:
-            result = pipeline.calibrate(dataset, robot, options, progress)
-        else:
-            result = discovery.calibrate_carried(carried, robot, options, progress)
-            dataset = carried.dataset  # what the calibration fitted (the report's residuals)
+    executor: Executor = DaskExecutor(address) if address else InProcessExecutor()
+    with executor:
+        run = pipeline.calibrate_source(
+            ctx.files.path(params.dataset.data_path),
+            setup,
+            executor=executor,
+            name=params.dataset.name,
+            progress=_progress(ctx, setup.options.heldout),
+        )
     ctx.progress("report", REPORT_FRACTION)
-    ctx.write_artifact("result", "result.json", result.model_dump_json(indent=1).encode())
-    if urdf_refusal(result.model_corrections) is None:
-        ctx.write_artifact("urdf", "calibrated.urdf", export_urdf(result).encode())
-    ctx.write_artifact("report", "report.html", render_report(result, dataset).encode())
-
-
-STREAMED_FIX = (
-    "this service streams its calibrations on the Dask cluster of KINCAL_DASK_ADDRESS: "
-    "calibrate without discovery_id, or on a service without that setting"
-)
+    ctx.write_artifact("result", "result.json", run.result.model_dump_json(indent=1).encode())
+    if run.urdf_refusal is None:
+        ctx.write_artifact("urdf", "calibrated.urdf", run.urdf().encode())
+    ctx.write_artifact("report", "report.html", run.report_html().encode())
 
 
 DISCOVERY_FRACTION = 0.1

@@ -24,7 +24,7 @@ import pinocchio as pin
 from numpy.typing import NDArray
 
 from schemas.calibration import CalibrationResult, ModelCorrections
-from service.pipeline import result_chain
+from service.result_json import result_chain
 from solver import lie
 from solver.errors import ModelError
 

@@ -6,7 +6,7 @@ nominal baseline, kincal's calibration and learned baselines are scored on ident
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,13 +51,40 @@ def cross_validate(
 ) -> list[SplitError]:
     """Score every method on the same splits; one :class:`SplitError` per (method, seed)."""
     n = measured_pose.shape[0]
-    out: list[SplitError] = []
+    seeds = list(seeds)
+    predictions = {}
     for seed in seeds:
         train, test = split_indices(n, seed, train_fraction)
         for name, method in methods.items():
-            predicted = method(train, test)
+            predictions[seed, name] = method(train, test)
+    return score_splits(
+        measured_pose,
+        predictions,
+        list(methods),
+        position_only=position_only,
+        seeds=seeds,
+        train_fraction=train_fraction,
+    )
+
+
+def score_splits(
+    measured_pose: FloatArray,
+    predictions: Mapping[tuple[int, str], FloatArray],
+    methods: Sequence[str],
+    *,
+    position_only: bool,
+    seeds: Iterable[int],
+    train_fraction: float,
+) -> list[SplitError]:
+    """One :class:`SplitError` per (method, seed) from the predicted test poses
+    ``predictions[seed, method]`` (n_test, 4, 4) of :func:`split_indices`' splits."""
+    n = measured_pose.shape[0]
+    out: list[SplitError] = []
+    for seed in seeds:
+        train, test = split_indices(n, seed, train_fraction)
+        for name in methods:
             translation, rotation = pose_errors(
-                predicted, measured_pose[test], position_only=position_only
+                predictions[seed, name], measured_pose[test], position_only=position_only
             )
             out.append(
                 SplitError(

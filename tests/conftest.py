@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import functools
+import math
 import os
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import settings
 
 import solver  # noqa: F401  (BLAS threading defaults before numpy loads)
+from schemas.calibration import CalibrationResult
 from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
 from solver.model import KinematicChain, build_chain
 
@@ -40,3 +43,33 @@ def chain(name: str, virtual_first: bool = False) -> KinematicChain:
 @pytest.fixture(params=sorted(BUILTIN_ROBOTS))
 def builtin_name(request: pytest.FixtureRequest) -> str:
     return str(request.param)
+
+
+def comparable_result(result: CalibrationResult) -> dict[str, Any]:
+    """A result as JSON data without what legitimately differs between two identical runs
+    (creation time, solver times, the dataset's source name)."""
+    document = result.model_dump(mode="json")
+    document.pop("created_utc")
+    document["solver"].pop("time_s")
+    if document.get("covariance") is not None:
+        document["covariance"]["solver"].pop("time_s")
+    document["dataset"].pop("source")
+    return document
+
+
+def assert_documents_close(got: Any, want: Any, where: str = "", rel: float = 1e-9) -> None:
+    """Equal JSON structure, numbers equal to ``rel`` relative (e.g. a different summation
+    order)."""
+    if isinstance(want, dict):
+        assert isinstance(got, dict) and got.keys() == want.keys(), where
+        for key in want:
+            assert_documents_close(got[key], want[key], f"{where}.{key}", rel)
+    elif isinstance(want, list):
+        assert isinstance(got, list) and len(got) == len(want), where
+        for i, (a, b) in enumerate(zip(got, want, strict=True)):
+            assert_documents_close(a, b, f"{where}[{i}]", rel)
+    elif isinstance(want, float) and not isinstance(got, bool):
+        assert isinstance(got, (int, float)), where
+        assert math.isclose(got, want, rel_tol=rel, abs_tol=1e-15), (where, got, want)
+    else:
+        assert got == want, (where, got, want)

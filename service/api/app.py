@@ -22,7 +22,7 @@ from service.api.middleware import RequestContextMiddleware
 from service.api.problems import install_problem_handlers
 from service.api.results import ResultCache
 from service.jobs import JobRegistry, JobRunner, default_registry
-from service.pipeline import kincal_version
+from service.result_json import kincal_version
 from service.security import LOCAL_TENANT, KeyVerifier, Principal
 from service.settings import Settings
 from service.storage import repository

@@ -29,7 +29,7 @@ from service.api.robots import one_line
 from service.robots import RobotDescription
 from service.storage import repository
 from service.storage.models import Job
-from service.tasks import STREAMED_FIX, CalibrationJobParams, DiscoveryRef
+from service.tasks import CalibrationJobParams, DiscoveryRef
 from service.urdf_export import refusal as urdf_refusal
 from solver.errors import ModelError
 
@@ -103,7 +103,7 @@ def result_of(state: StateDep, tenant_id: str, calibration_id: str) -> Calibrati
 
 def carried_discovery(
     state: ServiceState, tenant_id: str, body: CalibrationCreate, robot: RobotDescription
-) -> DiscoveryRef:
+) -> tuple[DiscoveryRef, FindingsResult]:
     """The succeeded discovery ``body.discovery_id`` of this tenant whose findings fit the
     dataset's robot and options: 404, 409 (not succeeded) or 422 naming discovery_id otherwise."""
     discovery_id = body.discovery_id
@@ -147,14 +147,7 @@ def carried_discovery(
             "discovery with them instead)",
             slug="invalid-options",
         )
-    streamed = discovery.streamed_refusal(findings.model.corrections)
-    if state.settings.dask_address and streamed is not None:
-        raise ProblemException(
-            422,
-            f"discovery_id: the model of discovery {job.id} {streamed}; {STREAMED_FIX}",
-            slug="invalid-discovery",
-        )
-    return DiscoveryRef(id=job.id, findings_path=job.artifacts["result"])
+    return DiscoveryRef(id=job.id, findings_path=job.artifacts["result"]), findings
 
 
 @router.post(
@@ -177,10 +170,11 @@ def create_calibration(
     Location for progress."""
 
     def check(robot: RobotDescription) -> DiscoveryRef | None:
-        pipeline.chain_for(robot, body.options)
-        if body.discovery_id is None:
-            return None
-        return carried_discovery(state, principal.tenant_id, body, robot)
+        carried, findings = None, None
+        if body.discovery_id is not None:
+            carried, findings = carried_discovery(state, principal.tenant_id, body, robot)
+        pipeline.check_calibration(robot, body.options, findings)
+        return carried
 
     return jobs_common.accept_dataset_job(
         state,

@@ -1,4 +1,5 @@
-"""Single entry point of the covariance calibration (paper §IV-C): :func:`estimate_covariances`.
+"""The covariance calibration (paper §IV-C): :func:`estimate_from_samples` on samples in memory
+or streamed (:mod:`.samples`), :func:`estimate_covariances` for arrays.
 
 Pipeline: sufficient statistics (Eq. 13–14) → identifiability → moment solution (Eq. 14, by
 clarabel / pgd / nnls) → optionally ML (Eq. 16–17) or REML started from it → the
@@ -14,7 +15,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.covariance.fitting import fit_likelihood
+from solver.covariance.fitting import METRIC_SAMPLES, fit_likelihood
 from solver.covariance.identifiability import (
     RANK_RTOL,
     WEAK_RTOL,
@@ -24,12 +25,19 @@ from solver.covariance.identifiability import (
 )
 from solver.covariance.layout import CovarianceLayout, Structure, make_layout
 from solver.covariance.likelihood import (
-    check_likelihood_inputs,
     ee_covariance_batch,
     fisher_information_ml,
     fisher_information_reml,
+    fit_basis_transform,
     moment_sandwich_meat,
-    orthonormal_fit_basis,
+)
+from solver.covariance.samples import (
+    ArraySamples,
+    CovarianceSamples,
+    SampleChunk,
+    every_kth,
+    subsample,
+    total,
 )
 from solver.covariance.solvers import (
     PGD_STABLE,
@@ -42,6 +50,7 @@ from solver.covariance.solvers import (
 )
 from solver.covariance.statistics import (
     DEFAULT_CHUNK_SIZE,
+    JacobianRange,
     MomentStatistics,
     build_moment_statistics,
 )
@@ -146,7 +155,8 @@ def estimate_covariances(
     chunk_size: int = DEFAULT_CHUNK_SIZE,
     max_likelihood_iterations: int = 200,
 ) -> CovarianceEstimate:
-    """Calibrate the covariances of random perturbations in the chain (paper §IV-C).
+    """Calibrate the covariances of random perturbations in the chain (paper §IV-C) from
+    arrays in memory (:func:`estimate_from_samples` does the work).
 
     ``residuals`` (N, d): end-effector-frame residuals after the deterministic fit ([v; w] or
     [v], m and rad). ``frame_jacobians`` (N, F, d, 6): A_f(q_n) = rows of Ad_{B_f}^-1 for each
@@ -161,39 +171,120 @@ def estimate_covariances(
     "auto" is NNLS for diagonal and Clarabel for full Σ (:func:`.solvers.concrete_solver`).
     ``free_axes`` restricts frames to some axes (names from ``POSE_AXES``); ``structure``
     "full" needs ``solver`` "auto", "clarabel" or "pgd".
-
-    Unidentifiable combinations are resolved by the rule of :mod:`.identifiability` (minimum
-    norm among equally good fits; entries without effect are 0) and reported in words in
-    ``identifiability``; ``warnings`` collects noise confusions and solver trouble.
     """
     residuals = np.asarray(residuals, dtype=float)
     frame_jacobians = np.asarray(frame_jacobians, dtype=float)
     _check_inputs(residuals, frame_jacobians, frame_names, estimator, fit_jacobian)
     d = residuals.shape[1]
     known = known_noise_covariance(noise_covariance, d)
-    if known is not None:
-        include_noise = False
     layout = make_layout(
         frame_names,
         d,
         structure=structure,
-        include_noise=include_noise,
+        include_noise=include_noise and known is None,
         noise_name=noise_name,
         free_axes=free_axes,
     )
-    solver_used = concrete_solver(solver, structure)
+    samples = ArraySamples(
+        residuals,
+        frame_jacobians,
+        None if fit_jacobian is None else np.asarray(fit_jacobian, dtype=float),
+        chunk_size=chunk_size,
+    )
+    return estimate_from_samples(
+        samples,
+        layout,
+        known=known,
+        estimator=estimator,
+        solver=solver,
+        noise_name=noise_name,
+        pgd_settings=pgd_settings,
+        standard_errors=standard_errors,
+        confidence=confidence,
+        rank_rtol=rank_rtol,
+        weak_rtol=weak_rtol,
+        max_likelihood_iterations=max_likelihood_iterations,
+    )
+
+
+SE_SAMPLES = 50_000
+"""Standard errors (and the scoring metric, at most :data:`~.fitting.METRIC_SAMPLES` of them)
+come from at most this many samples, evenly spaced over the recording, the information scaled
+to all samples: an unbiased estimate of the sum, for errors that need 2 digits, not 10."""
+
+
+def moment_statistics(
+    samples: CovarianceSamples, layout: CovarianceLayout, known: FloatArray | None
+) -> tuple[MomentStatistics, JacobianRange]:
+    """Eq. (13–14) statistics and the frame-Jacobian range of the samples (one pass)."""
+    parts = samples.map(_moment_chunk, (layout, known))
+    stats = total([p[0] for p in parts])
+    return stats, total([p[1] for p in parts])
+
+
+def _moment_chunk(
+    argument: tuple[CovarianceLayout, FloatArray | None], chunk: SampleChunk
+) -> tuple[MomentStatistics, JacobianRange]:
+    layout, known = argument
     stats = build_moment_statistics(
-        residuals, frame_jacobians, layout, known_covariance=known, chunk_size=chunk_size
+        chunk.residuals, chunk.frame_jacobians, layout, known_covariance=known
     )
+    return stats, JacobianRange.of(chunk.frame_jacobians)
+
+
+def estimate_from_samples(
+    samples: CovarianceSamples,
+    layout: CovarianceLayout,
+    *,
+    known: FloatArray | None = None,
+    estimator: EstimatorName = "moment",
+    solver: SolverName = "auto",
+    noise_name: str = "noise",
+    statistics: tuple[MomentStatistics, JacobianRange] | None = None,
+    pgd_settings: PGDSettings = PGD_STABLE,
+    standard_errors: bool = True,
+    confidence: float = 0.95,
+    rank_rtol: float = RANK_RTOL,
+    weak_rtol: float = WEAK_RTOL,
+    max_likelihood_iterations: int = 200,
+    notes: Sequence[str] = (),
+) -> CovarianceEstimate:
+    """The covariance calibration (paper §IV-C) of ``samples`` (:mod:`.samples`: in memory or
+    streamed; every step reduces to passes over them) for the θ ``layout``.
+
+    ``known`` (d, d): a known part of every Σ_E (then the layout has no noise frame);
+    ``statistics``: the Eq. (14) statistics and Jacobian range when a pass already took them
+    (a streamed fit's last pass), else one pass takes them. Then: identifiability → moment
+    solution → ML or REML by projected Fisher scoring (at most ``max_likelihood_iterations``
+    steps; each a pass over the samples, two for REML) → the unidentifiable part fixed by the
+    rule of :mod:`.identifiability` → standard errors from at most :data:`SE_SAMPLES` evenly
+    spaced samples. ``notes`` start the warnings.
+
+    Unidentifiable combinations are reported in words in ``identifiability``; ``warnings``
+    collects noise confusions and solver trouble.
+    """
+    stats, jacobian_range = (
+        statistics if statistics is not None else moment_statistics(samples, layout, known)
+    )
+    if stats.n_samples < 2:
+        raise CalibrationError(
+            f"covariance calibration needs at least 2 samples, got {stats.n_samples}"
+        )
+    if not (np.all(np.isfinite(stats.gram)) and np.all(np.isfinite(stats.cross))):
+        raise CalibrationError("residuals or frame Jacobians contain NaN or inf")
     report = analyse_identifiability(
-        stats, rank_rtol=rank_rtol, weak_rtol=weak_rtol, frame_jacobians=frame_jacobians
+        stats,
+        rank_rtol=rank_rtol,
+        weak_rtol=weak_rtol,
+        frame_jacobians=jacobian_range.pseudo_samples(),
     )
+    solver_used = concrete_solver(solver, layout.structure)
     moment = solve_moment(stats, solver_used, pgd_settings=pgd_settings)
     if not np.all(np.isfinite(moment.theta)):
         raise SolverError(
             f"moment solver {solver_used!r} failed ({moment.status}): {moment.message}"
         )
-    notes = list(report.warnings)
+    notes = [*notes, *report.warnings]
     if not moment.converged:
         notes.append(
             f"moment solver {solver_used!r} ended with status {moment.status!r}"
@@ -201,23 +292,20 @@ def estimate_covariances(
         )
     theta = resolve_null_space(moment.theta, report, layout)
     solution = moment
-    fit_basis = None
+    sub = subsample(samples, SE_SAMPLES) if estimator != "moment" or standard_errors else None
+    transform = fit_basis_transform(samples) if estimator == "reml" else None
     if estimator != "moment":
-        check_likelihood_inputs(residuals, frame_jacobians, layout)
-        if estimator == "reml":
-            assert fit_jacobian is not None
-            fit_basis = orthonormal_fit_basis(np.asarray(fit_jacobian, dtype=float))
+        assert sub is not None
         solution = fit_likelihood(
             estimator,
             theta,
-            residuals,
-            frame_jacobians,
+            samples,
             stats,
             report.scaling,
-            fit_basis=fit_basis,
+            every_kth(sub, METRIC_SAMPLES),
+            transform=transform,
             known_covariance=known,
             max_iterations=max_likelihood_iterations,
-            chunk_size=chunk_size,
         )
         if not solution.converged:
             notes.append(
@@ -225,10 +313,10 @@ def estimate_covariances(
             )
         theta = resolve_null_space(solution.theta, report, layout)
     cov, unc = None, None
-    if standard_errors:
+    if sub is not None:
         try:
             cov = _theta_covariance(
-                estimator, theta, frame_jacobians, stats, report, fit_basis, known
+                estimator, theta, sub, stats, report, transform, known, scale=stats.n_samples
             )
             unc = theta_uncertainty(
                 theta,
@@ -243,9 +331,9 @@ def estimate_covariances(
     frames, noise = frame_results(layout, theta, unc, known, noise_name)
     return CovarianceEstimate(
         estimator,
-        structure,
+        layout.structure,
         solver_used,
-        residuals.shape[0],
+        stats.n_samples,
         frames,
         noise,
         theta,
@@ -289,24 +377,29 @@ def known_noise_covariance(
 def _theta_covariance(
     estimator: EstimatorName,
     theta: FloatArray,
-    frame_jacobians: FloatArray,
+    sub: ArraySamples,
     stats: MomentStatistics,
     report: IdentifiabilityReport,
-    fit_basis: FloatArray | None,
+    transform: FloatArray | None,
     known: FloatArray | None,
+    *,
+    scale: int,
 ) -> FloatArray:
+    """Cov(θ̂) (Q, Q) from the information (or sandwich meat) of the subsample ``sub``, scaled
+    to ``scale`` samples."""
     layout = stats.layout
+    weight = scale / sub.n_samples
     if estimator == "moment":
-        meat = moment_sandwich_meat(theta, frame_jacobians, layout, known_covariance=known)
-        return theta_covariance(meat, report, bread=stats.gram)
+        meat = moment_sandwich_meat(theta, sub.frame_jacobians, layout, known_covariance=known)
+        return theta_covariance(weight * meat, report, bread=stats.gram)
     if estimator == "ml":
-        info = fisher_information_ml(theta, frame_jacobians, layout, known_covariance=known)
+        info = fisher_information_ml(theta, sub.frame_jacobians, layout, known_covariance=known)
     else:
-        assert fit_basis is not None
+        assert transform is not None and sub.fit_jacobian is not None
         info = fisher_information_reml(
-            theta, frame_jacobians, fit_basis, layout, known_covariance=known
+            theta, sub.frame_jacobians, sub.fit_jacobian @ transform, layout, known_covariance=known
         )
-    return theta_covariance(info, report)
+    return theta_covariance(weight * info, report)
 
 
 def frame_results(

@@ -6,6 +6,7 @@ with the solver "auto" picks for Eq. (14) (nnls / clarabel), then backtracks on 
 segment θ → θ' (which stays in the cone). H = 2·(Fisher information of Eq. 16) = Σ_n K̃_nᵀK̃_n
 with the whitened Jacobians L_n⁻¹A_f, plus a tiny proximal term for the null directions; above
 ``METRIC_SAMPLES`` samples H is summed over an evenly spaced subset and scaled to N.
+Every NLL evaluation is a pass over the samples (:mod:`.samples`: in memory or streamed).
 
 For ML the unconstrained step is exactly the moment match of Eq. (13) weighted by Σ_E⁻¹ ⊗ Σ_E⁻¹
 (iteratively reweighted moment matching); for REML the same H is used as the metric (it differs
@@ -30,8 +31,9 @@ from solver.covariance.likelihood import (
     theta_gradient,
 )
 from solver.covariance.objective import ProblemScaling, clip_psd, moment_objective
+from solver.covariance.samples import ArraySamples, CovarianceSamples
 from solver.covariance.solvers import CovarianceSolution, Status, solve_moment
-from solver.covariance.statistics import DEFAULT_CHUNK_SIZE, MomentStatistics
+from solver.covariance.statistics import MomentStatistics
 from solver.errors import CalibrationError
 
 FloatArray = NDArray[np.float64]
@@ -39,39 +41,39 @@ Estimator = Literal["ml", "reml"]
 
 PROXIMAL_RTOL = 1e-10  # proximal weight relative to the largest equilibrated curvature
 METRIC_SAMPLES = 4096
-"""The scoring metric H comes from at most this many samples (evenly spaced, scaled to N)."""
-
-
-def metric_samples(n_samples: int, limit: int = METRIC_SAMPLES) -> slice:
-    """Evenly spaced samples for the scoring metric: H only shapes the path of the iteration,
-    not its fixed point (the gradient uses every sample), and a full pass per step would
-    double the cost of each iteration at large N."""
-    return slice(None, None, max(1, -(-n_samples // limit)))
+"""The scoring metric H comes from at most this many samples (evenly spaced, scaled to N):
+H only shapes the path of the iteration, not its fixed point (the gradient uses every sample),
+and a full pass per step would double the cost of each iteration at large N."""
 
 
 def fit_likelihood(
     estimator: Estimator,
     start_theta: FloatArray,
-    residuals: FloatArray,
-    frame_jacobians: FloatArray,
+    samples: CovarianceSamples,
     stats: MomentStatistics,
     scaling: ProblemScaling,
+    metric: ArraySamples,
     *,
-    fit_basis: FloatArray | None = None,
+    transform: FloatArray | None = None,
     known_covariance: FloatArray | None = None,
     max_iterations: int = 200,
     tolerance: float = 1e-10,
-    chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> CovarianceSolution:
     """ML or REML estimate of θ (Q,), started from ``start_theta`` (PSD, e.g. moment).
 
-    Stops when the predicted decrease ``−∇NLLᵀ(θ'−θ)`` per sample is below ``tolerance``
-    (reported as ``kkt_residual``). ``objective`` is the NLL (constants omitted).
+    ``samples``: every used sample (each NLL evaluation is one pass over them, two for
+    REML); ``metric``: the samples the scoring metric is taken from (at most
+    :data:`METRIC_SAMPLES`, scaled to N); ``transform``: REML's fit basis
+    (:func:`~solver.covariance.likelihood.fit_basis_transform`). Stops when the predicted
+    decrease ``−∇NLLᵀ(θ'−θ)`` per sample is below ``tolerance`` (reported as
+    ``kkt_residual``), or after ``max_iterations`` scoring steps (a one-step estimator when 1:
+    from a √N-consistent start such as the moment solution, asymptotically as efficient as
+    the converged one). ``objective`` is the NLL (constants omitted).
     """
     started = time.perf_counter()
     layout = stats.layout
-    n = residuals.shape[0]
-    if estimator == "reml" and fit_basis is None:
+    n = samples.n_samples
+    if estimator == "reml" and transform is None:
         raise CalibrationError(
             "estimator 'reml' needs fit_jacobian (the deterministic fit's "
             "Jacobian in the residual space)"
@@ -79,37 +81,20 @@ def fit_likelihood(
 
     def nll(theta: FloatArray) -> tuple[float, FloatArray]:
         if estimator == "ml":
-            return gaussian_nll(
-                theta,
-                residuals,
-                frame_jacobians,
-                layout,
-                known_covariance=known_covariance,
-                chunk_size=chunk_size,
-            )
-        assert fit_basis is not None
-        return restricted_nll(
-            theta,
-            residuals,
-            frame_jacobians,
-            fit_basis,
-            layout,
-            known_covariance=known_covariance,
-            chunk_size=chunk_size,
-        )
+            return gaussian_nll(theta, samples, layout, known_covariance=known_covariance)
+        assert transform is not None
+        return restricted_nll(theta, samples, transform, layout, known_covariance=known_covariance)
 
     theta, (value, psi) = _positive_start(start_theta, nll, layout, scaling)
     inv_scale2 = 1.0 / scaling.param_scale**2
-    metric_rows = metric_samples(n)
-    metric_jacobians = frame_jacobians[metric_rows]
-    metric_weight = n / metric_jacobians.shape[0]
+    metric_weight = n / metric.n_samples
     status: Status = "iteration_limit"
     decrement, message, iterations = float("inf"), "", 0
     for _ in range(max_iterations):
         iterations += 1
         grad = theta_gradient(layout, psi)
         hess = (2.0 * metric_weight) * fisher_information_ml(
-            theta, metric_jacobians, layout, known_covariance=known_covariance
+            theta, metric.frame_jacobians, layout, known_covariance=known_covariance
         )
         mu = PROXIMAL_RTOL * float(np.max(np.diag(hess) / inv_scale2))
         gram = hess + np.diag(mu * inv_scale2)

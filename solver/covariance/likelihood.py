@@ -15,7 +15,6 @@ the ML form with ``Ω_n = P_nn − s_n s_nᵀ``, s = Pr (block n).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +22,8 @@ from numpy.typing import NDArray
 
 from solver.covariance._blas import gram_tn
 from solver.covariance.layout import CovarianceLayout, block_diagonal, column_matrix
-from solver.covariance.statistics import DEFAULT_CHUNK_SIZE, design_gram
+from solver.covariance.samples import CovarianceSamples, SampleChunk, total
+from solver.covariance.statistics import design_gram
 from solver.errors import CalibrationError, SolverError
 
 FloatArray = NDArray[np.float64]
@@ -62,17 +62,23 @@ class _Chunk:
     basis: FloatArray | None  # (n, d, k)
 
 
-def _chunks(
-    residuals: FloatArray,
-    frame_jacobians: FloatArray,
-    layout: CovarianceLayout,
-    basis: FloatArray | None,
-    chunk_size: int,
-) -> Iterator[_Chunk]:
-    for start in range(0, residuals.shape[0], chunk_size):
-        stop = start + chunk_size
-        cols = column_matrix(frame_jacobians[start:stop], layout)
-        yield _Chunk(cols, residuals[start:stop], None if basis is None else basis[start:stop])
+@dataclass(frozen=True)
+class _EECovariance:
+    """What a kernel needs to form Σ_E on a chunk: the θ layout, blockdiag(Σ_f) as
+    :func:`_chain_covariance` gives it, a known part of Σ_E (d, d) or None, and the transform
+    (p, k) of the fit Jacobian to an orthonormal basis of its column space (REML) or None."""
+
+    layout: CovarianceLayout
+    sigma_all: FloatArray
+    known: FloatArray | None
+    transform: FloatArray | None = None
+
+    def chunk(self, samples: SampleChunk) -> _Chunk:
+        basis = None
+        if self.transform is not None:
+            assert samples.fit_jacobian is not None
+            basis = samples.fit_jacobian @ self.transform
+        return _Chunk(column_matrix(samples.frame_jacobians, self.layout), samples.residuals, basis)
 
 
 def _chain_covariance(layout: CovarianceLayout, theta: FloatArray) -> FloatArray:
@@ -125,76 +131,93 @@ def _psi_from_omega(chunk: _Chunk, omega: FloatArray, n_frames: int) -> FloatArr
 
 def gaussian_nll(
     theta: FloatArray,
-    residuals: FloatArray,
-    frame_jacobians: FloatArray,
+    samples: CovarianceSamples,
     layout: CovarianceLayout,
     *,
     known_covariance: FloatArray | None = None,
-    chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> tuple[float, FloatArray]:
     """Eq. (17): ``Σ_n [log det Σ_E(q_n) + r_nᵀ Σ_E(q_n)⁻¹ r_n]`` and Ψ = ∂/∂Σ_f (F, 6, 6).
 
     Returns (inf, 0) where some Σ_E is not positive definite. Constants (N·d·log 2π) omitted.
+    One pass over the samples.
     """
-    sigma_all = _chain_covariance(layout, theta)
-    value, psi = 0.0, np.zeros((layout.n_frames, 6, 6))
-    for chunk in _chunks(residuals, frame_jacobians, layout, None, chunk_size):
-        ee = _ee_chunk(chunk, sigma_all, known_covariance)
-        if ee is None:
-            return float("inf"), psi
-        _, inv, logdet = ee
-        a = np.einsum("nij,nj->ni", inv, chunk.residuals)
-        value += float(logdet.sum() + np.einsum("ni,ni->", a, chunk.residuals))
-        omega = inv - a[:, :, None] * a[:, None, :]
-        psi += _psi_from_omega(chunk, omega, layout.n_frames)
+    model = _EECovariance(layout, _chain_covariance(layout, theta), known_covariance)
+    parts = samples.map(_ml_chunk, model)
+    done = [part for part in parts if part is not None]
+    if len(done) < len(parts):
+        return float("inf"), np.zeros((layout.n_frames, 6, 6))
+    value = float(sum(part[0] for part in done))
+    psi = total([part[1] for part in done])
     return value, 0.5 * (psi + psi.transpose(0, 2, 1))
 
 
-def orthonormal_fit_basis(fit_jacobian: FloatArray, *, rtol: float = 1e-10) -> FloatArray:
-    """Orthonormal basis (N, d, k) of the column space of the stacked fit Jacobian X (N, d, p).
+def _ml_chunk(model: _EECovariance, samples: SampleChunk) -> tuple[float, FloatArray] | None:
+    chunk = model.chunk(samples)
+    ee = _ee_chunk(chunk, model.sigma_all, model.known)
+    if ee is None:
+        return None
+    _, inv, logdet = ee
+    a = np.einsum("nij,nj->ni", inv, chunk.residuals)
+    value = float(logdet.sum() + np.einsum("ni,ni->", a, chunk.residuals))
+    omega = inv - a[:, :, None] * a[:, None, :]
+    return value, _psi_from_omega(chunk, omega, model.layout.n_frames)
 
-    Columns with relative singular value below ``rtol`` (unidentifiable parameters the
-    deterministic fit removed) are dropped; REML only depends on this column space.
-    """
-    n, d, p = fit_jacobian.shape
-    u, s, _ = np.linalg.svd(fit_jacobian.reshape(n * d, p), full_matrices=False)
+
+def fit_basis_transform(samples: CovarianceSamples, *, rtol: float = 1e-10) -> FloatArray:
+    """``T`` (p, k) such that ``X_n T`` is an orthonormal basis of the column space of the
+    stacked fit Jacobian X (Σ_n T ᵀX_nᵀX_n T = I), from the R factors of the chunks merged in
+    order (a tall-skinny QR: as accurate as an SVD of X, one pass). With ``XᵀX = RᵀR =
+    V S² Vᵀ``, ``T = V S⁻¹`` over the singular values above ``rtol`` of the largest (the
+    unidentifiable parameters the deterministic fit removed are dropped); REML only depends
+    on this column space."""
+    factors = [r for r in samples.map(_fit_r, None) if r is not None]
+    if not factors:
+        raise SolverError("fit_jacobian has no rows")
+    upper = factors[0]
+    for r in factors[1:]:
+        upper = np.asarray(np.linalg.qr(np.vstack([upper, r]), mode="r"), dtype=float)
+    _, s, vt = np.linalg.svd(upper)
     keep = s > rtol * (s[0] if s.size else 0.0)
     if not np.any(keep):
         raise SolverError("fit_jacobian has no non-zero column")
-    return u[:, keep].reshape(n, d, int(keep.sum()))
+    return np.asarray(vt[keep].T / s[keep], dtype=float)
+
+
+def _fit_r(_: None, samples: SampleChunk) -> FloatArray | None:
+    """R (p, p) of the chunk's stacked fit Jacobian (n·d, p), None for an empty chunk."""
+    if samples.fit_jacobian is None:
+        raise SolverError("REML needs the deterministic fit's Jacobian with the samples")
+    n, d, p = samples.fit_jacobian.shape
+    if n == 0:
+        return None
+    stacked = samples.fit_jacobian.reshape(n * d, p)
+    if n * d < p:
+        stacked = np.vstack([stacked, np.zeros((p - n * d, p))])
+    return np.asarray(np.linalg.qr(stacked, mode="r"), dtype=float)
 
 
 def restricted_nll(
     theta: FloatArray,
-    residuals: FloatArray,
-    frame_jacobians: FloatArray,
-    fit_basis: FloatArray,
+    samples: CovarianceSamples,
+    transform: FloatArray,
     layout: CovarianceLayout,
     *,
     known_covariance: FloatArray | None = None,
-    chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> tuple[float, FloatArray]:
     """REML NLL ``Σ log det Σ_E + log det(XᵀV⁻¹X) + rᵀPr`` and Ψ = ∂/∂Σ_f (F, 6, 6).
 
-    ``fit_basis`` (N, d, k) from :func:`orthonormal_fit_basis`. Two passes over the chunks,
-    O(N·d²·k + N·d·k²) per evaluation.
+    ``transform`` (p, k) from :func:`fit_basis_transform` (X is used through the orthonormal
+    basis ``X T``). Two passes over the samples: the sums ``XᵀV⁻¹X`` and ``XᵀV⁻¹r`` first,
+    then Ψ, which needs them; O(N·d²·k + N·d·k²) per evaluation.
     """
-    sigma_all = _chain_covariance(layout, theta)
-    k = fit_basis.shape[2]
-    value, fisher_x, u = 0.0, np.zeros((k, k)), np.zeros(k)
-    inverses = []  # Σ_E⁻¹ per chunk (N·d² floats, small next to the basis) for the second pass
-    for chunk in _chunks(residuals, frame_jacobians, layout, fit_basis, chunk_size):
-        ee = _ee_chunk(chunk, sigma_all, known_covariance)
-        if ee is None:
-            return float("inf"), np.zeros((layout.n_frames, 6, 6))
-        _, inv, logdet = ee
-        inverses.append(inv)
-        assert chunk.basis is not None
-        q = inv @ chunk.basis  # V⁻¹X, (n, d, k)
-        a = np.einsum("nij,nj->ni", inv, chunk.residuals)
-        value += float(logdet.sum() + np.einsum("ni,ni->", a, chunk.residuals))
-        fisher_x += gram_tn(chunk.basis.reshape(-1, k), q.reshape(-1, k))
-        u += np.einsum("ndk,nd->k", chunk.basis, a)
+    model = _EECovariance(layout, _chain_covariance(layout, theta), known_covariance, transform)
+    parts = samples.map(_reml_sums, model)
+    done = [part for part in parts if part is not None]
+    if len(done) < len(parts):
+        return float("inf"), np.zeros((layout.n_frames, 6, 6))
+    value = float(sum(part[0] for part in done))
+    fisher_x = total([part[1] for part in done])
+    u = total([part[2] for part in done])
     fisher_x = 0.5 * (fisher_x + fisher_x.T)
     try:
         chol = np.linalg.cholesky(fisher_x)
@@ -203,16 +226,42 @@ def restricted_nll(
     m_inv = np.linalg.inv(fisher_x)
     m_inv_u = m_inv @ u
     value += 2.0 * float(np.log(np.diag(chol)).sum()) - float(u @ m_inv_u)
-    psi = np.zeros((layout.n_frames, 6, 6))
-    chunks = _chunks(residuals, frame_jacobians, layout, fit_basis, chunk_size)
-    for chunk, inv in zip(chunks, inverses, strict=True):
-        assert chunk.basis is not None
-        q = inv @ chunk.basis
-        s = np.einsum("nij,nj->ni", inv, chunk.residuals) - q @ m_inv_u
-        p_nn = inv - (q @ m_inv) @ q.transpose(0, 2, 1)
-        omega = p_nn - s[:, :, None] * s[:, None, :]
-        psi += _psi_from_omega(chunk, omega, layout.n_frames)
+    psi = total(samples.map(_reml_psi, (model, m_inv, m_inv_u)))
     return value, 0.5 * (psi + psi.transpose(0, 2, 1))
+
+
+def _reml_sums(
+    model: _EECovariance, samples: SampleChunk
+) -> tuple[float, FloatArray, FloatArray] | None:
+    """A chunk's ``Σ log det Σ_E + rᵀV⁻¹r``, ``XᵀV⁻¹X`` (k, k) and ``XᵀV⁻¹r`` (k,)."""
+    chunk = model.chunk(samples)
+    ee = _ee_chunk(chunk, model.sigma_all, model.known)
+    if ee is None:
+        return None
+    _, inv, logdet = ee
+    assert chunk.basis is not None
+    k = chunk.basis.shape[2]
+    q = inv @ chunk.basis  # V⁻¹X, (n, d, k)
+    a = np.einsum("nij,nj->ni", inv, chunk.residuals)
+    value = float(logdet.sum() + np.einsum("ni,ni->", a, chunk.residuals))
+    fisher_x = gram_tn(chunk.basis.reshape(-1, k), q.reshape(-1, k))
+    return value, fisher_x, np.einsum("ndk,nd->k", chunk.basis, a)
+
+
+def _reml_psi(
+    argument: tuple[_EECovariance, FloatArray, FloatArray], samples: SampleChunk
+) -> FloatArray:
+    """A chunk's Ψ with ``Ω_n = P_nn − s_n s_nᵀ`` given (XᵀV⁻¹X)⁻¹ and (XᵀV⁻¹X)⁻¹XᵀV⁻¹r."""
+    model, m_inv, m_inv_u = argument
+    chunk = model.chunk(samples)
+    ee = _ee_chunk(chunk, model.sigma_all, model.known)
+    assert ee is not None and chunk.basis is not None  # the first pass saw them all PD
+    inv = ee[1]
+    q = inv @ chunk.basis
+    s = np.einsum("nij,nj->ni", inv, chunk.residuals) - q @ m_inv_u
+    p_nn = inv - (q @ m_inv) @ q.transpose(0, 2, 1)
+    omega = p_nn - s[:, :, None] * s[:, None, :]
+    return _psi_from_omega(chunk, omega, model.layout.n_frames)
 
 
 def _whitening(

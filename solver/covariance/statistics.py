@@ -78,6 +78,50 @@ def empty_statistics(
     return MomentStatistics(layout, np.zeros((q, q)), np.zeros(q), 0.0, 0, known_covariance)
 
 
+@dataclass(frozen=True)
+class JacobianRange:
+    """Per entry of the frame Jacobians (F, d, 6): the sum, minimum and maximum over ``n``
+    samples. Merges over chunks with ``+``; enough for the constant-Jacobian check of
+    :func:`~solver.covariance.identifiability.analyse_identifiability` (:meth:`pseudo_samples`)."""
+
+    total: FloatArray
+    low: FloatArray
+    high: FloatArray
+    n: int
+
+    @classmethod
+    def of(cls, frame_jacobians: FloatArray) -> JacobianRange:
+        """Of frame Jacobians (n, F, d, 6)."""
+        if frame_jacobians.shape[0] == 0:
+            return cls.empty(frame_jacobians.shape[1:])
+        return cls(
+            frame_jacobians.sum(axis=0),
+            frame_jacobians.min(axis=0),
+            frame_jacobians.max(axis=0),
+            int(frame_jacobians.shape[0]),
+        )
+
+    @classmethod
+    def empty(cls, shape: tuple[int, ...]) -> JacobianRange:
+        return cls(np.zeros(shape), np.full(shape, np.inf), np.full(shape, -np.inf), 0)
+
+    def __add__(self, other: JacobianRange) -> JacobianRange:
+        return JacobianRange(
+            self.total + other.total,
+            np.minimum(self.low, other.low),
+            np.maximum(self.high, other.high),
+            self.n + other.n,
+        )
+
+    def pseudo_samples(self) -> FloatArray:
+        """Two pseudo-samples (2, F, d, 6) with the samples' mean Jacobian and, per entry, its
+        largest deviation from the mean: the constant-Jacobian check sees the same mean and
+        spread as on all samples."""
+        mean = self.total / max(self.n, 1)
+        deviation = np.maximum(self.high - mean, mean - self.low)
+        return np.stack([mean + deviation, mean - deviation])
+
+
 def build_moment_statistics(
     residuals: FloatArray,
     frame_jacobians: FloatArray,

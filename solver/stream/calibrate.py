@@ -1,5 +1,5 @@
-"""The streamed calibration as a sequence of stages: warm start, first fit, outlier rule,
-refit and "before" fit side by side.
+"""The calibration of a recording as a sequence of stages over its chunks: warm start, first
+fit, outlier rule, refit and "before" fit side by side, covariances, held-out evaluation.
 """
 
 from __future__ import annotations
@@ -11,23 +11,31 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.calibration import (
-    FitOptions,
-    check_sample_count,
-)
+from solver.calibration import FitOptions, check_sample_count, fit_deterministic
+from solver.covariance.estimate import CovarianceEstimate, EstimatorName, estimate_from_samples
+from solver.covariance.samples import ArraySamples, CovarianceSamples, SampleChunk, row_stride
+from solver.covariance.solvers import SolverName
+from solver.evaluation import SplitError, score_splits, split_indices
 from solver.executors import Executor
+from solver.kinematics import forward_kinematics, parameter_names
+from solver.model import KinematicChain
 from solver.stream.chunks import StreamProblem, count_chunk_rows
+from solver.stream.covariance import StreamedSamples, streamed_covariance_sums
 from solver.stream.fit import (
     FitRequest,
     PassCount,
+    RowSample,
     StreamedFit,
     fit_streamed_together,
+    gather_rows,
     read_head,
     warm_start,
     warm_starts,
 )
 from solver.stream.screening import OutlierRule
 from solver.stream.sums import CovarianceSpec, CovarianceSums
+
+FloatArray = NDArray[np.float64]
 
 # --- the streamed calibration -------------------------------------------------------------
 
@@ -142,4 +150,233 @@ def calibrate_streamed_fits(
         stage,
         count.passes,
         fit.sums.covariance,
+    )
+
+
+# --- the whole calibration of a recording --------------------------------------------------
+
+BEFORE = "before"
+CALIBRATED = "calibrated"
+"""The two methods of the held-out evaluation: the nominal robot with the measurement frame and
+tool fitted ("before"), and the full calibration."""
+
+HELDOUT_ROWS = 5_000
+"""The held-out evaluation (DESIGN.md §4) fits and scores at most this many used rows, evenly
+spaced over the recording (every row below that): twenty in-memory fits of a 10⁶-pose
+recording would take minutes, and a held-out error needs thousands of poses, not millions."""
+
+IN_MEMORY_SAMPLES = 50_000
+"""Up to this many used samples the covariance stage gathers them into memory once (each
+likelihood evaluation then costs no sweep of the chain); beyond, every evaluation is a pass
+over the recording. The numbers are the same either way."""
+
+FULL_SCORING_SAMPLES = 200_000
+"""Up to this many used samples ML/REML iterate to convergence; beyond, they take
+:data:`LARGE_N_SCORING_STEPS` Fisher-scoring steps from the moment solution (each a pass over
+the recording, two for REML): from a √N-consistent start a scoring step gives an estimator as
+efficient as the converged one up to O(1/N), far below its standard error."""
+
+LARGE_N_SCORING_STEPS = 2
+CONVERGED_SCORING_STEPS = 200
+
+
+def scoring_steps(n_samples: int) -> int:
+    """The Fisher-scoring steps of ML/REML for ``n_samples`` used samples (a rule of N only,
+    so every path of a recording gets the same estimate)."""
+    if n_samples <= FULL_SCORING_SAMPLES:
+        return CONVERGED_SCORING_STEPS
+    return LARGE_N_SCORING_STEPS
+
+
+@dataclass(frozen=True)
+class CovarianceSettings:
+    """The covariance stage: frames, θ layout and known noise (``spec``), estimator, solver."""
+
+    spec: CovarianceSpec
+    estimator: EstimatorName = "reml"
+    solver: SolverName = "auto"
+
+
+@dataclass(frozen=True)
+class HeldoutSettings:
+    """DESIGN.md §4: one random train/test split per seed, ``train_fraction`` of the rows
+    training, on at most ``max_rows`` used rows (evenly spaced over the recording)."""
+
+    seeds: tuple[int, ...]
+    train_fraction: float = 0.9
+    max_rows: int = HELDOUT_ROWS
+
+
+@dataclass(frozen=True)
+class RecordingCalibration:
+    """A calibrated recording: the deterministic fits, the covariance estimate (None when not
+    asked for), the held-out splits, and ``sample``: the used rows whose row number is a
+    multiple of ``sample_stride``, in memory (the held-out evaluation's rows, and what a
+    report plots). ``stage_s``: wall time per stage; ``passes``: passes over the data."""
+
+    fits: StreamedCalibration
+    covariance: CovarianceEstimate | None
+    splits: list[SplitError]
+    sample: RowSample
+    sample_stride: int
+    stage_s: dict[str, float]
+    passes: int
+
+
+def calibrate_recording(
+    problem: StreamProblem,
+    executor: Executor,
+    options: FitOptions,
+    baseline_options: FitOptions,
+    settings: StreamSettings = StreamSettings(),
+    covariance: CovarianceSettings | None = None,
+    heldout: HeldoutSettings | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> RecordingCalibration:
+    """The calibration of a recording, whatever its size and wherever its chunks are
+    processed: the deterministic fits (:func:`calibrate_streamed_fits`, Eq. 8–10 and the
+    outlier rule), the covariances of the random perturbations (§IV-C; any estimator, by
+    :func:`~solver.covariance.estimate.estimate_from_samples`), and the held-out evaluation
+    of DESIGN.md §4. ``progress(stage, done, total)`` after "read", "fit", "baseline",
+    "covariance" and each held-out split ("heldout").
+    """
+    report = progress or (lambda stage, done, total: None)
+    run = calibrate_streamed_fits(
+        problem,
+        executor,
+        options,
+        baseline_options,
+        settings,
+        covariance=None if covariance is None else covariance.spec,
+        progress=lambda stage: report(stage, 1, 1),
+    )
+    count = PassCount(run.passes)
+    stage = dict(run.stage_s)
+    estimate = None
+    if covariance is not None:
+        clock = time.perf_counter()
+        estimate = covariance_stage(problem, executor, run, covariance, count)
+        stage["covariance"] = time.perf_counter() - clock
+        report("covariance", 1, 1)
+    clock = time.perf_counter()
+    limit = heldout.max_rows if heldout is not None else HELDOUT_ROWS
+    stride = row_stride(run.n_rows, limit)
+    sample = gather_rows(problem, executor, run.rule, stride)
+    count.passes += 1
+    splits: list[SplitError] = []
+    if heldout is not None:
+        evaluation = HeldoutProblem(
+            problem.chain, sample, problem.position_only, options, baseline_options, heldout
+        )
+        splits = heldout_splits(evaluation, executor, report)
+    stage["heldout"] = time.perf_counter() - clock
+    return RecordingCalibration(run, estimate, splits, sample, stride, stage, count.passes)
+
+
+def covariance_stage(
+    problem: StreamProblem,
+    executor: Executor,
+    run: StreamedCalibration,
+    settings: CovarianceSettings,
+    count: PassCount,
+    *,
+    in_memory_samples: int = IN_MEMORY_SAMPLES,
+) -> CovarianceEstimate:
+    """§IV-C at the refit's parameters, on the samples it used: gathered into memory up to
+    ``in_memory_samples`` of them, else every evaluation a pass over the recording."""
+    spec = settings.spec
+    sums = run.covariance
+    if sums is None:  # the refit stopped at its start: no pass took the statistics along
+        sums = streamed_covariance_sums(problem, executor, run.fit.params, spec, run.rule)
+        count.passes += 1
+    names = parameter_names(problem.chain)
+    fit_columns = None
+    if settings.estimator == "reml":
+        fit_columns = np.array([names.index(n) for n in run.fit.estimated], dtype=np.intp)
+    samples: CovarianceSamples = StreamedSamples(
+        problem,
+        executor,
+        run.fit.params,
+        spec.frames,
+        fit_columns,
+        run.rule,
+        sums.n,
+        run.n_rows,
+        count,
+    )
+    if sums.n <= in_memory_samples:
+        samples = ArraySamples.join(samples.map(_all_samples, None), run.n_rows)
+    return estimate_from_samples(
+        samples,
+        spec.layout,
+        known=spec.known,
+        estimator=settings.estimator,
+        solver=settings.solver,
+        noise_name=spec.noise_name,
+        statistics=(sums.stats, sums.jacobians),
+        max_likelihood_iterations=scoring_steps(sums.n),
+    )
+
+
+def _all_samples(_: None, chunk: SampleChunk) -> SampleChunk:
+    return chunk
+
+
+@dataclass(frozen=True, eq=False)
+class HeldoutProblem:
+    """The held-out evaluation of rows in memory (``sample``): the chain, the two methods'
+    fit settings and the splits (sent to the workers once per call)."""
+
+    chain: KinematicChain
+    sample: RowSample
+    position_only: bool
+    options: FitOptions
+    baseline_options: FitOptions
+    settings: HeldoutSettings
+
+
+def _heldout_fit(evaluation: HeldoutProblem, item: tuple[int, str]) -> FloatArray:
+    """The predicted test poses (n_test, 4, 4) of one method on one split."""
+    seed, method = item
+    sample = evaluation.sample
+    train, test = split_indices(sample.n, seed, evaluation.settings.train_fraction)
+    options = evaluation.baseline_options if method == BEFORE else evaluation.options
+    fit = fit_deterministic(
+        evaluation.chain,
+        sample.joint_positions[train],
+        sample.measured_pose[train],
+        sample.loads_nm[train],
+        position_only=evaluation.position_only,
+        options=options,
+    )
+    return forward_kinematics(
+        evaluation.chain, fit.params, sample.joint_positions[test], sample.loads_nm[test]
+    )
+
+
+def heldout_splits(
+    evaluation: HeldoutProblem,
+    executor: Executor,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> list[SplitError]:
+    """DESIGN.md §4 on the gathered rows: per seed, the nominal robot (frame and tool fitted)
+    and the calibration fitted on the training rows and scored on the test rows, the two fits
+    of a split side by side on the executor."""
+    seeds = evaluation.settings.seeds
+    predictions: dict[tuple[int, str], FloatArray] = {}
+    for done, seed in enumerate(seeds, start=1):
+        items = [(seed, BEFORE), (seed, CALIBRATED)]
+        for item, predicted in zip(
+            items, executor.map(_heldout_fit, evaluation, items), strict=True
+        ):
+            predictions[item] = predicted
+        if progress is not None:
+            progress("heldout", done, len(seeds))
+    return score_splits(
+        evaluation.sample.measured_pose,
+        predictions,
+        [BEFORE, CALIBRATED],
+        position_only=evaluation.position_only,
+        seeds=seeds,
+        train_fraction=evaluation.settings.train_fraction,
     )

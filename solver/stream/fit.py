@@ -416,14 +416,29 @@ def fit_streamed(
 
 
 @dataclass(frozen=True, eq=False)
-class HeadSample:
-    """The first rows of a recording, in memory, as the in-memory fit takes them."""
+class RowSample:
+    """Rows of a recording in memory, as the in-memory fit takes them: joint positions (n, k)
+    rad, measured poses (n, 4, 4) in the measurement frame, gravity loads (n, n_axes) N·m and
+    the rows' 0-based indices in the recording (n,)."""
 
     joint_positions: FloatArray
     measured_pose: FloatArray
     loads_nm: FloatArray
+    rows: IntArray
 
-    def kept_by(self, problem: StreamProblem, rule: OutlierRule) -> HeadSample:
+    @property
+    def n(self) -> int:
+        return int(self.rows.size)
+
+    def take(self, index: IntArray) -> RowSample:
+        return RowSample(
+            self.joint_positions[index],
+            self.measured_pose[index],
+            self.loads_nm[index],
+            self.rows[index],
+        )
+
+    def kept_by(self, problem: StreamProblem, rule: OutlierRule) -> RowSample:
         """The rows ``rule`` keeps (the same computation as on streamed chunks)."""
         keep = rule_mask(
             problem,
@@ -433,10 +448,10 @@ class HeadSample:
             None if problem.position_only else self.measured_pose[:, :3, :3].transpose(1, 2, 0),
             np.ascontiguousarray(self.measured_pose[:, :3, 3].T),
         )
-        return HeadSample(self.joint_positions[keep], self.measured_pose[keep], self.loads_nm[keep])
+        return self.take(np.flatnonzero(keep))
 
 
-def read_head(problem: StreamProblem, n_rows: int) -> HeadSample:
+def read_head(problem: StreamProblem, n_rows: int) -> RowSample:
     """The first ``n_rows`` rows (fewer if the recording is shorter), with gravity loads."""
     chunks: list[ChunkArrays] = []
     total = 0
@@ -461,11 +476,57 @@ def read_head(problem: StreamProblem, n_rows: int) -> HeadSample:
         gravity_model(problem), q, gravity_base=problem.gravity_base_m_s2, payload_kg=payload
     )
     pose = lie.pose_matrix(position, None if quaternion is None else quaternion[:n_rows])
-    return HeadSample(q, pose, loads)
+    return RowSample(q, pose, loads, np.arange(q.shape[0], dtype=np.intp))
+
+
+@dataclass(frozen=True, eq=False)
+class _GatherPass:
+    problem: StreamProblem
+    rule: OutlierRule | None
+    stride: int
+
+
+def gather_chunk(request: _GatherPass, ref: Any) -> RowSample:
+    """The used rows of one chunk whose row number is a multiple of the stride."""
+    problem = request.problem
+    blocks = prepared_blocks(problem, ref)
+    parts = []
+    for index, block in enumerate(blocks):
+        used = used_mask(problem, request.rule, ref, index, blocks)
+        rows = block.first_row + np.arange(block.n)
+        keep = np.flatnonzero((rows % request.stride == 0) & (True if used is None else used))
+        q = np.stack([m.angle for m in block.motions], axis=1)[keep]
+        pose = np.zeros((keep.size, 4, 4))
+        pose[:, 3, 3] = 1.0
+        pose[:, :3, 3] = block.translation[:, keep].T
+        if block.rotation is None:
+            pose[:, :3, :3] = np.eye(3)
+        else:
+            pose[:, :3, :3] = block.rotation[:, :, keep].transpose(2, 0, 1)
+        parts.append(RowSample(q, pose, block.loads_nm[keep], rows[keep].astype(np.intp)))
+    return join_rows(parts)
+
+
+def join_rows(parts: Sequence[RowSample]) -> RowSample:
+    """Row samples one after the other."""
+    return RowSample(
+        np.concatenate([p.joint_positions for p in parts]),
+        np.concatenate([p.measured_pose for p in parts]),
+        np.concatenate([p.loads_nm for p in parts]),
+        np.concatenate([p.rows for p in parts]),
+    )
+
+
+def gather_rows(
+    problem: StreamProblem, executor: Executor, rule: OutlierRule | None, stride: int
+) -> RowSample:
+    """One pass: the rows ``rule`` keeps whose row number is a multiple of ``stride``, in
+    memory, in row order (the same rows however the recording is cut into chunks)."""
+    return join_rows(executor.map(gather_chunk, _GatherPass(problem, rule, stride), problem.refs))
 
 
 def warm_start(
-    problem: StreamProblem, head: HeadSample, options: FitOptions
+    problem: StreamProblem, head: RowSample, options: FitOptions
 ) -> tuple[ChainParameters, IntArray]:
     """In-memory fit of the head rows (closed-form alignment, pivoted-QR pruning, Eq. 10):
     its parameters start the streamed fit and its kept columns are the streamed fit's."""
@@ -483,7 +544,7 @@ def warm_start(
 
 
 def _warm_start_task(
-    shared: tuple[StreamProblem, HeadSample], options: FitOptions
+    shared: tuple[StreamProblem, RowSample], options: FitOptions
 ) -> tuple[ChainParameters, IntArray]:
     return warm_start(*shared, options)
 
@@ -491,7 +552,7 @@ def _warm_start_task(
 def warm_starts(
     problem: StreamProblem,
     executor: Executor,
-    head: HeadSample,
+    head: RowSample,
     options: Sequence[FitOptions],
 ) -> list[tuple[ChainParameters, IntArray]]:
     """:func:`warm_start` for each of ``options`` on the executor's workers, side by side

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,6 +19,7 @@ from solver.covariance.estimate import (
 )
 from solver.covariance.layout import CovarianceLayout, Structure, make_layout
 from solver.covariance.statistics import (
+    JacobianRange,
     MomentStatistics,
     build_moment_statistics,
     diag_statistics_batch_last,
@@ -105,41 +105,23 @@ class CovarianceSpec:
 
 @dataclass(frozen=True)
 class CovarianceSums:
-    """Per chunk (and added): moment statistics (Eq. 14) or the sandwich meat Σ 2K̃ᵀK̃, and the
-    sum, minimum and maximum of the frame Jacobians (F, d, 6) for the constant-Jacobian check.
-    """
+    """Per chunk (and added): the moment statistics (Eq. 14) of the used samples and the range
+    of their frame Jacobians (F, d, 6) for the constant-Jacobian check."""
 
-    stats: MomentStatistics | None
-    meat: FloatArray | None
-    jacobian_sum: FloatArray
-    jacobian_min: FloatArray
-    jacobian_max: FloatArray
-    n: int
+    stats: MomentStatistics
+    jacobians: JacobianRange
+
+    @property
+    def n(self) -> int:
+        return self.stats.n_samples
 
     @classmethod
-    def empty(cls, spec: CovarianceSpec, *, sandwich: bool) -> CovarianceSums:
+    def empty(cls, spec: CovarianceSpec) -> CovarianceSums:
         shape = (len(spec.frames), spec.layout.residual_dim, 6)
-        return cls(
-            None if sandwich else empty_statistics(spec.layout, spec.known),
-            np.zeros((spec.layout.n_params,) * 2) if sandwich else None,
-            np.zeros(shape),
-            np.full(shape, np.inf),
-            np.full(shape, -np.inf),
-            0,
-        )
+        return cls(empty_statistics(spec.layout, spec.known), JacobianRange.empty(shape))
 
     def __add__(self, other: CovarianceSums) -> CovarianceSums:
-        def add(a: Any, b: Any) -> Any:
-            return b if a is None else a if b is None else a + b
-
-        return CovarianceSums(
-            add(self.stats, other.stats),
-            add(self.meat, other.meat),
-            self.jacobian_sum + other.jacobian_sum,
-            np.minimum(self.jacobian_min, other.jacobian_min),
-            np.maximum(self.jacobian_max, other.jacobian_max),
-            self.n + other.n,
-        )
+        return CovarianceSums(self.stats + other.stats, self.jacobians + other.jacobians)
 
 
 @dataclass(frozen=True)
@@ -229,7 +211,9 @@ def covariance_sums(
             known_covariance=spec.known,
         )
     low, high = frame_range
-    return CovarianceSums(stats, None, frame_view(total), frame_view(low), frame_view(high), n_used)
+    return CovarianceSums(
+        stats, JacobianRange(frame_view(total), frame_view(low), frame_view(high), n_used)
+    )
 
 
 def covariance_spec(

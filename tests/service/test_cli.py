@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 
 from schemas.calibration import CalibrationResult
-from service import pipeline
+from service import result_json
 from solver import lie
 from tests.service.cli_support import run
 
@@ -104,7 +104,7 @@ def test_calibrate_then_predict_round_trip(
     predicted = pd.read_csv(poses_path)
     data = pd.read_csv(recording)
     q = data[result.robot.joint_names].to_numpy()
-    expected = pipeline.predict_poses(result, q)
+    expected = result_json.predict_poses(result, q)
     assert np.allclose(predicted[["x", "y", "z"]].to_numpy(), expected[:, :3, 3], atol=1e-12)
     rotation = lie.pose_matrix(
         np.zeros((len(q), 3)), predicted[["qx", "qy", "qz", "qw"]].to_numpy()

@@ -15,7 +15,7 @@ import pytest
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import write_dataset
-from service import cli, pipeline, ranking, scenarios
+from service import cli, pipeline, ranking, result_json, scenarios
 from solver.errors import KincalError
 from solver.kinematics import evaluate_chain
 from solver.model import sample_configurations
@@ -63,7 +63,7 @@ def test_calibrate_recovers_the_task_score_of_held_out_configurations() -> None:
     assert result.covariance is not None
     assert [f.name for f in result.covariance.frames] == result.robot.joint_names
     assert result.covariance.noise.std == pytest.approx(_simulated(800)[1].noise_sigma)
-    chain, _ = pipeline.result_chain(result)
+    chain, _ = result_json.result_chain(result)
     q = sample_configurations(chain, 200, np.random.default_rng(3), range_fraction=0.8)
     predicted = ranking.predict_covariances(result, q, include_noise=False)
     truth = _true_ee_covariance(800, q)
@@ -268,10 +268,16 @@ def test_cli_calibrate_with_a_measured_noise_covariance(
         (["--solver", "adam"], "covariance_solver"),
         (["--covariance", "full", "--solver", "nnls"], "nnls"),
         (["--noise-std", "1,2"], "--noise-std takes 6 comma-separated numbers"),
-        (["--noise-std", "0,0,0,-1,0,0"], "option noise_std: Value error, standard deviations"),
+        (
+            ["--noise-std", "0,0,0,-1,0,0"],
+            "option noise_std (--noise-std): Value error, standard deviations",
+        ),
         (["--noise-covariance", "{missing}"], "cannot read noise covariance"),
         (["--noise-covariance", "{not_json}"], "is not JSON"),
-        (["--noise-covariance", "{asymmetric}"], "option noise_covariance: Value error, must be"),
+        (
+            ["--noise-covariance", "{asymmetric}"],
+            "option noise_covariance (--noise-covariance): Value error, must be",
+        ),
         (["--noise-covariance", "{measured}", "--noise-std", "0,0,0,0,0,0"], "not both"),
         (["--covariance-frames", "elbow"], "covariance_frames"),
         (["--covariance-axes", "twist"], "covariance_axes"),

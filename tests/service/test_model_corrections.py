@@ -13,7 +13,7 @@ from schemas.calibration import CalibrationOptions, CalibrationResult, ModelCorr
 from schemas.dataset import read_dataset
 from schemas.discovery import FindingsResult
 from schemas.ranking import RankingOptions
-from service import corrections, discovery, pipeline, ranking, scenarios
+from service import corrections, discovery, ranking, result_json, scenarios
 from service.urdf_export import export_urdf
 from solver import lie
 from solver.discovery.features import probe_chain
@@ -140,7 +140,7 @@ def test_predict_applies_the_gear_correction_at_new_raw_readings(
     q_corrected[:, j] += entry.parameters["sin_rad"] * (
         np.sin(2 * angle) - means[f"sin2:{entry.joint}"]
     ) + entry.parameters["cos_rad"] * (np.cos(2 * angle) - means[f"cos2:{entry.joint}"])
-    chain, params = pipeline.result_chain(result)
+    chain, params = result_json.result_chain(result)
     loads = gravity_loads(chain, q_corrected, gravity_base=np.array([0.0, 0.0, -9.81]))
     expected = forward_kinematics(chain, params, q_corrected, loads)
     np.testing.assert_allclose(with_xyz, expected[:, :3, 3], rtol=0, atol=1e-12)
@@ -153,7 +153,7 @@ def test_rank_and_covariances_score_the_corrected_configurations(
     result: CalibrationResult,
 ) -> None:
     q, _ = _held_out(30)
-    chain, _ = pipeline.result_chain(result)
+    chain, _ = result_json.result_chain(result)
     q_true = corrections.true_configurations(result, chain, q)
     assert 5e-5 < np.abs(q_true - q).max() < 5e-4
     plain = result.model_copy(update={"model_corrections": None})
@@ -179,7 +179,7 @@ def test_rank_target_reports_the_raw_readings_that_reach_the_target(
     correction maps back onto that configuration."""
     from service import corrections
 
-    chain, _ = pipeline.result_chain(result)
+    chain, _ = result_json.result_chain(result)
     q_true = sample_configurations(chain, 20, np.random.default_rng(7))
     readings = corrections.raw_readings(result, chain, q_true)
     assert np.abs(readings - q_true).max() > 5e-5
@@ -191,7 +191,7 @@ def test_rank_target_reports_the_raw_readings_that_reach_the_target(
 def _with_drift(result: CalibrationResult) -> CalibrationResult:
     """``result`` as if discovery had also found a linear thermal drift of joint 2."""
     names = tuple(result.robot.joint_names)
-    term = drift_term(probe_chain(pipeline.result_chain(result)[0]), 1, "linear", "s")
+    term = drift_term(probe_chain(result_json.result_chain(result)[0]), 1, "linear", "s")
     drift = discovery._model_correction(term, np.array([1e-6]), {"time:linear": 298.0}, names)
     assert not drift.applied_in_prediction
     record = result.model_corrections
@@ -237,13 +237,14 @@ def test_export_urdf_refuses_a_result_with_joint_corrections(
     args += ["--model", folder / "findings.json", "--export-urdf", folder / "robot.urdf"]
     code, _, err = run([*args, "-o", folder / "refused.json"], capsys, monkeypatch)
     assert code == 2 and err.count("\n") == 1 and "cannot export a URDF" in err
-    assert not (folder / "refused.json").exists()  # refused before calibrating
+    assert (folder / "refused.json").exists()  # the result is kept, the URDF refused
+    assert not (folder / "robot.urdf").exists()
 
 
 def test_findings_made_with_another_urdf_are_carried_with_a_note(folder: Path) -> None:
     findings = FindingsResult.model_validate_json((folder / "findings.json").read_bytes())
     description = robot("kinova")
-    chain = pipeline.chain_for(description, CalibrationOptions())
+    chain = result_json.chain_for(description, CalibrationOptions())
     dataset = read_dataset(folder / "gear.csv", chain.joint_names)
     same = discovery.carry_model(findings, dataset, description)
     assert not any("another URDF" in note for note in same.notes)

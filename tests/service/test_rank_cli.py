@@ -19,12 +19,21 @@ from schemas.calibration import (
     CovarianceResult,
     SolverReport,
 )
-from service import pipeline, ranking, scenarios
+from service import pipeline, ranking, result_json, scenarios
 from service.robots import load_robot
 from solver import lie
 from solver.evaluation import cross_validate
+from solver.executors import InProcessExecutor
 from solver.model import sample_configurations
 from solver.ranking import TaskMetric, ee_covariance
+from solver.stream.calibrate import (
+    BEFORE,
+    CALIBRATED,
+    HeldoutProblem,
+    HeldoutSettings,
+    heldout_splits,
+)
+from solver.stream.fit import RowSample
 from tests.service.cli_support import run
 
 NOISE_STD = (2e-4, 2e-4, 2e-4, 3e-4, 3e-4, 3e-4)
@@ -74,7 +83,7 @@ def files(result: CalibrationResult, tmp_path_factory: pytest.TempPathFactory) -
     with_cov.write_text(result.model_dump_json(), encoding="utf-8")
     without = folder / "no_covariance.json"
     without.write_text(result.model_copy(update={"covariance": None}).model_dump_json(), "utf-8")
-    chain, _ = pipeline.result_chain(result)
+    chain, _ = result_json.result_chain(result)
     q = sample_configurations(chain, 30, np.random.default_rng(5), range_fraction=0.8)
     configs = folder / "configs.csv"
     pd.DataFrame(q, columns=list(chain.joint_names)).to_csv(
@@ -198,7 +207,7 @@ def test_rank_target_ranks_ik_candidates_that_reach_it(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     q = pd.read_csv(files["configs"]).to_numpy()[:1]
-    pose = pipeline.predict_poses(result, q)[0]
+    pose = result_json.predict_poses(result, q)[0]
     target = [*pose[:3, 3], *lie.matrix_to_quaternion_xyzw(pose[:3, :3])]
     out = files["folder"] / "target.json"
     text = ",".join(f"{v:.17g}" for v in target)
@@ -210,7 +219,7 @@ def test_rank_target_ranks_ik_candidates_that_reach_it(
     assert 1 <= len(entries) <= 6 and document["free_axis"] == [0.0, 0.0, 1.0]
     assert np.all(np.diff([e["score"] for e in entries]) >= 0.0)
     joints = np.array([e["joint_positions_rad"] for e in entries])
-    reached = pipeline.predict_poses(result, joints)
+    reached = result_json.predict_poses(result, joints)
     for e, x in zip(entries, reached, strict=True):
         assert e["ik_translation_error_m"] < 1e-6 and e["ik_rotation_error_rad"] < 1e-6
         rotated = pose @ lie.se3_exp(np.r_[0.0, 0.0, 0.0, 0.0, 0.0, e["free_rotation_rad"]])
@@ -286,7 +295,7 @@ def test_gp_calibration_method_is_a_table_ii_column() -> None:
     )
     dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
     options = CalibrationOptions(heldout=False, seeds=[1, 2])
-    data = pipeline.prepare(pipeline.chain_for(robot, options), dataset, options)
+    data = result_json.prepare(result_json.chain_for(robot, options), dataset, options)
     used = np.arange(dataset.n_samples)
     gp = cross_validate(
         data.measured_pose,
@@ -294,9 +303,18 @@ def test_gp_calibration_method_is_a_table_ii_column() -> None:
         position_only=False,
         seeds=options.seeds,
     )
-    ours = pipeline.heldout_splits(data, used, options)
+    sample = RowSample(data.joint_positions, data.measured_pose, data.loads_nm, used)
+    problem = HeldoutProblem(
+        data.chain,
+        sample,
+        False,
+        pipeline.fit_options(options),
+        pipeline.fit_options(options, baseline=True, n_links=data.chain.n_links),
+        HeldoutSettings(tuple(options.seeds)),
+    )
+    ours = heldout_splits(problem, InProcessExecutor())
     mean = {
         name: np.mean([s.translation_mm for s in [*gp, *ours] if s.method == name])
-        for name in ("gp", pipeline.BEFORE, pipeline.CALIBRATED)
+        for name in ("gp", BEFORE, CALIBRATED)
     }
-    assert mean[pipeline.CALIBRATED] < mean["gp"] < mean[pipeline.BEFORE]
+    assert mean[CALIBRATED] < mean["gp"] < mean[BEFORE]

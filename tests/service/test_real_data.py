@@ -7,7 +7,7 @@ import pytest
 
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import read_dataset
-from service import pipeline
+from service import pipeline, result_json
 from tests.conftest import REAL_DATA, robot
 
 REAL_SETS = {
@@ -21,7 +21,7 @@ def test_real_recording_calibrates_and_heldout_error_drops(name: str) -> None:
     robot_name, relative = REAL_SETS[name]
     description = robot(robot_name)
     options = CalibrationOptions()
-    chain = pipeline.chain_for(description, options)
+    chain = result_json.chain_for(description, options)
     dataset = read_dataset(
         REAL_DATA / relative, chain.joint_names, other_joint_names=chain.other_joint_names
     )
@@ -44,7 +44,7 @@ def test_fr3_camera_mount_matches_upstream_estimate() -> None:
     """The tool offset kincal finds agrees with the upstream hand-measured mount (PROVENANCE)."""
     description = robot("panda")
     options = CalibrationOptions(heldout=False)
-    chain = pipeline.chain_for(description, options)
+    chain = result_json.chain_for(description, options)
     dataset = read_dataset(REAL_DATA / REAL_SETS["fr3"][1], chain.joint_names)
     result = pipeline.calibrate(dataset, description, options)
     upstream_m = np.array([0.0945, -0.009, 0.04055])  # approximate, 3D-printed mount

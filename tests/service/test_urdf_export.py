@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from service import pipeline, scenarios
+from service import pipeline, result_json, scenarios
 from service.urdf_export import MARKER_LINK, MEASUREMENT_LINK, export_urdf
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import sample_configurations
@@ -30,7 +30,7 @@ def _calibrated(name: str) -> CalibrationResult:
 @pytest.mark.parametrize("name", ["kinova", "panda", "ur10"])
 def test_exported_urdf_reproduces_calibrated_fk(name: str) -> None:
     result = _calibrated(name)
-    chain, params = pipeline.result_chain(result)
+    chain, params = result_json.result_chain(result)
     assert np.any(params.compliance_rad_per_nm != 0.0)  # the test covers a compliant calibration
     model = pin.buildModelFromXML(export_urdf(result))
     data = model.createData()

@@ -11,13 +11,14 @@ from solver.covariance import (
     estimate_covariances,
     fisher_information_ml,
     fisher_information_reml,
+    fit_basis_transform,
     gaussian_nll,
     make_layout,
-    orthonormal_fit_basis,
     restricted_nll,
     theta_gradient,
 )
 from solver.covariance.layout import block_diagonal
+from solver.covariance.samples import ArraySamples
 from solver.errors import CalibrationError
 from tests.solver import covariance_support as S
 
@@ -78,25 +79,29 @@ def test_ml_and_reml_values_equal_the_dense_formulas(structure, d, known):
     rs = r.reshape(-1)
     p = v_inv - v_inv @ x @ np.linalg.solve(x.T @ v_inv @ x, x.T @ v_inv)
     ml = np.linalg.slogdet(v)[1] + rs @ v_inv @ rs
-    basis = orthonormal_fit_basis(fit).reshape(-1, 5)
+    samples = ArraySamples(r, jac, fit, chunk_size=4)
+    transform = fit_basis_transform(samples)
+    basis = x @ transform
+    np.testing.assert_allclose(basis.T @ basis, np.eye(5), atol=1e-12)  # orthonormal
     reml = np.linalg.slogdet(v)[1] + np.linalg.slogdet(basis.T @ v_inv @ basis)[1] + rs @ p @ rs
-    kw = {"known_covariance": known_cov, "chunk_size": 4}
-    assert gaussian_nll(theta, r, jac, layout, **kw)[0] == pytest.approx(ml, rel=1e-10)
-    assert restricted_nll(theta, r, jac, orthonormal_fit_basis(fit), layout, **kw)[
-        0
-    ] == pytest.approx(reml, rel=1e-10)
+    kw = {"known_covariance": known_cov}
+    assert gaussian_nll(theta, samples, layout, **kw)[0] == pytest.approx(ml, rel=1e-10)
+    assert restricted_nll(theta, samples, transform, layout, **kw)[0] == pytest.approx(
+        reml, rel=1e-10
+    )
 
 
 @pytest.mark.parametrize(("structure", "d", "known"), CASES)
 @pytest.mark.parametrize("estimator", ["ml", "reml"])
 def test_analytic_gradients_match_finite_differences(structure, d, known, estimator):
     layout, theta, jac, r, known_cov, fit = case(structure, d, known, seed=1)
-    basis = orthonormal_fit_basis(fit)
+    samples = ArraySamples(r, jac, fit, chunk_size=4)
+    transform = fit_basis_transform(samples)
 
     def f(t):
         if estimator == "ml":
-            return gaussian_nll(t, r, jac, layout, known_covariance=known_cov, chunk_size=4)
-        return restricted_nll(t, r, jac, basis, layout, known_covariance=known_cov, chunk_size=4)
+            return gaussian_nll(t, samples, layout, known_covariance=known_cov)
+        return restricted_nll(t, samples, transform, layout, known_covariance=known_cov)
 
     grad = theta_gradient(layout, f(theta)[1])
     step = 1e-4 * np.abs(theta).max()
@@ -119,8 +124,9 @@ def test_fisher_information_equals_half_the_trace_formula(structure, d, known):
     ml = 0.5 * np.array([[np.trace(v_inv @ a @ v_inv @ b) for b in dv] for a in dv])
     reml = 0.5 * np.array([[np.trace(p @ a @ p @ b) for b in dv] for a in dv])
     got_ml = fisher_information_ml(theta, jac, layout, known_covariance=known_cov)
+    basis = fit @ fit_basis_transform(ArraySamples(np.zeros((10, d)), jac, fit))
     got_reml = fisher_information_reml(
-        theta, jac, orthonormal_fit_basis(fit), layout, known_covariance=known_cov, chunk_size=3
+        theta, jac, basis, layout, known_covariance=known_cov, chunk_size=3
     )
     np.testing.assert_allclose(got_ml, ml, rtol=1e-9, atol=1e-12 * np.abs(ml).max())
     np.testing.assert_allclose(got_reml, reml, rtol=1e-9, atol=1e-12 * np.abs(reml).max())
@@ -158,7 +164,10 @@ def test_ml_is_a_weighted_moment_match_not_eq_13():
 
     def scaled_grad(theta):
         _, psi = gaussian_nll(
-            theta, data.residuals, data.frame_jacobians, layout, known_covariance=noise
+            theta,
+            ArraySamples(data.residuals, data.frame_jacobians),
+            layout,
+            known_covariance=noise,
         )
         return theta_gradient(layout, psi) * scale / 300
 
@@ -169,9 +178,8 @@ def test_ml_is_a_weighted_moment_match_not_eq_13():
 
 
 def estimate_nll(theta, data, layout, noise):
-    return gaussian_nll(
-        theta, data.residuals, data.frame_jacobians, layout, known_covariance=noise
-    )[0]
+    samples = ArraySamples(data.residuals, data.frame_jacobians)
+    return gaussian_nll(theta, samples, layout, known_covariance=noise)[0]
 
 
 def test_reml_without_the_fit_jacobian_is_refused():

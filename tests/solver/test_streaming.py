@@ -23,10 +23,16 @@ from solver.executors import InProcessExecutor, blocks, make_executor
 from solver.gravity import StaticGravityModel, static_gravity_loads
 from solver.kinematics import evaluate_chain, parameter_names
 from solver.simulate import SimulatedRecording, SimulationSpec, look_at, simulate_recording
-from solver.stream.calibrate import StreamedCalibration, StreamSettings, calibrate_streamed_fits
+from solver.stream.calibrate import (
+    CovarianceSettings,
+    StreamedCalibration,
+    StreamSettings,
+    calibrate_streamed_fits,
+    covariance_stage,
+)
 from solver.stream.chunks import ArrayChunks, StreamProblem, release, row_ranges
-from solver.stream.covariance import estimate_covariances_streamed, streamed_covariance_sums
-from solver.stream.fit import streamed_fit_sums
+from solver.stream.covariance import streamed_covariance_sums
+from solver.stream.fit import PassCount, streamed_fit_sums
 from solver.stream.sums import CovarianceSpec, covariance_spec
 from tests.conftest import chain
 
@@ -90,14 +96,14 @@ def _run(problem: StreamProblem, executor, warm_rows: int):  # type: ignore[no-u
         StreamSettings(warm_start_rows=warm_rows),
         covariance=spec,
     )
-    cov = estimate_covariances_streamed(
+    # nnls (active set): the answer moves with G and h only by rounding; the samples streamed
+    cov = covariance_stage(
         problem,
         executor,
-        cal.fit.params,
-        spec,
-        rule=cal.rule,
-        solver="nnls",  # active set: the answer moves with G and h only by rounding
-        sums=cal.covariance,
+        cal,
+        CovarianceSettings(spec, "moment", "nnls"),
+        PassCount(),
+        in_memory_samples=0,
     )
     release(problem, executor)
     return cal, cov
@@ -156,6 +162,33 @@ def test_streamed_equals_the_in_memory_fit_and_covariances(recording: SimulatedR
     # pseudo-inverse on the identifiable subspace (rcond 1e-13): rounding shows at ~1e-7
     assert _close(cov.theta_covariance, memory.theta_covariance, 1e-6)
     assert cov.estimator == "moment" and cov.n_samples == used.size
+
+
+@pytest.mark.parametrize("estimator", ["ml", "reml"])
+def test_likelihood_estimates_stream_like_in_memory(
+    recording: SimulatedRecording, estimator: str
+) -> None:
+    """Issue 17: ML and REML over streamed passes (every NLL evaluation a pass over the
+    chunks, the fit basis from merged R factors) equal the same estimators on the samples
+    gathered into memory."""
+    problem = _problem(recording, 600, 256)
+    executor = InProcessExecutor()
+    spec = _spec(problem)
+    cal = calibrate_streamed_fits(
+        problem, executor, FULL, _baseline_options(), StreamSettings(800), covariance=spec
+    )
+    settings = CovarianceSettings(spec, estimator, "nnls")  # type: ignore[arg-type]
+    count = PassCount()
+    streamed = covariance_stage(problem, executor, cal, settings, count, in_memory_samples=0)
+    passes = count.passes
+    memory = covariance_stage(problem, executor, cal, settings, PassCount())
+    release(problem, executor)
+    assert streamed.solution.status == memory.solution.status == "optimal"
+    assert streamed.solution.iterations == memory.solution.iterations
+    assert passes > streamed.solution.iterations  # each evaluation was a pass
+    assert _close(streamed.theta, memory.theta, 1e-8)
+    assert streamed.theta_covariance is not None and memory.theta_covariance is not None
+    assert _close(streamed.theta_covariance, memory.theta_covariance, 1e-6)
 
 
 @pytest.mark.parametrize(
@@ -346,8 +379,8 @@ def test_statistics_taken_along_the_fit_equal_a_pass_of_their_own(
     assert _close(along.stats.cross, alone.stats.cross, 1e-12)
     assert along.stats.const == pytest.approx(alone.stats.const, rel=1e-12)
     for got, want in [
-        (along.jacobian_sum, alone.jacobian_sum),
-        (along.jacobian_min, alone.jacobian_min),
-        (along.jacobian_max, alone.jacobian_max),
+        (along.jacobians.total, alone.jacobians.total),
+        (along.jacobians.low, alone.jacobians.low),
+        (along.jacobians.high, alone.jacobians.high),
     ]:
         assert _close(got, want, 1e-12)

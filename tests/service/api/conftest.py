@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import io
-import math
 import os
 import uuid
 from collections.abc import Callable, Iterator
@@ -24,7 +23,6 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.engine import make_url
 
-from schemas.calibration import CalibrationResult
 from schemas.dataset import PoseDataset, write_dataset
 from service import scenarios
 from service.api import create_app
@@ -203,32 +201,3 @@ def assert_problem(response: Any, status: int, *fragments: str) -> dict[str, Any
 
 def client_api(client: TestClient, key: str | None = None) -> KincalClient:
     return KincalClient(api_key=key, client=client)
-
-
-def comparable_result(result: CalibrationResult) -> dict[str, Any]:
-    """A result as JSON data without what legitimately differs between two identical runs
-    (creation time, solver times, the dataset's source name)."""
-    document = result.model_dump(mode="json")
-    document.pop("created_utc")
-    document["solver"].pop("time_s")
-    if document.get("covariance") is not None:
-        document["covariance"]["solver"].pop("time_s")
-    document["dataset"].pop("source")
-    return document
-
-
-def assert_documents_close(got: Any, want: Any, where: str = "") -> None:
-    """Equal JSON structure, numbers equal to 1e-9 relative (e.g. a different summation order)."""
-    if isinstance(want, dict):
-        assert isinstance(got, dict) and got.keys() == want.keys(), where
-        for key in want:
-            assert_documents_close(got[key], want[key], f"{where}.{key}")
-    elif isinstance(want, list):
-        assert isinstance(got, list) and len(got) == len(want), where
-        for i, (a, b) in enumerate(zip(got, want, strict=True)):
-            assert_documents_close(a, b, f"{where}[{i}]")
-    elif isinstance(want, float) and not isinstance(got, bool):
-        assert isinstance(got, (int, float)), where
-        assert math.isclose(got, want, rel_tol=1e-9, abs_tol=1e-15), (where, got, want)
-    else:
-        assert got == want, (where, got, want)

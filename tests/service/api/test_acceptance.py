@@ -17,7 +17,7 @@ import pytest
 from schemas.calibration import CalibrationOptions
 from schemas.discovery import DiscoveryOptions
 from schemas.ranking import RankingOptions, TargetPose
-from service import pipeline, ranking
+from service import ranking, result_json
 from service.client import KincalAPIError, KincalClient
 from service.security import create_api_key
 from service.storage.db import Database
@@ -84,11 +84,11 @@ def test_upload_job_result_report_ranking_discovery_over_http_with_the_client(
     assert "<robot" in api.urdf(calibration["id"])
 
     # ranking: rows and a target pose, the same numbers as the pipeline computes directly
-    chain, _ = pipeline.result_chain(result)
+    chain, _ = result_json.result_chain(result)
     q = sample_configurations(chain, 100, np.random.default_rng(3), 0.8)
     ranked = api.rank(calibration["id"], q.tolist())
     assert ranked == ranking.rank_configurations(result, q, RankingOptions())
-    pose = pipeline.predict_poses(result, q[:1])[0]
+    pose = result_json.predict_poses(result, q[:1])[0]
     target = TargetPose(
         position_m=tuple(pose[:3, 3].tolist()),
         quaternion_xyzw=tuple(lie.matrix_to_quaternion_xyzw(pose[:3, :3]).tolist()),

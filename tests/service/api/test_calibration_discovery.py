@@ -18,19 +18,14 @@ from fastapi.testclient import TestClient
 from schemas.calibration import CalibrationResult
 from schemas.discovery import DiscoveryOptions
 from schemas.ranking import RankingOptions
-from service import pipeline, ranking, tasks
+from service import ranking, result_json
 from service.api import create_app
-from service.storage.files import FileStore
-from service.storage.models import Job
-from service.worker import JobContext
-from solver.errors import ModelError
 from solver.model import sample_configurations
+from tests.conftest import assert_documents_close, comparable_result
 from tests.service.api.conftest import (
     AppFactory,
-    assert_documents_close,
     assert_problem,
     client_api,
-    comparable_result,
     fresh_database_url,
     make_settings,
     new_key,
@@ -104,7 +99,7 @@ def test_calibration_with_a_discovery_equals_calibrate_model(carried: Carried) -
 
 
 def test_rankings_score_the_corrected_configurations(carried: Carried) -> None:
-    chain, _ = pipeline.result_chain(carried.cli)
+    chain, _ = result_json.result_chain(carried.cli)
     q = sample_configurations(chain, 12, np.random.default_rng(11))
     served = carried.api.rank(carried.id, q.tolist())
     direct = ranking.rank_configurations(carried.cli, q, RankingOptions())
@@ -182,30 +177,19 @@ def test_options_the_discovery_sets_are_422(
     assert_problem(response, 422, field, "discovery_id sets the model")
 
 
-def test_streamed_service_refuses_a_discovery_with_corrections(carried: Carried) -> None:
-    """A service whose calibrations stream on Dask cannot undo the gear error: 422 at POST,
-    and the job function says the same if it gets one anyway."""
+def test_a_service_on_dask_accepts_a_discovery_with_corrections(carried: Carried) -> None:
+    """The corrected recording travels with the passes, wherever they run: a service whose
+    calibrations run on Dask accepts a discovery that undoes the gear error (issue 17; it
+    used to refuse it)."""
     state = carried.client.app.state.kincal  # type: ignore[attr-defined]
     settings = make_settings(
         carried.folder, state.settings.database_url, dask_address="tcp://127.0.0.1:9"
     )
-    with TestClient(create_app(settings), raise_server_exceptions=False) as streamed:
+    with TestClient(create_app(settings)) as streamed:  # workers: 0
         body = {"dataset_id": carried.dataset["id"], "discovery_id": carried.discovery_id}
         response = streamed.post(URL, json=body)
-    assert_problem(response, 422, "discovery_id", "streamed calibration cannot", "Dask")
-
-    with state.database.sessions() as session:
-        params = dict(session.get(Job, carried.id).params)
-    assert params["discovery"]["id"] == carried.discovery_id
-    ctx = JobContext("cal_direct", "t", params, FileStore(settings.data_dir), lambda _: None)
-    monkeypatch = pytest.MonkeyPatch()
-    try:
-        monkeypatch.setenv("KINCAL_DASK_ADDRESS", "tcp://127.0.0.1:9")
-        with pytest.raises(ModelError, match="streamed calibration cannot"):
-            tasks.calibration_job(ctx)
-    finally:
-        monkeypatch.undo()
-    assert ctx.artifacts == {}
+    assert response.status_code == 202, response.text
+    assert response.json()["discovery_id"] == carried.discovery_id
 
 
 def test_unfinished_discovery_is_409_saying_to_wait(make_client: AppFactory) -> None:

@@ -21,9 +21,8 @@ from service import pipeline
 from service.client import KincalClient
 from service.storage.db import Database
 from service.storage.models import Job
-from tests.conftest import robot
+from tests.conftest import comparable_result, robot
 from tests.service.api.conftest import (
-    comparable_result,
     fresh_database_url,
     recording,
     recording_bytes,

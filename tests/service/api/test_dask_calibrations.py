@@ -14,11 +14,10 @@ from service import tasks
 from service.storage.files import FileStore
 from service.storage.models import Job
 from service.worker import JobContext
+from tests.conftest import assert_documents_close, comparable_result
 from tests.service.api.conftest import (
     AppFactory,
-    assert_documents_close,
     client_api,
-    comparable_result,
     database_of,
     recording_bytes,
     settings_of,
@@ -68,7 +67,7 @@ def test_calibration_job_runs_on_the_dask_cluster_of_the_setting(
         args += ["--dask", address, "--estimator", "moment", "--no-heldout", "-o", str(out)]
         code, text, err = run(args, capsys, monkeypatch)
     assert code == 0, err
-    assert "streamed on dask" in text
+    assert "ran on dask" in text
     fractions = [p["fraction"] for p in progress if p["fraction"] is not None]
     assert fractions == sorted(fractions) and progress[-1]["state"] == "succeeded"
     reported = [(m[1], m[2]) for m in messages if m[0] == "progress"]

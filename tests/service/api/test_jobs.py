@@ -21,11 +21,10 @@ from service.jobs import JobRegistry
 from service.storage import repository
 from service.storage.models import Job
 from service.urdf_export import MARKER_LINK
-from tests.conftest import robot
+from tests.conftest import comparable_result, robot
 from tests.service.api.conftest import (
     assert_problem,
     client_api,
-    comparable_result,
     database_of,
     fresh_database_url,
     make_settings,

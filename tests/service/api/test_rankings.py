@@ -18,7 +18,7 @@ from fastapi.testclient import TestClient
 
 from schemas.calibration import CalibrationResult
 from schemas.ranking import RankingOptions, RankingResult, TargetPose, TargetRankingRequest
-from service import cli, pipeline, ranking
+from service import cli, ranking, result_json
 from service.api import create_app
 from service.client import KincalAPIError, KincalClient
 from solver import lie
@@ -53,7 +53,7 @@ class Calibrated:
         self.id = with_cov["id"]
         self.no_covariance_id = without["id"]
         self.result = self.api.result(self.id)
-        self.chain, _ = pipeline.result_chain(self.result)
+        self.chain, _ = result_json.result_chain(self.result)
         self.other_tenant_key = new_key(client, "other-lab")
 
     def configurations(self, n: int, seed: int = 5) -> np.ndarray:
@@ -201,7 +201,7 @@ def test_ranking_ik_candidates_of_a_target_pose_equals_the_pipeline(
     calibrated: Calibrated, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     reachable = calibrated.configurations(1, seed=11)
-    pose = pipeline.predict_poses(calibrated.result, reachable)[0]  # measurement frame
+    pose = result_json.predict_poses(calibrated.result, reachable)[0]  # measurement frame
     position = pose[:3, 3].tolist()
     quaternion = lie.matrix_to_quaternion_xyzw(pose[:3, :3]).tolist()
     target = TargetPose(position_m=position, quaternion_xyzw=quaternion)

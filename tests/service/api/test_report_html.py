@@ -18,6 +18,7 @@ from schemas.calibration import (
 )
 from service import pipeline
 from service.report_html import render_report
+from service.result_json import dataset_residuals
 from tests.conftest import robot
 from tests.service.api.conftest import recording
 
@@ -67,7 +68,7 @@ def _images(page: str) -> list[bytes]:
 
 def test_report_embeds_residual_histograms_and_fit_table() -> None:
     result = _result().model_copy(update={"covariance": None})
-    page = render_report(result, recording())
+    page = render_report(result, dataset_residuals(result, recording()))
     images = _images(page)
     assert len(images) == 1 and images[0].startswith(PNG_SIGNATURE)
     assert f"{result.fit.before.train.translation_mean_mm:.3f}" in page
@@ -81,12 +82,13 @@ def test_report_embeds_residual_histograms_and_fit_table() -> None:
 def test_calibrate_fills_the_covariance_and_the_report_shows_it() -> None:
     result = _result()
     assert result.covariance is not None
-    page = render_report(result, recording())
+    page = render_report(result, dataset_residuals(result, recording()))
     assert len(_images(page)) == 2 and "did not run" not in page
 
 
 def test_sigma_per_frame_chart_appears_with_covariances() -> None:
-    page = render_report(_with_covariance(_result()), recording())
+    result = _with_covariance(_result())
+    page = render_report(result, dataset_residuals(result, recording()))
     images = _images(page)
     assert len(images) == 2 and all(i.startswith(PNG_SIGNATURE) for i in images)
     assert "&lt;last frame&gt;" in page and "<last frame>" not in page
@@ -96,5 +98,6 @@ def test_sigma_per_frame_chart_appears_with_covariances() -> None:
 def test_user_supplied_names_are_escaped() -> None:
     result = _result()
     robot_info = result.robot.model_copy(update={"name": "<script>alert(1)</script>"})
-    page = render_report(result.model_copy(update={"robot": robot_info}), recording())
+    renamed = result.model_copy(update={"robot": robot_info})
+    page = render_report(renamed, dataset_residuals(result, recording()))
     assert "<script>" not in page and "&lt;script&gt;" in page
