@@ -241,13 +241,17 @@ def _compliance_axes(
         if compliant_joints is None
         else list(compliant_joints)
     )
-    for name in [*wanted, *virtual_axes_at]:
-        if name not in names:
-            raise ModelError(
-                f"compliant joint {name!r} is not on the chain; chain joints: {', '.join(names)}"
-            )
-        if not revolute[names.index(name)]:
-            raise ModelError(f"joint {name!r} is prismatic; only revolute joints can be compliant")
+    for option, chosen in (("compliant_joints", wanted), ("virtual_axes_at", virtual_axes_at)):
+        for name in chosen:
+            if name not in names:
+                raise ModelError(
+                    f"{option}: joint {name!r} is not on the chain; chain joints: "
+                    f"{', '.join(names)}"
+                )
+            if not revolute[names.index(name)]:
+                raise ModelError(
+                    f"{option}: joint {name!r} is prismatic; only revolute joints can be compliant"
+                )
     axes: list[ComplianceAxis] = []
     for i, name in enumerate(names):
         joint_axis = screws[i, 3:]

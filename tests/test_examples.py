@@ -2,21 +2,35 @@
 
 from __future__ import annotations
 
+import json
 import re
+import shutil
 from pathlib import Path
 
 import pandas as pd
+import pytest
 
 from benchmarks import evaluate_real
 from schemas.calibration import CalibrationResult
 from schemas.ranking import RankingOptions, RankingResult
 from service import ranking as ranking_pipeline
 from service.demo import run_demo
+from tests.conftest import assert_documents_close, comparable_result
+from tests.service.cli_support import run_ok
 
 
-def test_demo_runs_and_calibration_beats_nominal(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, float], list[str]]:
+    folder = tmp_path_factory.mktemp("demo")
     lines: list[str] = []
-    numbers = run_demo(tmp_path, echo=lines.append)
+    numbers = run_demo(folder, echo=lines.append)
+    return folder, numbers, lines
+
+
+def test_demo_runs_and_calibration_beats_nominal(
+    demo: tuple[Path, dict[str, float], list[str]],
+) -> None:
+    tmp_path, numbers, lines = demo
     assert numbers["heldout_after_mm"] < 0.5 * numbers["heldout_before_mm"]
     assert {p.name for p in tmp_path.iterdir()} == {
         "jaco2_recording.csv",
@@ -51,6 +65,35 @@ def test_demo_runs_and_calibration_beats_nominal(tmp_path: Path) -> None:
     assert ranking == direct  # the HTTP ranking is the pipeline's (and so `kincal rank`'s)
     best = ranking.ranking[0]
     assert any(re.match(rf"^ +1 +{best.index} +{best.score * 1e6:.4f} ", line) for line in lines)
+
+
+def test_cli_http_fleet_and_demo_calibrate_alike(
+    demo: tuple[Path, dict[str, float], list[str]],
+    tmp_path: Path,
+) -> None:
+    """Issue 17: the demo's calibration (an HTTP job of the embedded service), ``kincal
+    calibrate`` and ``kincal fleet`` of the same recording with the same options go through
+    the one entry point and agree to 1e-9."""
+    folder, _, _ = demo
+    data = folder / "jaco2_recording.csv"
+    demo_result = CalibrationResult.model_validate_json((folder / "result.json").read_text())
+    flex = demo_result.options.virtual_axes_at
+    assert flex  # the demo models the base plate's flex
+    cli_out = tmp_path / "cli.json"
+    run_ok(
+        ["calibrate", data, "--robot", "kinova", "--virtual-axes", ",".join(flex), "-o", cli_out]
+    )
+    fleet_dir = tmp_path / "fleet"
+    fleet_dir.mkdir()
+    shutil.copy(data, fleet_dir / "SN0001.csv")
+    config = tmp_path / "demo.toml"
+    config.write_text(f"virtual_axes_at = {json.dumps(flex)}\n")
+    fleet = ["fleet", fleet_dir, "--robot", "kinova", "--config", config, "--heldout"]
+    run_ok([*fleet, "--results-dir", tmp_path / "robots", "-o", tmp_path / "fleet.json"])
+    want = comparable_result(demo_result)
+    for path in (cli_out, tmp_path / "robots" / "SN0001.json"):
+        got = CalibrationResult.model_validate_json(path.read_text())
+        assert_documents_close(comparable_result(got), want)
 
 
 def test_real_data_benchmark_prints_the_readme_table(tmp_path: Path) -> None:

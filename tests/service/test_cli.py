@@ -198,7 +198,7 @@ def test_bad_dataset_gives_one_line_and_exit_2(
         ),
         (
             ["--robot", "ur10", "--compliant-joints", "nope"],
-            "compliant joint 'nope' is not on the chain",
+            "compliant_joints: joint 'nope' is not on the chain",
         ),
         (["--robot", "ur10", "--gravity", "1,2"], "--gravity takes 3 comma-separated numbers"),
         (["--robot", "ur10", "--rotation-weight", "0"], "option rotation_weight_m_per_rad"),
