@@ -15,7 +15,7 @@ The study, with everything random seeded:
   default estimator) and 10 held-out 90/10 splits with seeds 1..10.
 * **Table II.** Mean held-out error per split before calibration (nominal robot with fitted
   camera and marker), after ours, and after the GP baseline of ref. [13]
-  (:func:`service.ranking.gp_calibration_method`), all on identical splits.
+  (:func:`solver.gp_baseline.gp_calibration_method`), all on identical splits.
 * **Fig. 4b.** Calibrated σ per frame (each split's training set and all kept samples) next to
   the true σ.
 * **Manipulation experiment (§V-C).** In each run a pre-grasp pose is drawn in the calibrated
@@ -98,7 +98,7 @@ from service.robots import RobotDescription, load_robot
 from solver import lie
 from solver.errors import KincalError
 from solver.evaluation import cross_validate, split_indices
-from solver.gp_baseline import GPErrorModel, fit_gp_error_model, gp_scores
+from solver.gp_baseline import GPErrorModel, fit_gp_error_model, gp_calibration_method, gp_scores
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import KinematicChain, gravity_loads, sample_configurations
 from solver.ranking import RandomEffects, TaskMetric, UncertaintyModel, score_configurations
@@ -371,7 +371,18 @@ def table_ii(result: CalibrationResult, recording: Recording, *, with_gp: bool =
         used = kept_rows(result)
         for gp_split in cross_validate(
             data.measured_pose[used],
-            {"gp": service_ranking.gp_calibration_method(data, used, options)},
+            {
+                "gp": gp_calibration_method(
+                    data.chain,
+                    data.joint_positions[used],
+                    data.measured_pose[used],
+                    data.loads_nm[used],
+                    position_only=data.position_only,
+                    baseline_options=pipeline.fit_options(
+                        options, baseline=True, n_links=data.chain.n_links
+                    ),
+                )
+            },
             position_only=data.position_only,
             seeds=options.seeds,
             train_fraction=options.train_fraction,

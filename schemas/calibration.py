@@ -275,8 +275,17 @@ class OutlierReport(_Model):
 class SolverReport(_Model):
     name: str
     status: Literal[
-        "optimal", "optimal_inaccurate", "stopped_early", "iteration_limit", "diverged", "error"
-    ] = Field(description="stopped_early: the paper's PGD stopping rule fired before optimality.")
+        "optimal",
+        "optimal_inaccurate",
+        "one_step",
+        "stopped_early",
+        "iteration_limit",
+        "diverged",
+        "error",
+    ] = Field(
+        description="stopped_early: the paper's PGD stopping rule fired before optimality; "
+        "one_step: the one-step likelihood estimator of a large recording (see the message)."
+    )
     iterations: int
     time_s: float
     objective: float

@@ -1,16 +1,20 @@
-"""Parsing of CLI flags shared by the commands, and the calibration options as flags and as a
-TOML configuration file."""
+"""Parsing of CLI flags shared by the commands: the calibration options as flags and as a TOML
+configuration file, and the ranking flags as request models."""
 
 from __future__ import annotations
 
+import io
+import json
 import math
 import tomllib
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pydantic
 
 from schemas.calibration import CalibrationOptions
+from schemas.ranking import RankingOptions, TargetRankingRequest
 from solver.errors import KincalError
 
 
@@ -110,3 +114,107 @@ def calibration_options(
         flag = CALIBRATION_FLAGS.get(name)
         hint = f" ({flag})" if flag else ""
         raise KincalError(f"option {where}{hint}: {first['msg']}") from exc
+
+
+# --- ``kincal rank`` flags -> request models --------------------------------------------------
+
+
+def read_weight_matrix(path: Path) -> list[list[float]]:
+    """A 6×6 W from a JSON file (nested list) or a text file of 6 rows of 6 numbers."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise KincalError(f"cannot read weight matrix {path}: {exc.strerror}") from exc
+    try:
+        matrix = np.array(json.loads(text), dtype=float)
+    except (ValueError, TypeError):
+        try:
+            matrix = np.loadtxt(io.StringIO(text.replace(",", " ")), ndmin=2)
+        except ValueError as exc:
+            raise KincalError(f"{path}: not a 6×6 matrix of numbers ({exc})") from exc
+    if matrix.shape != (6, 6) or not np.all(np.isfinite(matrix)):
+        raise KincalError(
+            f"{path}: weight matrix must be 6×6 finite numbers, got shape {matrix.shape}"
+        )
+    return matrix.tolist()
+
+
+def ranking_options_from_flags(
+    *,
+    weights: str | None,
+    weight_matrix: Path | None,
+    rotation_scale_m_per_rad: float,
+    task_point: str | None,
+    task_weights: str | None,
+    include_noise: bool,
+    top: int | None,
+) -> RankingOptions:
+    """``kincal rank`` flags -> :class:`RankingOptions` (exclusive choices checked)."""
+    if task_point is not None and (weights is not None or weight_matrix is not None):
+        raise KincalError("--task-point replaces --weights/--weight-matrix; give one of them")
+    if weights is not None and weight_matrix is not None:
+        raise KincalError("give --weights or --weight-matrix, not both")
+    if task_weights is not None and task_point is None:
+        raise KincalError("--task-weights needs --task-point x,y,z")
+    document: dict[str, object]
+    if task_point is not None:
+        document = {"kind": "task_point", "point_m": numbers(task_point, "--task-point", 3)}
+        if task_weights is not None:
+            document["axis_weights"] = numbers(task_weights, "--task-weights", 3)
+    else:
+        document = {"kind": "pose", "rotation_scale_m_per_rad": rotation_scale_m_per_rad}
+        if weights is not None:
+            document["diagonal"] = numbers(weights, "--weights", 6)
+        if weight_matrix is not None:
+            document["matrix"] = read_weight_matrix(weight_matrix)
+    try:
+        return RankingOptions.model_validate(
+            {"weights": document, "include_noise": include_noise, "top": top}
+        )
+    except pydantic.ValidationError as exc:
+        raise KincalError(_flag_error(exc)) from exc
+
+
+def target_request(
+    target: str,
+    options: RankingOptions,
+    *,
+    n_candidates: int,
+    seed: int,
+    free_axis: str,
+    payload_kg: float,
+) -> TargetRankingRequest:
+    """``--target x,y,z,qx,qy,qz,qw`` and friends -> :class:`TargetRankingRequest`."""
+    values = numbers(target, "--target", 7)
+    try:
+        return TargetRankingRequest.model_validate(
+            {
+                "target": {"position_m": values[:3], "quaternion_xyzw": values[3:]},
+                "n_candidates": n_candidates,
+                "seed": seed,
+                "free_axis": free_axis,
+                "payload_kg": payload_kg,
+                "options": options,
+            }
+        )
+    except pydantic.ValidationError as exc:
+        raise KincalError(_flag_error(exc)) from exc
+
+
+def _flag_error(exc: pydantic.ValidationError) -> str:
+    first = exc.errors()[0]
+    where = ".".join(str(p) for p in first["loc"])
+    names = {
+        "weights.pose.diagonal": "--weights",
+        "weights.pose.matrix": "--weight-matrix",
+        "weights.pose.rotation_scale_m_per_rad": "--rotation-scale",
+        "weights.task_point.point_m": "--task-point",
+        "weights.task_point.axis_weights": "--task-weights",
+        "target": "--target",
+        "free_axis": "--free-axis",
+        "n_candidates": "--n-candidates",
+        "payload_kg": "--payload-kg",
+        "top": "--top",
+    }
+    flag = next((f for key, f in names.items() if where.startswith(key)), where)
+    return f"{flag}: {first['msg']}"

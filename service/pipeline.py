@@ -13,6 +13,7 @@ the numbers beyond rounding. The result JSON is assembled by :mod:`service.resul
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import time
@@ -339,8 +340,13 @@ def calibrate_source(
             progress=progress,
         )
         execution = f"{runner.name} ({runner.n_workers} worker(s))"
-    finally:
+    except BaseException:
+        with contextlib.suppress(Exception):  # the workers may be gone: keep the first error
+            release(recording.problem, runner)
+        raise
+    else:
         release(recording.problem, runner)
+    finally:
         if owned:
             runner.close()
     timings.update(calibrated.stage_s)

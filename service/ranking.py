@@ -8,18 +8,14 @@ once per calibration with :func:`uncertainty_model` and pass it in (``model=``).
 from __future__ import annotations
 
 import hashlib
-import io
-import json
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pydantic
 import pydantic_core
 from numpy.typing import NDArray
 
-from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.calibration import CalibrationResult
 from schemas.ranking import (
     CalibrationReference,
     PoseWeights,
@@ -29,15 +25,10 @@ from schemas.ranking import (
     TargetRankingRequest,
     TaskWeights,
 )
-from service import corrections, pipeline, result_json
-from service.flags import numbers
+from service import corrections, result_json
 from solver import lie
-from solver.calibration import fit_deterministic
 from solver.errors import KincalError, SolverError
-from solver.evaluation import Method
-from solver.gp_baseline import GPSettings, gp_method
 from solver.ik import IKCandidate, IKOptions, ik_candidates
-from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import KinematicChain
 from solver.ranking import (
     ConfigurationScores,
@@ -399,156 +390,3 @@ def _document(
     document = head.model_dump()
     document["ranking"] = entries
     return document
-
-
-def gp_calibration_method(
-    data: result_json.PreparedData,
-    used: IndexArray,
-    options: CalibrationOptions,
-    settings: GPSettings | None = None,
-) -> Method:
-    """Paper Table II "Cal. GP" as a ``cross_validate`` method over the rows ``used``: the
-    "before" model (measurement frame + tool, fitted on each training split, exactly as in
-    :func:`service.pipeline.heldout_splits`) corrected by one GP per residual component."""
-    fit_settings = pipeline.fit_options(options, baseline=True, n_links=data.chain.n_links)
-    fitted: dict[bytes, ChainParameters] = {}  # the GP method asks for train and test rows
-
-    def before(train: IndexArray, rows: IndexArray) -> FloatArray:
-        key = np.asarray(train).tobytes()
-        if key not in fitted:
-            fitted.clear()
-            fitted[key] = fit_deterministic(
-                data.chain,
-                data.joint_positions[used[train]],
-                data.measured_pose[used[train]],
-                data.loads_nm[used[train]],
-                position_only=data.position_only,
-                options=fit_settings,
-            ).params
-        return forward_kinematics(
-            data.chain, fitted[key], data.joint_positions[used[rows]], data.loads_nm[used[rows]]
-        )
-
-    return gp_method(
-        data.joint_positions[used],
-        data.measured_pose[used],
-        before,
-        position_only=data.position_only,
-        settings=settings or GPSettings(),
-    )
-
-
-# --- command-line flags -> request models (``kincal rank``) ---------------------------------
-
-
-def read_weight_matrix(path: Path) -> list[list[float]]:
-    """A 6×6 W from a JSON file (nested list) or a text file of 6 rows of 6 numbers."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise KincalError(f"cannot read weight matrix {path}: {exc.strerror}") from exc
-    try:
-        matrix = np.array(json.loads(text), dtype=float)
-    except (ValueError, TypeError):
-        try:
-            matrix = np.loadtxt(io.StringIO(text.replace(",", " ")), ndmin=2)
-        except ValueError as exc:
-            raise KincalError(f"{path}: not a 6×6 matrix of numbers ({exc})") from exc
-    if matrix.shape != (6, 6) or not np.all(np.isfinite(matrix)):
-        raise KincalError(
-            f"{path}: weight matrix must be 6×6 finite numbers, got shape {matrix.shape}"
-        )
-    return matrix.tolist()
-
-
-def options_from_flags(
-    *,
-    weights: str | None,
-    weight_matrix: Path | None,
-    rotation_scale_m_per_rad: float,
-    task_point: str | None,
-    task_weights: str | None,
-    include_noise: bool,
-    top: int | None,
-) -> RankingOptions:
-    """``kincal rank`` flags -> :class:`RankingOptions` (exclusive choices checked)."""
-    if task_point is not None and (weights is not None or weight_matrix is not None):
-        raise KincalError("--task-point replaces --weights/--weight-matrix; give one of them")
-    if weights is not None and weight_matrix is not None:
-        raise KincalError("give --weights or --weight-matrix, not both")
-    if task_weights is not None and task_point is None:
-        raise KincalError("--task-weights needs --task-point x,y,z")
-    document: dict[str, object]
-    if task_point is not None:
-        document = {"kind": "task_point", "point_m": numbers(task_point, "--task-point", 3)}
-        if task_weights is not None:
-            document["axis_weights"] = numbers(task_weights, "--task-weights", 3)
-    else:
-        document = {"kind": "pose", "rotation_scale_m_per_rad": rotation_scale_m_per_rad}
-        if weights is not None:
-            document["diagonal"] = numbers(weights, "--weights", 6)
-        if weight_matrix is not None:
-            document["matrix"] = read_weight_matrix(weight_matrix)
-    try:
-        return RankingOptions.model_validate(
-            {"weights": document, "include_noise": include_noise, "top": top}
-        )
-    except pydantic.ValidationError as exc:
-        raise KincalError(_flag_error(exc)) from exc
-
-
-def target_request(
-    target: str,
-    options: RankingOptions,
-    *,
-    n_candidates: int,
-    seed: int,
-    free_axis: str,
-    payload_kg: float,
-) -> TargetRankingRequest:
-    """``--target x,y,z,qx,qy,qz,qw`` and friends -> :class:`TargetRankingRequest`."""
-    values = numbers(target, "--target", 7)
-    try:
-        return TargetRankingRequest.model_validate(
-            {
-                "target": {"position_m": values[:3], "quaternion_xyzw": values[3:]},
-                "n_candidates": n_candidates,
-                "seed": seed,
-                "free_axis": free_axis,
-                "payload_kg": payload_kg,
-                "options": options,
-            }
-        )
-    except pydantic.ValidationError as exc:
-        raise KincalError(_flag_error(exc)) from exc
-
-
-def _flag_error(exc: pydantic.ValidationError) -> str:
-    first = exc.errors()[0]
-    where = ".".join(str(p) for p in first["loc"])
-    names = {
-        "weights.pose.diagonal": "--weights",
-        "weights.pose.matrix": "--weight-matrix",
-        "weights.pose.rotation_scale_m_per_rad": "--rotation-scale",
-        "weights.task_point.point_m": "--task-point",
-        "weights.task_point.axis_weights": "--task-weights",
-        "target": "--target",
-        "free_axis": "--free-axis",
-        "n_candidates": "--n-candidates",
-        "payload_kg": "--payload-kg",
-        "top": "--top",
-    }
-    flag = next((f for key, f in names.items() if where.startswith(key)), where)
-    return f"{flag}: {first['msg']}"
-
-
-def summary(ranking: RankingResult) -> str:
-    """One line for the terminal."""
-    if not ranking.ranking:
-        return "no configuration to rank"
-    best = ranking.ranking[0]
-    what = "IK candidates" if ranking.target is not None else "configurations"
-    return (
-        f"ranked {ranking.n_configurations} {what}; best: index {best.index}, score "
-        f"{best.score:.4g} {ranking.score_unit} (worst {ranking.ranking[-1].score:.4g})"
-    )

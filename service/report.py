@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from schemas.calibration import CalibrationResult, CovarianceResult, HeldoutSplit
+from schemas.ranking import RankingResult
 
 METHOD_LABELS = {"before": "Init.", "calibrated": "Cal. Ours", "gp": "Cal. GP"}
 
@@ -92,3 +93,15 @@ def covariance_table(covariance: CovarianceResult) -> list[str]:
     )
     lines += [f"  note: {text}" for text in identifiability.warnings]
     return lines
+
+
+def ranking_summary(ranking: RankingResult) -> str:
+    """One line for the terminal after ``kincal rank``."""
+    if not ranking.ranking:
+        return "no configuration to rank"
+    best = ranking.ranking[0]
+    what = "IK candidates" if ranking.target is not None else "configurations"
+    return (
+        f"ranked {ranking.n_configurations} {what}; best: index {best.index}, score "
+        f"{best.score:.4g} {ranking.score_unit} (worst {ranking.ranking[-1].score:.4g})"
+    )

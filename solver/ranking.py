@@ -46,6 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver import lie
+from solver.covariance.likelihood import ee_covariance_batch
 from solver.errors import SolverError
 from solver.gravity import StaticGravityModel, joint_motions, static_gravity_loads
 from solver.kinematics import ChainParameters, evaluate_chain
@@ -326,11 +327,8 @@ def ee_covariance(
     q = np.asarray(joint_positions, dtype=float)
     loads = model.loads(q, payload_kg)
     jac = evaluate_chain(model.chain, model.params, q, loads).link_jacobians  # (N, k+1, 6, 6)
-    half = np.einsum("nfam,fmb->nfab", jac, model.effects.frame_covariances)
-    out = np.einsum("nfab,nfcb->nac", half, jac)
-    if include_noise:
-        out += model.effects.noise_covariance
-    return out
+    noise = model.effects.noise_covariance if include_noise else None
+    return ee_covariance_batch(jac, model.effects.frame_covariances, noise)
 
 
 def score_configurations(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks import scale
+from benchmarks import default_calibrate, scale
 
 
 def test_scale_benchmark_prints_its_table_and_finds_the_worn_robot(tmp_path: Path) -> None:
@@ -37,3 +37,12 @@ def test_scale_benchmark_prints_its_table_and_finds_the_worn_robot(tmp_path: Pat
 def test_idle_wait_reports_how_busy_the_machine_is() -> None:
     busy = scale.wait_until_idle(1.0, 0.0, window_s=0.2)
     assert 0.0 <= busy <= 1.25  # whole clock ticks: a short window can round above 1
+
+
+def test_default_calibrate_benchmark_prints_its_table(tmp_path: Path) -> None:
+    """benchmarks/default_calibrate.py on a tiny recording: both rows, stages, verdicts."""
+    text = default_calibrate.main((800,), repeats=1, out=tmp_path)
+    rows = [line for line in text.splitlines() if line.startswith("| 800 |")]
+    assert len(rows) == 2
+    assert "| (none) |" in rows[0] and "ran on" not in rows[0] and "inprocess" in rows[1]
+    assert "reml optimal" in rows[0] and "heldout" in rows[0]

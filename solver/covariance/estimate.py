@@ -207,7 +207,14 @@ def estimate_covariances(
     )
 
 
-SE_SAMPLES = 50_000
+FULL_LIKELIHOOD_SAMPLES = 200_000
+"""Up to this many samples ML and REML iterate to convergence; beyond, they take one Fisher-
+scoring step from the moment solution (each evaluation being a pass over a large recording):
+from a √N-consistent start that step is as efficient as the converged estimator up to O(1/N),
+far below its standard error; REML's restriction terms (O(p) of the gradient against O(N)) are
+then taken on the :data:`SE_SAMPLES` subsample, so each evaluation costs one pass, not two."""
+
+SE_SAMPLES = 10_000
 """Standard errors (and the scoring metric, at most :data:`~.fitting.METRIC_SAMPLES` of them)
 come from at most this many samples, evenly spaced over the recording, the information scaled
 to all samples: an unbiased estimate of the sum, for errors that need 2 digits, not 10."""
@@ -241,6 +248,7 @@ def estimate_from_samples(
     solver: SolverName = "auto",
     noise_name: str = "noise",
     statistics: tuple[MomentStatistics, JacobianRange] | None = None,
+    sample_subset: ArraySamples | None = None,
     pgd_settings: PGDSettings = PGD_STABLE,
     standard_errors: bool = True,
     confidence: float = 0.95,
@@ -254,7 +262,10 @@ def estimate_from_samples(
 
     ``known`` (d, d): a known part of every Σ_E (then the layout has no noise frame);
     ``statistics``: the Eq. (14) statistics and Jacobian range when a pass already took them
-    (a streamed fit's last pass), else one pass takes them. Then: identifiability → moment
+    (a streamed fit's last pass), else one pass takes them; ``sample_subset``: the
+    :func:`~.samples.subsample` of at most :data:`SE_SAMPLES` when the caller has it (e.g.
+    with the fit Jacobian that ``samples`` need not carry), else one pass takes it. Then:
+    identifiability → moment
     solution → ML or REML by projected Fisher scoring (at most ``max_likelihood_iterations``
     steps; each a pass over the samples, two for REML) → the unidentifiable part fixed by the
     rule of :mod:`.identifiability` → standard errors from at most :data:`SE_SAMPLES` evenly
@@ -292,8 +303,13 @@ def estimate_from_samples(
         )
     theta = resolve_null_space(moment.theta, report, layout)
     solution = moment
-    sub = subsample(samples, SE_SAMPLES) if estimator != "moment" or standard_errors else None
-    transform = fit_basis_transform(samples) if estimator == "reml" else None
+    sub = sample_subset
+    if sub is None and (estimator != "moment" or standard_errors):
+        sub = subsample(samples, SE_SAMPLES)
+    large = stats.n_samples > FULL_LIKELIHOOD_SAMPLES
+    transform = None
+    if estimator == "reml":
+        transform = fit_basis_transform(sub if large and sub is not None else samples)
     if estimator != "moment":
         assert sub is not None
         solution = fit_likelihood(
@@ -304,8 +320,10 @@ def estimate_from_samples(
             report.scaling,
             every_kth(sub, METRIC_SAMPLES),
             transform=transform,
+            restriction_samples=sub if large else None,
             known_covariance=known,
             max_iterations=max_likelihood_iterations,
+            one_step=large,
         )
         if not solution.converged:
             notes.append(

@@ -28,6 +28,7 @@ from solver.covariance.likelihood import (
     fisher_information_ml,
     gaussian_nll,
     restricted_nll,
+    restriction,
     theta_gradient,
 )
 from solver.covariance.objective import ProblemScaling, clip_psd, moment_objective
@@ -55,8 +56,10 @@ def fit_likelihood(
     metric: ArraySamples,
     *,
     transform: FloatArray | None = None,
+    restriction_samples: ArraySamples | None = None,
     known_covariance: FloatArray | None = None,
     max_iterations: int = 200,
+    one_step: bool = False,
     tolerance: float = 1e-10,
 ) -> CovarianceSolution:
     """ML or REML estimate of θ (Q,), started from ``start_theta`` (PSD, e.g. moment).
@@ -64,11 +67,15 @@ def fit_likelihood(
     ``samples``: every used sample (each NLL evaluation is one pass over them, two for
     REML); ``metric``: the samples the scoring metric is taken from (at most
     :data:`METRIC_SAMPLES`, scaled to N); ``transform``: REML's fit basis
-    (:func:`~solver.covariance.likelihood.fit_basis_transform`). Stops when the predicted
-    decrease ``−∇NLLᵀ(θ'−θ)`` per sample is below ``tolerance`` (reported as
-    ``kkt_residual``), or after ``max_iterations`` scoring steps (a one-step estimator when 1:
-    from a √N-consistent start such as the moment solution, asymptotically as efficient as
-    the converged one). ``objective`` is the NLL (constants omitted).
+    (:func:`~solver.covariance.likelihood.fit_basis_transform`) of ``samples``, or of
+    ``restriction_samples`` when REML's restriction terms are taken on those instead
+    (:func:`~solver.covariance.likelihood.restriction`; the likelihood terms then cost one
+    pass per evaluation). Stops when the predicted decrease ``−∇NLLᵀ(θ'−θ)`` per sample is
+    below ``tolerance`` (reported as ``kkt_residual``), or after ``max_iterations`` scoring
+    steps; ``one_step``: exactly one full step without line search, status "one_step" (from
+    a √N-consistent start such as the moment solution, as efficient as the converged
+    estimator up to O(1/N)); one NLL evaluation in all, so ``objective`` is then the NLL at
+    the start. ``objective`` is the NLL (constants omitted).
     """
     started = time.perf_counter()
     layout = stats.layout
@@ -80,17 +87,26 @@ def fit_likelihood(
         )
 
     def nll(theta: FloatArray) -> tuple[float, FloatArray]:
-        if estimator == "ml":
-            return gaussian_nll(theta, samples, layout, known_covariance=known_covariance)
-        assert transform is not None
-        return restricted_nll(theta, samples, transform, layout, known_covariance=known_covariance)
+        if estimator == "reml" and restriction_samples is None:
+            assert transform is not None
+            return restricted_nll(
+                theta, samples, transform, layout, known_covariance=known_covariance
+            )
+        value, psi = gaussian_nll(theta, samples, layout, known_covariance=known_covariance)
+        if estimator == "ml" or not np.isfinite(value):
+            return value, psi
+        assert transform is not None and restriction_samples is not None
+        extra, extra_psi = restriction(
+            theta, restriction_samples, transform, layout, known_covariance=known_covariance
+        )
+        return value + extra, psi + extra_psi
 
     theta, (value, psi) = _positive_start(start_theta, nll, layout, scaling)
     inv_scale2 = 1.0 / scaling.param_scale**2
     metric_weight = n / metric.n_samples
     status: Status = "iteration_limit"
     decrement, message, iterations = float("inf"), "", 0
-    for _ in range(max_iterations):
+    for _ in range(1 if one_step else max_iterations):
         iterations += 1
         grad = theta_gradient(layout, psi)
         hess = (2.0 * metric_weight) * fisher_information_ml(
@@ -105,6 +121,9 @@ def fit_likelihood(
             break
         step = target - theta
         decrement = float(-grad @ step)
+        if one_step:  # the classical one-step estimator: the full step, no line search
+            theta, status = target, "one_step"
+            break
         if decrement <= tolerance * n:
             status = "optimal"
             break
@@ -122,8 +141,11 @@ def fit_likelihood(
             message = f"line search stalled (predicted decrease {decrement / n:.2e} per sample)"
             break
         theta, value, psi = cand, cand_value, cand_psi
-    theta = layout.theta_from_covariances(clip_psd(layout.frame_covariances(theta)))
-    value = nll(theta)[0]
+    clipped = layout.theta_from_covariances(clip_psd(layout.frame_covariances(theta)))
+    if not np.array_equal(clipped, theta):  # a full Σ left the cone by rounding
+        theta = clipped
+        if not one_step:
+            value = nll(clipped)[0]
     return CovarianceSolution(
         estimator,
         status,
@@ -134,7 +156,7 @@ def fit_likelihood(
         float(value),
         moment_objective(theta, stats),
         max(decrement, 0.0) / n,
-        message or f"projected Fisher scoring, {iterations} steps",
+        message or _scoring_message(iterations, one_step, restriction_samples),
     )
 
 
@@ -157,3 +179,17 @@ def _positive_start(
         "Σ_E(q) is singular for every start of the likelihood fit: estimate the noise or pass "
         "a known noise covariance, or free more axes"
     )
+
+
+def _scoring_message(
+    iterations: int, one_step: bool, restriction_samples: ArraySamples | None
+) -> str:
+    text = f"projected Fisher scoring, {iterations} steps"
+    if one_step:
+        text = (
+            "one projected Fisher-scoring step from the moment solution (one-step estimator; "
+            "objective at the moment solution)"
+        )
+    if restriction_samples is not None:
+        text += f"; REML restriction terms on {restriction_samples.n_samples} samples"
+    return text

@@ -21,8 +21,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver.covariance._blas import gram_tn
-from solver.covariance.layout import CovarianceLayout, block_diagonal, column_matrix
-from solver.covariance.samples import CovarianceSamples, SampleChunk, total
+from solver.covariance.layout import CovarianceLayout, column_matrix
+from solver.covariance.samples import ArraySamples, CovarianceSamples, SampleChunk, total
 from solver.covariance.statistics import design_gram
 from solver.errors import CalibrationError, SolverError
 
@@ -34,19 +34,28 @@ def ee_covariance_batch(
     frame_covariances: FloatArray,
     noise_covariance: FloatArray | None = None,
 ) -> FloatArray:
-    """Eq. (12): ``Σ_E(q_n) = Σ_n + Σ_f A_f(q_n) Σ_f A_f(q_n)ᵀ``, (N, d, d).
+    """Eq. (12): ``Σ_E(q_n) = Σ_n + Σ_f A_f(q_n) Σ_f A_f(q_n)ᵀ``, (N, d, d) — the one kernel of
+    Eq. (12) that the likelihoods, the predictions and the rankings' reference all call.
 
     ``frame_jacobians`` (N, F, d, 6) map local twists [v; w] of each frame to the
     end-effector-frame residual; ``frame_covariances`` (F, 6, 6) in m²/rad²;
     ``noise_covariance`` (6, 6) acts in the end-effector frame (its first d×d block is used).
+    When every Σ_f is diagonal, the frames' columns side by side are scaled by the variances
+    and multiplied once per sample (6F instead of (6F)² products per row).
     """
-    out = np.einsum(
-        "nfdi,fij,nfej->nde", frame_jacobians, frame_covariances, frame_jacobians, optimize=True
-    )
+    n, n_frames, d, _ = frame_jacobians.shape
+    covariances = np.asarray(frame_covariances, dtype=float)
+    variances = np.diagonal(covariances, axis1=1, axis2=2)
+    if np.array_equal(covariances, variances[:, :, None] * np.eye(6)):
+        columns = frame_jacobians.transpose(0, 2, 1, 3).reshape(n, d, 6 * n_frames)
+        out = (columns * variances.reshape(-1)) @ columns.transpose(0, 2, 1)
+    else:
+        out = np.einsum(
+            "nfdi,fij,nfej->nde", frame_jacobians, covariances, frame_jacobians, optimize=True
+        )
     if noise_covariance is not None:
-        d = frame_jacobians.shape[2]
         out = out + np.asarray(noise_covariance)[:d, :d]
-    return out
+    return np.asarray(out, dtype=float)
 
 
 def theta_gradient(layout: CovarianceLayout, psi: FloatArray) -> FloatArray:
@@ -64,12 +73,12 @@ class _Chunk:
 
 @dataclass(frozen=True)
 class _EECovariance:
-    """What a kernel needs to form Σ_E on a chunk: the θ layout, blockdiag(Σ_f) as
-    :func:`_chain_covariance` gives it, a known part of Σ_E (d, d) or None, and the transform
+    """What a kernel needs to form Σ_E on a chunk: the θ layout, every frame's Σ_f (F, 6, 6),
+    noise frame included when estimated, a known part of Σ_E (d, d) or None, and the transform
     (p, k) of the fit Jacobian to an orthonormal basis of its column space (REML) or None."""
 
     layout: CovarianceLayout
-    sigma_all: FloatArray
+    covariances: FloatArray
     known: FloatArray | None
     transform: FloatArray | None = None
 
@@ -81,28 +90,11 @@ class _EECovariance:
         return _Chunk(column_matrix(samples.frame_jacobians, self.layout), samples.residuals, basis)
 
 
-def _chain_covariance(layout: CovarianceLayout, theta: FloatArray) -> FloatArray:
-    """blockdiag(Σ_1 … Σ_F) matching the columns C, as its diagonal (6F,) when every Σ_f is
-    diagonal (then C·diag·Cᵀ costs 6F instead of (6F)² per row)."""
-    covariances = layout.frame_covariances(theta)
-    if layout.structure == "diag":
-        return np.concatenate([np.diagonal(c) for c in covariances])
-    return block_diagonal(covariances)
-
-
-def _ee_covariances(columns: FloatArray, sigma_all: FloatArray) -> FloatArray:
-    """Eq. (12) for a chunk, ``C blockdiag(Σ_f) Cᵀ`` (n, d, d), from :func:`_chain_covariance`."""
-    weighted = columns * sigma_all if sigma_all.ndim == 1 else columns @ sigma_all
-    return weighted @ columns.transpose(0, 2, 1)
-
-
 def _ee_chunk(
-    chunk: _Chunk, sigma_all: FloatArray, known: FloatArray | None
+    chunk: _Chunk, covariances: FloatArray, known: FloatArray | None
 ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
     """Σ_E, its inverse and log det for one chunk; None if some Σ_E is not positive definite."""
-    cov = _ee_covariances(chunk.columns, sigma_all)
-    if known is not None:
-        cov = cov + known
+    cov = ee_covariance_batch(_frame_view(chunk.columns), covariances, known)
     cov = 0.5 * (cov + cov.transpose(0, 2, 1))
     try:
         chol = np.linalg.cholesky(cov)
@@ -113,14 +105,26 @@ def _ee_chunk(
     return cov, 0.5 * (inv + inv.transpose(0, 2, 1)), logdet
 
 
-def _psi_from_omega(chunk: _Chunk, omega: FloatArray, n_frames: int) -> FloatArray:
-    """Σ_n A_fᵀ Ω_n A_f for every frame, (F, 6, 6).
+def _frame_view(columns: FloatArray) -> FloatArray:
+    """The column matrix C (n, d, 6F) of :func:`column_matrix` as frame Jacobians
+    (n, F, d, 6), without a copy."""
+    n, d, c = columns.shape
+    return columns.reshape(n, d, c // 6, 6).transpose(0, 2, 1, 3)
+
+
+def _psi_from_omega(chunk: _Chunk, omega: FloatArray, layout: CovarianceLayout) -> FloatArray:
+    """Σ_n A_fᵀ Ω_n A_f for every frame, (F, 6, 6); for diagonal Σ only its diagonal, the
+    only entries the gradient of a diagonal θ reads (:func:`theta_gradient`).
 
     Stacks of 6×6 products per frame: a single (6F × n·d)·(n·d × 6F) GEMM would compute the
     unneeded off-diagonal blocks and, on few cores, suffers from BLAS thread contention.
     """
     cols = chunk.columns
     t = omega @ cols
+    n_frames = layout.n_frames
+    if layout.structure == "diag":
+        diagonal = np.einsum("ndc,ndc->c", cols, t).reshape(n_frames, 6)
+        return diagonal[:, :, None] * np.eye(6)
     return np.stack(
         [
             (cols[:, :, 6 * f : 6 * f + 6].transpose(0, 2, 1) @ t[:, :, 6 * f : 6 * f + 6]).sum(0)
@@ -141,7 +145,7 @@ def gaussian_nll(
     Returns (inf, 0) where some Σ_E is not positive definite. Constants (N·d·log 2π) omitted.
     One pass over the samples.
     """
-    model = _EECovariance(layout, _chain_covariance(layout, theta), known_covariance)
+    model = _EECovariance(layout, layout.frame_covariances(theta), known_covariance)
     parts = samples.map(_ml_chunk, model)
     done = [part for part in parts if part is not None]
     if len(done) < len(parts):
@@ -153,14 +157,14 @@ def gaussian_nll(
 
 def _ml_chunk(model: _EECovariance, samples: SampleChunk) -> tuple[float, FloatArray] | None:
     chunk = model.chunk(samples)
-    ee = _ee_chunk(chunk, model.sigma_all, model.known)
+    ee = _ee_chunk(chunk, model.covariances, model.known)
     if ee is None:
         return None
     _, inv, logdet = ee
     a = np.einsum("nij,nj->ni", inv, chunk.residuals)
     value = float(logdet.sum() + np.einsum("ni,ni->", a, chunk.residuals))
     omega = inv - a[:, :, None] * a[:, None, :]
-    return value, _psi_from_omega(chunk, omega, model.layout.n_frames)
+    return value, _psi_from_omega(chunk, omega, model.layout)
 
 
 def fit_basis_transform(samples: CovarianceSamples, *, rtol: float = 1e-10) -> FloatArray:
@@ -210,7 +214,7 @@ def restricted_nll(
     basis ``X T``). Two passes over the samples: the sums ``XᵀV⁻¹X`` and ``XᵀV⁻¹r`` first,
     then Ψ, which needs them; O(N·d²·k + N·d·k²) per evaluation.
     """
-    model = _EECovariance(layout, _chain_covariance(layout, theta), known_covariance, transform)
+    model = _EECovariance(layout, layout.frame_covariances(theta), known_covariance, transform)
     parts = samples.map(_reml_sums, model)
     done = [part for part in parts if part is not None]
     if len(done) < len(parts):
@@ -230,12 +234,34 @@ def restricted_nll(
     return value, 0.5 * (psi + psi.transpose(0, 2, 1))
 
 
+def restriction(
+    theta: FloatArray,
+    samples: ArraySamples,
+    transform: FloatArray,
+    layout: CovarianceLayout,
+    *,
+    known_covariance: FloatArray | None = None,
+) -> tuple[float, FloatArray]:
+    """REML's restriction terms ``log det(XᵀV⁻¹X) − uᵀM⁻¹u`` (REML minus ML NLL) and their
+    Ψ on ``samples`` (``transform`` their own :func:`fit_basis_transform`).
+
+    They account for the p parameters the deterministic fit used: their gradient is O(p)
+    whatever the number of samples (for V = σ²I it is exactly that of −p log σ²), against
+    O(N) for the likelihood terms, so on a large recording they may be taken on an evenly
+    spaced subset; (inf, 0) where some Σ_E is not positive definite."""
+    reml = restricted_nll(theta, samples, transform, layout, known_covariance=known_covariance)
+    ml = gaussian_nll(theta, samples, layout, known_covariance=known_covariance)
+    if not (np.isfinite(reml[0]) and np.isfinite(ml[0])):
+        return float("inf"), np.zeros((layout.n_frames, 6, 6))
+    return reml[0] - ml[0], reml[1] - ml[1]
+
+
 def _reml_sums(
     model: _EECovariance, samples: SampleChunk
 ) -> tuple[float, FloatArray, FloatArray] | None:
     """A chunk's ``Σ log det Σ_E + rᵀV⁻¹r``, ``XᵀV⁻¹X`` (k, k) and ``XᵀV⁻¹r`` (k,)."""
     chunk = model.chunk(samples)
-    ee = _ee_chunk(chunk, model.sigma_all, model.known)
+    ee = _ee_chunk(chunk, model.covariances, model.known)
     if ee is None:
         return None
     _, inv, logdet = ee
@@ -254,14 +280,14 @@ def _reml_psi(
     """A chunk's Ψ with ``Ω_n = P_nn − s_n s_nᵀ`` given (XᵀV⁻¹X)⁻¹ and (XᵀV⁻¹X)⁻¹XᵀV⁻¹r."""
     model, m_inv, m_inv_u = argument
     chunk = model.chunk(samples)
-    ee = _ee_chunk(chunk, model.sigma_all, model.known)
+    ee = _ee_chunk(chunk, model.covariances, model.known)
     assert ee is not None and chunk.basis is not None  # the first pass saw them all PD
     inv = ee[1]
     q = inv @ chunk.basis
     s = np.einsum("nij,nj->ni", inv, chunk.residuals) - q @ m_inv_u
     p_nn = inv - (q @ m_inv) @ q.transpose(0, 2, 1)
     omega = p_nn - s[:, :, None] * s[:, None, :]
-    return _psi_from_omega(chunk, omega, model.layout.n_frames)
+    return _psi_from_omega(chunk, omega, model.layout)
 
 
 def _whitening(
@@ -277,9 +303,7 @@ def _whitening(
     Lᵀ is the symmetric square root (works for singular PSD Σ_E); L⁻¹ needs Σ_E ≻ 0.
     """
     cols = column_matrix(frame_jacobians, layout)
-    cov = _ee_covariances(cols, _chain_covariance(layout, theta))
-    if known_covariance is not None:
-        cov = cov + known_covariance
+    cov = ee_covariance_batch(_frame_view(cols), layout.frame_covariances(theta), known_covariance)
     if not inverse:
         eigval, eigvec = np.linalg.eigh(0.5 * (cov + cov.transpose(0, 2, 1)))
         root = (eigvec * np.sqrt(np.clip(eigval, 0.0, None))[:, None, :]) @ eigvec.transpose(

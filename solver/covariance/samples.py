@@ -50,6 +50,11 @@ class SampleChunk:
     def n(self) -> int:
         return int(self.residuals.shape[0])
 
+    @property
+    def nbytes(self) -> int:
+        fit = 0 if self.fit_jacobian is None else self.fit_jacobian.nbytes
+        return self.residuals.nbytes + self.frame_jacobians.nbytes + fit + self.rows.nbytes
+
     def take(self, index: IntArray) -> SampleChunk:
         return SampleChunk(
             self.residuals[index],
@@ -78,6 +83,10 @@ class CovarianceSamples(Protocol):
     def map(self, kernel: Kernel[A, T], argument: A) -> list[T]:
         """``[kernel(argument, chunk) for chunk in chunks]`` in chunk order (one pass over
         the data when streamed); ``kernel`` module-level and ``argument`` picklable."""
+        ...
+
+    def on_stride(self, stride: int) -> ArraySamples:
+        """The samples whose recording row is a multiple of ``stride``, in memory."""
         ...
 
 
@@ -128,6 +137,20 @@ class ArraySamples:
     def map(self, kernel: Kernel[A, T], argument: A) -> list[T]:
         return [kernel(argument, chunk) for chunk in self.chunks()]
 
+    def on_stride(self, stride: int) -> ArraySamples:
+        if stride == 1:
+            return self
+        index = np.flatnonzero(self.sample_rows % stride == 0)
+        fit = self.fit_jacobian
+        return ArraySamples(
+            self.residuals[index],
+            self.frame_jacobians[index],
+            None if fit is None else fit[index],
+            self.sample_rows[index],
+            self.n_rows,
+            self.chunk_size,
+        )
+
     @classmethod
     def join(cls, chunks: list[SampleChunk], n_rows: int) -> ArraySamples:
         """The samples of ``chunks`` (in order) as one in-memory set."""
@@ -148,18 +171,10 @@ def row_stride(n_rows: int, limit: int) -> int:
     return max(1, -(-n_rows // max(limit, 1)))
 
 
-def _rows_on_stride(stride: int, chunk: SampleChunk) -> SampleChunk:
-    return chunk.take(np.flatnonzero(chunk.rows % stride == 0))
-
-
 def subsample(samples: CovarianceSamples, limit: int) -> ArraySamples:
     """The used samples whose recording row is a multiple of ``row_stride(n_rows, limit)``, in
-    memory (all of them when the recording has at most ``limit`` rows). One pass."""
-    if isinstance(samples, ArraySamples) and samples.n_rows <= limit:
-        return samples
-    stride = row_stride(samples.n_rows, limit)
-    chunks = [c for c in samples.map(_rows_on_stride, stride) if c.n]
-    return ArraySamples.join(chunks, samples.n_rows)
+    memory (all of them when the recording has at most ``limit`` rows)."""
+    return samples.on_stride(row_stride(samples.n_rows, limit))
 
 
 def every_kth(samples: ArraySamples, limit: int) -> ArraySamples:

@@ -12,8 +12,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver.calibration import FitOptions, check_sample_count, fit_deterministic
-from solver.covariance.estimate import CovarianceEstimate, EstimatorName, estimate_from_samples
-from solver.covariance.samples import ArraySamples, CovarianceSamples, SampleChunk, row_stride
+from solver.covariance.estimate import (
+    FULL_LIKELIHOOD_SAMPLES,
+    SE_SAMPLES,
+    CovarianceEstimate,
+    EstimatorName,
+    estimate_from_samples,
+)
+from solver.covariance.samples import (
+    ArraySamples,
+    CovarianceSamples,
+    SampleChunk,
+    row_stride,
+    subsample,
+)
 from solver.covariance.solvers import SolverName
 from solver.evaluation import SplitError, score_splits, split_indices
 from solver.executors import Executor
@@ -36,6 +48,7 @@ from solver.stream.screening import OutlierRule
 from solver.stream.sums import CovarianceSpec, CovarianceSums
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 
 # --- the streamed calibration -------------------------------------------------------------
 
@@ -160,7 +173,7 @@ CALIBRATED = "calibrated"
 """The two methods of the held-out evaluation: the nominal robot with the measurement frame and
 tool fitted ("before"), and the full calibration."""
 
-HELDOUT_ROWS = 5_000
+HELDOUT_ROWS = 3_000
 """The held-out evaluation (DESIGN.md §4) fits and scores at most this many used rows, evenly
 spaced over the recording (every row below that): twenty in-memory fits of a 10⁶-pose
 recording would take minutes, and a held-out error needs thousands of poses, not millions."""
@@ -169,23 +182,6 @@ IN_MEMORY_SAMPLES = 50_000
 """Up to this many used samples the covariance stage gathers them into memory once (each
 likelihood evaluation then costs no sweep of the chain); beyond, every evaluation is a pass
 over the recording. The numbers are the same either way."""
-
-FULL_SCORING_SAMPLES = 200_000
-"""Up to this many used samples ML/REML iterate to convergence; beyond, they take
-:data:`LARGE_N_SCORING_STEPS` Fisher-scoring steps from the moment solution (each a pass over
-the recording, two for REML): from a √N-consistent start a scoring step gives an estimator as
-efficient as the converged one up to O(1/N), far below its standard error."""
-
-LARGE_N_SCORING_STEPS = 2
-CONVERGED_SCORING_STEPS = 200
-
-
-def scoring_steps(n_samples: int) -> int:
-    """The Fisher-scoring steps of ML/REML for ``n_samples`` used samples (a rule of N only,
-    so every path of a recording gets the same estimate)."""
-    if n_samples <= FULL_SCORING_SAMPLES:
-        return CONVERGED_SCORING_STEPS
-    return LARGE_N_SCORING_STEPS
 
 
 @dataclass(frozen=True)
@@ -293,19 +289,28 @@ def covariance_stage(
     fit_columns = None
     if settings.estimator == "reml":
         fit_columns = np.array([names.index(n) for n in run.fit.estimated], dtype=np.intp)
-    samples: CovarianceSamples = StreamedSamples(
-        problem,
-        executor,
-        run.fit.params,
-        spec.frames,
-        fit_columns,
-        run.rule,
-        sums.n,
-        run.n_rows,
-        count,
-    )
+
+    def streamed(columns: IntArray | None) -> StreamedSamples:
+        return StreamedSamples(
+            problem,
+            executor,
+            run.fit.params,
+            spec.frames,
+            columns,
+            run.rule,
+            sums.n,
+            run.n_rows,
+            count,
+        )
+
+    samples: CovarianceSamples = streamed(fit_columns)
+    sub = None
     if sums.n <= in_memory_samples:
         samples = ArraySamples.join(samples.map(_all_samples, None), run.n_rows)
+    elif sums.n > FULL_LIKELIHOOD_SAMPLES:
+        # REML's fit Jacobian is needed on the subsample only (its restriction terms)
+        sub = subsample(samples, SE_SAMPLES)
+        samples = streamed(None)
     return estimate_from_samples(
         samples,
         spec.layout,
@@ -314,7 +319,7 @@ def covariance_stage(
         solver=settings.solver,
         noise_name=spec.noise_name,
         statistics=(sums.stats, sums.jacobians),
-        max_likelihood_iterations=scoring_steps(sums.n),
+        sample_subset=sub,
     )
 
 

@@ -168,6 +168,7 @@ _PREPARED: OrderedDict[tuple[str, Any], list[Block]] = OrderedDict()
 _MASKS: dict[tuple[str, Any, str], list[BoolArray]] = {}
 _RESIDUALS: dict[tuple[str, Any], tuple[bytes, list[FloatArray]]] = {}
 _GRAVITY: dict[str, StaticGravityModel] = {}
+_DERIVED: dict[tuple[str, Any, str], tuple[int, Any]] = {}
 _LOCK = threading.Lock()  # Dask may run several tasks of one process in threads
 
 
@@ -180,6 +181,8 @@ def forget(token: str) -> None:
             del _MASKS[mask_key]
         for chunk_key in [k for k in _RESIDUALS if k[0] == token]:
             del _RESIDUALS[chunk_key]
+        for derived_key in [k for k in _DERIVED if k[0] == token]:
+            del _DERIVED[derived_key]
         _GRAVITY.pop(token, None)
 
 
@@ -252,6 +255,24 @@ def cache_masks(problem: StreamProblem, ref: Any, rule_token: str, masks: list[B
     """Remember the keep masks of a chunk under a rule for the later passes."""
     with _LOCK:
         _MASKS[(problem.token, ref, rule_token)] = masks
+
+
+def cached_derived(problem: StreamProblem, ref: Any, key: str) -> Any | None:
+    """What :func:`cache_derived` kept of chunk ``ref`` under ``key``, or None."""
+    with _LOCK:
+        entry = _DERIVED.get((problem.token, ref, key))
+    return None if entry is None else entry[1]
+
+
+def cache_derived(problem: StreamProblem, ref: Any, key: str, value: Any, nbytes: int) -> None:
+    """Keep ``value`` (``nbytes`` large), derived from chunk ``ref`` for the passes of one
+    computation named ``key`` (e.g. the samples of the covariance stage at the calibrated
+    parameters), when this process's caches of the problem stay within its budget."""
+    with _LOCK:
+        held = sum(b.nbytes for k, v in _PREPARED.items() if k[0] == problem.token for b in v)
+        held += sum(size for k, (size, _) in _DERIVED.items() if k[0] == problem.token)
+        if held + nbytes <= problem.cache_bytes:
+            _DERIVED[(problem.token, ref, key)] = (nbytes, value)
 
 
 def count_chunk_rows(problem: StreamProblem, ref: Any) -> int:

@@ -13,20 +13,28 @@ per chunk. The moment statistics usually come along with the refit's last pass
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import operator
+import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from solver.batch_chain import pose_residuals, sweep_chain
-from solver.covariance.samples import SampleChunk
+from solver.covariance.samples import ArraySamples, SampleChunk
 from solver.executors import Executor
 from solver.kinematics import ChainParameters
-from solver.stream.chunks import Block, StreamProblem, prepared_blocks
+from solver.stream.chunks import (
+    Block,
+    StreamProblem,
+    cache_derived,
+    cached_derived,
+    prepared_blocks,
+)
 from solver.stream.fit import PassCount
 from solver.stream.screening import OutlierRule, used_mask
 from solver.stream.sums import CovarianceSpec, CovarianceSums, covariance_sums, frame_range
@@ -101,6 +109,7 @@ class _SamplesPass:
     rule: OutlierRule | None
     kernel: Callable[[Any, SampleChunk], Any]
     argument: Any
+    token: str
 
 
 def block_samples(
@@ -125,32 +134,41 @@ def block_samples(
     assert sweep.columns is not None
     residual = pose_residuals(sweep, block.rotation, block.translation).residual
     keep = np.arange(block.n) if used is None else np.flatnonzero(used)
-    columns = sweep.columns[:, :, keep]  # (C, d, n)
+    index = slice(None) if used is None else keep  # no copy when every sample is used
     frame_index = [position[c] for c in frame_columns]
-    jacobians = columns[frame_index].reshape(len(frames), 6, d, -1).transpose(3, 0, 2, 1)
+    jacobians = sweep.columns[frame_index][:, :, index]  # (F·6, d, n)
     fit = None
     if fit_columns is not None:
-        fit = np.ascontiguousarray(columns[: len(fitted)].transpose(2, 1, 0))
+        fit = np.ascontiguousarray(sweep.columns[: len(fitted), :, index].transpose(2, 1, 0))
     return SampleChunk(
-        np.ascontiguousarray(residual[:, keep].T),
-        np.ascontiguousarray(jacobians),
+        np.ascontiguousarray(residual[:, index].T),
+        np.ascontiguousarray(jacobians.reshape(len(frames), 6, d, -1).transpose(3, 0, 2, 1)),
         fit,
         (block.first_row + keep).astype(np.intp),
     )
 
 
 def samples_chunk(request: _SamplesPass, ref: Any) -> list[Any]:
-    """The kernel's result for every block of one chunk, in order."""
+    """The kernel's result for every block of one chunk, in order. The blocks' samples are
+    swept once per :class:`StreamedSamples` and kept in the worker for its later passes
+    while the cache budget allows (the likelihood fits make a pass per evaluation)."""
     problem = request.problem
-    blocks = prepared_blocks(problem, ref)
-    out = []
-    for index, block in enumerate(blocks):
-        used = used_mask(problem, request.rule, ref, index, blocks)
-        samples = block_samples(
-            problem, request.params, request.frames, request.fit_columns, block, used
-        )
-        out.append(request.kernel(request.argument, samples))
-    return out
+    samples = cached_derived(problem, ref, request.token)
+    if samples is None:
+        blocks = prepared_blocks(problem, ref)
+        samples = [
+            block_samples(
+                problem,
+                request.params,
+                request.frames,
+                request.fit_columns,
+                block,
+                used_mask(problem, request.rule, ref, index, blocks),
+            )
+            for index, block in enumerate(blocks)
+        ]
+        cache_derived(problem, ref, request.token, samples, sum(s.nbytes for s in samples))
+    return [request.kernel(request.argument, chunk) for chunk in samples]
 
 
 @dataclass(frozen=True, eq=False)
@@ -170,6 +188,7 @@ class StreamedSamples:
     n_samples: int
     n_rows: int
     count: PassCount
+    token: str = field(default_factory=lambda: uuid.uuid4().hex)
 
     @property
     def residual_dim(self) -> int:
@@ -184,7 +203,64 @@ class StreamedSamples:
             self.rule,
             kernel,
             argument,
+            self.token,
         )
         per_chunk = self.executor.map(samples_chunk, request, self.problem.refs)
         self.count.passes += 1
         return [part for chunk in per_chunk for part in chunk]
+
+    def on_stride(self, stride: int) -> ArraySamples:
+        """One pass sweeping only the used rows whose number is a multiple of ``stride``."""
+        request = _StridePass(
+            self.problem, self.params, self.frames, self.fit_columns, self.rule, stride
+        )
+        chunks = [c for c in self.executor.map(stride_chunk, request, self.problem.refs) if c.n]
+        self.count.passes += 1
+        return ArraySamples.join(chunks, self.n_rows)
+
+
+@dataclass(frozen=True, eq=False)
+class _StridePass:
+    problem: StreamProblem
+    params: ChainParameters
+    frames: tuple[int, ...]
+    fit_columns: IntArray | None
+    rule: OutlierRule | None
+    stride: int
+
+
+def stride_chunk(request: _StridePass, ref: Any) -> SampleChunk:
+    """The used samples of one chunk whose row number is a multiple of the stride (only they
+    are swept)."""
+    problem = request.problem
+    blocks = prepared_blocks(problem, ref)
+    parts = []
+    for index, block in enumerate(blocks):
+        used = used_mask(problem, request.rule, ref, index, blocks)
+        rows = block.first_row + np.arange(block.n)
+        chosen = np.flatnonzero((rows % request.stride == 0) & (True if used is None else used))
+        if chosen.size:
+            chunk = block_samples(
+                problem,
+                request.params,
+                request.frames,
+                request.fit_columns,
+                block.subset(chosen),
+                None,
+            )
+            parts.append(dataclasses.replace(chunk, rows=rows[chosen].astype(np.intp)))
+    if not parts:
+        d = problem.residual_dim
+        fit = None if request.fit_columns is None else np.zeros((0, d, request.fit_columns.size))
+        return SampleChunk(
+            np.zeros((0, d)),
+            np.zeros((0, len(request.frames), d, 6)),
+            fit,
+            np.zeros(0, dtype=np.intp),
+        )
+    return SampleChunk(
+        np.concatenate([p.residuals for p in parts]),
+        np.concatenate([p.frame_jacobians for p in parts]),
+        None if request.fit_columns is None else np.concatenate([p.fit_jacobian for p in parts]),  # type: ignore[misc]
+        np.concatenate([p.rows for p in parts]),
+    )

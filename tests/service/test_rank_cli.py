@@ -24,6 +24,7 @@ from service.robots import load_robot
 from solver import lie
 from solver.evaluation import cross_validate
 from solver.executors import InProcessExecutor
+from solver.gp_baseline import gp_calibration_method
 from solver.model import sample_configurations
 from solver.ranking import TaskMetric, ee_covariance
 from solver.stream.calibrate import (
@@ -299,7 +300,18 @@ def test_gp_calibration_method_is_a_table_ii_column() -> None:
     used = np.arange(dataset.n_samples)
     gp = cross_validate(
         data.measured_pose,
-        {"gp": ranking.gp_calibration_method(data, used, options)},
+        {
+            "gp": gp_calibration_method(
+                data.chain,
+                data.joint_positions,
+                data.measured_pose,
+                data.loads_nm,
+                position_only=False,
+                baseline_options=pipeline.fit_options(
+                    options, baseline=True, n_links=data.chain.n_links
+                ),
+            )
+        },
         position_only=False,
         seeds=options.seeds,
     )
