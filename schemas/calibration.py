@@ -52,11 +52,28 @@ class CalibrationOptions(_Model):
     rotation_weight_m_per_rad: float = Field(
         1.0, gt=0.0, description="How much 1 rad of rotation residual counts against 1 m."
     )
+    outlier_rule: Literal["model", "sigma", "none"] = Field(
+        "model",
+        description="How gross errors (detector failures) are screened out: 'model' judges each "
+        "sample against its own predicted covariance Σ_E(q) (Eq. 12) at the family-wise "
+        "outlier_level, iterated with the fit, and keeps clean data; 'sigma' is the paper's "
+        "§V-A rule (drop a sample with a residual component beyond outlier_sigma standard "
+        "deviations: ~21 % of clean 6-D samples at 2σ, so its covariances come out too "
+        "small); 'none' keeps every sample. Giving only outlier_sigma selects 'sigma' "
+        "(0 or null: 'none').",
+    )
+    outlier_level: float = Field(
+        0.01,
+        gt=0.0,
+        lt=1.0,
+        description="Model rule: probability that any clean sample of the whole recording is "
+        "removed (Bonferroni over its samples).",
+    )
     outlier_sigma: float | None = Field(
         2.0,
         ge=0.0,
-        description="Paper §V-A outlier rule: drop samples with a residual component beyond "
-        "this many standard deviations (0 or null disables).",
+        description="Sigma rule (paper §V-A): standard deviations a residual component may lie "
+        "from its mean (0 or null: no screening).",
     )
     max_iterations: int = Field(
         50, ge=1, le=1000, description="Gauss-Newton iterations at most (Eq. 10)."
@@ -133,6 +150,23 @@ class CalibrationOptions(_Model):
     @classmethod
     def _zero_disables(cls, value: float | None) -> float | None:
         return None if value == 0.0 else value
+
+    @model_validator(mode="after")
+    def _sigma_selects_its_rule(self) -> CalibrationOptions:
+        if "outlier_sigma" in self.model_fields_set and "outlier_rule" not in self.model_fields_set:
+            self.outlier_rule = "none" if self.outlier_sigma is None else "sigma"
+        elif self.outlier_rule == "sigma" and self.outlier_sigma is None:
+            raise ValueError("outlier_rule 'sigma' needs outlier_sigma > 0 (e.g. 2.0)")
+        return self
+
+    @property
+    def screening(self) -> Literal["model", "sigma", "none"]:
+        """The outlier rule in effect."""
+        return (
+            "none"
+            if self.outlier_rule == "sigma" and self.outlier_sigma is None
+            else self.outlier_rule
+        )
 
     @field_validator("noise_std")
     @classmethod
@@ -261,6 +295,12 @@ class Evaluation(_Model):
 
 
 class OutlierReport(_Model):
+    rule: Literal["model", "sigma", "none"] = Field(
+        "sigma", description="The outlier rule applied (see CalibrationOptions.outlier_rule)."
+    )
+    level: float | None = Field(
+        None, description="Model rule: family-wise probability of removing a clean sample."
+    )
     sigma: float | None
     n_input: int
     n_used: int

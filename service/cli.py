@@ -211,6 +211,10 @@ def calibrate(
     rotation_weight: Annotated[
         float | None, typer.Option(help=option_help("rotation_weight_m_per_rad"))
     ] = None,
+    outlier_rule: Annotated[
+        str | None, typer.Option(help=option_help("outlier_rule", "; model|sigma|none"))
+    ] = None,
+    outlier_level: Annotated[float | None, typer.Option(help=option_help("outlier_level"))] = None,
     outlier_sigma: Annotated[
         float | None, typer.Option(help=option_help("outlier_sigma", "; 0 disables"))
     ] = None,
@@ -290,6 +294,8 @@ def calibrate(
             if payload_com is None
             else _vector3(payload_com, "--payload-com"),
             "rotation_weight_m_per_rad": rotation_weight,
+            "outlier_rule": outlier_rule,
+            "outlier_level": outlier_level,
             "outlier_sigma": outlier_sigma,
             "max_iterations": max_iterations,
             "tolerance": tolerance,
@@ -657,6 +663,7 @@ def fleet(
     rigid: Annotated[
         bool, typer.Option(help="No joint compliance at all (compliant_joints = []).")
     ] = False,
+    outlier_rule: Annotated[str | None, typer.Option(help=option_help("outlier_rule"))] = None,
     outlier_sigma: Annotated[float | None, typer.Option(help=option_help("outlier_sigma"))] = None,
     covariance: Annotated[str | None, typer.Option(help=option_help("covariance"))] = None,
     estimator: Annotated[str | None, typer.Option(help=option_help("covariance_estimator"))] = None,
@@ -692,6 +699,7 @@ def fleet(
         None if config is None else read_config(config),
         {
             "compliant_joints": [] if rigid else _names(compliant_joints),
+            "outlier_rule": outlier_rule,
             "outlier_sigma": outlier_sigma,
             "heldout": heldout,
             "covariance": covariance,

@@ -41,6 +41,8 @@ CALIBRATION_FLAGS: dict[str, str] = {
     "payload_kg": "--payload-kg",
     "payload_com_m": "--payload-com",
     "rotation_weight_m_per_rad": "--rotation-weight",
+    "outlier_rule": "--outlier-rule",
+    "outlier_level": "--outlier-level",
     "outlier_sigma": "--outlier-sigma",
     "max_iterations": "--max-iterations",
     "tolerance": "--tolerance",

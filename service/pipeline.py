@@ -332,7 +332,12 @@ def calibrate_source(
             runner,
             fit_options(setup.options),
             fit_options(setup.options, baseline=True, n_links=setup.chain.n_links),
-            StreamSettings(stream.warm_start_rows, setup.options.outlier_sigma),
+            StreamSettings(
+                stream.warm_start_rows,
+                setup.options.screening,
+                setup.options.outlier_sigma or 2.0,
+                setup.options.outlier_level,
+            ),
             covariance=_covariance_settings(recording.problem, setup),
             heldout=HeldoutSettings(tuple(setup.options.seeds), setup.options.train_fraction)
             if setup.options.heldout

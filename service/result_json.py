@@ -406,7 +406,9 @@ def assemble_result(
         else _covariance_result(calibrated.covariance, frame_index),
         evaluation=_evaluation(calibrated, options) if splits else None,
         outliers=OutlierReport(
-            sigma=options.outlier_sigma,
+            rule=options.screening,
+            level=options.outlier_level if options.screening == "model" else None,
+            sigma=options.outlier_sigma if options.screening == "sigma" else None,
             n_input=fits.n_rows,
             n_used=fit.sums.errors.n,
             removed_rows=[int(i) + 1 for i in fits.removed_rows],

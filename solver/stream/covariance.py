@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver.batch_chain import pose_residuals, sweep_chain
+from solver.covariance.likelihood import ee_covariance_batch
 from solver.covariance.samples import ArraySamples, SampleChunk
 from solver.executors import Executor
 from solver.kinematics import ChainParameters
@@ -36,7 +37,7 @@ from solver.stream.chunks import (
     prepared_blocks,
 )
 from solver.stream.fit import PassCount
-from solver.stream.screening import OutlierRule, used_mask
+from solver.stream.screening import Rule, used_mask
 from solver.stream.sums import CovarianceSpec, CovarianceSums, covariance_sums, frame_range
 
 FloatArray = NDArray[np.float64]
@@ -48,7 +49,7 @@ class _CovariancePass:
     problem: StreamProblem
     params: ChainParameters
     spec: CovarianceSpec
-    rule: OutlierRule | None
+    rule: Rule | None
 
 
 def covariance_chunk(request: _CovariancePass, ref: Any) -> CovarianceSums:
@@ -89,7 +90,7 @@ def streamed_covariance_sums(
     executor: Executor,
     params: ChainParameters,
     spec: CovarianceSpec,
-    rule: OutlierRule | None = None,
+    rule: Rule | None = None,
 ) -> CovarianceSums:
     """One pass: Eq. (13–14) statistics and the Jacobian range of ``spec``'s frames at
     ``params``, summed over chunks in order."""
@@ -106,7 +107,7 @@ class _SamplesPass:
     params: ChainParameters
     frames: tuple[int, ...]
     fit_columns: IntArray | None
-    rule: OutlierRule | None
+    rule: Rule | None
     kernel: Callable[[Any, SampleChunk], Any]
     argument: Any
     token: str
@@ -184,7 +185,7 @@ class StreamedSamples:
     params: ChainParameters
     frames: tuple[int, ...]
     fit_columns: IntArray | None
-    rule: OutlierRule | None
+    rule: Rule | None
     n_samples: int
     n_rows: int
     count: PassCount
@@ -225,7 +226,7 @@ class _StridePass:
     params: ChainParameters
     frames: tuple[int, ...]
     fit_columns: IntArray | None
-    rule: OutlierRule | None
+    rule: Rule | None
     stride: int
 
 
@@ -264,3 +265,50 @@ def stride_chunk(request: _StridePass, ref: Any) -> SampleChunk:
         None if request.fit_columns is None else np.concatenate([p.fit_jacobian for p in parts]),  # type: ignore[misc]
         np.concatenate([p.rows for p in parts]),
     )
+
+
+@dataclass(frozen=True)
+class _Predicted:
+    frame_covariances: FloatArray  # (F, 6, 6)
+    noise_covariance: FloatArray  # (6, 6)
+    threshold: float
+
+
+def mahalanobis_squared(samples: SampleChunk, predicted: _Predicted) -> FloatArray:
+    """``r_nᵀ Σ_E(q_n)⁻¹ r_n`` (n,) of each sample's residual against its predicted covariance
+    (Eq. 12, noise included). A direction no part of the model spreads into (Σ_E singular)
+    gets a variance of 10⁻¹² of the largest, so any residual along it counts as far."""
+    covariance = ee_covariance_batch(
+        samples.frame_jacobians, predicted.frame_covariances, predicted.noise_covariance
+    )
+    d = covariance.shape[-1]
+    floor = 1e-12 * np.trace(covariance, axis1=1, axis2=2) / d
+    covariance = covariance + floor[:, None, None] * np.eye(d)
+    solved = np.linalg.solve(covariance, samples.residuals[:, :, None])[:, :, 0]
+    return np.asarray(np.einsum("nd,nd->n", samples.residuals, solved))
+
+
+def _beyond(predicted: _Predicted, samples: SampleChunk) -> NDArray[np.int64]:
+    far = mahalanobis_squared(samples, predicted) > predicted.threshold
+    return samples.rows[far].astype(np.int64)
+
+
+def model_rule_removed(
+    problem: StreamProblem,
+    executor: Executor,
+    params: ChainParameters,
+    frames: tuple[int, ...],
+    frame_covariances: FloatArray,
+    noise_covariance: FloatArray,
+    threshold: float,
+    n_rows: int,
+    count: PassCount,
+) -> NDArray[np.int64]:
+    """One pass over every sample of the recording: the sorted 0-based rows whose squared
+    Mahalanobis distance to the model at ``params`` with covariances Σ_f of ``frames`` and
+    Σ_n exceeds ``threshold`` — the model-based outlier rule (each sample judged against its
+    own predicted Σ_E(q), Eq. 12)."""
+    samples = StreamedSamples(problem, executor, params, frames, None, None, n_rows, n_rows, count)
+    predicted = _Predicted(frame_covariances, noise_covariance, threshold)
+    parts = samples.map(_beyond, predicted)
+    return np.sort(np.concatenate([np.zeros(0, dtype=np.int64), *parts]))

@@ -46,7 +46,14 @@ from solver.stream.chunks import (
     keep_residuals,
     prepared_blocks,
 )
-from solver.stream.screening import OutlierRule, parameters_key, rule_mask, used_mask
+from solver.stream.screening import (
+    RowRule,
+    Rule,
+    block_residuals,
+    parameters_key,
+    rule_mask,
+    used_mask,
+)
 from solver.stream.sums import (
     CovarianceSpec,
     ErrorSums,
@@ -71,7 +78,7 @@ class _Evaluation:
     params: ChainParameters
     keep: IntArray
     rotation_weight: float
-    rule: OutlierRule | None
+    rule: Rule | None
     collect_removed: bool = False
     keep_residuals: bool = False
     covariance: CovarianceSpec | None = None
@@ -291,7 +298,7 @@ def streamed_fit_sums(
     keep: IntArray,
     options: FitOptions,
     *,
-    rule: OutlierRule | None = None,
+    rule: Rule | None = None,
     collect_removed: bool = False,
 ) -> FitSums:
     """One pass: the Eq. (10) normal equations over the columns ``keep`` at ``params`` (and the
@@ -314,7 +321,7 @@ class FitRequest:
     start: ChainParameters
     keep: IntArray
     options: FitOptions
-    rule: OutlierRule | None = None
+    rule: Rule | None = None
     keep_residuals: bool = False
     covariance: CovarianceSpec | None = None
 
@@ -404,7 +411,7 @@ def fit_streamed(
     start: ChainParameters,
     keep: IntArray,
     options: FitOptions,
-    rule: OutlierRule | None = None,
+    rule: Rule | None = None,
 ) -> StreamedFit:
     """Gauss–Newton (Eq. 10) over the columns ``keep`` from ``start``, each iterate's normal
     equations summed over the chunks; samples failing ``rule`` are left out (their rows are
@@ -438,17 +445,27 @@ class RowSample:
             self.rows[index],
         )
 
-    def kept_by(self, problem: StreamProblem, rule: OutlierRule) -> RowSample:
-        """The rows ``rule`` keeps (the same computation as on streamed chunks)."""
-        keep = rule_mask(
-            problem,
-            rule,
+    def _block(
+        self, problem: StreamProblem
+    ) -> tuple[list[lie.ScrewMotion], FloatArray, FloatArray | None, FloatArray]:
+        """The rows as a streamed block takes them: joint motions, loads, measured rotations
+        (3, 3, n) (None when position-only) and translations (3, n)."""
+        return (
             joint_motions(problem.chain, self.joint_positions),
             self.loads_nm,
             None if problem.position_only else self.measured_pose[:, :3, :3].transpose(1, 2, 0),
             np.ascontiguousarray(self.measured_pose[:, :3, 3].T),
         )
-        return self.take(np.flatnonzero(keep))
+
+    def residuals_at(self, problem: StreamProblem, params: ChainParameters) -> FloatArray:
+        """Residuals (n, d) of the rows at ``params`` (as a streamed pass computes them)."""
+        return block_residuals(problem, params, *self._block(problem)).T
+
+    def kept_by(self, problem: StreamProblem, rule: Rule) -> RowSample:
+        """The rows ``rule`` keeps (the same computation as on streamed chunks)."""
+        if isinstance(rule, RowRule):
+            return self.take(np.flatnonzero(rule.keep(self.rows)))
+        return self.take(np.flatnonzero(rule_mask(problem, rule, *self._block(problem))))
 
 
 def read_head(problem: StreamProblem, n_rows: int) -> RowSample:
@@ -482,7 +499,7 @@ def read_head(problem: StreamProblem, n_rows: int) -> RowSample:
 @dataclass(frozen=True, eq=False)
 class _GatherPass:
     problem: StreamProblem
-    rule: OutlierRule | None
+    rule: Rule | None
     stride: int
 
 
@@ -518,7 +535,7 @@ def join_rows(parts: Sequence[RowSample]) -> RowSample:
 
 
 def gather_rows(
-    problem: StreamProblem, executor: Executor, rule: OutlierRule | None, stride: int
+    problem: StreamProblem, executor: Executor, rule: Rule | None, stride: int
 ) -> RowSample:
     """One pass: the rows ``rule`` keeps whose row number is a multiple of ``stride``, in
     memory, in row order (the same rows however the recording is cut into chunks)."""

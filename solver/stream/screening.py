@@ -1,4 +1,12 @@
-"""Which samples a pass uses: the outlier rule as a fixed keep mask per chunk (paper §V-A)."""
+"""Which samples a pass uses: the outlier rule as a fixed keep mask per chunk.
+
+Two rules. :class:`OutlierRule` keeps a sample whose every residual component lies within
+``sigma`` spreads of a centre: with the mean and standard deviation at 2σ it is the paper's
+rule (§V-A), with the median and the scaled MAD at a family-wise threshold it is the first,
+robust step of the model-based rule. :class:`RowRule` is a decision already taken row by row —
+the model-based rule's: each sample's residual against its own predicted covariance Σ_E(q)
+(Eq. 12), see :func:`solver.stream.covariance.model_rule_removed`.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +17,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 
 from solver import lie
 from solver.batch_chain import (
@@ -37,6 +46,45 @@ class OutlierRule:
     token: str = field(default_factory=lambda: uuid.uuid4().hex)
 
 
+@dataclass(frozen=True, eq=False)
+class RowRule:
+    """Keeps every sample but ``removed_rows`` (sorted 0-based rows of the recording)."""
+
+    removed_rows: NDArray[np.int64]
+    token: str = field(default_factory=lambda: uuid.uuid4().hex)
+
+    def keep(self, rows: NDArray[np.integer[Any]]) -> BoolArray:
+        return ~np.isin(rows, self.removed_rows)
+
+
+Rule = OutlierRule | RowRule
+
+
+def family_wise_z(level: float, n_rows: int, dim: int) -> float:
+    """Per-component |z| beyond which a Gaussian component of one of ``n_rows`` samples falls
+    with probability ``level`` over the whole recording (Bonferroni over n·d two-sided tests)."""
+    return float(stats.norm.isf(level / (2.0 * n_rows * dim)))
+
+
+def family_wise_t2(level: float, n_rows: int, dim: int, dof: float) -> float:
+    """Squared Mahalanobis distance beyond which one of ``n_rows`` clean samples falls with
+    probability ``level`` over the whole recording (Bonferroni), when the covariance it is
+    measured against was itself estimated with ``dof`` degrees of freedom: Hotelling's
+    ``T² = dof·d/(dof − d + 1) · F(d, dof − d + 1)``, which tends to χ²_d as ``dof`` grows.
+    At N = 119 poses the χ² quantile (28.3) would remove clean samples whose distance is
+    inflated only by the covariance estimate's own error; T² (33.2) does not."""
+    alpha = level / n_rows
+    dof = max(dof, dim + 1.0)
+    return float(dof * dim / (dof - dim + 1) * stats.f.isf(alpha, dim, dof - dim + 1))
+
+
+def robust_spread(residuals: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Median and 1.4826·MAD of residuals (n, d) per component: a centre and a standard
+    deviation that a few gross errors do not move."""
+    centre = np.median(residuals, axis=0)
+    return centre, 1.4826 * np.median(np.abs(residuals - centre), axis=0)
+
+
 def parameters_key(params: ChainParameters) -> bytes:
     """A digest of the parameter values: residuals kept from a pass are reused only at the
     very same point."""
@@ -44,6 +92,19 @@ def parameters_key(params: ChainParameters) -> bytes:
     digest.update(np.ascontiguousarray(params.links).tobytes())
     digest.update(np.ascontiguousarray(params.compliance_rad_per_nm).tobytes())
     return digest.digest()
+
+
+def block_residuals(
+    problem: StreamProblem,
+    params: ChainParameters,
+    motions: list[lie.ScrewMotion],
+    loads_nm: FloatArray,
+    rotation: FloatArray | None,
+    translation: FloatArray,
+) -> FloatArray:
+    """Residuals (d, b) of a block of samples at ``params``, from one forward sweep."""
+    sweep = sweep_chain(problem.chain, params, motions, loads_nm, residual_dim=problem.residual_dim)
+    return pose_residuals(sweep, rotation, translation).residual
 
 
 def rule_mask(
@@ -55,16 +116,13 @@ def rule_mask(
     translation: FloatArray,
 ) -> BoolArray:
     """Samples kept by ``rule`` (b,): residuals at ``rule.params`` from one forward pass."""
-    sweep = sweep_chain(
-        problem.chain, rule.params, motions, loads_nm, residual_dim=problem.residual_dim
-    )
-    residual = pose_residuals(sweep, rotation, translation).residual
+    residual = block_residuals(problem, rule.params, motions, loads_nm, rotation, translation)
     return within_spread(residual.T, rule.mean, rule.std, rule.sigma)
 
 
 def used_mask(
     problem: StreamProblem,
-    rule: OutlierRule | None,
+    rule: Rule | None,
     ref: Any,
     index: int,
     blocks: list[Block],
@@ -75,6 +133,10 @@ def used_mask(
     one forward sweep per block."""
     if rule is None:
         return None
+    if isinstance(rule, RowRule):
+        block = blocks[index]
+        by_row = rule.keep(block.first_row + np.arange(block.n))
+        return None if by_row.all() else by_row
     masks = cached_masks(problem, ref, rule.token)
     kept = take_residuals(problem, ref)
     if masks is None:

@@ -29,6 +29,8 @@ VALUES: dict[str, tuple[list[str], Any]] = {
     "payload_kg": (["--payload-kg", "1.5"], 1.5),
     "payload_com_m": (["--payload-com", "0,0,0.1"], [0.0, 0.0, 0.1]),
     "rotation_weight_m_per_rad": (["--rotation-weight", "0.5"], 0.5),
+    "outlier_rule": (["--outlier-rule", "none"], "none"),
+    "outlier_level": (["--outlier-level", "0.05"], 0.05),
     "outlier_sigma": (["--outlier-sigma", "3"], 3.0),
     "max_iterations": (["--max-iterations", "80"], 80),
     "tolerance": (["--tolerance", "1e-9"], 1e-9),

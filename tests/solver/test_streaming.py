@@ -93,7 +93,7 @@ def _run(problem: StreamProblem, executor, warm_rows: int):  # type: ignore[no-u
         executor,
         FULL,
         _baseline_options(),
-        StreamSettings(warm_start_rows=warm_rows),
+        StreamSettings(warm_start_rows=warm_rows, outlier_rule="sigma"),
         covariance=spec,
     )
     # nnls (active set): the answer moves with G and h only by rounding; the samples streamed
@@ -315,7 +315,14 @@ def test_streamed_fit_equals_in_memory_for_position_only_and_weighted_rotation(
     problem = _problem_of(recording, position_only=position_only)
     spec = covariance_spec(problem, c.joint_names, range(c.n_joints))
     executor = InProcessExecutor()
-    cal = calibrate_streamed_fits(problem, executor, options, _baseline_options(), covariance=spec)
+    cal = calibrate_streamed_fits(
+        problem,
+        executor,
+        options,
+        _baseline_options(),
+        StreamSettings(outlier_rule="sigma"),
+        covariance=spec,
+    )
     sums = cal.covariance or streamed_covariance_sums(
         problem, executor, cal.fit.params, spec, cal.rule
     )

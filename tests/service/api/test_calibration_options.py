@@ -25,6 +25,8 @@ INVALID: dict[str, list[Any]] = {
     "payload_kg": [-1.0, "heavy", float("inf")],
     "payload_com_m": [[0.0, 0.0], [0, 0, float("-inf")]],
     "rotation_weight_m_per_rad": [0.0, -1.0],
+    "outlier_rule": ["2sigma", None],
+    "outlier_level": [0.0, 1.0, -0.1],
     "outlier_sigma": [-1.0, "two"],
     "max_iterations": [0, 1001, 2.5],
     "tolerance": [0.0, 1.0, -1e-3],

@@ -1,0 +1,155 @@
+"""Are kincal's default covariances honest on data it did not make? (issue 13)
+
+Recordings of a Kinova Jaco2 from :mod:`benchmarks.pinocchio_sim` (Pinocchio only, no kincal
+formula), clean or with 1 % detector failures (5 mm and 10° in the marker frame), go through the
+user's path: ``kincal calibrate DATA --robot kinova`` with default options (``--no-heldout``:
+the held-out splits do not touch the covariances) and ``kincal predict --no-noise`` on 40 new
+configurations. Per seed it reports
+
+* the share of clean samples the outlier rule removed and of detector failures it caught;
+* the task-score error: mean over the configurations of the predicted ``tr(W Σ_E W^T)`` (paper
+  weights ``W = diag(0.4, 0.4, 0, 0.1, 0.1, 0)``, Σ_n excluded, as ``kincal rank`` scores) against
+  the truth from finite differences of Pinocchio's forward kinematics, relative.
+
+Usage: ``python -m benchmarks.honest_covariance [--sizes 119,2000] [--seeds 10] [--flags ...]``
+(extra ``kincal calibrate`` flags, e.g. ``--flags=--outlier-rule=sigma`` for the paper's rule).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from benchmarks.pinocchio_sim import (
+    PinocchioRobot,
+    draw_true_robot,
+    simulate,
+    true_ee_covariance,
+    write_configurations,
+    write_dataset,
+)
+from schemas.calibration import CalibrationResult
+from service.robots import load_robot
+
+PAPER_W = np.diag([0.4, 0.4, 0.0, 0.1, 0.1, 0.0])
+N_CONFIGURATIONS = 40
+
+
+def jaco2() -> PinocchioRobot:
+    description = load_robot("kinova")
+    return PinocchioRobot.from_urdf(
+        description.urdf_xml, description.base_frame, description.tip_frame
+    )
+
+
+def perturbation_std(k: int) -> np.ndarray:
+    """Backlash- and bearing-like play: mostly rotation (rad), a little translation (m)."""
+    return np.tile([2e-5, 2e-5, 2e-5, 8e-4, 8e-4, 4e-4], (k, 1))
+
+
+def task_score(covariance: np.ndarray) -> np.ndarray:
+    """tr(W Σ Wᵀ) (n,) of covariances (n, 6, 6) with the paper's W."""
+    return np.einsum("ij,njk,ik->n", PAPER_W, covariance, PAPER_W)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    n: int
+    seed: int
+    clean_removed: float
+    gross_caught: float | None
+    task_error: float
+
+
+Kincal = Callable[..., None]
+"""Runs one ``kincal`` command line (a fresh process here; the tests run it in process)."""
+
+
+def kincal(*args: str) -> None:
+    command = [str(Path(sys.executable).with_name("kincal")), *args]
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    if done.returncode not in (0, 3):
+        raise RuntimeError(f"{' '.join(command)} failed:\n{done.stdout}\n{done.stderr}")
+
+
+def run_one(
+    n: int,
+    seed: int,
+    gross_fraction: float,
+    flags: list[str],
+    folder: Path,
+    kincal: Kincal = kincal,
+) -> Outcome:
+    robot = jaco2()
+    rng = np.random.default_rng(seed)
+    k = len(robot.joint_ids)
+    truth = draw_true_robot(robot, rng, perturbation_std=perturbation_std(k))
+    recording = simulate(robot, truth, n, rng, gross_fraction=gross_fraction)
+    data = write_dataset(robot, recording, folder / f"jaco2_{n}_{seed}.csv")
+    result_path = folder / f"result_{n}_{seed}.json"
+    kincal(
+        "calibrate", str(data), "--robot", "kinova", "--no-heldout", "-o", str(result_path), *flags
+    )
+    q_new = robot.sample_q(N_CONFIGURATIONS, rng)
+    configs = write_configurations(robot, q_new, folder / f"configs_{n}_{seed}.csv")
+    poses = folder / f"poses_{n}_{seed}.csv"
+    kincal("predict", str(result_path), str(configs), "--no-noise", "-o", str(poses))
+    predicted = pd.read_csv(poses)[[f"cov_{i}{j}" for i in range(6) for j in range(6)]]
+    predicted_cov = predicted.to_numpy().reshape(-1, 6, 6)
+    true_cov = np.array([true_ee_covariance(robot, truth, q) for q in q_new])
+    task_error = float(task_score(predicted_cov).mean() / task_score(true_cov).mean() - 1.0)
+    result = CalibrationResult.model_validate_json(result_path.read_text())
+    removed = {r - 1 for r in result.outliers.removed_rows}
+    gross = set(recording.gross.tolist())
+    clean_removed = len(removed - gross) / (n - len(gross))
+    caught = len(removed & gross) / len(gross) if gross else None
+    return Outcome(n, seed, clean_removed, caught, task_error)
+
+
+def main(sizes: list[int], seeds: int, gross_fraction: float, flags: list[str]) -> str:
+    lines = [
+        f"flags: {' '.join(flags) or '(defaults)'}; detector failures: {gross_fraction:.0%}",
+        "",
+        "| N | seeds | clean removed (median, max) | failures caught (min) "
+        "| task-score error (median, IQR) |",
+        "|---|---|---|---|---|",
+    ]
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in sizes:
+            outcomes = [run_one(n, s, gross_fraction, flags, Path(tmp)) for s in range(seeds)]
+            errors = [o.task_error for o in outcomes]
+            removed = [o.clean_removed for o in outcomes]
+            caught = [o.gross_caught for o in outcomes if o.gross_caught is not None]
+            q1, q2, q3 = np.percentile(errors, [25, 50, 75])
+            lines.append(
+                f"| {n} | {seeds} | {statistics.median(removed):.2%}, {max(removed):.2%} | "
+                + (f"{min(caught):.0%}" if caught else "–")
+                + f" | {q2:+.1%} ({q1:+.1%} … {q3:+.1%}) |"
+            )
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", default="119,2000")
+    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--gross-fraction", type=float, default=0.0)
+    parser.add_argument("--flags", default="", help="extra kincal calibrate flags, space separated")
+    args = parser.parse_args()
+    print(
+        main(
+            [int(s) for s in args.sizes.split(",")],
+            args.seeds,
+            args.gross_fraction,
+            args.flags.split(),
+        )
+    )
