@@ -1,4 +1,4 @@
-"""The paper reproduction (benchmarks/reproduce_paper.py, issue 4 item 5) on its quick settings:
+"""The paper reproduction (benchmarks/reproduce_paper/, issue 4 item 5) on its quick settings:
 it writes the report and figures, its statistics decide as documented, and the issue's
 acceptance points are checked with the report's own rule (the whole 95 % bootstrap interval on
 the right side of the bar)."""
@@ -7,13 +7,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from benchmarks import reproduce_paper
-from benchmarks.reproduce_paper import ApproachRun, StudyResult, StudySettings
+from benchmarks.reproduce_paper import ApproachRun, StudyResult, StudySettings, cli
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -150,6 +152,30 @@ def test_two_level_bootstrap_resamples_recordings_then_runs() -> None:
     assert np.any(blocks[:, 0, 0] == blocks[:, 1, 0])  # recordings drawn with replacement
     with pytest.raises(ValueError, match="equal numbers"):
         reproduce_paper.bootstrap_indices([1, 1, 2], 10, np.random.default_rng(2))
+
+
+def test_module_entry_point_takes_the_documented_arguments(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``python -m benchmarks.reproduce_paper`` starts, describes the study and passes its
+    arguments to ``main`` (stubbed here: the study itself runs in the ``quick`` fixture)."""
+    done = subprocess.run(
+        [sys.executable, "-m", "benchmarks.reproduce_paper", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    assert done.stdout.startswith("usage: python -m benchmarks.reproduce_paper ")
+    assert "Reproduction of the paper's experiments" in done.stdout
+    for option in ("--out", "--figures", "--runs", "--recordings", "--executions", "--quick"):
+        assert option in done.stdout
+    calls: list[tuple[StudySettings, Path, Path | None]] = []
+    monkeypatch.setattr(
+        cli, "main", lambda settings, out, figures: calls.append((settings, out, figures))
+    )
+    cli.run("study", ["--quick", "--runs", "7", "--out", str(tmp_path)])
+    assert calls == [(dataclasses.replace(StudySettings.quick(), n_runs=7), tmp_path, None)]
 
 
 def test_command_line_settings() -> None:
