@@ -439,6 +439,21 @@ class ModelCorrections(_Model):
         return [c for c in self.corrections if not c.applied_in_prediction]
 
 
+class VerdictReason(_Model):
+    code: str = Field(description="Machine-readable cause, e.g. heldout_worse, position_unit.")
+    severity: Literal["failed", "warning"]
+    message: str = Field(description="What is wrong, with the numbers that show it.")
+    fix: str = Field(description="What to do about it.")
+
+
+class Verdict(_Model):
+    """Whether the calibration is fit to use (solver.verdict): 'failed' results are written
+    but marked, the CLI exits 3 and no URDF is exported unless forced."""
+
+    status: Literal["ok", "warning", "failed"]
+    reasons: list[VerdictReason] = Field(default_factory=list)
+
+
 class CalibrationResult(_Model):
     format: Literal["kincal.calibration/1"] = RESULT_FORMAT
     kincal_version: str
@@ -458,6 +473,11 @@ class CalibrationResult(_Model):
     evaluation: Evaluation | None
     outliers: OutlierReport
     solver: SolverReport
+    verdict: Verdict | None = Field(
+        None,
+        description="Whether the result is fit to use, with causes and fixes (None: written by "
+        "a kincal that did not check).",
+    )
     covariance: CovarianceResult | None = Field(
         None, description="Random-effect covariances; None until that stage has run."
     )

@@ -14,7 +14,7 @@ import pandas as pd
 import pydantic
 import typer
 
-from schemas.calibration import CalibrationResult
+from schemas.calibration import CalibrationResult, Verdict
 from schemas.dataset import read_configurations, read_dataset, write_dataset
 from service import pipeline, result_json, scenarios
 from service.flags import (
@@ -256,6 +256,10 @@ def calibrate(
     export_urdf_to: Annotated[
         Path | None, typer.Option("--export-urdf", help="Also write the calibrated URDF.")
     ] = None,
+    force_urdf: Annotated[
+        bool,
+        typer.Option(help="Write --export-urdf even when the calibration's verdict is failed."),
+    ] = False,
     report: Annotated[
         Path | None, typer.Option(help="Also write the HTML report (figures embedded).")
     ] = None,
@@ -343,11 +347,32 @@ def calibrate(
     _write_json(output, run.result.model_dump_json(indent=1))
     if report is not None:
         _write_text(report, run.report_html())
-    if export_urdf_to is not None:
+    verdict = run.result.verdict
+    failed = verdict is not None and verdict.status == "failed"
+    if export_urdf_to is not None and not (failed and not force_urdf):
         _write_text(export_urdf_to, run.urdf())
     typer.echo(summary(run.result))
     typer.echo(f"\n{execution_summary(run)}")
     typer.echo(f"result written to {output}")
+    if verdict is not None and verdict.reasons:
+        typer.echo(verdict_text(verdict), err=failed)
+    if failed:
+        unwritten = " no URDF written (--force-urdf writes it);" if export_urdf_to else ""
+        typer.echo(
+            f"calibration failed: the result is written and marked (verdict);{unwritten} "
+            "exit code 3",
+            err=True,
+        )
+        raise typer.Exit(3)
+
+
+def verdict_text(verdict: Verdict) -> str:
+    """The verdict's reasons, one block each: cause, then the fix."""
+    lines = [f"verdict: {verdict.status}"]
+    for reason in verdict.reasons:
+        lines.append(f"  {reason.severity}: {reason.message}")
+        lines.append(f"    fix: {reason.fix}")
+    return "\n".join(lines)
 
 
 def execution_summary(run: pipeline.CalibrationRun) -> str:

@@ -3,6 +3,7 @@ recording, and read back as a chain for prediction, ranking and reports."""
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import functools
 from dataclasses import dataclass
@@ -31,6 +32,8 @@ from schemas.calibration import (
     RobotInfo,
     SolverReport,
     Transform,
+    Verdict,
+    VerdictReason,
 )
 from schemas.dataset import PoseDataset
 from service import corrections
@@ -48,6 +51,7 @@ from solver.model import KinematicChain, build_chain, gravity_loads
 from solver.stream.calibrate import BEFORE, CALIBRATED, RecordingCalibration
 from solver.stream.fit import StreamedFit
 from solver.stream.sums import ErrorSums
+from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, verdict_status
 
 FloatArray = NDArray[np.float64]
 
@@ -341,6 +345,38 @@ def _sums_stats(sums: ErrorSums, position_only: bool) -> ErrorStats:
     )
 
 
+def _verdict(
+    chain: KinematicChain,
+    options: CalibrationOptions,
+    calibrated: RecordingCalibration,
+    position_only: bool,
+) -> Verdict:
+    """:func:`solver.verdict.check_fit` on the calibration's own numbers."""
+    fit = calibrated.fits.fit
+    splits = calibrated.splits
+    after = _heldout_stats(splits, CALIBRATED, position_only)
+    before = _heldout_stats(splits, BEFORE, position_only)
+    _, rms_mm, _, rms_deg = fit.sums.errors.summary(position_only)
+    evidence = FitEvidence(
+        converged=fit.converged,
+        iterations=fit.iterations,
+        max_iterations=options.max_iterations,
+        n_equations=fit.sums.errors.n * (3 if position_only else 6),
+        n_parameters=len(fit.estimated),
+        train_rms_translation_m=1e-3 * rms_mm,
+        train_rms_rotation_rad=None if rms_deg is None else float(np.radians(rms_deg)),
+        heldout_translation_m=None if after is None else 1e-3 * after.translation_mean_mm,
+        heldout_before_translation_m=None if before is None else 1e-3 * before.translation_mean_mm,
+        position_spread_m=position_spread_m(calibrated.sample.measured_pose[:, :3, 3]),
+        reach_m=reach_m(chain.nominal_links[:, :3, 3]),
+    )
+    reasons = check_fit(evidence)
+    return Verdict(
+        status=verdict_status(reasons),
+        reasons=[VerdictReason(**dataclasses.asdict(r)) for r in reasons],
+    )
+
+
 def assemble_result(
     *,
     source: str,
@@ -405,6 +441,7 @@ def assemble_result(
         if calibrated.covariance is None
         else _covariance_result(calibrated.covariance, frame_index),
         evaluation=_evaluation(calibrated, options) if splits else None,
+        verdict=_verdict(chain, options, calibrated, position_only),
         outliers=OutlierReport(
             rule=options.screening,
             level=options.outlier_level if options.screening == "model" else None,

@@ -86,7 +86,7 @@ def split_covariance_std(result: CalibrationResult, recording: Recording) -> Flo
     (outliers already removed, so no second removal; no nested held-out splits).
     """
     used = kept_rows(result)
-    options = result.options.model_copy(update={"heldout": False, "outlier_sigma": None})
+    options = result.options.model_copy(update={"heldout": False, "outlier_rule": "none"})
     out = []
     for seed in result.options.seeds:
         train, _ = split_indices(used.size, seed, result.options.train_fraction)

@@ -191,8 +191,15 @@ def create_calibration(
 
 
 def urdf_absent(state: ServiceState, job: Job) -> str | None:
-    """Why a succeeded calibration has no URDF: it corrects the joint readings."""
+    """Why a succeeded calibration has no URDF: its verdict is failed (the result says why),
+    or it corrects the joint readings."""
     result = result_of(state, job.tenant_id, job.id)
+    if result.verdict is not None and result.verdict.status == "failed":
+        causes = "; ".join(r.message for r in result.verdict.reasons if r.severity == "failed")
+        return (
+            f"the calibration's verdict is failed ({causes}); see verdict in the result, or "
+            "export it anyway with kincal calibrate --export-urdf --force-urdf"
+        )
     return urdf_refusal(result.model_corrections, HTTP_URDF_FIX)
 
 

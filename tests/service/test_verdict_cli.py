@@ -1,0 +1,179 @@
+"""Issue 13: no silent failures. A calibration the data do not support ends with its named
+cause and fix, exit code 3, the result written and marked (``verdict``), and no URDF unless
+``--force-urdf`` — through ``kincal calibrate`` with its defaults."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from schemas.calibration import CalibrationResult
+from service.robots import example_robot_data_dir
+from solver.verdict import FitEvidence, check_fit, verdict_status
+from tests.service.cli_support import run, run_ok
+
+REAL = Path(__file__).resolve().parents[2] / "data" / "real"
+TIAGO_FILE = (
+    REAL / "figaroh_tiago_mocap/vicon/relative_encoder/"
+    "vicon_calibration_fc10_gripper3_base1_withrpy.csv"
+)
+
+
+def _calibrate(
+    args: list[object],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> tuple[int, CalibrationResult, str, Path]:
+    out, urdf = tmp_path / "result.json", tmp_path / "robot.urdf"
+    code, stdout, stderr = run(
+        ["calibrate", *args, "-o", out, "--export-urdf", urdf], capsys, monkeypatch
+    )
+    return code, CalibrationResult.model_validate_json(out.read_text()), stdout + stderr, urdf
+
+
+def _codes(result: CalibrationResult) -> set[str]:
+    assert result.verdict is not None
+    return {r.code for r in result.verdict.reasons if r.severity == "failed"}
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("verdict") / "jaco2.csv"
+    run_ok(["simulate", "--robot", "kinova", "--n", "200", "--seed", "3", "-o", path])
+    return path
+
+
+def test_a_sound_calibration_is_ok_and_exports(
+    simulated: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    code, result, _, urdf = _calibrate(
+        [simulated, "--robot", "kinova", "--seeds", "1,2"], tmp_path, capsys, monkeypatch
+    )
+    assert code == 0 and result.verdict is not None and result.verdict.status != "failed"
+    assert urdf.exists()
+
+
+def test_positions_in_millimetres_are_named(
+    simulated: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    table = pd.read_csv(simulated)
+    table[["x", "y", "z"]] *= 1000.0
+    mm = tmp_path / "mm.csv"
+    table.to_csv(mm, index=False)
+    code, result, text, urdf = _calibrate(
+        [mm, "--robot", "kinova", "--no-heldout"], tmp_path, capsys, monkeypatch
+    )
+    assert code == 3 and "position_unit" in _codes(result)
+    assert "not in metres" in text and "divide millimetres by 1000" in text
+    assert not urdf.exists()
+
+
+def test_a_fit_that_does_not_converge_is_named(
+    simulated: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    code, result, text, urdf = _calibrate(
+        [simulated, "--robot", "kinova", "--no-heldout", "--max-iterations", "1"],
+        tmp_path,
+        capsys,
+        monkeypatch,
+    )
+    assert code == 3 and "not_converged" in _codes(result)
+    assert "--max-iterations" in text and not urdf.exists()
+
+
+def test_force_urdf_writes_a_failed_calibration_anyway(
+    simulated: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    code, _, _, urdf = _calibrate(
+        [simulated, "--robot", "kinova", "--no-heldout", "--max-iterations", "1", "--force-urdf"],
+        tmp_path,
+        capsys,
+        monkeypatch,
+    )
+    assert code == 3 and urdf.exists()
+
+
+def test_real_ur10e_calibration_that_does_not_beat_the_nominal_model_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The UR10 experiment (23 real poses of a UR10e): the full calibration predicts held-out
+    poses no better than the nominal UR10e with fitted frames."""
+    args = [
+        REAL / "figaroh_ur10_experiment/calibration.csv",
+        "--urdf",
+        REAL / "figaroh_ur10_experiment/ur10e_robot.urdf",
+        "--base",
+        "base_link",
+        "--tip",
+        "wrist_3_link",
+    ]
+    code, result, text, urdf = _calibrate(args, tmp_path, capsys, monkeypatch)
+    assert code == 3 and "heldout_worse" in _codes(result)
+    assert "no better than the nominal robot" in text and not urdf.exists()
+
+
+def test_real_tiago_orientations_that_disagree_with_the_arm_are_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The TIAGo Vicon file with rpy (gripper marker in the frame of a marker on the mobile
+    base): it used to end "optimal", exit 0, with a URDF, and 741 mm held-out."""
+    urdf_path = example_robot_data_dir() / "robots/tiago_description/robots/tiago.urdf"
+    args = [TIAGO_FILE, "--urdf", urdf_path, "--base", "base_footprint", "--tip", "arm_7_link"]
+    code, result, text, urdf = _calibrate(args, tmp_path, capsys, monkeypatch)
+    assert code == 3 and {"orientation_misfit", "heldout_worse"} <= _codes(result)
+    assert "position-only" in text and not urdf.exists()
+
+
+def _evidence(**change: object) -> FitEvidence:
+    base = {
+        "converged": True,
+        "iterations": 5,
+        "max_iterations": 50,
+        "n_equations": 6000,
+        "n_parameters": 40,
+        "train_rms_translation_m": 2e-4,
+        "train_rms_rotation_rad": 1e-3,
+        "heldout_translation_m": 3e-4,
+        "heldout_before_translation_m": 4e-3,
+        "position_spread_m": 0.6,
+        "reach_m": 1.0,
+    }
+    return FitEvidence(**{**base, **change})  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    "change, code, status",
+    [
+        ({}, None, "ok"),
+        ({"position_spread_m": 600.0}, "position_unit", "failed"),
+        ({"train_rms_translation_m": 0.3}, "model_misfit", "failed"),
+        ({"train_rms_rotation_rad": np.radians(20.0)}, "orientation_misfit", "failed"),
+        ({"converged": False, "iterations": 50}, "not_converged", "failed"),
+        ({"n_equations": 150}, "few_equations", "warning"),
+        ({"n_equations": 60}, "few_equations", "failed"),
+        ({"heldout_translation_m": 5e-3}, "heldout_worse", "failed"),
+    ],
+)
+def test_each_check_names_its_cause(
+    change: dict[str, object], code: str | None, status: str
+) -> None:
+    reasons = check_fit(_evidence(**change))
+    assert verdict_status(reasons) == status
+    assert [r.code for r in reasons] == ([] if code is None else [code])
+    assert all(r.fix for r in reasons)
