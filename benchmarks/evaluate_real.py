@@ -64,9 +64,17 @@ def figure(result: CalibrationResult, dataset: PoseDataset, name: str, path: Pat
     )
 
 
+def _verdict(result: CalibrationResult) -> str:
+    verdict = result.verdict
+    if verdict is None:
+        return "–"
+    failed = [r.code for r in verdict.reasons if r.severity == "failed"]
+    return verdict.status + (f" ({', '.join(failed)})" if failed else "")
+
+
 def main(seeds: int = 10, figures: Path | None = None) -> str:
     header = ["Recording", "Robot", "Samples (used)", "Before: held-out mm / deg"]
-    header += ["Calibrated: held-out mm / deg", "Splits improved", "Time"]
+    header += ["Calibrated: held-out mm / deg", "Splits improved", "Verdict", "Time"]
     rows = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for name in RECORDINGS:
         result, dataset, elapsed = evaluate(name, seeds)
@@ -87,7 +95,7 @@ def main(seeds: int = 10, figures: Path | None = None) -> str:
             f"| {result.outliers.n_input} ({result.outliers.n_used}) "
             f"| {before.translation_mean_mm:.2f} / {before.rotation_mean_deg:.3f} "
             f"| {after.translation_mean_mm:.2f} / {after.rotation_mean_deg:.3f} "
-            f"| {improved} of {len(seeds_run)} | {elapsed:.1f} s |"
+            f"| {improved} of {len(seeds_run)} | {_verdict(result)} | {elapsed:.1f} s |"
         )
     table = "\n".join(rows)
     print("\n" + table)
