@@ -1,4 +1,4 @@
-"""Dataset reading, validation and writing (schemas/dataset.py)."""
+"""Dataset reading, validation and writing (the schemas/dataset package)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,194 @@
+"""Tables (pandas) to validated arrays: every cell checked, each problem one line naming the
+file, the data row (1 = first data row) and the column, with the fix."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from schemas.dataset.columns import (
+    PoseColumns,
+    check_duplicates,
+    check_joint_names,
+    contract_pose_columns,
+    joint_columns,
+    one_line,
+    unit_quaternions,
+)
+from schemas.dataset.figaroh import (
+    FIGAROH_COLUMN,
+    figaroh_markers,
+    figaroh_pose_columns,
+    rpy_to_quaternion_xyzw,
+)
+from schemas.dataset.records import (
+    CONTRACT_COLUMNS,
+    FLOAT_FIELD_OF_COLUMN,
+    OPTIONAL_FLOAT_COLUMNS,
+    ConfigurationSet,
+    PoseDataset,
+)
+from solver.errors import DatasetError
+
+
+def dataset_from_frame(
+    frame: pd.DataFrame,
+    joint_names: Sequence[str],
+    *,
+    source: str,
+    other_joint_names: Sequence[str] = (),
+    marker: int | None = None,
+) -> PoseDataset:
+    """Validate a table of measurements (columns as in the contract) and return its arrays.
+
+    Same checks as :func:`schemas.dataset.read_dataset`; ``source`` names the table in error
+    messages.
+    """
+    names = check_joint_names(joint_names)
+    columns = [str(c).strip() for c in frame.columns]
+    check_duplicates(columns, source)
+    frame = frame.set_axis(columns, axis=1)
+    if len(frame) == 0:
+        raise DatasetError(f"{source}: no data rows (header only or empty); add measurements")
+    pose = _pose_columns(columns, source, marker)
+    joint_cols = joint_columns(columns, names, set(other_joint_names), pose.used, source)
+    extra = [c for c in OPTIONAL_FLOAT_COLUMNS if c in columns]
+    block = _finite_block(frame, [*joint_cols, *pose.numeric, *extra], source)
+    k, p = len(joint_cols), len(pose.numeric)
+    position, orientation = block[:, k : k + 3], block[:, k + 3 : k + p]
+    optional = {FLOAT_FIELD_OF_COLUMN[c]: block[:, k + p + i] for i, c in enumerate(extra)}
+    if "time_s" in optional:
+        _check_time(optional["time_s"], source)
+    return PoseDataset(
+        joint_names=names,
+        joint_positions=block[:, :k],
+        position_m=position,
+        quaternion_xyzw=_quaternion_xyzw(pose, orientation, source),
+        sample_id=_sample_ids(frame, source) if "sample_id" in columns else None,
+        source=source,
+        **optional,
+    )
+
+
+def configurations_from_frame(
+    frame: pd.DataFrame,
+    joint_names: Sequence[str],
+    *,
+    source: str,
+    other_joint_names: Sequence[str] = (),
+) -> ConfigurationSet:
+    """Validate a table of joint configurations, same column rules as datasets."""
+    names = check_joint_names(joint_names)
+    columns = [str(c).strip() for c in frame.columns]
+    check_duplicates(columns, source)
+    frame = frame.set_axis(columns, axis=1)
+    if len(frame) == 0:
+        raise DatasetError(f"{source}: no data rows (header only or empty); add configurations")
+    pose_like = frozenset(c for c in columns if c in CONTRACT_COLUMNS or FIGAROH_COLUMN.match(c))
+    joint_cols = joint_columns(columns, names, set(other_joint_names), pose_like, source)
+    extra = ["payload_kg"] if "payload_kg" in columns else []
+    block = _finite_block(frame, [*joint_cols, *extra], source)
+    k = len(joint_cols)
+    return ConfigurationSet(
+        joint_names=names,
+        joint_positions=block[:, :k],
+        payload_kg=block[:, k] if extra else None,
+        sample_id=_sample_ids(frame, source) if "sample_id" in columns else None,
+        source=source,
+    )
+
+
+def _pose_columns(columns: Sequence[str], source: str, marker: int | None) -> PoseColumns:
+    markers = figaroh_markers(columns)
+    if not markers:
+        return contract_pose_columns(columns, source)
+    return figaroh_pose_columns(columns, markers, source, marker)
+
+
+def _quaternion_xyzw(
+    pose: PoseColumns, orientation: NDArray[np.float64], source: str
+) -> NDArray[np.float64] | None:
+    """Unit quaternions (N, 4) scalar last, from the orientation block, or None."""
+    if not pose.orientation:
+        return None
+    if pose.is_rpy:
+        return rpy_to_quaternion_xyzw(orientation)
+    return unit_quaternions(orientation, source)
+
+
+def _finite_block(frame: pd.DataFrame, columns: list[str], source: str) -> NDArray[np.float64]:
+    """(N, len(columns)) float64 array; names the first non-numeric / missing / infinite cell."""
+    block = np.column_stack([_numeric_column(frame[c], c, source) for c in columns])
+    bad = ~np.isfinite(block)
+    if bad.any():
+        row = int(np.flatnonzero(bad.any(axis=1))[0])
+        col = int(np.flatnonzero(bad[row])[0])
+        missing = np.isnan(block[row, col])
+        problem = "value is missing (empty, null or NaN)" if missing else "value is infinite"
+        raise DatasetError(
+            f"{source}: data row {row + 1}, column {columns[col]}: {problem}; every used column "
+            f"needs a finite number in every row (fix or delete the row)"
+        )
+    return block
+
+
+def _numeric_column(series: pd.Series, name: str, source: str) -> NDArray[np.float64]:
+    is_bool = pd.api.types.is_bool_dtype(series)
+    if pd.api.types.is_numeric_dtype(series) and not is_bool:
+        return series.to_numpy(dtype=np.float64, na_value=np.nan)
+    try:
+        numbers = pd.to_numeric(series, errors="coerce")
+    except (TypeError, ValueError):  # nested values, e.g. lists in JSON
+        numbers = pd.Series([_to_float(v) for v in series], index=series.index)
+    rejected = series.notna().to_numpy() & (is_bool or numbers.isna().to_numpy())
+    if rejected.any():
+        row = int(np.flatnonzero(rejected)[0])
+        shown = one_line(repr(series.iloc[row]))[:40]
+        raise DatasetError(
+            f"{source}: data row {row + 1}, column {name}: {shown} is not a number; write a "
+            f"plain decimal number (units: rad or m)"
+        )
+    return numbers.to_numpy(dtype=np.float64, na_value=np.nan)
+
+
+def _to_float(value: Any) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return np.nan
+
+
+def _check_time(time_s: NDArray[np.float64], source: str) -> None:
+    back = np.flatnonzero(np.diff(time_s) < 0)
+    if back.size:
+        row = int(back[0]) + 2
+        raise DatasetError(
+            f"{source}: data row {row}, column t: time goes backwards ({float(time_s[row - 1])!r} "
+            f"after {float(time_s[row - 2])!r} in data row {row - 1}); rows must be in execution "
+            f"order with non-decreasing t (s)"
+        )
+
+
+def _sample_ids(frame: pd.DataFrame, source: str) -> NDArray[Any]:
+    ids = frame["sample_id"]
+    missing = ids.isna().to_numpy()
+    if missing.any():
+        row = int(np.flatnonzero(missing)[0])
+        raise DatasetError(
+            f"{source}: data row {row + 1}, column sample_id: value is missing; give every row "
+            f"a sample_id or drop the column"
+        )
+    dup = ids.duplicated().to_numpy()
+    if dup.any():
+        row = int(np.flatnonzero(dup)[0])
+        first = int(np.flatnonzero((ids == ids.iloc[row]).to_numpy())[0])
+        raise DatasetError(
+            f"{source}: data row {row + 1}, column sample_id: {ids.iloc[row]!r} already used in "
+            f"data row {first + 1}; sample ids must be unique"
+        )
+    values = ids.to_numpy()
+    return values.astype(object) if values.dtype.kind not in "iuf" else values
