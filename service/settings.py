@@ -16,6 +16,8 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from service.urdf_outline import DEFAULT_MAX_URDF_JOINTS
+
 MiB = 1024 * 1024
 
 
@@ -81,6 +83,12 @@ class Settings(BaseSettings):
     max_rows: int = Field(100_000, ge=1, description="Most samples in one dataset.")
     max_joints: int = Field(32, ge=1, description="Most joints in a calibrated chain.")
     max_urdf_bytes: int = Field(2 * MiB, ge=1024, description="Largest uploaded URDF.")
+    max_urdf_joints: int = Field(
+        DEFAULT_MAX_URDF_JOINTS,
+        ge=1,
+        le=2000,  # Pinocchio's recursive URDF reader overflows its stack near 4000
+        description="Most <joint> elements in an uploaded URDF (counted before it is parsed).",
+    )
     max_ranking_candidates: int = Field(
         10_000, ge=1, description="Most configurations scored by one ranking request."
     )
