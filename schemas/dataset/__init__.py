@@ -22,7 +22,12 @@ from __future__ import annotations
 from schemas.dataset.chunks import ChunkRef, DatasetChunks, plan_dataset_chunks
 from schemas.dataset.columns import QUATERNION_NORM_TOL
 from schemas.dataset.figaroh import rpy_to_quaternion_xyzw
-from schemas.dataset.readers import read_configurations, read_dataset
+from schemas.dataset.readers import (
+    TooManyRowsError,
+    read_configurations,
+    read_dataset,
+    read_dataset_bytes,
+)
 from schemas.dataset.records import (
     CONTRACT_COLUMNS,
     OPTIONAL_FLOAT_COLUMNS,
@@ -46,12 +51,14 @@ __all__ = [
     "ConfigurationSet",
     "DatasetChunks",
     "PoseDataset",
+    "TooManyRowsError",
     "configurations_from_frame",
     "dataset_from_frame",
     "dataset_to_frame",
     "plan_dataset_chunks",
     "read_configurations",
     "read_dataset",
+    "read_dataset_bytes",
     "rpy_to_quaternion_xyzw",
     "write_dataset",
 ]

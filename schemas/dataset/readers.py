@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import pandas as pd
 
@@ -15,6 +16,20 @@ from schemas.dataset.columns import check_duplicates, duplicates, one_line
 from schemas.dataset.records import SUFFIXES, ConfigurationSet, PoseDataset
 from schemas.dataset.validate import configurations_from_frame, dataset_from_frame
 from solver.errors import DatasetError
+
+Opener = Callable[[], IO[bytes]]
+
+
+class TooManyRowsError(DatasetError):
+    """A file holds more rows than the caller's limit (found before the rows are decoded)."""
+
+    def __init__(self, source: str, n_rows: int, limit: int) -> None:
+        super().__init__(
+            f"{source}: {n_rows} samples is more than the limit of {limit}; split the recording"
+        )
+        self.n_rows = n_rows
+        self.limit = limit
+
 
 # pandas < 3 parses CSV floats to within 1 ulp unless asked; pandas 3 is exact and deprecates it.
 EXACT_FLOATS: dict[str, str] = (
@@ -78,9 +93,33 @@ def check_dataset_path(path: Path, source: str) -> str:
 def read_frame(path: Path, source: str) -> pd.DataFrame:
     """The file as a table, unvalidated; reader failures become one-line :class:`DatasetError`."""
     suffix = check_dataset_path(path, source)
+    return _frame(lambda: path.open("rb"), suffix, source, None)
+
+
+def read_dataset_bytes(
+    data: bytes,
+    suffix: str,
+    joint_names: Sequence[str],
+    *,
+    source: str,
+    other_joint_names: Sequence[str] = (),
+    max_rows: int | None = None,
+) -> PoseDataset:
+    """Like :func:`read_dataset` for a file's content held in memory (an upload; messages never
+    show a server path). With ``max_rows``, a larger file raises :class:`TooManyRowsError`
+    before its rows are decoded (Parquet: from its metadata; CSV: from its line count)."""
+    if suffix not in SUFFIXES:
+        raise DatasetError(f"{source}: unsupported file type {suffix!r}; use one of {SUFFIXES}")
+    frame = _frame(lambda: io.BytesIO(data), suffix, source, max_rows)
+    return dataset_from_frame(
+        frame, joint_names, source=source, other_joint_names=other_joint_names
+    )
+
+
+def _frame(open_binary: Opener, suffix: str, source: str, max_rows: int | None) -> pd.DataFrame:
     reader = {".csv": _read_csv, ".parquet": _read_parquet, ".json": _read_json}[suffix]
     try:
-        return reader(path, source)
+        return reader(open_binary, source, max_rows)
     except DatasetError:
         raise
     except UnicodeDecodeError as exc:
@@ -92,9 +131,17 @@ def read_frame(path: Path, source: str) -> pd.DataFrame:
         ) from exc
 
 
+def _text(open_binary: Opener) -> IO[str]:
+    return io.TextIOWrapper(open_binary(), encoding="utf-8-sig", newline="")
+
+
 def read_csv_header(path: Path, source: str) -> tuple[str, ...]:
     """The stripped column names of a CSV file's first row; refuses an empty or repeated one."""
-    with path.open(newline="", encoding="utf-8-sig") as handle:
+    return _csv_header(lambda: path.open("rb"), source)
+
+
+def _csv_header(open_binary: Opener, source: str) -> tuple[str, ...]:
+    with _text(open_binary) as handle:
         header = next(csv.reader(handle), None)
     if not header or all(not cell.strip() for cell in header):
         raise DatasetError(
@@ -106,16 +153,18 @@ def read_csv_header(path: Path, source: str) -> tuple[str, ...]:
     return names
 
 
-def _read_csv(path: Path, source: str) -> pd.DataFrame:
-    read_csv_header(path, source)
+def _read_csv(open_binary: Opener, source: str, max_rows: int | None) -> pd.DataFrame:
+    _csv_header(open_binary, source)
     try:
-        frame = pd.read_csv(
-            path,
-            encoding="utf-8-sig",
-            skipinitialspace=True,
-            low_memory=False,
-            **EXACT_FLOATS,
-        )
+        with open_binary() as handle:
+            frame = pd.read_csv(
+                handle,
+                encoding="utf-8-sig",
+                skipinitialspace=True,
+                low_memory=False,
+                nrows=None if max_rows is None else max_rows + 1,
+                **EXACT_FLOATS,
+            )
     except pd.errors.ParserError as exc:
         match = re.search(r"Expected (\d+) fields in line (\d+), saw (\d+)", str(exc))
         if match is None:
@@ -125,11 +174,37 @@ def _read_csv(path: Path, source: str) -> pd.DataFrame:
             f"{source}: data row {line - 1} (line {line}) has {seen} values but the header has "
             f"{fields_expected} columns; make every row match the header"
         ) from exc
+    if max_rows is not None and len(frame) > max_rows:
+        with open_binary() as handle:
+            lines = sum(chunk.count(b"\n") for chunk in iter(lambda: handle.read(1 << 20), b""))
+        raise TooManyRowsError(source, max(lines - 1, len(frame)), max_rows)
     return frame.set_axis([str(c).strip() for c in frame.columns], axis=1)
 
 
-def _read_parquet(path: Path, source: str) -> pd.DataFrame:
-    return pd.read_parquet(path)
+MAX_DECODED_BYTES_PER_ROW = 4096
+"""With a row limit, a Parquet file may decode to at most this much per allowed row (a row of
+the contract is a few hundred bytes); a tiny file can otherwise unpack to gigabytes."""
+
+
+def _read_parquet(open_binary: Opener, source: str, max_rows: int | None) -> pd.DataFrame:
+    import pyarrow.parquet as pq
+
+    with open_binary() as handle:
+        parquet = pq.ParquetFile(handle)
+        metadata = parquet.metadata
+        if max_rows is not None:
+            if metadata.num_rows > max_rows:
+                raise TooManyRowsError(source, metadata.num_rows, max_rows)
+            decoded = sum(
+                metadata.row_group(g).total_byte_size for g in range(metadata.num_row_groups)
+            )
+            if decoded > max_rows * MAX_DECODED_BYTES_PER_ROW:
+                raise DatasetError(
+                    f"{source}: the file decodes to {decoded} bytes, more than "
+                    f"{max_rows * MAX_DECODED_BYTES_PER_ROW} for at most {max_rows} rows; "
+                    "keep only the contract's columns"
+                )
+        return parquet.read().to_pandas()
 
 
 class _DuplicateKeyError(ValueError):
@@ -143,9 +218,9 @@ def _object_without_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return obj
 
 
-def _read_json(path: Path, source: str) -> pd.DataFrame:
+def _read_json(open_binary: Opener, source: str, max_rows: int | None) -> pd.DataFrame:
     try:
-        with path.open(encoding="utf-8-sig") as handle:
+        with _text(open_binary) as handle:
             document = json.load(handle, object_pairs_hook=_object_without_duplicates)
     except _DuplicateKeyError as exc:
         raise DatasetError(
@@ -169,4 +244,6 @@ def _read_json(path: Path, source: str) -> pd.DataFrame:
         )
     if not rows:
         return pd.DataFrame()
+    if max_rows is not None and len(rows) > max_rows:
+        raise TooManyRowsError(source, len(rows), max_rows)
     return pd.DataFrame.from_records(rows)

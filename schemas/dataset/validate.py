@@ -32,7 +32,25 @@ from schemas.dataset.records import (
     ConfigurationSet,
     PoseDataset,
 )
+from schemas.limits import (
+    MAX_JOINT_POSITION,
+    MAX_PAYLOAD_KG,
+    MAX_POSITION_M,
+    MAX_TIME_S,
+    TEMPERATURE_RANGE_C,
+)
 from solver.errors import DatasetError
+
+Range = tuple[float, float, str]  # lowest, highest, unit
+JOINT_RANGE: Range = (-MAX_JOINT_POSITION, MAX_JOINT_POSITION, "rad (m if prismatic)")
+POSITION_RANGE: Range = (-MAX_POSITION_M, MAX_POSITION_M, "m")
+ANGLE_RANGE: Range = (-MAX_JOINT_POSITION, MAX_JOINT_POSITION, "rad")
+QUATERNION_RANGE: Range = (-1e4, 1e4, "")  # beyond overflow's reach; the norm check says more
+OPTIONAL_RANGES: dict[str, Range] = {
+    "t": (-MAX_TIME_S, MAX_TIME_S, "s"),
+    "temperature_c": (*TEMPERATURE_RANGE_C, "°C"),
+    "payload_kg": (0.0, MAX_PAYLOAD_KG, "kg"),
+}
 
 
 def dataset_from_frame(
@@ -57,7 +75,10 @@ def dataset_from_frame(
     pose = _pose_columns(columns, source, marker)
     joint_cols = joint_columns(columns, names, set(other_joint_names), pose.used, source)
     extra = [c for c in OPTIONAL_FLOAT_COLUMNS if c in columns]
-    block = _finite_block(frame, [*joint_cols, *pose.numeric, *extra], source)
+    orientation_range = ANGLE_RANGE if pose.is_rpy else QUATERNION_RANGE
+    ranges = [JOINT_RANGE] * len(joint_cols) + [POSITION_RANGE] * len(pose.position)
+    ranges += [orientation_range] * len(pose.orientation) + [OPTIONAL_RANGES[c] for c in extra]
+    block = _finite_block(frame, [*joint_cols, *pose.numeric, *extra], ranges, source)
     k, p = len(joint_cols), len(pose.numeric)
     position, orientation = block[:, k : k + 3], block[:, k + 3 : k + p]
     optional = {FLOAT_FIELD_OF_COLUMN[c]: block[:, k + p + i] for i, c in enumerate(extra)}
@@ -91,7 +112,8 @@ def configurations_from_frame(
     pose_like = frozenset(c for c in columns if c in CONTRACT_COLUMNS or FIGAROH_COLUMN.match(c))
     joint_cols = joint_columns(columns, names, set(other_joint_names), pose_like, source)
     extra = ["payload_kg"] if "payload_kg" in columns else []
-    block = _finite_block(frame, [*joint_cols, *extra], source)
+    ranges = [JOINT_RANGE] * len(joint_cols) + [OPTIONAL_RANGES[c] for c in extra]
+    block = _finite_block(frame, [*joint_cols, *extra], ranges, source)
     k = len(joint_cols)
     return ConfigurationSet(
         joint_names=names,
@@ -120,20 +142,40 @@ def _quaternion_xyzw(
     return unit_quaternions(orientation, source)
 
 
-def _finite_block(frame: pd.DataFrame, columns: list[str], source: str) -> NDArray[np.float64]:
-    """(N, len(columns)) float64 array; names the first non-numeric / missing / infinite cell."""
+def _finite_block(
+    frame: pd.DataFrame, columns: list[str], ranges: list[Range], source: str
+) -> NDArray[np.float64]:
+    """(N, len(columns)) float64 array; names the first non-numeric, missing, infinite or
+    out-of-range cell (``ranges[j]`` bounds column j)."""
     block = np.column_stack([_numeric_column(frame[c], c, source) for c in columns])
-    bad = ~np.isfinite(block)
+    low = np.array([r[0] for r in ranges])
+    high = np.array([r[1] for r in ranges])
+    with np.errstate(invalid="ignore"):
+        bad = np.isnan(block) | (block < low) | (block > high)
     if bad.any():
         row = int(np.flatnonzero(bad.any(axis=1))[0])
         col = int(np.flatnonzero(bad[row])[0])
-        missing = np.isnan(block[row, col])
-        problem = "value is missing (empty, null or NaN)" if missing else "value is infinite"
+        value = block[row, col]
+        shown = _shown(frame[columns[col]].iloc[row])
+        lowest, highest, unit = ranges[col]
+        if np.isnan(value):
+            problem = "value is missing (empty, null or NaN)"
+        elif np.isinf(value):
+            problem = f"value is infinite or beyond a float ({shown})"
+        else:
+            problem = f"value {shown} is out of range"
         raise DatasetError(
             f"{source}: data row {row + 1}, column {columns[col]}: {problem}; every used column "
-            f"needs a finite number in every row (fix or delete the row)"
+            f"needs a number from {lowest:g} to {highest:g}{' ' + unit if unit else ''} in every "
+            f"row (fix or delete the row)"
         )
     return block
+
+
+def _shown(cell: Any) -> str:
+    """A cell as a user wrote it, at most 24 characters."""
+    text = f"{float(cell):g}" if isinstance(cell, float | np.floating) else one_line(cell)
+    return text if len(text) <= 24 else text[:23] + "…"
 
 
 def _numeric_column(series: pd.Series, name: str, source: str) -> NDArray[np.float64]:
@@ -142,8 +184,8 @@ def _numeric_column(series: pd.Series, name: str, source: str) -> NDArray[np.flo
         return series.to_numpy(dtype=np.float64, na_value=np.nan)
     try:
         numbers = pd.to_numeric(series, errors="coerce")
-    except (TypeError, ValueError):  # nested values, e.g. lists in JSON
-        numbers = pd.Series([_to_float(v) for v in series], index=series.index)
+    except (TypeError, ValueError, OverflowError):  # nested values (JSON lists), huge integers
+        numbers = pd.Series([_to_float(v) for v in series], index=series.index, dtype=float)
     rejected = series.notna().to_numpy() & (is_bool or numbers.isna().to_numpy())
     if rejected.any():
         row = int(np.flatnonzero(rejected)[0])
@@ -158,6 +200,8 @@ def _numeric_column(series: pd.Series, name: str, source: str) -> NDArray[np.flo
 def _to_float(value: Any) -> float:
     try:
         return float(value)
+    except OverflowError:  # an integer beyond float64: as good as infinite
+        return -np.inf if value < 0 else np.inf
     except (TypeError, ValueError):
         return np.nan
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
@@ -31,9 +30,10 @@ from schemas.api import DatasetCreate, DatasetPublic, DatasetsPublic
 from schemas.dataset import (
     SUFFIXES,
     PoseDataset,
+    TooManyRowsError,
     dataset_from_frame,
     dataset_to_frame,
-    read_dataset,
+    read_dataset_bytes,
 )
 from service.api.deps import API_PREFIX, PrincipalDep, SessionDep, StateDep
 from service.api.idempotency import Idempotency, fingerprint
@@ -248,15 +248,17 @@ def _validate(upload: Upload, robot: ResolvedRobot, max_rows: int) -> PoseDatase
         )
     else:
         assert upload.file_bytes is not None and upload.suffix is not None
-        with tempfile.TemporaryDirectory(prefix="kincal-upload-") as folder:
-            path = Path(folder) / f"upload{upload.suffix}"
-            path.write_bytes(upload.file_bytes)
-            dataset = read_dataset(
-                path,
+        try:
+            dataset = read_dataset_bytes(
+                upload.file_bytes,
+                upload.suffix,
                 chain.joint_names,
                 other_joint_names=chain.other_joint_names,
                 source=upload.name,
+                max_rows=max_rows,
             )
+        except TooManyRowsError as exc:
+            raise _too_many_rows(exc.n_rows, max_rows) from exc
     if dataset.n_samples > max_rows:
         raise _too_many_rows(dataset.n_samples, max_rows)
     return dataset

@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import io
+import json
 import math
+import tempfile
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
 from fastapi.testclient import TestClient
 
 from schemas.dataset import read_dataset
@@ -164,6 +169,63 @@ def test_body_over_the_limit_is_413_whether_declared_or_streamed(
 def test_more_rows_than_the_limit_is_413(make_client: AppFactory) -> None:
     client = make_client(max_rows=10)
     assert_problem(upload_csv(client), 413, "40 samples", "10")
+
+
+def many_rows_parquet(n_rows: int) -> bytes:
+    """A valid-looking UR10 recording of ``n_rows`` identical rows: a few hundred KB of Parquet
+    that decodes to hundreds of MB."""
+    columns = [*pd.read_csv(io.BytesIO(recording_bytes())).columns]
+    table = pa.table({c: pa.repeat(pa.scalar(0.5 if c == "qw" else 0.0), n_rows) for c in columns})
+    buffer = io.BytesIO()
+    pq.write_table(table, buffer, compression="zstd")
+    return buffer.getvalue()
+
+
+def test_a_parquet_file_is_refused_on_its_row_count_before_it_is_decoded(
+    client: TestClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """5 M rows in ~200 KB used to be decoded in full (GBs) before the row limit."""
+    data = many_rows_parquet(5_000_000)
+    assert len(data) < 1_000_000
+    decoded: list[int] = []
+    original = pq.ParquetFile.read
+
+    def read(self: pq.ParquetFile, *args: object, **kwargs: object) -> pa.Table:
+        decoded.append(self.metadata.num_rows)
+        return original(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(pq.ParquetFile, "read", read)
+    monkeypatch.setattr(pd, "read_parquet", lambda *a, **k: pytest.fail("decoded in full"))
+    response = upload_csv(client, data, filename="big.parquet")
+    assert_problem(response, 413, "5000000 samples", "100000")
+    assert decoded == []
+    small = upload_csv(client, recording_bytes(".parquet"), filename="small.parquet")
+    assert small.status_code == 201 and decoded == [40]
+
+
+@pytest.mark.parametrize("how", ["rows", "json file", "csv file"])
+@pytest.mark.parametrize("value", [10**400, 1e308, -2e244])
+def test_huge_numbers_are_422_at_upload_not_a_500_or_a_failed_job(
+    client: TestClient, how: str, value: float
+) -> None:
+    """A 400-digit integer was an OverflowError (500); 1e308 was accepted and failed the job
+    (SVD did not converge). Same range as rankings: |q| <= 1e4."""
+    rows = pd.read_csv(io.BytesIO(recording_bytes())).to_dict(orient="records")
+    rows[2]["elbow_joint"] = value
+    if how == "rows":
+        response = client.post("/api/v1/datasets", json={"robot": "ur10", "rows": rows})
+    elif how == "json file":
+        response = upload_csv(client, json.dumps(rows).encode(), filename="r.json")
+    else:
+        response = upload_csv(client, pd.DataFrame(rows).to_csv(index=False).encode())
+    assert_problem(response, 422, "data row 3, column elbow_joint", "-10000 to 10000 rad")
+
+
+def test_a_broken_parquet_file_is_described_without_a_server_path(client: TestClient) -> None:
+    data = recording_bytes(".parquet")
+    response = upload_csv(client, data[: len(data) // 2] + data[-8:], filename="cut.parquet")
+    body = assert_problem(response, 422, "cut.parquet: cannot read as parquet")
+    assert tempfile.gettempdir() not in body["detail"] and "upload" not in body["detail"]
 
 
 def test_list_is_paginated_newest_first(client: TestClient) -> None:
