@@ -217,6 +217,20 @@ def _check_time(time_s: NDArray[np.float64], source: str) -> None:
         )
 
 
+MAX_SAMPLE_ID_CHARS = 256
+_INT64 = np.iinfo(np.int64)
+
+
+def _is_sample_id(value: Any) -> bool:
+    if isinstance(value, str):
+        return len(value) <= MAX_SAMPLE_ID_CHARS
+    if isinstance(value, bool | np.bool_):
+        return False
+    if isinstance(value, int | np.integer):
+        return bool(_INT64.min <= value <= _INT64.max)
+    return isinstance(value, float | np.floating) and bool(np.isfinite(value))
+
+
 def _sample_ids(frame: pd.DataFrame, source: str) -> NDArray[Any]:
     ids = frame["sample_id"]
     missing = ids.isna().to_numpy()
@@ -226,6 +240,14 @@ def _sample_ids(frame: pd.DataFrame, source: str) -> NDArray[Any]:
             f"{source}: data row {row + 1}, column sample_id: value is missing; give every row "
             f"a sample_id or drop the column"
         )
+    if ids.dtype == object or pd.api.types.is_bool_dtype(ids):
+        for row, value in enumerate(ids):
+            if not _is_sample_id(value):
+                raise DatasetError(
+                    f"{source}: data row {row + 1}, column sample_id: {_shown(value)} is not a "
+                    f"sample id; write an integer (|n| < 2^63) or a text of at most "
+                    f"{MAX_SAMPLE_ID_CHARS} characters"
+                )
     dup = ids.duplicated().to_numpy()
     if dup.any():
         row = int(np.flatnonzero(dup)[0])

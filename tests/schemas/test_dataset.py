@@ -618,3 +618,12 @@ def test_ur10_figaroh_file_loads() -> None:
     rpy = raw[["phix1", "phiy1", "phiz1"]].to_numpy()
     back = Rotation.from_quat(ds.quaternion_xyzw).as_euler("xyz")
     np.testing.assert_allclose(back, rpy, atol=1e-12)
+
+
+@pytest.mark.parametrize("bad", [10**400, [1], {"a": 1}, True, "x" * 300])
+def test_sample_ids_are_integers_or_short_texts(bad: object) -> None:
+    """A 400-digit id passed validation and was a 500 when the upload was stored."""
+    frame = valid_frame()
+    frame["sample_id"] = pd.Series([bad] + list(range(1, len(frame))), dtype=object)
+    message = frame_error(frame)
+    assert "data row 1, column sample_id" in message and "is not a sample id" in message
