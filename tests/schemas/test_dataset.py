@@ -624,6 +624,6 @@ def test_ur10_figaroh_file_loads() -> None:
 def test_sample_ids_are_integers_or_short_texts(bad: object) -> None:
     """A 400-digit id passed validation and was a 500 when the upload was stored."""
     frame = valid_frame()
-    frame["sample_id"] = pd.Series([bad] + list(range(1, len(frame))), dtype=object)
+    frame["sample_id"] = pd.Series([bad, *range(1, len(frame))], dtype=object)
     message = frame_error(frame)
     assert "data row 1, column sample_id" in message and "is not a sample id" in message
