@@ -6,6 +6,7 @@ import io
 import json
 import math
 import tempfile
+import threading
 
 import numpy as np
 import pandas as pd
@@ -14,7 +15,9 @@ import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
 
-from schemas.dataset import read_dataset
+from schemas.dataset import read_dataset, read_dataset_bytes
+from service.storage import repository
+from service.storage.models import Dataset
 from tests.service.api.conftest import (
     AppFactory,
     assert_problem,
@@ -255,3 +258,61 @@ def test_dataset_in_use_by_a_queued_job_cannot_be_deleted(client: TestClient) ->
     created = client.post("/api/v1/calibrations", json={"dataset_id": dataset["id"]})
     assert created.status_code == 202
     assert_problem(client.delete(f"/api/v1/datasets/{dataset['id']}"), 409, "job")
+
+
+def test_a_delete_committed_during_a_duplicate_upload_makes_a_new_dataset(
+    client: TestClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The upload used to look the content up, and answer 200 with that id even when its
+    deletion committed in between."""
+    first = upload_csv(client).json()
+    state = client.app.state.kincal  # type: ignore[attr-defined]
+    original = repository.touch_dataset_by_content
+
+    def delete_first_then_touch(session: object, tenant_id: str, sha: str) -> bool:
+        with state.database.session() as other:  # a DELETE that commits just before
+            other.delete(other.get(Dataset, first["id"]))
+        return original(session, tenant_id, sha)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(repository, "touch_dataset_by_content", delete_first_then_touch)
+    again = upload_csv(client)
+    assert again.status_code == 201, again.text
+    assert again.json()["id"] != first["id"]
+    monkeypatch.undo()
+    assert client.get(f"/api/v1/datasets/{first['id']}").status_code == 404
+    assert client.get(again.headers["location"]).status_code == 200
+
+
+def test_deleting_and_re_uploading_the_same_data_concurrently_keeps_every_file(
+    client: TestClient,
+) -> None:
+    """Datasets shared one file per content: a delete could remove the file of a re-upload
+    stored meanwhile. No 5xx, and every dataset that remains can be read."""
+    statuses: list[int] = []
+
+    def upload() -> None:
+        for _ in range(15):
+            statuses.append(upload_csv(client).status_code)
+
+    def delete() -> None:
+        for _ in range(15):
+            for row in client.get("/api/v1/datasets").json()["data"]:
+                statuses.append(client.delete(f"/api/v1/datasets/{row['id']}").status_code)
+
+    threads = [threading.Thread(target=upload), threading.Thread(target=delete)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert statuses and all(code < 500 for code in statuses), statuses
+    state = client.app.state.kincal  # type: ignore[attr-defined]
+    upload_csv(client)
+    for row in client.get("/api/v1/datasets").json()["data"]:
+        with state.database.sessions() as session:
+            stored = session.get(Dataset, row["id"])
+        assert (
+            read_dataset_bytes(
+                state.files.read(stored.data_path), ".parquet", stored.joint_names, source="x"
+            ).n_samples
+            == row["n_samples"]
+        )
