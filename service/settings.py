@@ -79,7 +79,21 @@ class Settings(BaseSettings):
         ge=0,
         description="On shutdown, running jobs get this long to finish; the rest are re-queued.",
     )
-    max_request_bytes: int = Field(16 * MiB, ge=1024, description="Largest request body.")
+    max_request_bytes: int = Field(
+        16 * MiB, ge=1024, description="Largest request body (a dataset upload)."
+    )
+    max_ranking_request_bytes: int = Field(
+        4 * MiB,
+        ge=1024,
+        description="Largest body of a ranking request (10 000 candidates of 7 joints by name "
+        "take ~2.5 MB); refused before it is parsed.",
+    )
+    max_small_request_bytes: int = Field(
+        256 * 1024,
+        ge=1024,
+        description="Largest body of the other requests (calibration and discovery options, "
+        "cancellations, GETs).",
+    )
     max_rows: int = Field(100_000, ge=1, description="Most samples in one dataset.")
     max_joints: int = Field(32, ge=1, description="Most joints in a calibrated chain.")
     max_urdf_bytes: int = Field(2 * MiB, ge=1024, description="Largest uploaded URDF.")

@@ -22,7 +22,7 @@ from starlette.concurrency import run_in_threadpool
 from service.api import calibrations, datasets, discoveries, health, rankings, robots
 from service.api.deps import ServiceState
 from service.api.metrics import Metrics
-from service.api.middleware import RequestContextMiddleware
+from service.api.middleware import BodyLimits, RequestContextMiddleware
 from service.api.problems import install_problem_handlers
 from service.api.results import ResultCache
 from service.jobs import JobRegistry, JobRunner, default_registry
@@ -156,9 +156,7 @@ def create_app(settings: Settings | None = None, *, registry: JobRegistry | None
     install_docs(app)
     app.state.kincal = state
     install_problem_handlers(app)
-    app.add_middleware(
-        RequestContextMiddleware, metrics=state.metrics, max_body_bytes=settings.max_request_bytes
-    )
+    app.add_middleware(RequestContextMiddleware, metrics=state.metrics, limits=BodyLimits(settings))
     for module in (robots, datasets, calibrations, rankings, discoveries, health):
         app.include_router(module.router)
     return app
