@@ -9,9 +9,8 @@ import os
 import sys
 import traceback
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
-import click
 import pandas as pd
 import pydantic
 import typer
@@ -750,7 +749,7 @@ def fleet(
     typer.echo(f"\nfleet summary written to {output}")
 
 
-def _full_summaries(command: click.Command) -> None:
+def _full_summaries(command: Any) -> None:  # typer's (vendored) click.Command
     """``kincal --help`` lists each command with its docstring's whole first paragraph; click
     would cut it at the first full stop ("(paper Eq.") or at 45 characters."""
     for sub in getattr(command, "commands", {}).values():
