@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from schemas.calibration import CalibrationOptions
 from schemas.discovery import DiscoveryOptions
+from schemas.limits import MAX_JOINT_POSITION, MAX_PAYLOAD_KG
 from schemas.ranking import RankingOptions, TargetPose
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
@@ -201,8 +202,6 @@ class CalibrationsPublic(Page):
 
 # --- rankings ----------------------------------------------------------------------------------
 
-MAX_JOINT_POSITION = 1e4
-MAX_PAYLOAD_KG = 1e5
 MAX_IK_CANDIDATES = 64
 JointPosition = Annotated[
     float,

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import inspect
 import json
 import os
 import sys
 import traceback
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import pandas as pd
 import pydantic
@@ -477,7 +478,12 @@ def rank(
     task_weights: Annotated[str | None, typer.Option(help="Task point weights wx,wy,wz.")] = None,
     include_noise: Annotated[bool, typer.Option(help="Add the measurement noise Σ_n.")] = False,
     target: Annotated[
-        str | None, typer.Option(help="Rank IK candidates for x,y,z,qx,qy,qz,qw instead.")
+        str | None,
+        typer.Option(
+            help="Rank IK candidates for the pose x,y,z,qx,qy,qz,qw instead, in the "
+            "measurement frame (the frame of the recording and of kincal predict); write "
+            "--target=-0.2,... when it starts with a minus sign."
+        ),
     ] = None,
     n_candidates: Annotated[int, typer.Option(help="IK candidates wanted.")] = 16,
     seed: Annotated[int, typer.Option(help="IK random seed.")] = 0,
@@ -558,6 +564,9 @@ def discover(
     noise_deg: Annotated[float | None, typer.Option(help="Sensor noise σ (deg).")] = None,
     marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
     plots: Annotated[bool, typer.Option(help="Write a PNG per finding next to -o.")] = True,
+    report: Annotated[
+        Path | None, typer.Option(help="Also write the HTML report (figures embedded).")
+    ] = None,
 ) -> None:
     """Find what the model leaves out, name the physics, model it, show the held-out gain."""
     from schemas.discovery import DiscoveryOptions
@@ -594,6 +603,16 @@ def discover(
     _write_json(output, findings.model_dump_json(indent=1))
     typer.echo(discovery.summary(findings))
     typer.echo(f"\nfindings written to {output}")
+    figures = [f.plot for f in findings.findings if f.plot is not None and plot_dir is not None]
+    for name in figures:
+        typer.echo(f"figure written to {output.parent / name}")
+    if report is not None:
+        from service.discovery_html import render_discovery_report
+
+        assert plot_dir is not None or not figures
+        embedded = {name: (output.parent / name).read_bytes() for name in figures}
+        _write_text(report, render_discovery_report(findings, embedded))
+        typer.echo(f"report written to {report}")
 
 
 @app.command()
@@ -608,14 +627,27 @@ def demo(
     run_demo(output_dir, echo=typer.echo)
 
 
-@app.command()
+def _settings_epilog() -> str:
+    """Every service setting as the environment variable that sets it, with its default."""
+    from service.settings import Settings
+
+    lines = ["Settings (environment variables, [default]):"]
+    for name, field in Settings.model_fields.items():
+        default = "computed" if field.default_factory is not None else repr(field.default)
+        lines.append(f"KINCAL_{name.upper()} [{default}]")
+        if field.description:
+            lines.append(f"    {field.description}")
+    return "\b\n" + "\n".join(lines)  # \b: click keeps these lines as they are
+
+
+@app.command(epilog=_settings_epilog())
 def serve(
     host: Annotated[
         str | None, typer.Option(help="Interface [127.0.0.1; keyless only on loopback].")
     ] = None,
     port: Annotated[int | None, typer.Option(min=1, max=65535, help="Port [8000].")] = None,
 ) -> None:
-    """Run the HTTP service (other settings: KINCAL_* environment variables)."""
+    """Run the HTTP service (other settings: the KINCAL_* environment variables below)."""
     from service.api.server import run_server
 
     run_server(host=host, port=port)
@@ -750,13 +782,24 @@ def fleet(
     typer.echo(f"\nfleet summary written to {output}")
 
 
+def _full_summaries(command: Any) -> None:  # typer's (vendored) click.Command
+    """``kincal --help`` lists each command with its docstring's whole first paragraph; click
+    would cut it at the first full stop ("(paper Eq.") or at 45 characters."""
+    for sub in getattr(command, "commands", {}).values():
+        if not sub.short_help and sub.help:
+            sub.short_help = " ".join(inspect.cleandoc(sub.help).split("\n\n")[0].split())
+        _full_summaries(sub)
+
+
 def main() -> None:
     """Entry point: domain errors become one line on stderr and exit code 2.
 
     Usage errors (unknown option, missing argument) are typer's, also exit code 2.
     """
     try:
-        app()
+        command = typer.main.get_command(app)
+        _full_summaries(command)
+        command()
     except KincalError as exc:
         typer.echo(f"kincal: error: {exc}", err=True)
         sys.exit(2)

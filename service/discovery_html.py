@@ -9,6 +9,7 @@ steps and the ``kincal calibrate`` options that carry the discovered model.
 from __future__ import annotations
 
 import html
+import math
 from collections.abc import Mapping
 
 from schemas.discovery import ErrorPair, FindingsResult, Health
@@ -80,6 +81,11 @@ def _heldout(findings: FindingsResult) -> str:
     return f"<p>{html.escape(heldout.protocol)}</p><table>{header}{rows}</table>"
 
 
+def _plus_minus(stderr: float | None) -> str:
+    """`` ± σ`` for an estimated parameter; nothing for a fixed one (e.g. a harmonic number)."""
+    return "" if stderr is None or not math.isfinite(stderr) else f" ± {stderr:.2g}"
+
+
 def _findings(findings: FindingsResult, plots: Mapping[str, bytes]) -> str:
     e = html.escape
     if not findings.findings:
@@ -87,7 +93,7 @@ def _findings(findings: FindingsResult, plots: Mapping[str, bytes]) -> str:
     parts = []
     for f in findings.findings:
         parameters = ", ".join(
-            f"{e(name)} = {value:.4g} ± {f.stderr.get(name, float('nan')):.2g}"
+            f"{e(name)} = {value:.4g}{_plus_minus(f.stderr.get(name))}"
             for name, value in f.parameters.items()
         )
         stability = "–" if f.stability is None else f"{f.stability:.0%}"

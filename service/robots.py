@@ -8,6 +8,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from service.urdf_outline import check_urdf_limits
 from solver.errors import ModelError
 
 
@@ -65,6 +66,7 @@ def load_robot(
             raise ModelError(
                 f"cannot read URDF {path}: {getattr(exc, 'strerror', None) or exc}"
             ) from exc
+        check_urdf_limits(xml, base_frame, tip_frame)  # before Pinocchio can crash on it
         return RobotDescription(name or path.stem, xml, base_frame, tip_frame)
     if name is None:
         raise ModelError(

@@ -16,6 +16,8 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from service.urdf_outline import DEFAULT_MAX_URDF_JOINTS
+
 MiB = 1024 * 1024
 
 
@@ -77,10 +79,30 @@ class Settings(BaseSettings):
         ge=0,
         description="On shutdown, running jobs get this long to finish; the rest are re-queued.",
     )
-    max_request_bytes: int = Field(16 * MiB, ge=1024, description="Largest request body.")
+    max_request_bytes: int = Field(
+        16 * MiB, ge=1024, description="Largest request body (a dataset upload)."
+    )
+    max_ranking_request_bytes: int = Field(
+        4 * MiB,
+        ge=1024,
+        description="Largest body of a ranking request (10 000 candidates of 7 joints by name "
+        "take ~2.5 MB); refused before it is parsed.",
+    )
+    max_small_request_bytes: int = Field(
+        256 * 1024,
+        ge=1024,
+        description="Largest body of the other requests (calibration and discovery options, "
+        "cancellations, GETs).",
+    )
     max_rows: int = Field(100_000, ge=1, description="Most samples in one dataset.")
     max_joints: int = Field(32, ge=1, description="Most joints in a calibrated chain.")
     max_urdf_bytes: int = Field(2 * MiB, ge=1024, description="Largest uploaded URDF.")
+    max_urdf_joints: int = Field(
+        DEFAULT_MAX_URDF_JOINTS,
+        ge=1,
+        le=2000,  # Pinocchio's recursive URDF reader overflows its stack near 4000
+        description="Most <joint> elements in an uploaded URDF (counted before it is parsed).",
+    )
     max_ranking_candidates: int = Field(
         10_000, ge=1, description="Most configurations scored by one ranking request."
     )

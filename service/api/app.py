@@ -8,17 +8,21 @@ rest.
 
 from __future__ import annotations
 
+import importlib.resources
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.responses import HTMLResponse
+from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
 from service.api import calibrations, datasets, discoveries, health, rankings, robots
 from service.api.deps import ServiceState
 from service.api.metrics import Metrics
-from service.api.middleware import RequestContextMiddleware
+from service.api.middleware import BodyLimits, RequestContextMiddleware
 from service.api.problems import install_problem_handlers
 from service.api.results import ResultCache
 from service.jobs import JobRegistry, JobRunner, default_registry
@@ -95,6 +99,38 @@ def _stop(state: ServiceState) -> None:
     log.info("kincal service stopped")
 
 
+DOCS_ASSETS = "/docs-assets"
+
+
+def install_docs(app: FastAPI) -> None:
+    """/docs (Swagger UI) and /redoc from the assets of the installed ``fastapi-offline``
+    package (Swagger UI: Apache-2.0, ReDoc: MIT), so they render on a machine without internet
+    access; FastAPI's defaults load them from a CDN."""
+    assets = importlib.resources.files("fastapi_offline") / "static"
+    app.mount(DOCS_ASSETS, StaticFiles(directory=str(assets)), name="docs-assets")
+    title = f"{app.title} API"
+
+    @app.get("/docs", include_in_schema=False)
+    async def swagger_ui() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url or "/openapi.json",
+            title=title,
+            swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js",
+            swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
+            swagger_favicon_url=f"{DOCS_ASSETS}/favicon.png",
+        )
+
+    @app.get("/redoc", include_in_schema=False)
+    async def redoc() -> HTMLResponse:
+        return get_redoc_html(
+            openapi_url=app.openapi_url or "/openapi.json",
+            title=title,
+            redoc_js_url=f"{DOCS_ASSETS}/redoc.standalone.js",
+            redoc_favicon_url=f"{DOCS_ASSETS}/favicon.png",
+            with_google_fonts=False,
+        )
+
+
 def create_app(settings: Settings | None = None, *, registry: JobRegistry | None = None) -> FastAPI:
     """The kincal HTTP service for ``settings`` (default: from the environment)."""
     settings = settings or Settings()
@@ -113,15 +149,14 @@ def create_app(settings: Settings | None = None, *, registry: JobRegistry | None
         version=kincal_version(),
         description=DESCRIPTION,
         lifespan=lifespan,
-        docs_url="/docs",
+        docs_url=None,
         openapi_url="/openapi.json",
         redoc_url=None,
     )
+    install_docs(app)
     app.state.kincal = state
     install_problem_handlers(app)
-    app.add_middleware(
-        RequestContextMiddleware, metrics=state.metrics, max_body_bytes=settings.max_request_bytes
-    )
+    app.add_middleware(RequestContextMiddleware, metrics=state.metrics, limits=BodyLimits(settings))
     for module in (robots, datasets, calibrations, rankings, discoveries, health):
         app.include_router(module.router)
     return app

@@ -11,7 +11,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
@@ -31,9 +30,10 @@ from schemas.api import DatasetCreate, DatasetPublic, DatasetsPublic
 from schemas.dataset import (
     SUFFIXES,
     PoseDataset,
+    TooManyRowsError,
     dataset_from_frame,
     dataset_to_frame,
-    read_dataset,
+    read_dataset_bytes,
 )
 from service.api.deps import API_PREFIX, PrincipalDep, SessionDep, StateDep
 from service.api.idempotency import Idempotency, fingerprint
@@ -248,15 +248,17 @@ def _validate(upload: Upload, robot: ResolvedRobot, max_rows: int) -> PoseDatase
         )
     else:
         assert upload.file_bytes is not None and upload.suffix is not None
-        with tempfile.TemporaryDirectory(prefix="kincal-upload-") as folder:
-            path = Path(folder) / f"upload{upload.suffix}"
-            path.write_bytes(upload.file_bytes)
-            dataset = read_dataset(
-                path,
+        try:
+            dataset = read_dataset_bytes(
+                upload.file_bytes,
+                upload.suffix,
                 chain.joint_names,
                 other_joint_names=chain.other_joint_names,
                 source=upload.name,
+                max_rows=max_rows,
             )
+        except TooManyRowsError as exc:
+            raise _too_many_rows(exc.n_rows, max_rows) from exc
     if dataset.n_samples > max_rows:
         raise _too_many_rows(dataset.n_samples, max_rows)
     return dataset
@@ -271,6 +273,9 @@ def _too_many_rows(n: int, limit: int) -> ProblemException:
     )
 
 
+STORE_ATTEMPTS = 3
+
+
 def _store(state: StateDep, principal: Principal, upload: Upload) -> Response:
     with state.database.sessions() as session:
         robot = resolve_robot(
@@ -281,15 +286,49 @@ def _store(state: StateDep, principal: Principal, upload: Upload) -> Response:
     except DatasetError as exc:
         raise ProblemException(422, str(exc), slug="invalid-dataset") from exc
     sha = content_sha256(dataset, robot.ref)
-    with state.database.sessions() as session:
-        existing = repository.dataset_by_content(session, principal.tenant_id, sha)
+    # A concurrent delete of the same content, or a concurrent upload of it, can change the
+    # answer between looking and inserting: look again (bounded).
+    for _ in range(STORE_ATTEMPTS):
+        existing = _existing(state, principal.tenant_id, sha)
         if existing is not None:
             return _answer(existing, 200)
+        created = _create(state, principal, upload, robot, dataset, sha)
+        if created is not None:
+            return _answer(created, 201)
+    raise ProblemException(
+        409,
+        "the same data is being uploaded and deleted concurrently; retry the upload",
+        slug="concurrent-change",
+    )
+
+
+def _existing(state: StateDep, tenant_id: str, sha: str) -> Dataset | None:
+    """The tenant's dataset with this content, confirmed by a write (so not one whose deletion
+    has committed), or None."""
+    with state.database.session() as session:
+        if repository.touch_dataset_by_content(session, tenant_id, sha):
+            return repository.dataset_by_content(session, tenant_id, sha)
+    return None
+
+
+def _create(
+    state: StateDep,
+    principal: Principal,
+    upload: Upload,
+    robot: ResolvedRobot,
+    dataset: PoseDataset,
+    sha: str,
+) -> Dataset | None:
+    """Store a new dataset; None if the same content was stored concurrently. Each dataset has
+    its own file, so deleting one never removes the file of a re-upload of the same data."""
     data = parquet_bytes(dataset)
-    path = state.files.write(tenant_path(principal.tenant_id, "datasets", f"{sha}.parquet"), data)
+    dataset_id = repository.new_id("ds")
+    path = state.files.write(
+        tenant_path(principal.tenant_id, "datasets", f"{dataset_id}.parquet"), data
+    )
     time_s = dataset.time_s
     row = Dataset(
-        id=repository.new_id("ds"),
+        id=dataset_id,
         tenant_id=principal.tenant_id,
         name=upload.name[:200],
         robot=robot.ref.name,
@@ -309,11 +348,9 @@ def _store(state: StateDep, principal: Principal, upload: Upload) -> Response:
         with state.database.session() as session:
             session.add(row)
     except IntegrityError:  # the same content was stored concurrently
-        with state.database.sessions() as session:
-            existing = repository.dataset_by_content(session, principal.tenant_id, sha)
-            assert existing is not None
-            return _answer(existing, 200)
-    return _answer(row, 201)
+        state.files.delete(path)
+        return None
+    return row
 
 
 def _answer(row: Dataset, status: int) -> Response:

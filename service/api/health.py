@@ -1,4 +1,5 @@
-"""Operations: liveness, readiness and Prometheus metrics (no API key needed)."""
+"""Operations: liveness and readiness (no API key needed), Prometheus metrics (an API key of
+any tenant when keys are required: the numbers span every tenant)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 from schemas.api import Health, Readiness
-from service.api.deps import StateDep
+from service.api.deps import PrincipalDep, StateDep
 from service.api.metrics import CONTENT_TYPE
+from service.api.problems import STANDARD_PROBLEMS
 
 router = APIRouter(tags=["operations"])
 log = logging.getLogger("kincal.health")
@@ -48,8 +50,8 @@ def readyz(state: StateDep) -> JSONResponse:
     return JSONResponse(body.model_dump(), status_code=200 if ready else 503)
 
 
-@router.get("/metrics", response_class=Response)
-async def metrics(state: StateDep) -> Response:
+@router.get("/metrics", response_class=Response, responses=STANDARD_PROBLEMS)
+async def metrics(state: StateDep, _: PrincipalDep) -> Response:
     """Prometheus metrics: requests, latency, jobs by state, job durations."""
     body = await run_in_threadpool(state.metrics.render)
     return Response(body, media_type=CONTENT_TYPE)

@@ -8,6 +8,7 @@ import logging
 import re
 import time
 import uuid
+from dataclasses import dataclass
 from typing import Any
 
 from starlette.exceptions import HTTPException
@@ -16,9 +17,48 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service import logs
 from service.api.metrics import Metrics
 from service.api.problems import PROBLEM_MEDIA_TYPE, problem_bytes
+from service.settings import Settings
 
 log = logging.getLogger("kincal.http")
 _REQUEST_ID = re.compile(r"^[A-Za-z0-9._-]{1,128}$")
+
+
+@dataclass(frozen=True)
+class BodyLimit:
+    """The largest body of requests whose method and path match, and the setting raising it."""
+
+    bytes: int
+    setting: str
+
+
+class BodyLimits:
+    """Request body limits per route, applied before anything reads the body: a dataset upload
+    may be large, a ranking moderately, everything else is small."""
+
+    def __init__(self, settings: Settings) -> None:
+        urdf = BodyLimit(2 * settings.max_urdf_bytes + 64 * 1024, "KINCAL_MAX_URDF_BYTES")
+        self._routes: tuple[tuple[str, str, BodyLimit], ...] = (
+            (
+                "POST",
+                "/api/v1/datasets",
+                BodyLimit(settings.max_request_bytes, "KINCAL_MAX_REQUEST_BYTES"),
+            ),
+            (
+                "POST",
+                "/api/v1/rankings",
+                BodyLimit(settings.max_ranking_request_bytes, "KINCAL_MAX_RANKING_REQUEST_BYTES"),
+            ),
+            ("POST", "/api/v1/robots", urdf),  # JSON-escaped URDF text
+        )
+        self._default = BodyLimit(
+            settings.max_small_request_bytes, "KINCAL_MAX_SMALL_REQUEST_BYTES"
+        )
+
+    def of(self, method: str, path: str) -> BodyLimit:
+        for route_method, route_path, limit in self._routes:
+            if method == route_method and path.rstrip("/") == route_path:
+                return limit
+        return self._default
 
 
 class BodyTooLargeError(HTTPException):
@@ -28,22 +68,22 @@ class BodyTooLargeError(HTTPException):
     into a 400) and the problem handlers answer 413.
     """
 
-    def __init__(self, limit: int) -> None:
+    def __init__(self, limit: BodyLimit) -> None:
         super().__init__(413, too_large_detail(limit))
 
 
-def too_large_detail(limit: int) -> str:
+def too_large_detail(limit: BodyLimit) -> str:
     return (
-        f"request body is larger than the limit of {limit} bytes; split the data or ask the "
-        "operator to raise KINCAL_MAX_REQUEST_BYTES"
+        f"request body is larger than the limit of {limit.bytes} bytes for this route; split "
+        f"the data or ask the operator to raise {limit.setting}"
     )
 
 
 class RequestContextMiddleware:
-    def __init__(self, app: ASGIApp, *, metrics: Metrics, max_body_bytes: int) -> None:
+    def __init__(self, app: ASGIApp, *, metrics: Metrics, limits: BodyLimits) -> None:
         self.app = app
         self.metrics = metrics
-        self.max_body_bytes = max_body_bytes
+        self.limits = limits
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -69,20 +109,23 @@ class RequestContextMiddleware:
             await send(message)
 
         received = 0
+        limit = self.limits.of(scope["method"], path)
 
         async def limited_receive() -> Message:
             nonlocal received
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > self.max_body_bytes:
-                    raise BodyTooLargeError(self.max_body_bytes)
+                if received > limit.bytes:
+                    raise BodyTooLargeError(limit)
             return message
 
         try:
             declared = _content_length(headers)
-            if declared is not None and declared > self.max_body_bytes:
-                await self._problem(send_with_id, 413, self._too_large(), path, "body-too-large")
+            if declared is not None and declared > limit.bytes:
+                await self._problem(
+                    send_with_id, 413, too_large_detail(limit), path, "body-too-large"
+                )
             elif declared == -1:
                 await self._problem(
                     send_with_id,
@@ -95,7 +138,9 @@ class RequestContextMiddleware:
                 await self.app(scope, limited_receive, send_with_id)
         except BodyTooLargeError:
             if not response["started"]:
-                await self._problem(send_with_id, 413, self._too_large(), path, "body-too-large")
+                await self._problem(
+                    send_with_id, 413, too_large_detail(limit), path, "body-too-large"
+                )
         except Exception:
             log.exception("unhandled error while serving %s %s", scope["method"], path)
             if not response["started"]:
@@ -123,9 +168,6 @@ class RequestContextMiddleware:
                 },
             )
             logs.request_id.reset(token)
-
-    def _too_large(self) -> str:
-        return too_large_detail(self.max_body_bytes)
 
     @staticmethod
     async def _problem(send: Send, status: int, detail: str, path: str, slug: str) -> None:

@@ -6,10 +6,7 @@ import functools
 import hashlib
 from dataclasses import dataclass
 from typing import Annotated
-from xml.etree.ElementTree import ParseError
 
-import defusedxml.ElementTree as SafeET
-from defusedxml import DefusedXmlException
 from fastapi import APIRouter, Header, Response
 from sqlalchemy.orm import Session
 
@@ -17,12 +14,14 @@ from schemas.api import RobotCreate, RobotPublic, RobotsPublic
 from service.api.deps import API_PREFIX, PrincipalDep, SessionDep, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
+from service.isolated import IsolatedFailure, run_isolated
 from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
 from service.settings import Settings
 from service.storage import repository
 from service.storage.files import tenant_path
 from service.storage.models import Robot
 from service.tasks import RobotRef
+from service.urdf_outline import UrdfLimitError, check_urdf_limits
 from solver.errors import ModelError
 from solver.model import KinematicChain, build_chain
 
@@ -39,8 +38,31 @@ class ResolvedRobot:
 
 
 @functools.lru_cache(maxsize=32)
-def _chain(urdf_xml: str, base_frame: str, tip_frame: str) -> KinematicChain:
+def _chain(
+    urdf_xml: str, base_frame: str, tip_frame: str, max_urdf_joints: int, max_chain_joints: int
+) -> KinematicChain:
+    """The chain of a URDF that passed :func:`validate_urdf` (or a built-in), its size checked
+    on the XML again (the frames may differ from the upload's) before Pinocchio builds it."""
+    check_urdf_limits(
+        urdf_xml,
+        base_frame,
+        tip_frame,
+        max_urdf_joints=max_urdf_joints,
+        max_chain_joints=max_chain_joints,
+    )
     return build_chain(urdf_xml, base_frame, tip_frame)
+
+
+def settings_chain(
+    settings: Settings, urdf_xml: str, base_frame: str, tip_frame: str
+) -> KinematicChain:
+    return _chain(urdf_xml, base_frame, tip_frame, settings.max_urdf_joints, settings.max_joints)
+
+
+def _chain_summary(urdf_xml: str, base_frame: str, tip_frame: str) -> tuple[list[str], str]:
+    """Runs in an isolated process: Pinocchio parses the uploaded URDF there."""
+    chain = build_chain(urdf_xml, base_frame, tip_frame)
+    return list(chain.joint_names), chain.urdf_sha256
 
 
 @functools.lru_cache(maxsize=16)
@@ -53,14 +75,11 @@ def one_line(exc: Exception, limit: int = 600) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
-def check_joint_count(chain: KinematicChain, settings: Settings, field: str) -> None:
-    if chain.n_joints > settings.max_joints:
-        raise ProblemException(
-            422,
-            f"{field}: the chain has {chain.n_joints} joints, more than the limit of "
-            f"{settings.max_joints}; choose base/tip frames spanning fewer joints",
-            slug="too-many-joints",
-        )
+def model_problem(exc: ModelError, prefix: str) -> ProblemException:
+    """422 for a robot model that cannot be built; ``too-many-joints`` for a size limit."""
+    if isinstance(exc, UrdfLimitError):
+        return ProblemException(422, one_line(exc), slug="too-many-joints")
+    return ProblemException(422, f"{prefix}{one_line(exc)}", slug="invalid-robot-model")
 
 
 def resolve_robot(
@@ -97,18 +116,18 @@ def resolve_robot(
         )
         description = RobotDescription(row.name, xml, ref.base_frame, ref.tip_frame)
     try:
-        chain = _chain(description.urdf_xml, description.base_frame, description.tip_frame)
+        chain = settings_chain(
+            state.settings, description.urdf_xml, description.base_frame, description.tip_frame
+        )
     except ModelError as exc:
-        raise ProblemException(
-            422, f"robot {robot!r}: {one_line(exc)}", slug="invalid-robot-model"
-        ) from exc
-    check_joint_count(chain, state.settings, "base_frame/tip_frame")
+        raise model_problem(exc, f"robot {robot!r}: ") from exc
     return ResolvedRobot(ref, description, chain)
 
 
+@functools.lru_cache(maxsize=8)
 def _builtin_public(name: str) -> RobotPublic:
     description = _builtin(name, None, None)
-    chain = _chain(description.urdf_xml, description.base_frame, description.tip_frame)
+    chain = build_chain(description.urdf_xml, description.base_frame, description.tip_frame)
     return RobotPublic(
         id=name,
         name=name,
@@ -133,9 +152,11 @@ def _public(row: Robot) -> RobotPublic:
     )
 
 
-def validate_urdf(urdf: str, settings: Settings) -> None:
-    """Size limit, then a safe XML parse (no DTDs, entities or external references)."""
-    size = len(urdf.encode("utf-8"))
+def validate_urdf(body: RobotCreate, settings: Settings) -> tuple[list[str], str]:
+    """An uploaded URDF's chain joint names and SHA-256: size limit, then a streaming safe XML
+    parse counting its joints and the chain's, then Pinocchio in an isolated process (a URDF
+    that crashes or exhausts it is refused; the service goes on)."""
+    size = len(body.urdf.encode("utf-8"))
     if size > settings.max_urdf_bytes:
         raise ProblemException(
             413,
@@ -144,24 +165,34 @@ def validate_urdf(urdf: str, settings: Settings) -> None:
             slug="urdf-too-large",
         )
     try:
-        root = SafeET.fromstring(urdf, forbid_dtd=True)
-    except DefusedXmlException as exc:
-        raise ProblemException(
-            422,
-            f"urdf: {type(exc).__name__}: DTDs, entity declarations and external references are "
-            "not allowed in an uploaded URDF; remove them",
-            slug="invalid-urdf",
-        ) from exc
-    except ParseError as exc:
-        raise ProblemException(
-            422, f"urdf: not well-formed XML ({exc}); fix the XML", slug="invalid-urdf"
-        ) from exc
-    if root.tag != "robot":
-        raise ProblemException(
-            422,
-            f"urdf: the root element is <{root.tag}>, expected <robot>; send a URDF document",
-            slug="invalid-urdf",
+        outline = check_urdf_limits(
+            body.urdf,
+            body.base_frame,
+            body.tip_frame,
+            max_urdf_joints=settings.max_urdf_joints,
+            max_chain_joints=settings.max_joints,
         )
+        if outline.n_joints == 0:
+            raise ModelError("urdf: the robot has no <joint>; send the URDF of an arm")
+        summary: tuple[list[str], str] = run_isolated(
+            _chain_summary,
+            body.urdf,
+            body.base_frame,
+            body.tip_frame,
+            what="urdf: Pinocchio's URDF parser",
+            start_method=settings.worker_start_method,
+        )
+    except IsolatedFailure as exc:
+        raise ProblemException(422, str(exc), slug="invalid-urdf") from exc
+    except UrdfLimitError as exc:
+        raise model_problem(exc, "") from exc
+    except ModelError as exc:
+        slug = "invalid-urdf" if str(exc).startswith("urdf:") else "invalid-robot-model"
+        detail = one_line(exc)
+        if slug == "invalid-robot-model":
+            detail = f"urdf/base_frame/tip_frame: {detail}"
+        raise ProblemException(422, detail, slug=slug) from exc
+    return summary
 
 
 @router.get("", response_model=RobotsPublic, responses=STANDARD_PROBLEMS)
@@ -206,14 +237,7 @@ def upload_robot(
     )
 
     def create() -> Response:
-        validate_urdf(body.urdf, state.settings)
-        try:
-            chain = _chain(body.urdf, body.base_frame, body.tip_frame)
-        except ModelError as exc:
-            raise ProblemException(
-                422, f"urdf/base_frame/tip_frame: {one_line(exc)}", slug="invalid-robot-model"
-            ) from exc
-        check_joint_count(chain, state.settings, "base_frame/tip_frame")
+        joint_names, urdf_sha256 = validate_urdf(body, state.settings)
         sha = hashlib.sha256(body.urdf.encode()).hexdigest()
         path = state.files.write(
             tenant_path(principal.tenant_id, "robots", f"{sha}.urdf"), body.urdf.encode()
@@ -224,8 +248,8 @@ def upload_robot(
             name=body.name,
             base_frame=body.base_frame,
             tip_frame=body.tip_frame,
-            joint_names=list(chain.joint_names),
-            urdf_sha256=chain.urdf_sha256,
+            joint_names=joint_names,
+            urdf_sha256=urdf_sha256,
             urdf_path=path,
         )
         session.add(row)

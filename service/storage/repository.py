@@ -88,6 +88,16 @@ def dataset_by_content(session: Session, tenant_id: str, content_sha256: str) ->
     )
 
 
+def touch_dataset_by_content(session: Session, tenant_id: str, content_sha256: str) -> bool:
+    """A no-op write to the tenant's dataset with this content: False if there is none. As the
+    transaction's first statement it serialises against a concurrent delete (PostgreSQL: row
+    lock; SQLite: the write lock), so a deduplicated upload never answers with a dataset whose
+    deletion committed before."""
+    where = (Dataset.tenant_id == tenant_id, Dataset.content_sha256 == content_sha256)
+    result = session.execute(update(Dataset).where(*where).values(name=Dataset.name))
+    return bool(result.rowcount)  # type: ignore[attr-defined]
+
+
 def list_datasets(
     session: Session, tenant_id: str, *, offset: int, limit: int
 ) -> tuple[Sequence[Dataset], int]:

@@ -1,4 +1,4 @@
-"""Dataset reading, validation and writing (schemas/dataset.py)."""
+"""Dataset reading, validation and writing (the schemas/dataset package)."""
 
 from __future__ import annotations
 
@@ -23,6 +23,13 @@ from schemas.dataset import (
     read_dataset,
     rpy_to_quaternion_xyzw,
     write_dataset,
+)
+from schemas.limits import (
+    MAX_JOINT_POSITION,
+    MAX_PAYLOAD_KG,
+    MAX_POSITION_M,
+    MAX_TIME_S,
+    TEMPERATURE_RANGE_C,
 )
 from solver.errors import DatasetError
 
@@ -73,8 +80,22 @@ def frame_error(frame: pd.DataFrame, joints: tuple[str, ...] = J3, **kwargs) -> 
 # --------------------------------------------------------------------------- round trips
 
 
+def _within(low: float, high: float) -> st.SearchStrategy[float]:
+    return st.floats(low, high, allow_nan=False, allow_infinity=False, width=64)
+
+
+EXTRA_RANGES = {
+    "time_s": _within(-MAX_TIME_S, MAX_TIME_S),
+    "temperature_c": _within(*TEMPERATURE_RANGE_C),
+    "payload_kg": _within(0.0, MAX_PAYLOAD_KG),
+}
+
+
 def datasets(draw_k: int | None = None) -> st.SearchStrategy[PoseDataset]:
-    finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+    """Any dataset the contract accepts: every number anywhere in its accepted range."""
+    finite = _within(
+        -min(MAX_JOINT_POSITION, MAX_POSITION_M), min(MAX_JOINT_POSITION, MAX_POSITION_M)
+    )
 
     @st.composite
     def build(draw: st.DrawFn) -> PoseDataset:
@@ -103,7 +124,8 @@ def datasets(draw_k: int | None = None) -> st.SearchStrategy[PoseDataset]:
         extras = {}
         for name in ("time_s", "temperature_c", "payload_kg"):
             if draw(st.booleans()):
-                extras[name] = np.array(draw(st.lists(finite, min_size=n, max_size=n)))
+                values = st.lists(EXTRA_RANGES[name], min_size=n, max_size=n)
+                extras[name] = np.array(draw(values))
         if "time_s" in extras:
             extras["time_s"] = np.sort(extras["time_s"])
         return PoseDataset(
@@ -335,6 +357,44 @@ def test_nan_or_inf_names_row_and_column(column: str, bad: float, problem: str) 
     assert f"data.csv: data row 3, column {column}: value is {problem}" in message
 
 
+@pytest.mark.parametrize(
+    ("column", "value", "bounds"),
+    [
+        ("elbow", 1e308, "-10000 to 10000 rad"),
+        ("elbow", -2e244, "-10000 to 10000 rad"),
+        ("y", 1e5, "-10000 to 10000 m"),
+        ("t", 1e300, "s"),
+        ("temperature_c", -300.0, "-273.15 to 10000 °C"),
+        ("payload_kg", -1.0, "0 to 100000 kg"),
+    ],
+)
+def test_numbers_out_of_range_are_refused_naming_row_column_and_range(
+    column: str, value: float, bounds: str
+) -> None:
+    """The ranges of schemas.limits, the same as rankings'; 1e308 used to be accepted and to
+    fail the calibration job later (SVD did not converge)."""
+    frame = valid_frame().assign(t=0.0, temperature_c=20.0, payload_kg=0.0)
+    frame[column] = frame[column].astype(float)
+    frame.loc[1, column] = value
+    message = frame_error(frame)
+    assert f"data row 2, column {column}: value {value:g} is out of range" in message
+    assert bounds in message
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".json"])
+def test_an_integer_beyond_a_float_is_a_dataset_error(tmp_path: Path, suffix: str) -> None:
+    """A 400-digit integer was an OverflowError (HTTP 500, CLI 'internal error')."""
+    frame = valid_frame().astype(object)
+    frame.loc[0, "wrist"] = 10**400
+    path = tmp_path / f"big{suffix}"
+    if suffix == ".csv":
+        path.write_text(frame.to_csv(index=False))
+    else:
+        path.write_text(json.dumps(frame.to_dict(orient="records")))
+    message = error_of(read_dataset, path, J3)
+    assert "data row 1, column wrist: value is infinite or beyond a float (1000000" in message
+
+
 def test_empty_csv_cell_is_missing(tmp_path: Path) -> None:
     path = write_text(tmp_path, "base_joint,elbow,wrist,x,y,z\n1,2,3,4,5,6\n1,,3,4,5,6\n")
     assert "data row 2, column elbow: value is missing" in error_of(read_dataset, path, J3)
@@ -558,3 +618,12 @@ def test_ur10_figaroh_file_loads() -> None:
     rpy = raw[["phix1", "phiy1", "phiz1"]].to_numpy()
     back = Rotation.from_quat(ds.quaternion_xyzw).as_euler("xyz")
     np.testing.assert_allclose(back, rpy, atol=1e-12)
+
+
+@pytest.mark.parametrize("bad", [10**400, [1], {"a": 1}, True, "x" * 300])
+def test_sample_ids_are_integers_or_short_texts(bad: object) -> None:
+    """A 400-digit id passed validation and was a 500 when the upload was stored."""
+    frame = valid_frame()
+    frame["sample_id"] = pd.Series([bad, *range(1, len(frame))], dtype=object)
+    message = frame_error(frame)
+    assert "data row 1, column sample_id" in message and "is not a sample id" in message

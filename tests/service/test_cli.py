@@ -255,3 +255,52 @@ def test_predict_rejects_a_file_that_is_not_a_result(
 def test_usage_error_exits_2(capsys, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     code, _, err = run(["calibrate"], capsys, monkeypatch)
     assert code == 2 and "Missing argument" in err
+
+
+@pytest.mark.parametrize("value", ["1" + "0" * 400, "1e308"])
+def test_huge_numbers_in_a_json_recording_are_exit_2_naming_the_cell(
+    recording: Path,
+    tmp_path: Path,
+    value: str,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A 400-digit integer was 'internal error', exit 1; 1e308 failed deep in the solver."""
+    rows = pd.read_csv(recording).to_dict(orient="records")
+    text = json.dumps(rows).replace(f"{rows[3]['elbow_joint']!r}", value, 1)
+    bad = tmp_path / "bad.json"
+    bad.write_text(text)
+    code, _, err = run(
+        ["calibrate", bad, "--robot", "ur10", "-o", tmp_path / "r.json"], capsys, monkeypatch
+    )
+    assert code == 2, err
+    assert code == 2 and "bad.json" in err and "data row 4, column elbow_joint" in err
+    assert "-10000 to 10000 rad" in err
+
+
+def test_help_lists_each_command_with_its_whole_summary() -> None:
+    """Click cut summaries at the first full stop ("(paper Eq.") or at 45 characters."""
+    out = subprocess.run(
+        [sys.executable, "-c", "from service.cli import main; main()", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    listing = " ".join(out.split("Commands:")[1].split())
+    assert "..." not in listing
+    for fragment in ("(paper Eq. 8–10)", "best first (Eq. 22–23).", "show the held-out gain."):
+        assert fragment in listing
+
+
+def test_serve_help_lists_every_setting_of_the_service() -> None:
+    from service.settings import Settings
+
+    out = subprocess.run(
+        [sys.executable, "-c", "from service.cli import main; main()", "serve", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    for name in Settings.model_fields:
+        assert f"KINCAL_{name.upper()} [" in out, name
+    assert "Most <joint> elements in an uploaded URDF" in out

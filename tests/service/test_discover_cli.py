@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 from pathlib import Path
 
@@ -21,8 +23,43 @@ def findings_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     effects = [f"--effect={e}" for e in ("geometry", "camera", "marker", "gear_error")]
     output = folder / "out" / "findings.json"
     run_ok(["simulate", "--robot", "kinova", "--n", 150, "--seed", 5, "-o", data, *effects])
-    run_ok(["discover", data, "--robot", "kinova", "--bootstrap", 10, "-o", output])
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        report = folder / "out" / "report.html"
+        run_ok(
+            [
+                "discover",
+                data,
+                "--robot",
+                "kinova",
+                "--bootstrap",
+                10,
+                "-o",
+                output,
+                "--report",
+                report,
+            ]
+        )
+    (folder / "out" / "stdout.txt").write_text(printed.getvalue())
     return folder / "out" / "findings.json"
+
+
+def test_discover_writes_the_html_report_and_says_where_its_figures_went(
+    findings_path: Path,
+) -> None:
+    printed = (findings_path.parent / "stdout.txt").read_text()
+    result = FindingsResult.model_validate_json(findings_path.read_bytes())
+    figures = [f.plot for f in result.findings if f.plot]
+    assert figures
+    for name in figures:
+        assert (findings_path.parent / name).is_file()
+        assert f"figure written to {findings_path.parent / name}" in printed
+    assert f"report written to {findings_path.parent / 'report.html'}" in printed
+    report = (findings_path.parent / "report.html").read_text()
+    assert "gear_periodic" in report and report.count("data:image/png;base64,") == len(figures)
+    # The harmonic is a fixed integer of the term, not an estimate: no "± nan".
+    assert "harmonic = 2," in report or "harmonic = 2<" in report
+    assert "± nan" not in report
 
 
 def test_findings_json_has_the_issue_shape(findings_path: Path) -> None:

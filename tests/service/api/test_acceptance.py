@@ -121,6 +121,7 @@ def test_upload_job_result_report_ranking_discovery_over_http_with_the_client(
     assert keyless.status_code == 401
     assert keyless.headers["content-type"].startswith("application/problem+json")
 
-    metrics = httpx.get(f"{process.url}/metrics").text
+    assert httpx.get(f"{process.url}/metrics").status_code == 401  # keys are required here
+    metrics = httpx.get(f"{process.url}/metrics", headers=api._headers).text
     assert 'route="/api/v1/rankings",status="200"' in metrics
     assert 'kincal_jobs{kind="discovery",state="succeeded"} 1.0' in metrics

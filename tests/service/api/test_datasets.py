@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import io
+import json
 import math
+import tempfile
+import threading
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
 from fastapi.testclient import TestClient
 
-from schemas.dataset import read_dataset
+from schemas.dataset import read_dataset, read_dataset_bytes
+from service.storage import repository
+from service.storage.models import Dataset
 from tests.service.api.conftest import (
     AppFactory,
     assert_problem,
@@ -166,6 +174,63 @@ def test_more_rows_than_the_limit_is_413(make_client: AppFactory) -> None:
     assert_problem(upload_csv(client), 413, "40 samples", "10")
 
 
+def many_rows_parquet(n_rows: int) -> bytes:
+    """A valid-looking UR10 recording of ``n_rows`` identical rows: a few hundred KB of Parquet
+    that decodes to hundreds of MB."""
+    columns = [*pd.read_csv(io.BytesIO(recording_bytes())).columns]
+    table = pa.table({c: pa.repeat(pa.scalar(0.5 if c == "qw" else 0.0), n_rows) for c in columns})
+    buffer = io.BytesIO()
+    pq.write_table(table, buffer, compression="zstd")
+    return buffer.getvalue()
+
+
+def test_a_parquet_file_is_refused_on_its_row_count_before_it_is_decoded(
+    client: TestClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """5 M rows in ~200 KB used to be decoded in full (GBs) before the row limit."""
+    data = many_rows_parquet(5_000_000)
+    assert len(data) < 1_000_000
+    decoded: list[int] = []
+    original = pq.ParquetFile.read
+
+    def read(self: pq.ParquetFile, *args: object, **kwargs: object) -> pa.Table:
+        decoded.append(self.metadata.num_rows)
+        return original(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(pq.ParquetFile, "read", read)
+    monkeypatch.setattr(pd, "read_parquet", lambda *a, **k: pytest.fail("decoded in full"))
+    response = upload_csv(client, data, filename="big.parquet")
+    assert_problem(response, 413, "5000000 samples", "100000")
+    assert decoded == []
+    small = upload_csv(client, recording_bytes(".parquet"), filename="small.parquet")
+    assert small.status_code == 201 and decoded == [40]
+
+
+@pytest.mark.parametrize("how", ["rows", "json file", "csv file"])
+@pytest.mark.parametrize("value", [10**400, 1e308, -2e244])
+def test_huge_numbers_are_422_at_upload_not_a_500_or_a_failed_job(
+    client: TestClient, how: str, value: float
+) -> None:
+    """A 400-digit integer was an OverflowError (500); 1e308 was accepted and failed the job
+    (SVD did not converge). Same range as rankings: |q| <= 1e4."""
+    rows = pd.read_csv(io.BytesIO(recording_bytes())).to_dict(orient="records")
+    rows[2]["elbow_joint"] = value
+    if how == "rows":
+        response = client.post("/api/v1/datasets", json={"robot": "ur10", "rows": rows})
+    elif how == "json file":
+        response = upload_csv(client, json.dumps(rows).encode(), filename="r.json")
+    else:
+        response = upload_csv(client, pd.DataFrame(rows).to_csv(index=False).encode())
+    assert_problem(response, 422, "data row 3, column elbow_joint", "-10000 to 10000 rad")
+
+
+def test_a_broken_parquet_file_is_described_without_a_server_path(client: TestClient) -> None:
+    data = recording_bytes(".parquet")
+    response = upload_csv(client, data[: len(data) // 2] + data[-8:], filename="cut.parquet")
+    body = assert_problem(response, 422, "cut.parquet: cannot read as parquet")
+    assert tempfile.gettempdir() not in body["detail"] and "upload" not in body["detail"]
+
+
 def test_list_is_paginated_newest_first(client: TestClient) -> None:
     ids = [upload_csv(client, recording_bytes(".csv", 40, seed)).json()["id"] for seed in (5, 6, 7)]
     page = client.get("/api/v1/datasets", params={"limit": 2}).json()
@@ -193,3 +258,61 @@ def test_dataset_in_use_by_a_queued_job_cannot_be_deleted(client: TestClient) ->
     created = client.post("/api/v1/calibrations", json={"dataset_id": dataset["id"]})
     assert created.status_code == 202
     assert_problem(client.delete(f"/api/v1/datasets/{dataset['id']}"), 409, "job")
+
+
+def test_a_delete_committed_during_a_duplicate_upload_makes_a_new_dataset(
+    client: TestClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The upload used to look the content up, and answer 200 with that id even when its
+    deletion committed in between."""
+    first = upload_csv(client).json()
+    state = client.app.state.kincal  # type: ignore[attr-defined]
+    original = repository.touch_dataset_by_content
+
+    def delete_first_then_touch(session: object, tenant_id: str, sha: str) -> bool:
+        with state.database.session() as other:  # a DELETE that commits just before
+            other.delete(other.get(Dataset, first["id"]))
+        return original(session, tenant_id, sha)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(repository, "touch_dataset_by_content", delete_first_then_touch)
+    again = upload_csv(client)
+    assert again.status_code == 201, again.text
+    assert again.json()["id"] != first["id"]
+    monkeypatch.undo()
+    assert client.get(f"/api/v1/datasets/{first['id']}").status_code == 404
+    assert client.get(again.headers["location"]).status_code == 200
+
+
+def test_deleting_and_re_uploading_the_same_data_concurrently_keeps_every_file(
+    client: TestClient,
+) -> None:
+    """Datasets shared one file per content: a delete could remove the file of a re-upload
+    stored meanwhile. No 5xx, and every dataset that remains can be read."""
+    statuses: list[int] = []
+
+    def upload() -> None:
+        for _ in range(15):
+            statuses.append(upload_csv(client).status_code)
+
+    def delete() -> None:
+        for _ in range(15):
+            for row in client.get("/api/v1/datasets").json()["data"]:
+                statuses.append(client.delete(f"/api/v1/datasets/{row['id']}").status_code)
+
+    threads = [threading.Thread(target=upload), threading.Thread(target=delete)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert statuses and all(code < 500 for code in statuses), statuses
+    state = client.app.state.kincal  # type: ignore[attr-defined]
+    upload_csv(client)
+    for row in client.get("/api/v1/datasets").json()["data"]:
+        with state.database.sessions() as session:
+            stored = session.get(Dataset, row["id"])
+        assert (
+            read_dataset_bytes(
+                state.files.read(stored.data_path), ".parquet", stored.joint_names, source="x"
+            ).n_samples
+            == row["n_samples"]
+        )

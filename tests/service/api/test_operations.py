@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import logging
+import subprocess
+import sys
 
 import pytest
 from alembic import command
@@ -85,3 +87,24 @@ def test_json_log_lines_carry_request_and_job_ids() -> None:
     assert line["msg"] == "job started" and line["level"] == "info"
     assert line["request_id"] == "req-1" and line["job_id"] == "cal_1"
     assert line["kind"] == "calibration" and line["ts"].endswith("+00:00")
+
+
+def test_every_line_python_writes_to_stderr_is_json_in_a_json_log() -> None:
+    """Warnings (e.g. numpy's on extreme input) and uncaught exceptions in threads were plain
+    text lines in the JSON log."""
+    script = (
+        "import threading, warnings\n"
+        "from service.logs import configure_logging\n"
+        "configure_logging('INFO', 'json')\n"
+        "warnings.warn('something odd', RuntimeWarning)\n"
+        "thread = threading.Thread(target=lambda: 1 / 0, name='t1')\n"
+        "thread.start(); thread.join()\n"
+        "raise ValueError('boom')\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == 1
+    lines = done.stderr.splitlines()
+    entries = [json.loads(line) for line in lines]  # fails on any non-JSON line
+    messages = " ".join(e["msg"] + e.get("exc", "") for e in entries)
+    for fragment in ("something odd", "ZeroDivisionError", "thread t1", "ValueError: boom"):
+        assert fragment in messages

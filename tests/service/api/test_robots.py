@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import time
 
 import httpx
 import pandas as pd
@@ -74,3 +75,54 @@ def test_chain_longer_than_the_joint_limit_is_422(make_client: AppFactory) -> No
     client = make_client(max_joints=3)
     assert_problem(_upload(client, robot("ur10").urdf_xml), 422, "6 joints", "3")
     assert_problem(upload_csv(client), 422, "6 joints")
+
+
+def long_chain_urdf(n_joints: int) -> str:
+    """A serial chain l0 -> l1 -> ... of ``n_joints`` revolute joints with masses."""
+    parts = ['<robot name="long">', '<link name="l0"/>']
+    inertia = '<inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/>'
+    for i in range(1, n_joints + 1):
+        parts.append(
+            f'<link name="l{i}"><inertial><mass value="1"/><origin xyz="0 0 0.05"/>{inertia}'
+            "</inertial></link>"
+        )
+        parts.append(
+            f'<joint name="j{i}" type="revolute"><parent link="l{i - 1}"/><child link="l{i}"/>'
+            '<origin xyz="0 0 0.1"/><axis xyz="0 1 0"/>'
+            '<limit lower="-3" upper="3" effort="1" velocity="1"/></joint>'
+        )
+    return "\n".join([*parts, "</robot>"])
+
+
+def test_a_urdf_with_thousands_of_joints_is_refused_before_pinocchio_parses_it(
+    client: TestClient,
+) -> None:
+    """~4000 joints overflow the stack of Pinocchio's recursive URDF reader (a segfault that
+    would end this test process); the joint count is read off the XML first."""
+    urdf = long_chain_urdf(4000)
+    assert len(urdf) > 800_000
+    started = time.perf_counter()
+    response = _upload(client, urdf, base="l0", tip="l6")
+    assert_problem(response, 422, "4000 <joint> elements", "512")
+    assert response.json()["type"].endswith("too-many-joints")
+    assert time.perf_counter() - started < 5.0
+    assert client.get("/healthz").status_code == 200
+
+
+def test_a_long_chain_is_refused_from_the_xml_in_well_under_a_second(client: TestClient) -> None:
+    """200 chain joints took a minute of server CPU in Pinocchio before the 32-joint check."""
+    started = time.perf_counter()
+    response = _upload(client, long_chain_urdf(200), base="l0", tip="l200")
+    assert_problem(response, 422, "the chain has 200 joints", "32")
+    assert time.perf_counter() - started < 1.0
+    # The same URDF with a short chain in it is fine, and so is a dataset naming other frames
+    # of it, as long as their chain is within the limit too.
+    created = _upload(client, long_chain_urdf(200), base="l0", tip="l6")
+    assert created.status_code == 201, created.text
+    assert created.json()["joint_names"] == [f"j{i}" for i in range(1, 7)]
+    too_long = client.post(
+        "/api/v1/datasets",
+        files={"file": ("r.csv", io.BytesIO(b"j1,x,y,z\n0,0,0,0\n"), "text/csv")},
+        data={"robot": created.json()["id"], "tip_frame": "l150"},
+    )
+    assert_problem(too_long, 422, "150 joints")

@@ -40,9 +40,14 @@ def test_key_is_required_when_not_bound_to_loopback(remote: TestClient) -> None:
     assert_problem(remote.get("/api/v1/datasets", headers={"X-API-Key": tampered}), 401)
 
 
-def test_health_endpoints_need_no_key(remote: TestClient) -> None:
-    for path in ("/healthz", "/readyz", "/metrics"):
+def test_health_endpoints_need_no_key_but_metrics_do(remote: TestClient) -> None:
+    """/metrics tells job counts and routes of every tenant: it answered without a key."""
+    for path in ("/healthz", "/readyz"):
         assert remote.get(path).status_code == 200
+    assert_problem(remote.get("/metrics"), 401, "X-API-Key")
+    key = new_key(remote, "monitoring")
+    metrics = remote.get("/metrics", headers={"X-API-Key": key})
+    assert metrics.status_code == 200 and "kincal_http_requests_total" in metrics.text
 
 
 def test_keyless_mode_only_on_loopback_and_is_announced(
