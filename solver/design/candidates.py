@@ -105,15 +105,17 @@ def sample_candidates(
     volume: Volume = Volume(),
     *,
     range_fraction: float = 1.0,
-    max_draws: int = 2_000_000,
+    max_draws: int | None = None,
 ) -> FloatArray:
     """``n`` configurations (n, k) uniform within the joint limits whose tip lies in ``volume``
-    (rejection sampling); a clear error if the volume is (nearly) out of reach."""
+    (rejection sampling, at most ``max_draws`` draws, default max(200 n, 10⁵)); a clear error
+    if the volume is (nearly) out of reach."""
+    limit = max(200 * n, 100_000) if max_draws is None else max_draws
     kept: list[FloatArray] = []
     found, drawn = 0, 0
     batch = max(4 * n, 1000)
     while found < n:
-        if drawn >= max_draws:
+        if drawn >= limit:
             raise SolverError(
                 f"only {found} of {drawn} random configurations put the tip inside the working "
                 f"volume (wanted {n}); check the box/cone (base frame, metres) or widen it"
