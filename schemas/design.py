@@ -12,6 +12,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from schemas.api import JobStatus
 from schemas.calibration import CalibrationOptions, Vector3
 
 DESIGN_FORMAT: Literal["kincal.design/1"] = "kincal.design/1"
@@ -203,3 +204,40 @@ class DesignResult(_Model):
     covariance: CovarianceDesignReport | None = None
     sequential: SequentialReport | None = None
     notes: list[str] = Field(default_factory=list)
+
+
+class DesignCreate(_Model):
+    """``POST /api/v1/designs``: a robot, the options, and optionally the candidates and the
+    task configurations (each a list of joint vectors in chain order, rad)."""
+
+    robot: str = Field(description="Built-in robot name or uploaded robot id.")
+    base_frame: str | None = Field(None, max_length=200)
+    tip_frame: str | None = Field(None, max_length=200)
+    options: DesignOptions = Field(default_factory=DesignOptions)
+    candidates_rad: list[list[float]] | None = Field(
+        None, min_length=1, max_length=100_000, description="Candidate configurations."
+    )
+    task_rad: list[list[float]] | None = Field(
+        None, min_length=1, max_length=10_000, description="Task configurations (criterion I)."
+    )
+
+
+class DesignLinks(_Model):
+    self: str
+    result: str
+    cancel: str
+
+
+class DesignJobPublic(BaseModel):
+    """A design run as a job (large candidate sets)."""
+
+    id: str
+    status: JobStatus
+    links: DesignLinks
+
+
+class DesignJobsPublic(BaseModel):
+    data: list[DesignJobPublic]
+    count: int
+    offset: int
+    limit: int

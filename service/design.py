@@ -14,12 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.design import (
     ConeVolume,
     CovarianceDesignReport,
     CriterionReport,
+    DesignCreate,
     DesignOptions,
     DesignPose,
     DesignResult,
@@ -28,6 +30,9 @@ from schemas.design import (
 )
 from service import pipeline, result_json
 from service.robots import RobotDescription
+from service.storage.files import FileStore
+from service.tasks import RobotRef
+from service.worker import JobContext
 from solver.covariance.identifiability import IdentifiabilityReport, analyse_identifiability
 from solver.covariance.layout import CovarianceLayout
 from solver.covariance.statistics import design_gram
@@ -67,6 +72,34 @@ ROUNDING_RULE = (
     "one; then the best single exchange against the 50 candidates of largest directional "
     "derivative while the criterion improves"
 )
+
+
+class DesignJobParams(BaseModel):
+    """``jobs.params`` of a design: the robot resolved when the job was accepted and the
+    request as sent."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    robot: RobotRef
+    request: DesignCreate
+
+
+def design_job(ctx: JobContext) -> None:
+    """A large design (``POST /api/v1/designs`` beyond the synchronous limit); artifact: the
+    design document."""
+    from service.api.designs import design_now
+
+    ctx.progress("design", 0.0)
+    params = DesignJobParams.model_validate(ctx.params)
+    result = design_now(_JobState(ctx.files), params)  # type: ignore[arg-type]
+    ctx.write_artifact("result", "design.json", result.model_dump_json(indent=1).encode())
+
+
+@dataclass(frozen=True)
+class _JobState:
+    """What :func:`service.api.designs.design_now` reads of the service state: the files."""
+
+    files: FileStore
 
 
 @dataclass(frozen=True)
@@ -255,6 +288,12 @@ def run_design(
             recorded=old,
         )
         blocks.append(covariance)
+    needed = -(-geometry.dimension // rows)
+    if recorded is None and options.n_poses < needed:
+        raise KincalError(
+            f"n_poses: {options.n_poses} poses give {options.n_poses * rows} equations for "
+            f"{geometry.dimension} identifiable parameters; choose at least {needed} poses"
+        )
     problem = DesignProblem(
         tuple(blocks),
         options.criterion,
@@ -263,6 +302,11 @@ def run_design(
         distinct=not options.allow_repeats,
     )
     design = optimal_design(problem, q, method=options.method, spacing_rad=options.min_spacing_rad)
+    if not np.isfinite(design.value):
+        raise KincalError(
+            f"n_poses: no {options.n_poses} of these candidates determine every parameter "
+            "(singular information); give more varied candidates or choose more poses"
+        )
     information = geometry.information(design.chosen)
     se, relative = standard_errors(geometry, information)
     positions = tip_poses(chain, q[design.chosen])[:, :3, 3]
