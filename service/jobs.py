@@ -111,6 +111,7 @@ def default_registry() -> JobRegistry:
     registry = JobRegistry()
     registry.register("calibration", "service.tasks:calibration_job", id_prefix="cal")
     registry.register("discovery", "service.tasks:discovery_job", id_prefix="dis")
+    registry.register("design", "service.design:design_job", id_prefix="des")
     return registry
 
 

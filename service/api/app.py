@@ -19,7 +19,7 @@ from fastapi.responses import HTMLResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
-from service.api import calibrations, datasets, discoveries, health, rankings, robots
+from service.api import calibrations, datasets, designs, discoveries, health, rankings, robots
 from service.api.deps import ServiceState
 from service.api.metrics import Metrics
 from service.api.middleware import BodyLimits, RequestContextMiddleware
@@ -40,7 +40,8 @@ DESCRIPTION = """Calibrate robot kinematics, including the randomness inside the
 Upload a recording (`/datasets`), start a calibration job (`/calibrations`), poll it, then read
 its result, HTML report and calibrated URDF. Rank candidate configurations or a target pose's IK
 solutions by the calibrated uncertainty (`/rankings`, synchronous), or look for the physics a
-recording shows and your model lacks (`/discoveries`, a job like calibrations). Every error is
+recording shows and your model lacks (`/discoveries`, a job like calibrations). Choose the poses to
+record (`/designs`, synchronous for small candidate sets). Every error is
 `application/problem+json` (RFC 9457). Authenticate with `X-API-Key` (not needed when the
 service is bound to 127.0.0.1).
 """
@@ -157,6 +158,6 @@ def create_app(settings: Settings | None = None, *, registry: JobRegistry | None
     app.state.kincal = state
     install_problem_handlers(app)
     app.add_middleware(RequestContextMiddleware, metrics=state.metrics, limits=BodyLimits(settings))
-    for module in (robots, datasets, calibrations, rankings, discoveries, health):
+    for module in (robots, datasets, calibrations, rankings, discoveries, designs, health):
         app.include_router(module.router)
     return app

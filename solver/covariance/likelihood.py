@@ -290,7 +290,7 @@ def _reml_psi(
     return _psi_from_omega(chunk, omega, model.layout)
 
 
-def _whitening(
+def whitening(
     theta: FloatArray,
     frame_jacobians: FloatArray,
     layout: CovarianceLayout,
@@ -331,7 +331,7 @@ def fisher_information_ml(
 
     Equal to half the moment Gram of the whitened Jacobians L_n⁻¹A_f, (Q, Q).
     """
-    left = _whitening(theta, frame_jacobians, layout, known_covariance, inverse=True)
+    left = whitening(theta, frame_jacobians, layout, known_covariance, inverse=True)
     return 0.5 * design_gram(frame_jacobians, layout, left=left).gram
 
 
@@ -351,7 +351,7 @@ def fisher_information_reml(
     ``tr(PV_pPV_q) = Σ_n ⟨S̃_p, S̃_q⟩ − 2 Σ_n ⟨S̃_p R_n, S̃_q R_n⟩ + ⟨Z_p, Z_q⟩``,
     ``Z_p = Σ_n U_nᵀ S̃_p U_n``.
     """
-    left = _whitening(theta, frame_jacobians, layout, known_covariance, inverse=True)
+    left = whitening(theta, frame_jacobians, layout, known_covariance, inverse=True)
     n, d, k = fit_basis.shape
     white_x = left @ fit_basis
     basis = np.linalg.svd(white_x.reshape(n * d, k), full_matrices=False)[0].reshape(n, d, -1)
@@ -392,7 +392,7 @@ def moment_sandwich_meat(
     K̃ uses the coloured Jacobians L_nᵀA_f (Σ_E = LLᵀ): ``Cov(⟨S_p, rrᵀ⟩, ⟨S_q, rrᵀ⟩) =
     2 tr(S_p Σ_E S_q Σ_E)``. The moment estimator's covariance is G⁺ · meat · G⁺.
     """
-    left = _whitening(theta, frame_jacobians, layout, known_covariance, inverse=False)
+    left = whitening(theta, frame_jacobians, layout, known_covariance, inverse=False)
     return 2.0 * design_gram(frame_jacobians, layout, left=left).gram
 
 

@@ -1,0 +1,426 @@
+"""Calibration designs (``kincal design``, ``POST /api/v1/designs``): the ONE place the CLI and
+the HTTP service call. Robot + :class:`DesignOptions` (+ candidates, task configurations, a
+recording and its calibration for a sequential design) -> :class:`DesignResult`.
+
+The chain and its identifiable parameters are the calibration's: the options are checked by
+:func:`service.pipeline.check_calibration`, a sequential design rebuilds the calibrated chain
+from the result JSON (:func:`service.result_json.result_chain`). The maths is
+:mod:`solver.design`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict
+
+from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.design import (
+    ConeVolume,
+    CovarianceDesignReport,
+    CriterionReport,
+    DesignCreate,
+    DesignOptions,
+    DesignPose,
+    DesignResult,
+    ParameterError,
+    SequentialReport,
+)
+from service import pipeline, result_json
+from service.robots import RobotDescription
+from service.storage.files import FileStore
+from service.tasks import RobotRef
+from service.worker import JobContext
+from solver.covariance.identifiability import IdentifiabilityReport, analyse_identifiability
+from solver.covariance.layout import CovarianceLayout
+from solver.covariance.statistics import design_gram
+from solver.design import Design, optimal_design
+from solver.design.candidates import (
+    ViewCone,
+    Volume,
+    WorkspaceBox,
+    outside_limits,
+    sample_candidates,
+    tip_poses,
+)
+from solver.design.criteria import DesignProblem
+from solver.design.information import (
+    CovariancePrior,
+    InformationBlock,
+    covariance_information,
+    frame_jacobians,
+    geometry_information,
+)
+from solver.design.prediction import (
+    equilibrated_pose_jacobian,
+    predicted_pose_variance,
+    standard_errors,
+    task_root,
+)
+from solver.errors import KincalError
+from solver.kinematics import ChainParameters
+from solver.model import KinematicChain, gravity_loads
+
+FloatArray = NDArray[np.float64]
+
+TASK_SAMPLES = 500
+"""Task configurations drawn in the working volume when none are given."""
+ROUNDING_RULE = (
+    "largest relaxed weights first, skipping candidates closer than min_spacing_rad to a chosen "
+    "one; then the best single exchange against the 50 candidates of largest directional "
+    "derivative while the criterion improves"
+)
+
+
+class DesignJobParams(BaseModel):
+    """``jobs.params`` of a design: the robot resolved when the job was accepted and the
+    request as sent."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    robot: RobotRef
+    request: DesignCreate
+
+
+def design_job(ctx: JobContext) -> None:
+    """A large design (``POST /api/v1/designs`` beyond the synchronous limit); artifact: the
+    design document."""
+    from service.api.designs import design_now
+
+    ctx.progress("design", 0.0)
+    params = DesignJobParams.model_validate(ctx.params)
+    result = design_now(_JobState(ctx.files), params)  # type: ignore[arg-type]
+    ctx.write_artifact("result", "design.json", result.model_dump_json(indent=1).encode())
+
+
+@dataclass(frozen=True)
+class _JobState:
+    """What :func:`service.api.designs.design_now` reads of the service state: the files."""
+
+    files: FileStore
+
+
+@dataclass(frozen=True)
+class Recorded:
+    """A recording already made and its calibration: a sequential design's prior."""
+
+    joint_positions: FloatArray
+    result: CalibrationResult
+
+
+@dataclass(frozen=True)
+class DesignModel:
+    """The chain at which the information is evaluated and its settings."""
+
+    chain: KinematicChain
+    params: ChainParameters
+    calibration: CalibrationOptions
+    noise_std: FloatArray
+    prior: CovariancePrior
+
+
+def design_model(
+    robot: RobotDescription, options: DesignOptions, recorded: Recorded | None = None
+) -> DesignModel:
+    """The chain (checked calibration options, or a result's calibrated chain), the sensor
+    noise (options, or the result's noise covariance) and the covariance prior."""
+    d = 3 if options.measurement == "position" else 6
+    noise_std = np.r_[[options.noise_mm * 1e-3] * 3, [np.radians(options.noise_deg)] * 3]
+    if recorded is None:
+        setup = pipeline.check_calibration(robot, options.calibration)
+        chain, params, calibration = (
+            setup.chain,
+            ChainParameters.nominal(setup.chain),
+            setup.options,
+        )
+        names, index = list(setup.covariance_frames), list(setup.covariance_index)
+        sigma = np.radians(options.prior_perturbation_deg)
+        frames = np.zeros((len(index), 6, 6))
+        frames[:, 3:, 3:] = sigma**2 * np.eye(3)
+        noise_cov = np.diag(noise_std**2)
+    else:
+        result = recorded.result
+        chain, params = result_json.result_chain(result)
+        calibration = result.options
+        frames, noise_cov, names, index = _result_covariances(result, chain, noise_std)
+        noise_std = np.sqrt(np.diag(noise_cov))
+    prior = CovariancePrior(tuple(names), tuple(index), frames, noise_cov)
+    return DesignModel(chain, params, calibration, noise_std[:d], prior)
+
+
+def _result_covariances(
+    result: CalibrationResult, chain: KinematicChain, noise_std: FloatArray
+) -> tuple[FloatArray, FloatArray, list[str], list[int]]:
+    if result.covariance is None:
+        names = list(chain.joint_names)
+        frames = np.zeros((len(names), 6, 6))
+        frames[:, 3:, 3:] = np.eye(3) * 1e-6
+        return frames, np.diag(noise_std**2), names, list(range(len(names)))
+    chosen = [f for f in result.covariance.frames if f.name in chain.joint_names]
+    frames = np.array([f.matrix for f in chosen], dtype=float)
+    names = [f.name for f in chosen]
+    noise = np.array(result.covariance.noise.matrix, dtype=float)
+    # A noise variance the calibration left at zero would make the information infinite:
+    # such an axis gets the sensor noise of the options.
+    missing = np.diag(noise) <= 0.0
+    noise = noise + np.diag(np.where(missing, noise_std**2, 0.0))
+    return frames, noise, names, [chain.joint_names.index(n) for n in names]
+
+
+def volume_of(options: DesignOptions) -> Volume:
+    box = None
+    if options.box is not None:
+        box = WorkspaceBox(np.array(options.box.low_m), np.array(options.box.high_m))
+    return Volume(box=box, cone=None if options.cone is None else view_cone(options.cone))
+
+
+def view_cone(cone: ConeVolume) -> ViewCone:
+    return ViewCone(
+        np.array(cone.apex_m),
+        np.array(cone.axis),
+        float(np.radians(cone.half_angle_deg)),
+        cone.near_m,
+        cone.far_m,
+        None if cone.max_incidence_deg is None else float(np.radians(cone.max_incidence_deg)),
+        np.array(cone.marker_axis),
+    )
+
+
+def check_configurations(chain: KinematicChain, q: FloatArray, what: str) -> None:
+    """Given configurations must be (N, k) and within the joint limits (naming the row)."""
+    if q.ndim != 2 or q.shape[1] != chain.n_joints:
+        raise KincalError(
+            f"{what}: each configuration needs {chain.n_joints} joint positions "
+            f"({', '.join(chain.joint_names)})"
+        )
+    bad = outside_limits(chain, q)
+    if bad.size:
+        row = int(bad[0])
+        joint = int(
+            np.flatnonzero(
+                (q[row] < chain.lower_limits - 1e-9) | (q[row] > chain.upper_limits + 1e-9)
+            )[0]
+        )
+        raise KincalError(
+            f"{what}: row {row} puts {chain.joint_names[joint]} at {q[row, joint]:.4g}, outside "
+            f"its limits [{chain.lower_limits[joint]:.4g}, {chain.upper_limits[joint]:.4g}]; "
+            "drop or correct that configuration"
+        )
+
+
+def _loads(model: DesignModel, q: FloatArray) -> FloatArray:
+    return gravity_loads(
+        model.chain,
+        q,
+        gravity_base=np.asarray(model.calibration.gravity_base_m_s2, dtype=float),
+        payload_kg=model.calibration.payload_kg,
+    )
+
+
+def candidate_set(
+    model: DesignModel, options: DesignOptions, given: FloatArray | None
+) -> tuple[FloatArray, list[str]]:
+    """The candidates: given ones (within limits, those outside the volume dropped with a
+    note), or drawn uniformly within the joint limits inside the volume."""
+    chain, volume = model.chain, volume_of(options)
+    if given is None:
+        rng = np.random.default_rng(options.seed)
+        return sample_candidates(chain, options.n_candidates, rng, volume), []
+    check_configurations(chain, given, "candidates")
+    inside = volume.contains(tip_poses(chain, given))
+    notes = []
+    if not inside.all():
+        notes.append(f"{int((~inside).sum())} given candidates outside the working volume dropped")
+    return given[inside], notes
+
+
+def run_design(
+    robot: RobotDescription,
+    options: DesignOptions,
+    *,
+    candidates: FloatArray | None = None,
+    task: FloatArray | None = None,
+    recorded: Recorded | None = None,
+) -> DesignResult:
+    """Choose ``options.n_poses`` poses (see the module docstring)."""
+    model = design_model(robot, options, recorded)
+    chain = model.chain
+    q, notes = candidate_set(model, options, candidates)
+    if recorded is not None:
+        check_configurations(chain, recorded.joint_positions, "recording")
+    if q.shape[0] < options.n_poses and not options.allow_repeats:
+        raise KincalError(
+            f"n_poses: {options.n_poses} poses wanted but only {q.shape[0]} candidates; give "
+            "more candidates, widen the working volume or allow repeats"
+        )
+    loads = _loads(model, q)
+    prior_q = None if recorded is None else recorded.joint_positions
+    old = None if prior_q is None else (prior_q, _loads(model, prior_q))
+    rows = model.noise_std.shape[0]
+    fit = pipeline.fit_options(model.calibration)
+    geometry = geometry_information(
+        chain, model.params, q, loads, model.noise_std, options=fit, recorded=old
+    )
+    if task is not None:
+        check_configurations(chain, task, "task")
+    else:
+        task = sample_candidates(
+            chain, TASK_SAMPLES, np.random.default_rng([options.seed, 1]), volume_of(options)
+        )
+    task_jac = equilibrated_pose_jacobian(
+        chain, model.params, task, _loads(model, task), geometry, rows
+    )
+    blocks: list[InformationBlock] = []
+    if options.stage in ("geometry", "both"):
+        blocks.append(geometry)
+    covariance, layout = None, None
+    if options.stage in ("covariance", "both"):
+        covariance, layout = covariance_information(
+            chain,
+            model.params,
+            q,
+            loads,
+            model.prior,
+            residual_dim=rows,
+            structure="full" if model.calibration.covariance == "full" else "diag",
+            recorded=old,
+        )
+        blocks.append(covariance)
+    needed = -(-geometry.dimension // rows)
+    if recorded is None and options.n_poses < needed:
+        raise KincalError(
+            f"n_poses: {options.n_poses} poses give {options.n_poses * rows} equations for "
+            f"{geometry.dimension} identifiable parameters; choose at least {needed} poses"
+        )
+    problem = DesignProblem(
+        tuple(blocks),
+        options.criterion,
+        options.n_poses,
+        task_root=task_root(task_jac) if options.criterion == "I" else None,
+        distinct=not options.allow_repeats,
+    )
+    design = optimal_design(problem, q, method=options.method, spacing_rad=options.min_spacing_rad)
+    if not np.isfinite(design.value):
+        raise KincalError(
+            f"n_poses: no {options.n_poses} of these candidates determine every parameter "
+            "(singular information); give more varied candidates or choose more poses"
+        )
+    information = geometry.information(design.chosen)
+    se, relative = standard_errors(geometry, information)
+    positions = tip_poses(chain, q[design.chosen])[:, :3, 3]
+    return DesignResult(
+        kincal_version=result_json.kincal_version(),
+        robot=robot.name,
+        urdf_sha256=chain.urdf_sha256,
+        joint_names=list(chain.joint_names),
+        options=options,
+        candidates=int(q.shape[0]),
+        candidate_source="sampled" if candidates is None else "given",
+        poses=[
+            DesignPose(
+                candidate=int(n),
+                joint_positions=q[n].tolist(),
+                tip_position_m=(float(p[0]), float(p[1]), float(p[2])),
+            )
+            for n, p in zip(design.chosen, positions, strict=True)
+        ],
+        criterion=_criterion_report(options, design),
+        parameters=[
+            ParameterError(
+                name=name,
+                standard_error=float(s),
+                unit=parameter_unit(name),
+                relative_to_noise=float(r),
+            )
+            for name, s, r in zip(geometry.names, se, relative, strict=True)
+        ],
+        worst_relative_standard_error=float(np.max(relative)),
+        mean_pose_variance_m2=float(np.mean(predicted_pose_variance(information, task_jac))),
+        task_configurations=int(task.shape[0]),
+        covariance=None
+        if layout is None
+        else _covariance_report(model, q, loads, design, layout, rows),
+        sequential=None
+        if recorded is None or prior_q is None
+        else _sequential_report(model, geometry, task_jac, prior_q),
+        notes=notes,
+    )
+
+
+def parameter_unit(name: str) -> str:
+    if name.startswith("compliance."):
+        return "rad/N·m"
+    return "m" if name.rsplit(".", 1)[-1].startswith("t") else "rad"
+
+
+def _criterion_report(options: DesignOptions, design: Design) -> CriterionReport:
+    relaxation = design.relaxation
+    return CriterionReport(
+        name=options.criterion,
+        value=design.value,
+        relaxation_value=relaxation.value,
+        upper_bound=relaxation.upper_bound,
+        efficiency=design.efficiency,
+        method=relaxation.method,
+        status=relaxation.status,
+        iterations=relaxation.iterations,
+        elapsed_s=relaxation.elapsed_s,
+        rounding=ROUNDING_RULE,
+    )
+
+
+def _covariance_report(
+    model: DesignModel,
+    q: FloatArray,
+    loads: FloatArray,
+    design: Design,
+    layout: CovarianceLayout,
+    rows: int,
+) -> CovarianceDesignReport:
+    """Identifiability of the covariance statistics (the result JSON's report) for the chosen
+    poses and for all candidates."""
+    index = model.prior.frame_index
+
+    def report(
+        configurations: FloatArray, configuration_loads: FloatArray
+    ) -> IdentifiabilityReport:
+        jac = frame_jacobians(
+            model.chain, model.params, configurations, configuration_loads, index, rows
+        )
+        return analyse_identifiability(design_gram(jac, layout))
+
+    chosen = report(q[design.chosen], loads[design.chosen])
+    everything = report(q, loads)
+    return CovarianceDesignReport(
+        n_entries=layout.n_params,
+        rank=chosen.rank,
+        candidate_rank=everything.rank,
+        condition_number=chosen.condition_number,
+        unidentifiable=list(chosen.statements),
+    )
+
+
+def _sequential_report(
+    model: DesignModel, geometry: InformationBlock, task_jac: FloatArray, prior_q: FloatArray
+) -> SequentialReport:
+    before = np.linalg.svd(geometry.prior, compute_uv=False)
+    rank = int(np.sum(before > 1e-9 * max(before[0], 1e-300)))
+    unidentified: list[str] = []
+    if rank < geometry.dimension:
+        # Parameters moving along the recording's null directions.
+        _, vectors = np.linalg.eigh(geometry.prior)
+        null = vectors[:, : geometry.dimension - rank]
+        weight = np.sum(null**2, axis=1)
+        unidentified = [n for n, w in zip(geometry.names, weight, strict=True) if w > 1e-6]
+    variance = (
+        float(np.mean(predicted_pose_variance(geometry.prior, task_jac)))
+        if rank == geometry.dimension
+        else None
+    )
+    return SequentialReport(
+        recorded_poses=int(prior_q.shape[0]),
+        unidentifiable_before=unidentified,
+        mean_pose_variance_before_m2=variance,
+    )

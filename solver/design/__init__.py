@@ -1,0 +1,74 @@
+"""Optimal calibration experiments: which K poses to record (``kincal design``).
+
+The information each candidate pose brings comes from the calibration's own Jacobians
+(:mod:`solver.design.information`); a criterion of the summed information (D, A, E, or I for a
+task region, :mod:`solver.design.criteria`) is maximised over weights on the candidates — a convex
+relaxation solved by Clarabel or a first-order method, which bounds every set of K poses
+(:mod:`solver.design.relaxation`) — and rounded to K poses by a stated rule
+(:mod:`solver.design.rounding`). Constraints on measurable poses live in
+:mod:`solver.design.candidates`; predicted standard errors in :mod:`solver.design.prediction`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.design.criteria import SMOOTH_CRITERIA, DesignProblem, efficiency
+from solver.design.relaxation import Relaxation, solve_clarabel, solve_first_order
+from solver.design.rounding import round_design
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+Method = Literal["auto", "clarabel", "first_order"]
+CLARABEL_MAX_CANDIDATES = 200
+"""``auto`` solves the relaxation with Clarabel up to this many candidates (its interior-point
+steps factor a dense PSD cone coupled to every candidate), with the first-order method beyond."""
+
+
+@dataclass(frozen=True)
+class Design:
+    """K chosen candidates (sorted indices), their criterion ``value``, the relaxation that
+    bounds it and the ``efficiency`` of the choice against that bound (1 = provably optimal)."""
+
+    chosen: IntArray
+    value: float
+    relaxation: Relaxation
+    efficiency: float
+
+
+def solve_relaxation(problem: DesignProblem, method: Method = "auto") -> Relaxation:
+    """The relaxation by ``method``; ``auto``: Clarabel for small candidate sets and for E."""
+    if method == "clarabel" or (
+        method == "auto"
+        and (
+            problem.n_candidates <= CLARABEL_MAX_CANDIDATES
+            or problem.criterion not in SMOOTH_CRITERIA
+        )
+    ):
+        return solve_clarabel(problem)
+    return solve_first_order(problem)
+
+
+def optimal_design(
+    problem: DesignProblem,
+    joint_positions: FloatArray,
+    *,
+    method: Method = "auto",
+    spacing_rad: float = 0.0,
+) -> Design:
+    """Solve the relaxation, round it (:func:`solver.design.rounding.round_design`) and report
+    the chosen poses against the relaxation's certified bound."""
+    relaxation = solve_relaxation(problem, method)
+    chosen = round_design(problem, relaxation.weights, joint_positions, spacing_rad=spacing_rad)
+    value = problem.set_value(chosen)
+    return Design(
+        chosen, value, relaxation, efficiency(problem.criterion, value, relaxation.upper_bound)
+    )
+
+
+__all__ = ["CLARABEL_MAX_CANDIDATES", "Design", "Method", "optimal_design", "solve_relaxation"]

@@ -1,0 +1,245 @@
+"""Fisher information of one calibration pose, for both calibration stages.
+
+Every candidate configuration ``q_n`` contributes ``M_n = F_nᵀ F_n`` to the information of a
+design; ``F_n`` (r, p) is stored, never ``M_n``, so scoring 10⁴ candidates costs one matrix
+product. Both stages use the calibration's own Jacobians (:mod:`solver.kinematics`):
+
+- **Geometry and compliance** (Eq. 8–10): rows of the stacked Jacobian
+  :func:`~solver.kinematics.stacked_jacobian` (end-effector frame, [v; w], the first 3 rows when
+  position-only) restricted to the columns :func:`solver.calibration.identifiable_columns` keeps
+  (the calibration's pruning rule) and whitened by the sensor noise:
+  ``F_n = Σ_n^{-1/2} J_n[:, keep]`` — the information of the noise-weighted fit.
+- **Covariances** (Eq. 12–17): the expected Fisher information of the Gaussian likelihood of θ
+  (:func:`solver.covariance.likelihood.fisher_information_ml`) at prior covariances,
+  ``M_n = ½ K̃_nᵀ K̃_n`` with ``K̃_n`` the moment design (:func:`~solver.covariance.layout.
+  design_matrix`) of the whitened frame Jacobians ``L_n⁻¹ A_f(q_n)``, restricted to the
+  directions of θ the candidate set identifies (singular values above
+  :data:`solver.covariance.identifiability.RANK_RTOL` of the largest, the rule of the result's
+  identifiability report).
+
+Parameters are equilibrated (θ̂ = θ · s, ``s`` the root-mean-square size of each column over the
+candidates, the scaling of the calibration's pruning), so criteria that are not scale invariant
+(A, E) compare parameters by their effect on a measurement in units of the sensor noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.calibration import FitOptions, identifiable_columns, weighted
+from solver.covariance.identifiability import RANK_RTOL
+from solver.covariance.layout import (
+    CovarianceLayout,
+    Structure,
+    column_matrix,
+    design_matrix,
+    make_layout,
+)
+from solver.covariance.likelihood import whitening
+from solver.errors import SolverError
+from solver.kinematics import ChainParameters, evaluate_chain, parameter_names, stacked_jacobian
+from solver.model import KinematicChain
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+
+@dataclass(frozen=True)
+class InformationBlock:
+    """Per-candidate information of one stage: ``M_n = F_nᵀ F_n`` in equilibrated units.
+
+    ``factors`` (N, r, p); ``prior`` (p, p) information already held (a recording's, for a
+    sequential design; zeros otherwise); ``scale`` (p,) with θ̂ = θ · scale for the named
+    parameters (``basis`` None), or the equilibration of the full θ when the block lives in
+    the identifiable subspace ``basis`` (Q, p), θ̂_sub = basisᵀ (θ · scale).
+    """
+
+    stage: str
+    factors: FloatArray
+    prior: FloatArray
+    scale: FloatArray
+    names: tuple[str, ...]
+    basis: FloatArray | None = None
+
+    @property
+    def n_candidates(self) -> int:
+        return int(self.factors.shape[0])
+
+    @property
+    def dimension(self) -> int:
+        return int(self.factors.shape[2])
+
+    def subset(self, index: IntArray) -> InformationBlock:
+        """The same block for the candidates ``index``."""
+        return replace(self, factors=self.factors[index])
+
+    def information(self, index: IntArray | None = None) -> FloatArray:
+        """``prior + Σ_{n ∈ index} M_n`` (p, p); all candidates when ``index`` is None."""
+        f = self.factors if index is None else self.factors[index]
+        flat = f.reshape(-1, self.dimension)
+        return self.prior + flat.T @ flat
+
+
+def whitened_pose_jacobian(
+    chain: KinematicChain,
+    params: ChainParameters,
+    joint_positions: FloatArray,
+    loads_nm: FloatArray,
+    noise_std: FloatArray,
+) -> FloatArray:
+    """``Σ_n^{-1/2} J(q)`` (N, d, P): all stacked-Jacobian columns (Eq. 9), the d =
+    len(noise_std) measured rows (6 pose, 3 position-only) each divided by its noise standard
+    deviation (m, rad)."""
+    d = noise_std.shape[0]
+    evaluation = evaluate_chain(chain, params, joint_positions, loads_nm)
+    return stacked_jacobian(evaluation)[:, :d] / noise_std[None, :, None]
+
+
+def geometry_information(
+    chain: KinematicChain,
+    params: ChainParameters,
+    joint_positions: FloatArray,
+    loads_nm: FloatArray,
+    noise_std: FloatArray,
+    *,
+    options: FitOptions | None = None,
+    recorded: tuple[FloatArray, FloatArray] | None = None,
+) -> InformationBlock:
+    """The geometry/compliance block of candidates ``joint_positions`` (N, k), loads (N, n_axes).
+
+    ``noise_std`` (6,) or (3,) position-only, m and rad. ``recorded``: joint positions and loads
+    of a recording already made; its information becomes the prior and the identifiable columns
+    are those of recording and candidates together (what the new poses can make identifiable).
+    """
+    d = noise_std.shape[0]
+    candidates = whitened_pose_jacobian(chain, params, joint_positions, loads_nm, noise_std)
+    old = (
+        np.zeros((0, d, candidates.shape[2]))
+        if recorded is None
+        else whitened_pose_jacobian(chain, params, recorded[0], recorded[1], noise_std)
+    )
+    both = np.concatenate([old, candidates])
+    # The calibration's pruning sees the fit's rows: unwhitened, rotation rows weighted.
+    fit_rows = weighted(
+        both * noise_std[None, :, None],
+        position_only=d == 3,
+        rotation_weight=(options or FitOptions()).rotation_weight_m_per_rad,
+    )
+    keep = identifiable_columns(fit_rows, chain, options or FitOptions())[0]
+    scale = column_scale(candidates[:, :, keep])
+    factors = candidates[:, :, keep] / scale
+    prior_rows = (old[:, :, keep] / scale).reshape(-1, keep.size)
+    names = parameter_names(chain)
+    return InformationBlock(
+        "geometry",
+        np.ascontiguousarray(factors),
+        prior_rows.T @ prior_rows,
+        scale,
+        tuple(names[i] for i in keep),
+    )
+
+
+def column_scale(factors: FloatArray) -> FloatArray:
+    """Root-mean-square norm of each column over the candidates (N, r, p) -> (p,), > 0."""
+    scale = np.sqrt(np.mean(np.sum(factors**2, axis=1), axis=0))
+    return np.where(scale > 0.0, scale, 1.0)
+
+
+@dataclass(frozen=True)
+class CovariancePrior:
+    """Covariances at which the covariance stage's information is evaluated (it depends on
+    them): ``frames`` (F, 6, 6) of the perturbations ξ_f of the chain joints ``frame_index``,
+    ``noise`` (6, 6) of the sensor, [v; w], m² and rad²."""
+
+    frame_names: tuple[str, ...]
+    frame_index: tuple[int, ...]
+    frames: FloatArray
+    noise: FloatArray
+
+
+def covariance_layout(
+    prior: CovariancePrior, residual_dim: int, structure: Structure
+) -> CovarianceLayout:
+    """The layout the calibration estimates: the prior's frames and the noise frame."""
+    return make_layout(prior.frame_names, residual_dim, structure=structure)
+
+
+def covariance_information(
+    chain: KinematicChain,
+    params: ChainParameters,
+    joint_positions: FloatArray,
+    loads_nm: FloatArray,
+    prior: CovariancePrior,
+    *,
+    residual_dim: int,
+    structure: Structure = "diag",
+    recorded: tuple[FloatArray, FloatArray] | None = None,
+) -> tuple[InformationBlock, CovarianceLayout]:
+    """The covariance block (expected ML Fisher information of θ at ``prior``) and its layout.
+
+    Restricted to the directions of θ that recording and candidates together identify.
+    """
+    layout = covariance_layout(prior, residual_dim, structure)
+    theta = layout.theta_from_covariances(np.concatenate([prior.frames, prior.noise[None]]))
+    candidates = _covariance_factors(
+        chain, params, joint_positions, loads_nm, layout, theta, prior.frame_index
+    )
+    old = (
+        np.zeros((0, *candidates.shape[1:]))
+        if recorded is None
+        else _covariance_factors(
+            chain, params, recorded[0], recorded[1], layout, theta, prior.frame_index
+        )
+    )
+    scale = column_scale(candidates)
+    flat = np.concatenate([old, candidates]).reshape(-1, layout.n_params) / scale
+    eigval, eigvec = np.linalg.eigh(flat.T @ flat)
+    singular = np.sqrt(np.clip(eigval[::-1], 0.0, None))
+    basis = eigvec[:, ::-1][:, singular > RANK_RTOL * singular[0]]
+    if basis.shape[1] == 0:
+        raise SolverError("the candidates carry no information about the covariances")
+    factors = (candidates / scale) @ basis
+    prior_rows = ((old / scale) @ basis).reshape(-1, basis.shape[1])
+    names = tuple(f"direction {i + 1}" for i in range(basis.shape[1]))
+    block = InformationBlock(
+        "covariance",
+        np.ascontiguousarray(factors),
+        prior_rows.T @ prior_rows,
+        scale,
+        names,
+        basis,
+    )
+    return block, layout
+
+
+def frame_jacobians(
+    chain: KinematicChain,
+    params: ChainParameters,
+    joint_positions: FloatArray,
+    loads_nm: FloatArray,
+    frame_index: tuple[int, ...],
+    residual_dim: int,
+) -> FloatArray:
+    """``A_f(q)`` (N, F, d, 6) of the perturbed frames: the link Jacobians ``J_f`` of Eq. (9)."""
+    evaluation = evaluate_chain(chain, params, joint_positions, loads_nm)
+    return evaluation.link_jacobians[:, list(frame_index), :residual_dim, :]
+
+
+def _covariance_factors(
+    chain: KinematicChain,
+    params: ChainParameters,
+    joint_positions: FloatArray,
+    loads_nm: FloatArray,
+    layout: CovarianceLayout,
+    theta: FloatArray,
+    frame_index: tuple[int, ...],
+) -> FloatArray:
+    """``K̃_n / √2`` (N, D, Q): ``Σ K̃ᵀK̃ / 2`` is :func:`fisher_information_ml`."""
+    jac = frame_jacobians(
+        chain, params, joint_positions, loads_nm, frame_index, layout.residual_dim
+    )
+    left = whitening(theta, jac, layout, None, inverse=True)
+    return design_matrix(left @ column_matrix(jac, layout), layout) / np.sqrt(2.0)
