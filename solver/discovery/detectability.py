@@ -2,17 +2,19 @@
 
 For a candidate with whitened columns ``C`` (R, m), the part the fitted model cannot absorb is
 ``C̃ = (I − QQᵀ) C`` (:mod:`solver.discovery.scoring`). An effect of coefficients θ adds
-``C̃ θ`` to the whitened residual, so its score test has the noncentral F(m, ν, λ) law with
-noncentrality ``λ = θᵀ C̃ᵀC̃ θ / s²``, s² = RSS/ν the residual scale. The smallest detectable
-size is the smallest ``|θ|`` (worst direction: any phase of a gear error, any axis of a flex)
-whose test rejects at ``level`` with probability ``power``::
+``C̃ θ`` to the whitened residual; its one-step estimate has covariance ``V``, the larger (per
+coefficient) of the classical ``s² (C̃ᵀC̃)⁻¹`` (s² = RSS/ν, the residual scale) and the
+per-sample cluster-robust sandwich — the score test rejects only when both of its statistics
+do, so the weaker one decides. The test statistic is then noncentral F(m, ν', λ) with
+``λ = θᵀ V⁻¹ θ`` and ν' the smaller reference dof (ν, or N − m for the robust statistic). The
+smallest detectable size is the smallest ``|θ|`` (worst direction: any phase of a gear error,
+any axis of a flex) that the test rejects at ``level`` with probability ``power``::
 
-    size = sqrt(λ* s² / μ_min),   P(F(m, ν, λ*) > F_crit(level)) = power,
+    size = sqrt(λ* · largest eigenvalue of V),   P(F(m, ν', λ*) > F_crit(level)) = power.
 
-μ_min the smallest eigenvalue of ``C̃ᵀC̃`` in the size's metric. The level is the first step's
-Holm threshold, α over the number of candidates tested, so "nothing found" reads "nothing
-larger than this". A measurement-frame drift mixes metres and radians: its translation and
-rotation parts get one size each (the test keeps its 6 degrees of freedom).
+The level is the first step's Holm threshold, α over the number of candidates tested, so
+"nothing found" reads "nothing larger than this". A measurement-frame drift mixes metres and
+radians: its translation and rotation parts get one size each (its test keeps 6 dof).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from numpy.typing import NDArray
 
 from solver.discovery.fitting import Context, ModelFit, evaluate, whitened
 from solver.discovery.library import Term
-from solver.discovery.scoring import NullModel
+from solver.discovery.scoring import NullModel, sandwich_covariance
 
 FloatArray = NDArray[np.float64]
 
@@ -90,18 +92,29 @@ def smallest_detectable(
     out = []
     for term in library:
         columns = whitened(design.candidates[term.key], fit.weights).reshape(-1, term.size)
-        projected = null.project(columns)
-        dof = null.dof - term.size
+        dof = min(null.dof, null.n_samples) - term.size
         if dof <= 0:
             continue
+        covariance = estimate_covariance(null, columns, scale2)
         needed = noncentrality_needed(term.size, dof, level, power)
         for parameter, indices in size_groups(term):
-            block = projected[:, indices]
-            smallest_eigenvalue = float(np.linalg.eigvalsh(block.T @ block)[0])
-            size = (
-                float(np.sqrt(needed * scale2 / smallest_eigenvalue))
-                if smallest_eigenvalue > 1e-300
-                else float("inf")
-            )
-            out.append(DetectableSize(term, parameter, size))
+            block = covariance[np.ix_(indices, indices)]
+            largest = float(np.linalg.eigvalsh(block)[-1]) if np.all(np.isfinite(block)) else np.inf
+            out.append(DetectableSize(term, parameter, float(np.sqrt(needed * largest))))
     return out
+
+
+def estimate_covariance(null: NullModel, columns: FloatArray, scale2: float) -> FloatArray:
+    """Covariance (m, m) of a candidate's one-step estimate: classical, each coefficient's
+    variance raised to the sandwich's where that is larger (as the fit's standard errors);
+    infinite where the model absorbs a direction of the candidate."""
+    projected = null.project(columns)
+    gram = projected.T @ projected
+    if np.linalg.matrix_rank(gram, tol=1e-12 * max(float(np.trace(gram)), 1e-300)) < gram.shape[0]:
+        return np.full(gram.shape, np.inf)
+    pinv = np.linalg.solve(gram, projected.T)
+    classical = scale2 * np.linalg.inv(gram)
+    robust = sandwich_covariance(null, np.asarray(pinv, dtype=np.float64), null.residual)
+    ratio = np.diag(robust) / np.diag(classical)
+    raise_by = np.sqrt(np.maximum(ratio, 1.0))
+    return np.asarray(classical * np.outer(raise_by, raise_by), dtype=np.float64)

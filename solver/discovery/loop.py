@@ -99,16 +99,16 @@ class DiscoveryOptions:
     """Settings of :func:`discover`.
 
     ``alpha``: family-wise error rate of each step's tests (Holm) and of the final checks.
-    ``collinear_correlation``: another plausible candidate whose columns, once the model is
-    fitted, have a canonical correlation with the best one's of at least this is collinear with
-    it (at 0.999 under 4.5 % of either signature differs, about the linearisation error of a
-    mrad-sized effect): the step is ambiguous. A less correlated candidate is a rival only
-    when the best one loses its significance (``alpha``) with that candidate in the model too
-    *and* the K-fold held-out error does not prefer the best one (paired test at
-    ``heldout_level``): the data cannot separate them. Where the best one
-    keeps its evidence a weaker candidate never blocks it; if that candidate keeps its own
-    evidence as well, a later step names it. ``absorbed_limit``: a term whose estimated
-    signature the rest of the model reproduces to this fraction is ambiguous with the geometry.
+    Ambiguity: another plausible candidate is a rival of the best one only when the data
+    cannot separate them. Joint test first: with the other candidate in the (linearised) model
+    too, is the best one still significant at ``alpha``? If so the data separate them — a
+    weaker candidate never blocks a strong one, and if it keeps its own evidence a later step
+    names it. If not, the pair is ambiguous when their columns are collinear once the model is
+    fitted (canonical correlation ≥ ``collinear_correlation``, 0.999: under 4.5 % of a
+    signature differs, about the linearisation error of a mrad-sized effect), else when the
+    K-fold held-out error does not prefer the best one (paired test at ``heldout_level``).
+    ``absorbed_limit``: a term whose estimated signature the rest of the model reproduces to
+    this fraction is ambiguous with the geometry.
     ``sensor_sigma``: (m, rad) for χ²/dof.
     ``heldout_level``: a term is kept only if it lowers the K-fold held-out error with a
     one-sided paired t-test over samples significant at this level.
@@ -328,15 +328,14 @@ class _Search:
     def _rivals(
         self, null: NullModel, candidates: _Candidates, plausible: list[str]
     ) -> tuple[list[str], list[str]]:
-        """Plausible candidates the data may not tell from the best one (see
-        :class:`DiscoveryOptions`): (nearly collinear ones, ones a joint test cannot separate).
+        """Plausible candidates a joint test cannot separate from the best one (see
+        :class:`DiscoveryOptions`): (collinear ones, the others).
 
         Joint test: with the other candidate's columns in the linearised model too, and the
         noise scale re-estimated with both fitted (:func:`reweighted`: under the null fit's
         scale, which still holds the effect, every correlated candidate looks close), is the
-        best one still significant at ``alpha``? If so the data separate them. Shapes of the
-        same mechanism on the same joint (drift time constants, backlash floating zones) are
-        refinements, not rivals.
+        best one still significant at ``alpha``? Shapes of the same mechanism on the same
+        joint (drift time constants, backlash floating zones) are refinements, not rivals.
         """
         by_key, columns = candidates.by_key, candidates.columns
         best = candidates.ranked[0]
@@ -344,12 +343,13 @@ class _Search:
         for key in plausible:
             if key == best or same_mechanism(by_key[best], by_key[key]):
                 continue
+            given = conditional_test(self.fit, columns[best], columns[key])
+            if given is not None and given.p_value < self.options.alpha:
+                continue  # the best one keeps its evidence: separable
             correlation = canonical_correlation(null, columns[best], columns[key])
             if correlation >= self.options.collinear_correlation:
                 collinear.append(key)
-                continue
-            given = conditional_test(self.fit, columns[best], columns[key])
-            if given is None or given.p_value >= self.options.alpha:
+            else:
                 inseparable.append(key)
         return collinear, inseparable
 
