@@ -5,7 +5,9 @@ parameters (SI units in the names), standard errors, p-value, the share of its s
 rest of the model could reproduce and a one-sentence explanation; ``ambiguous[]`` are effects
 the data cannot attribute (with poses that would separate them); ``unexplained[]`` is structure
 no library term describes; ``random_effects[]`` go to the covariance calibration;
-``heldout`` compares the user's model and the discovered one on the same K-fold splits.
+``heldout`` compares the user's model and the discovered one on the same K-fold splits;
+``detectability`` states, per library term left out of the model, the smallest size the
+recording would have detected, so "nothing found" reads "nothing larger than this".
 """
 
 from __future__ import annotations
@@ -233,6 +235,30 @@ class OutlierScreen(_Model):
     removed_rows: list[int] = Field(description="1-based data rows left out as gross outliers.")
 
 
+class DetectableSize(_Model):
+    effect: Effect
+    joint: str | None
+    variant: str
+    parameter: str = Field(
+        description="The size stated, SI units in the name: backlash_rad, amplitude_rad (a "
+        "gear error at any phase), flex_rad_per_nm (either axis ⟂ the joint), "
+        "translation_/rotation_… (a measurement-frame drift), else the term's parameter."
+    )
+    smallest: float | None = Field(
+        description="Smallest size this recording detects at `level` with `power`; null when "
+        "the model absorbs the term entirely (it can never be seen)."
+    )
+
+
+class Detectability(_Model):
+    level: float = Field(
+        description="Per-test level: alpha over the number of library terms tested (Holm's "
+        "first step)."
+    )
+    power: float = Field(description="Probability that an effect of the stated size is found.")
+    sizes: list[DetectableSize]
+
+
 class FindingsResult(_Model):
     format: Literal["kincal.findings/1"] = FINDINGS_FORMAT
     kincal_version: str
@@ -250,5 +276,8 @@ class FindingsResult(_Model):
     outliers: OutlierScreen
     model: DiscoveredModel
     n_candidates: int = Field(description="Library terms tested at the first step.")
+    detectability: Detectability | None = Field(
+        None, description="Smallest detectable size of every library term left out."
+    )
     plots: list[str] = Field(default_factory=list, description="PNG files next to the JSON.")
     elapsed_s: float

@@ -29,6 +29,8 @@ from schemas.discovery import (
     Ambiguity,
     Candidate,
     Dependence,
+    Detectability,
+    DetectableSize,
     DiscoveredModel,
     DiscoveryOptions,
     ErrorPair,
@@ -174,6 +176,7 @@ def discover(
         ),
         model=_model(result, names, options),
         n_candidates=result.n_candidates,
+        detectability=_detectability(result, names),
         plots=plots,
         elapsed_s=time.perf_counter() - started,
     )
@@ -394,6 +397,8 @@ def summary(findings: FindingsResult) -> str:
         lines.append(f"random: {r.explanation}")
     if not (findings.findings or findings.ambiguous or findings.unexplained):
         lines.append("nothing missing: no library term or structure is significant")
+    if findings.detectability is not None and findings.detectability.sizes:
+        lines += detectability_lines(findings.detectability)
     before, after = findings.heldout.before, findings.heldout.after
     rot = (
         ""
@@ -404,7 +409,84 @@ def summary(findings: FindingsResult) -> str:
     return "\n".join(lines)
 
 
+# Display scale and unit of a size by the end of its parameter name (first match wins).
+DISPLAY_UNITS = (
+    ("_rad_per_nm", 1e6, "µrad/N·m"),
+    ("_rad_per_s", 3.6e6, "mrad/h"),
+    ("_rad_per_sample", 1e5, "mrad/100 samples"),
+    ("_m_per_s", 3.6e6, "mm/h"),
+    ("_m_per_sample", 1e5, "mm/100 samples"),
+    ("_rad", 1e3, "mrad"),
+    ("_m", 1e3, "mm"),
+    ("_kg", 1.0, "kg"),
+    ("scale", 1e3, "mm/m"),
+    ("scale_error", 1e3, "mm/m"),
+)
+
+
+def display_size(value: float | None, parameter: str) -> str:
+    """A detectable size in an engineer's unit, e.g. ``0.12 mrad``; ``–`` when none."""
+    if value is None:
+        return "–"
+    for suffix, scale, unit in DISPLAY_UNITS:
+        if parameter.endswith(suffix):
+            return f"{value * scale:.2g} {unit}"
+    return f"{value:.2g}"
+
+
+def detectability_groups(
+    detectability: Detectability,
+) -> dict[str, list[DetectableSize]]:
+    """Detectable sizes by term label (effect, variant, size parameter when it is not the
+    only one), in report order."""
+    groups: dict[str, list[DetectableSize]] = {}
+    for size in detectability.sizes:
+        variant = f" ({size.variant})" if size.variant else ""
+        part = (
+            size.parameter.split("_")[0]
+            if size.parameter.startswith(("translation", "rotation"))
+            else ""
+        )
+        label = f"{size.effect}{variant}" + (f" {part}" if part else "")
+        groups.setdefault(label, []).append(size)
+    return groups
+
+
+def detectability_lines(detectability: Detectability) -> list[str]:
+    """The CLI's statement of what this recording could have seen."""
+    lines = [
+        f"smallest detectable sizes (score test at {detectability.level:.2g} per term, "
+        f"{detectability.power:.0%} power) — nothing larger went unseen:"
+    ]
+    for label, sizes in detectability_groups(detectability).items():
+        shown = ", ".join(
+            f"{s.joint + ' ' if s.joint else ''}{display_size(s.smallest, s.parameter)}"
+            for s in sizes
+        )
+        lines.append(f"  {label}: {shown}")
+    return lines
+
+
 # --- conversion ------------------------------------------------------------------------------
+
+
+def _detectability(
+    result: solver_discovery.DiscoveryResult, names: tuple[str, ...]
+) -> Detectability:
+    return Detectability(
+        level=result.detection_level,
+        power=result.detection_power,
+        sizes=[
+            DetectableSize(
+                effect=d.term.effect,  # type: ignore[arg-type]
+                joint=_joint(d.term.joint_index, names),
+                variant=d.term.variant,
+                parameter=d.parameter,
+                smallest=d.smallest if math.isfinite(d.smallest) else None,
+            )
+            for d in result.detectable
+        ],
+    )
 
 
 def _pair(error: HeldoutError) -> ErrorPair:

@@ -2,7 +2,8 @@
 
 Sections: held-out error of the user's model and of the discovered one, each finding with its
 residuals-before/after figure (:func:`service.discovery.finding_figure`), ambiguous effects
-with the poses that would separate them, unexplained structure, random effects, the search
+with the poses that would separate them, unexplained structure, random effects, the smallest
+detectable size of every library term left out, the search
 steps and the ``kincal calibrate`` options that carry the discovered model.
 """
 
@@ -13,6 +14,7 @@ import math
 from collections.abc import Mapping
 
 from schemas.discovery import ErrorPair, FindingsResult, Health
+from service.discovery import detectability_groups, display_size
 from service.report_html import html_page, png_img
 
 
@@ -32,6 +34,8 @@ def render_discovery_report(findings: FindingsResult, plots: Mapping[str, bytes]
         _unexplained(findings),
         "<h2>Random effects (for the covariance calibration)</h2>",
         _random_effects(findings),
+        "<h2>Smallest detectable effects</h2>",
+        _detectability(findings),
         "<h2>Residual health before and after</h2>",
         _health(findings),
         "<h2>Search steps</h2>",
@@ -132,6 +136,30 @@ def _ambiguous(findings: FindingsResult) -> str:
             poses += "</table>"
         parts.append(f'<p class="warn">{e(a.explanation)}</p>{poses}')
     return "".join(parts)
+
+
+def _detectability(findings: FindingsResult) -> str:
+    """Per library term left out, the smallest size this recording would have detected."""
+    e = html.escape
+    detectability = findings.detectability
+    if detectability is None or not detectability.sizes:
+        return "<p>Not computed for this report.</p>"
+    joints = list(findings.robot.joint_names)
+    groups = detectability_groups(detectability)
+    header = "<tr><th>term</th>" + "".join(f"<th>{e(j)}</th>" for j in joints)
+    header += "<th>whole robot / sensor</th></tr>"
+    rows = []
+    for label, sizes in groups.items():
+        by_joint = {s.joint: display_size(s.smallest, s.parameter) for s in sizes}
+        cells = "".join(f"<td>{e(by_joint.get(j, ''))}</td>" for j in [*joints, None])
+        rows.append(f"<tr><th>{e(label)}</th>{cells}</tr>")
+    intro = (
+        f"An effect of the size shown would have been found with probability "
+        f"{detectability.power:.0%} (score test at {detectability.level:.2g} per term: the "
+        "first Holm step). Where nothing is named, nothing larger than this is missing; a "
+        "blank cell is a term the recording cannot test (or one already in the model)."
+    )
+    return f"<p>{e(intro)}</p><table>{header}{''.join(rows)}</table>"
 
 
 def _unexplained(findings: FindingsResult) -> str:

@@ -49,8 +49,9 @@ class JointEffect:
 
     ``gear_periodic``: δ = size·sin(harmonic·q + phase); ``backlash_load``: ±size/2 by the sign
     of the joint's gravity torque, uniform in the dead band where |τ| < ``float_below_nm``
-    (backlash with nothing to take it up); ``backlash_direction``: ±size/2 by the sign of
-    q[n] − q[n−1] (0 for the first sample); ``joint_scale``: size·q; ``drift_linear``:
+    (backlash with nothing to take it up); ``backlash_direction``: read on the motor side, the
+    link lags the motion by size/2, δ = −size/2·sign(q[n] − q[n−1]) (0 for the first sample);
+    ``joint_scale``: size·q; ``drift_linear``:
     size·t (rad/s); ``drift_warmup``: size·(1 − exp(−t/T)). Outside the discovery library:
     ``quadratic``: size·q² (rad/rad²); ``load_quadratic``: size·τ·|τ| (rad/(N·m)², a spring
     that softens under load, τ the joint's gravity torque); ``bump``: size·exp(−½((q − c)/w)²)
@@ -219,7 +220,7 @@ def _joint_offsets(
             delta[floating] = rng.uniform(-0.5, 0.5, size=int(floating.sum())) * effect.size
         elif effect.kind == "backlash_direction":
             delta = np.zeros_like(angle)
-            delta[1:] = 0.5 * effect.size * np.sign(np.diff(angle))
+            delta[1:] = -0.5 * effect.size * np.sign(np.diff(angle))
         elif effect.kind == "joint_scale":
             delta = effect.size * angle
         elif effect.kind == "drift_linear":

@@ -61,3 +61,23 @@ def test_judging_counts_wrong_names_and_accepts_only_the_right_joint() -> None:
         0.1,
     )
     assert concealed_effects.judge(described["collinear"], collinear) == (True, 0)
+
+
+def test_real_benchmark_runs_on_a_shipped_recording_and_prints_its_table() -> None:
+    """``concealed_effects.py --real`` on a tiny input: the UR10e, one effect, one seed."""
+    from benchmarks import concealed_real
+
+    lines: list[str] = []
+    text, rows, runs = concealed_real.main(
+        seeds=1,
+        workers=1,
+        recordings=["ur10e"],
+        effects=["backlash_direction"],
+        sizes=(4.0,),
+        echo=lines.append,
+    )
+    assert text.startswith("| Recording |") and len(rows) == 1 and len(runs) == 1
+    (run,) = runs
+    assert run.truth > 0 and run.joint is not None
+    assert any("unmodified UR10e" in line for line in lines)
+    assert concealed_real.baseline("ur10e").named == []  # nothing named on the recording as is

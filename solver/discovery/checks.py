@@ -108,6 +108,15 @@ def reweighted(fit: ModelFit, extra: list[FloatArray]) -> tuple[NullModel, Float
     return NullModel(r - model_basis @ (model_basis.T @ r), model_basis, d), scale
 
 
+def conditional_test(fit: ModelFit, first: FloatArray, second: FloatArray) -> ScoreTest | None:
+    """Score test of candidate columns ``first`` with ``second`` in the model as well (both
+    whitened, (R, ·)); the noise scale is re-estimated with both fitted (:func:`reweighted`).
+    None when ``second`` (and the model) absorb ``first`` entirely."""
+    base, scale = reweighted(fit, [first, second])
+    given = with_columns(base, second * scale[:, None])
+    return score_test(given, "conditional", first * scale[:, None])
+
+
 def lack_of_fit(
     ctx: Context, fit: ModelFit, term: Term, units: dict[int, FloatArray]
 ) -> ScoreTest | None:

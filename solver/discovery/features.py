@@ -6,11 +6,13 @@ feature matrix passed as ``loads_nm`` evaluates any such term exactly, Jacobian 
 so every feature here is a plain (N,) array in execution order:
 
 * ``tau:<axis>``      gravity moment about a joint axis or a virtual axis ⟂ to it, N·m (Eq. 6);
-* ``sign_tau:<j>``    ½·sign(τ_j): backlash taken up by the gravity load;
+* ``sign_tau:<j>``    ½·sign(τ_j): backlash taken up by the gravity load (the link rests on
+                      the side gravity pushes it to, ahead of a motor-side reading);
 * ``deadzone_tau:<j>:<τ0>``  ½·sign(τ_j) where |τ_j| > τ0, else 0: the same backlash floating
                       (mean zero) where the load is too small to take it up;
-* ``dir:<j>``         ½·sign(q_j[n] − q_j[n−1]): backlash taken up by the approach direction
-                      (0 for the first row: its approach is unknown);
+* ``lag:<j>``         −½·sign(q_j[n] − q_j[n−1]): backlash taken up by the approach direction,
+                      the link lagging a motor-side reading (0 for the first row: its approach
+                      is unknown; docs/discovery_physics.md derives the sign);
 * ``q:<j>``           q_j, rad: joint scale (gear-ratio) error;
 * ``sin<h>:<j>``, ``cos<h>:<j>``  sin(h q_j), cos(h q_j): periodic transmission error;
 * ``time:linear``     t − t_0 (s; acquisition index when no time stamps);
@@ -158,10 +160,15 @@ def gravity_basis(probe: KinematicChain, joint_positions: FloatArray) -> Gravity
     )
 
 
-def approach_direction(joint_positions: FloatArray) -> FloatArray:
-    """½·sign(q[n] − q[n−1]) per joint (N, k); the first row is 0 (approach unknown)."""
+def approach_lag(joint_positions: FloatArray) -> FloatArray:
+    """−½·sign(q[n] − q[n−1]) per joint (N, k); the first row is 0 (approach unknown).
+
+    Backlash b read on the motor side: the motor drives the link through a dead band, so after
+    a move the link trails the reading by b/2 against the motion,
+    ``q_link = q_read − (b/2)·sign(Δq) = q_read + b·lag`` with b ≥ 0.
+    """
     out = np.zeros_like(joint_positions, dtype=float)
-    out[1:] = 0.5 * np.sign(np.diff(joint_positions, axis=0))
+    out[1:] = -0.5 * np.sign(np.diff(joint_positions, axis=0))
     return out
 
 
@@ -267,7 +274,7 @@ class FeatureBank:
         self.data = data
         self.basis = gravity_basis(probe, data.joint_positions)
         self.joint_names = probe.joint_names
-        self.direction = approach_direction(data.joint_positions)
+        self.lag = approach_lag(data.joint_positions)
         self.clock, self.clock_unit = data.clock()
         nominal = self.basis.moments(data.gravity_base, data.payload())
         self._nominal_tau = nominal
@@ -332,8 +339,8 @@ class FeatureBank:
         if kind == "basis":
             family, name, index = rest.split(":")
             return self.generic_basis(family, name)[:, int(index)]
-        if kind == "dir":
-            return self.direction[:, self.joint_names.index(rest)]
+        if kind == "lag":
+            return self.lag[:, self.joint_names.index(rest)]
         if is_configuration_feature(key):
             return configuration_feature(key, q, self.joint_names, self.nominal_tau)
         raise ValueError(f"unknown feature key {key!r}")

@@ -69,7 +69,7 @@ def health_report(
             tau = ctx.bank.nominal_tau(name)[rows]
             if np.ptp(tau) > 1e-9:
                 variables.append(("torque", j, legendre_basis(tau, range(1, 4))))
-        direction = ctx.bank.direction[rows, j]
+        direction = -2.0 * ctx.bank.lag[rows, j]
         if np.ptp(direction) > 0:
             variables.append(("direction", j, direction[:, None]))
     clock = ctx.bank.clock[rows]

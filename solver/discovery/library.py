@@ -9,7 +9,8 @@ joint_compliance   joint axis × gravity torque τ_j (paper Eq. 6), rad/N·m
 base_flex          two axes ⟂ the first joint axis × the gravity moment about them (§V-A)
 link_bending       the same at a later joint: the structure carrying it tilts under load
 gear_periodic      joint axis × (sin h q_j, cos h q_j), h = 1..3, rad
-backlash           joint axis × ½ sign(τ_j) ("load") or ½ sign(Δq_j) ("direction"), rad
+backlash           joint axis × ½ sign(τ_j) ("load") or −½ sign(Δq_j) ("direction": the link
+                   lags a motor-side reading), rad
 joint_scale        joint axis × (q_j − mean q_j): gear-ratio / encoder-scale error
 thermal_drift      joint axis, or the measurement frame (6 columns), × a time shape
                    (linear, or warm-up 1 − exp(−t/T) with two time constants)
@@ -181,10 +182,11 @@ def gear_term(chain: KinematicChain, j: int, harmonic: int) -> Term:
 
 
 def direction_backlash_term(chain: KinematicChain, j: int) -> Term:
-    """Backlash taken up by the direction joint j was approached from (execution order)."""
+    """Backlash taken up by the direction joint j was approached from (execution order): the
+    link lags the motor-side reading by half the backlash, against the motion."""
     name = chain.joint_names[j]
     return Term(
-        "backlash", j, "direction", ("backlash_rad",), (AxisSpec(j, "joint", f"dir:{name}"),)
+        "backlash", j, "direction", ("backlash_rad",), (AxisSpec(j, "joint", f"lag:{name}"),)
     )
 
 

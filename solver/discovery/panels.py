@@ -92,8 +92,8 @@ def _driver(ctx: Context, term: Term, spec: AxisSpec) -> tuple[FloatArray, str]:
         return ctx.bank.nominal_tau(axis), f"gravity moment about {axis} [N·m]"
     if kind == "sign_tau":
         return ctx.bank.nominal_tau(name), f"gravity torque on {name} [N·m]"
-    if kind == "dir":
-        return 2.0 * ctx.bank.direction[:, j], f"approach direction of {name} (−1 / +1)"
+    if kind == "lag":
+        return -2.0 * ctx.bank.lag[:, j], f"approach direction of {name} (−1 / +1)"
     if kind == "time":
         unit = "min" if ctx.bank.clock_unit == "s" else "sample"
         scale = 1.0 / 60.0 if ctx.bank.clock_unit == "s" else 1.0

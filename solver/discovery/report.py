@@ -49,7 +49,8 @@ def term_covariances(fit: ModelFit) -> dict[str, FloatArray]:
 def sign_note(term: Term, test: ScoreTest, names: tuple[str, ...]) -> str:
     params, errors = reported_parameters(term, test.estimate, np.diag(test.stderr**2))
     values = ", ".join(
-        f"{k} = {v:.3g} ± {errors.get(k, float('nan')):.2g}" for k, v in params.items()
+        f"{k} = {v:.3g}" + (f" ± {errors[k]:.2g}" if k in errors else "")  # a harmonic is exact
+        for k, v in params.items()
     )
     return f"{describe(term, names)} fits with the wrong sign ({values})"
 

@@ -9,6 +9,7 @@ import scipy.stats
 from numpy.typing import NDArray
 
 from solver.discovery.design import SeparatingPoses
+from solver.discovery.detectability import DetectableSize
 from solver.discovery.fitting import ModelParameters
 from solver.discovery.health import HealthReport
 from solver.discovery.library import Term
@@ -148,3 +149,6 @@ class DiscoveryResult:
     n_candidates: int
     clock_unit: str
     outlier_rows: IndexArray  # 0-based samples left out as gross outliers of the final model
+    detectable: list[DetectableSize] = field(default_factory=list)
+    detection_level: float = float("nan")  # per-test level of the detectable sizes
+    detection_power: float = float("nan")

@@ -116,7 +116,7 @@ def score_test(null: NullModel, key: str, columns: FloatArray) -> ScoreTest | No
     robust, p_robust = _robust(null, u, r, m)
     estimate = pinv @ r  # one-step estimate: least squares of r on the projected columns
     covariance = denominator * pinv @ pinv.T
-    sandwich = _sandwich(null, pinv, r)
+    sandwich = sandwich_covariance(null, pinv, r)
     variance = np.maximum(np.diag(covariance), np.diag(sandwich))
     effect = columns @ estimate
     absorbed = 1.0 - float(np.sum(null.project(effect[:, None]) ** 2)) / max(
@@ -151,7 +151,9 @@ def _robust(null: NullModel, u: FloatArray, r: FloatArray, m: int) -> tuple[floa
     return statistic, float(scipy.special.fdtrc(m, n - m, statistic / m))
 
 
-def _sandwich(null: NullModel, pinv: FloatArray, r: FloatArray) -> FloatArray:
+def sandwich_covariance(null: NullModel, pinv: FloatArray, r: FloatArray) -> FloatArray:
+    """Per-sample cluster-robust covariance (m, m) of the estimate ``pinv @ r`` (``pinv``
+    (m, R)), residuals scaled up by their sample's leverage."""
     d, n = null.d, null.n_samples
     adjusted = r.reshape(n, d) / np.sqrt(np.clip(1.0 - null.sample_leverage(), 0.05, None))[:, None]
     per_sample = np.einsum("mnr,nr->nm", pinv.reshape(pinv.shape[0], n, d), adjusted)

@@ -253,3 +253,27 @@ def test_simulated_effect_is_discovered(label: str) -> None:
     else:
         assert not named and not result.ambiguous
         assert [u.joint for u in result.unexplained][:1] == [joints[expected]]
+
+
+def test_findings_state_the_smallest_detectable_size_in_json_cli_and_html(
+    findings_path: Path,
+) -> None:
+    """Issue 14: every library term left out gets the smallest size the recording would have
+    detected, in the JSON, the CLI summary and the HTML report; the gear's harmonic (a fixed
+    integer) is shown without an error."""
+    from service.discovery_html import render_discovery_report
+
+    result = FindingsResult.model_validate_json(findings_path.read_bytes())
+    detectability = result.detectability
+    assert detectability is not None
+    assert detectability.level == pytest.approx(result.options.alpha / result.n_candidates)
+    sizes = {(s.effect, s.joint, s.variant): s for s in detectability.sizes}
+    second = chain("kinova").joint_names[1]
+    assert sizes[("backlash", second, "load")].parameter == "backlash_rad"
+    assert 0.0 < (sizes[("backlash", second, "load")].smallest or 0.0) < 1e-3
+    assert ("gear_periodic", chain("kinova").joint_names[2], "h2") not in sizes  # found
+    text = discovery.summary(result)
+    assert "smallest detectable sizes" in text and f"{second} " in text
+    page = render_discovery_report(result, {})
+    assert "Smallest detectable effects" in page and "nan" not in page
+    assert "harmonic = 2 ±" not in page and "harmonic = 2" in page

@@ -14,7 +14,7 @@ from solver import lie
 from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, discover
 from solver.discovery.checks import span_p_value
 from solver.discovery.features import (
-    approach_direction,
+    approach_lag,
     deadzone_sign,
     probe_chain,
 )
@@ -98,10 +98,10 @@ def test_every_library_column_equals_finite_differences(name: str) -> None:
             )
 
 
-def test_approach_direction_follows_execution_order() -> None:
+def test_approach_lag_trails_the_motion_in_execution_order() -> None:
     q = np.array([[0.0, 1.0], [0.5, 0.5], [0.2, 0.5], [0.9, 2.0]])
     np.testing.assert_array_equal(
-        approach_direction(q), [[0.0, 0.0], [0.5, -0.5], [-0.5, 0.0], [0.5, 0.5]]
+        approach_lag(q), [[0.0, 0.0], [-0.5, 0.5], [0.5, 0.0], [-0.5, -0.5]]
     )
 
 

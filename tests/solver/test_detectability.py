@@ -1,0 +1,97 @@
+"""Stated detectability (issue 14): the smallest size the recording would have detected.
+
+The statement must be one a user can rely on: an effect twice the stated size is found, one
+well below it is not; the statement scales with the noise; the noncentrality is the one the
+test's power needs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+import pytest
+import scipy.stats
+
+from service.scenarios import marker_offset
+from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, discover
+from solver.discovery.detectability import DETECTION_POWER, noncentrality_needed
+from solver.simulate import JointEffect, SimulationSpec, look_at, simulate_recording
+from tests.conftest import chain
+
+KINOVA = chain("kinova")
+J = KINOVA.joint_names
+RIGID = dataclasses.replace(KINOVA, compliance_axes=())
+
+
+def _spec(seed: int, noise: float, *effects: JointEffect) -> SimulationSpec:
+    return SimulationSpec(
+        200,
+        seed,
+        noise_sigma=np.r_[[noise] * 3, [noise] * 3],
+        measurement_frame=look_at(np.array([0.9, -0.6, 0.5]), np.array([0.0, 0.0, 0.25])),
+        tool_offset=marker_offset(),
+        joint_effects=effects,
+    )
+
+
+@functools.cache
+def _discover(seed: int, noise: float, effects: tuple[JointEffect, ...] = ()) -> DiscoveryResult:
+    recording = simulate_recording(KINOVA, _spec(seed, noise, *effects))
+    data = DiscoveryData(
+        recording.joint_positions, recording.measured_pose, False, recording.time_s
+    )
+    return discover(RIGID, data, DiscoveryOptions(seed=seed, bootstrap=0))
+
+
+def _stated(result: DiscoveryResult, effect: str, joint: int, variant: str) -> float:
+    (size,) = [
+        d.smallest
+        for d in result.detectable
+        if (d.term.effect, d.term.joint_index, d.term.variant) == (effect, joint, variant)
+    ]
+    return size
+
+
+def test_noncentrality_gives_the_stated_power() -> None:
+    needed = noncentrality_needed(2, 500, 1e-4, 0.8)
+    critical = scipy.stats.f.isf(1e-4, 2, 500)
+    assert scipy.stats.ncf.sf(critical, 2, 500, needed) == pytest.approx(0.8, abs=1e-6)
+
+
+def test_every_untested_library_term_gets_a_size_at_the_first_holm_level() -> None:
+    result = _discover(3, 5e-5)
+    assert not result.findings
+    assert result.detection_level == pytest.approx(0.01 / result.n_candidates)
+    assert result.detection_power == DETECTION_POWER
+    keys = {(d.term.effect, d.term.joint_index) for d in result.detectable}
+    for j in range(1, 6):  # joint 1 is vertical: no load terms there
+        for effect in ("joint_compliance", "backlash", "gear_periodic", "joint_scale"):
+            assert (effect, j) in keys
+    assert all(np.isfinite(d.smallest) and d.smallest > 0 for d in result.detectable)
+
+
+def test_stated_size_scales_with_the_noise() -> None:
+    quiet = _stated(_discover(3, 5e-5), "backlash", 1, "load")
+    loud = _stated(_discover(3, 2e-4), "backlash", 1, "load")
+    assert loud == pytest.approx(4.0 * quiet, rel=0.25)
+
+
+@pytest.mark.parametrize(
+    ("kind", "joint", "effect", "variant", "harmonic"),
+    [
+        ("backlash_load", 1, "backlash", "load", 1),
+        ("gear_periodic", 2, "gear_periodic", "h2", 2),
+        ("backlash_direction", 3, "backlash", "direction", 1),
+    ],
+)
+def test_twice_the_stated_size_is_found_and_a_third_of_it_is_not(
+    kind: str, joint: int, effect: str, variant: str, harmonic: int
+) -> None:
+    stated = _stated(_discover(3, 5e-5), effect, joint, variant)
+    for factor, found in ((2.0, True), (1.0 / 3.0, False)):
+        hidden = JointEffect(J[joint], kind, factor * stated, harmonic=harmonic)  # type: ignore[arg-type]
+        result = _discover(3, 5e-5, (hidden,))
+        named = [(f.estimate.term.effect, f.estimate.term.joint_index) for f in result.findings]
+        assert ((effect, joint) in named) is found, (factor, stated, named)
