@@ -13,12 +13,17 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.calibration import DeterministicFit, FitOptions, fit_deterministic
+from solver.calibration import (
+    DeterministicFit,
+    FitOptions,
+    fit_deterministic,
+    identifiable_parameter_count,
+)
 from solver.covariance.estimate import EstimatorName, estimate_from_samples
 from solver.covariance.likelihood import ee_covariance_batch
 from solver.covariance.samples import ArraySamples
 from solver.covariance.solvers import SolverName
-from solver.errors import KincalError
+from solver.errors import CalibrationError, KincalError
 from solver.kinematics import ChainParameters, parameter_names, pose_residuals
 from solver.model import KinematicChain
 from solver.predictive import (
@@ -45,6 +50,10 @@ IntArray = NDArray[np.intp]
 INNER_FOLDS = 3
 """Folds of the nested cross-validation that estimates a split's model-error part from its
 training rows."""
+
+MIN_RESIDUAL_SAMPLES = 2
+"""A held-out predictor is trained only when its rows give at least this many samples' worth
+of equations beyond the identifiable parameters."""
 
 NLL_TOLERANCE = 1e-3
 """The held-out predictors' ML/REML iterations stop once the predicted decrease of the whole
@@ -90,12 +99,6 @@ class Predictor:
         """Σ_E(q) (Eq. 12) with Σ_n, (N, d, d)."""
         return ee_covariance_batch(
             point.frame_jacobians[:, list(self.frames)], self.frame_covariances, _padded(self.noise)
-        )
-
-    def base(self, point: PredictionPoint) -> FloatArray:
-        """Σ_E(q) + Σ_n + J_θ Cov(θ̂) J_θᵀ, (N, d, d): every part but the model error."""
-        return self.random_part(point) + parameter_part(
-            point.parameter_jacobian, self.parameter_covariance
         )
 
 
@@ -158,35 +161,54 @@ def train_predictor(
     options: FitOptions,
     settings: RandomEffectSettings,
 ) -> Predictor:
-    """Fit geometry and compliance (Eq. 8–10) on ``rows``, then :func:`predictor_from_fit`."""
-    fit = fit_deterministic(
-        chain,
-        rows.joint_positions,
-        rows.measured_pose,
-        rows.loads_nm,
-        position_only=position_only,
-        options=options,
+    """Fit geometry and compliance (Eq. 8–10) on ``rows``, then :func:`predictor_from_fit`;
+    :class:`CalibrationError` when the rows leave fewer than :data:`MIN_RESIDUAL_SAMPLES`
+    samples' worth of equations beyond the parameters (no residuals to estimate covariances
+    from)."""
+    d = 3 if position_only else 6
+    spare = d * rows.n - identifiable_parameter_count(
+        chain, position_only=position_only, options=options
     )
+    if spare < d * MIN_RESIDUAL_SAMPLES:
+        raise CalibrationError(
+            f"{rows.n} rows leave {spare} equations beyond the parameters, fewer than "
+            f"{MIN_RESIDUAL_SAMPLES} samples' worth"
+        )
+    try:
+        fit = fit_deterministic(
+            chain,
+            rows.joint_positions,
+            rows.measured_pose,
+            rows.loads_nm,
+            position_only=position_only,
+            options=options,
+        )
+    except ZeroDivisionError as exc:  # the rows' rank reached their equations: no residual dof
+        raise CalibrationError(f"{rows.n} rows leave no residual degrees of freedom") from exc
     return predictor_from_fit(chain, fit, rows, position_only, options, settings)
 
 
 @dataclass(frozen=True)
 class ScoredRows:
     """Rows scored by a predictor trained without them: end-effector-frame residuals (n, d),
-    the covariance of every part but the model error (``base``, (n, d, d)) and the measurement
-    axes T (n, d, d) of :func:`~solver.predictive.measurement_axes`."""
+    the covariance of every part but the model error (``base``, (n, d, d)), Σ_E + Σ_n alone
+    (``random``, (n, d, d)) and the measurement axes T (n, d, d) of
+    :func:`~solver.predictive.measurement_axes`."""
 
     residuals: FloatArray
     base: FloatArray
+    random: FloatArray
     axes: FloatArray
 
     @classmethod
     def join(cls, parts: list[ScoredRows], d: int) -> ScoredRows:
         if not parts:
-            return cls(np.zeros((0, d)), np.zeros((0, d, d)), np.zeros((0, d, d)))
+            empty = np.zeros((0, d, d))
+            return cls(np.zeros((0, d)), empty, empty, empty)
         return cls(
             np.concatenate([p.residuals for p in parts]),
             np.concatenate([p.base for p in parts]),
+            np.concatenate([p.random for p in parts]),
             np.concatenate([p.axes for p in parts]),
         )
 
@@ -204,7 +226,9 @@ def score_rows(
     d = predictor.noise.shape[0]
     point = predictor.point(chain, rows.joint_positions, rows.loads_nm)
     residuals = pose_residuals(point.pose, rows.measured_pose, position_only=position_only)
-    return point.pose, ScoredRows(residuals, predictor.base(point), measurement_axes(point.pose, d))
+    random = predictor.random_part(point)
+    base = random + parameter_part(point.parameter_jacobian, predictor.parameter_covariance)
+    return point.pose, ScoredRows(residuals, base, random, measurement_axes(point.pose, d))
 
 
 def fold_indices(n: int, folds: int, seed: int) -> list[tuple[IntArray, IntArray]]:
