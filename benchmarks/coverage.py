@@ -196,8 +196,9 @@ def main(seeds: int = 10, names: list[str] | None = None) -> str:
     for name in names or list(RECORDINGS):
         for sigma in (2.0, None):
             row = measure(RECORDINGS[name], sigma, seeds)
+            shares = ", ".join(f"{100 * v:.0f} %" for v in row.total)
             print(
-                f"{row.label} ({row.rule}): total {', '.join(f'{100 * v:.0f} %' for v in row.total)}"
+                f"{row.label} ({row.rule}): total {shares}"
                 f" in the 50/90/95/99 % ellipsoids, mean d² {row.total_mean:.2f} "
                 f"(χ² mean {row.dimension}); Σ_E + Σ_n alone {100 * row.random_95:.0f} % in 95 %",
                 flush=True,
