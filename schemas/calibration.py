@@ -414,7 +414,8 @@ class ModelErrorPart(_Model):
     """Model error no term of the model describes (issue 13): a diagonal covariance along the
     measurement frame's axes, ``T(q) diag(variance) T(q)ᵀ`` in the end-effector frame with
     ``T = blockdiag(Rᵀ, Rᵀ)`` and R the predicted end-effector orientation in the measurement
-    frame. Fitted by maximum likelihood to cross-validated residuals."""
+    frame. Fitted by maximum likelihood to the leave-one-out residuals of the deterministic
+    fit."""
 
     axes: list[str] = Field(
         description="x, y, z (m) [, rx, ry, rz (rad)] of the measurement frame."
@@ -454,9 +455,7 @@ class PredictiveCovariance(_Model):
     J_θ(q) Cov(θ̂) J_θ(q)ᵀ + the model-error part; and its held-out coverage."""
 
     parameter_covariance: ParameterCovariance
-    model_error: ModelErrorPart | None = Field(
-        description="None without held-out splits (nothing to estimate it from)."
-    )
+    model_error: ModelErrorPart
     coverage: CoverageReport | None = Field(description="None without held-out splits.")
 
 

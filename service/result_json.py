@@ -52,7 +52,7 @@ from solver.kinematics import (
 from solver.model import KinematicChain, build_chain, gravity_loads
 from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS
 from solver.stream.calibrate import BEFORE, CALIBRATED, RecordingCalibration
-from solver.stream.coverage import INNER_FOLDS, PredictiveCalibration
+from solver.stream.coverage import PredictiveCalibration
 from solver.stream.fit import StreamedFit
 from solver.stream.sums import ErrorSums
 
@@ -438,17 +438,15 @@ def _predictive_result(
     predictive: PredictiveCalibration, options: CalibrationOptions
 ) -> PredictiveCovariance:
     """The ``predictive`` block: Cov(θ̂), the model-error part and the held-out coverage."""
-    model_error = None
-    if predictive.model_error is not None:
-        variance = predictive.model_error.variance
-        model_error = ModelErrorPart(
-            axes=list(MODEL_ERROR_AXES[: variance.size]),
-            variance=variance.tolist(),
-            std=np.sqrt(variance).tolist(),
-            n_residuals=predictive.model_error.n_residuals,
-            method="maximum likelihood on the held-out residuals of every split, each "
-            "scored by Σ_E + Σ_n + J_θ Cov(θ̂) J_θᵀ of its split's training rows",
-        )
+    variance = predictive.model_error.variance
+    model_error = ModelErrorPart(
+        axes=list(MODEL_ERROR_AXES[: variance.size]),
+        variance=variance.tolist(),
+        std=np.sqrt(variance).tolist(),
+        n_residuals=predictive.model_error.n_residuals,
+        method="maximum likelihood on the leave-one-out residuals of the deterministic fit, "
+        "each with Σ_E + Σ_n + J_θ Cov(θ̂) J_θᵀ",
+    )
     report = None
     found = predictive.coverage
     if found is not None:
@@ -465,8 +463,7 @@ def _predictive_result(
             protocol=f"the held-out splits of evaluation ({len(predictive.splits)} of "
             f"{len(options.seeds)} gave covariances); per split, geometry, compliance, "
             f"covariances ({options.covariance_estimator}), Cov(θ̂) and the model-error part "
-            f"({INNER_FOLDS}-fold cross-validation inside the training rows) from its "
-            "training rows only",
+            "(leave-one-out residuals inside the training rows) from its training rows only",
         )
     return PredictiveCovariance(
         parameter_covariance=ParameterCovariance(

@@ -113,12 +113,35 @@ def parameter_covariance(gram: FloatArray, meat: FloatArray) -> FloatArray:
     units (local twists m and rad, compliance rad/N·m): ``gram`` G the Gauss–Newton normal
     matrix (Eq. 10, ``AᵀA`` of the weighted rows), ``meat`` M of :func:`sandwich_meat`. The
     pseudo-inverse is taken of the unit-norm-scaled G (its columns span metres and rad/N·m)."""
+    inverse = gram_inverse(gram)
+    covariance = inverse @ meat @ inverse
+    return np.asarray(0.5 * (covariance + covariance.T), dtype=float)
+
+
+def gram_inverse(gram: FloatArray) -> FloatArray:
+    """``G⁺`` (p, p) of a normal matrix whose columns mix units: the pseudo-inverse of the
+    unit-diagonal scaled G, scaled back."""
     norms = np.sqrt(np.clip(np.diag(gram), 0.0, None))
     norms = np.where(norms > 0.0, norms, 1.0)
     inverse = np.linalg.pinv(gram / np.outer(norms, norms), hermitian=True)
-    inverse = inverse / np.outer(norms, norms)
-    covariance = inverse @ meat @ inverse
-    return np.asarray(0.5 * (covariance + covariance.T), dtype=float)
+    return np.asarray(inverse / np.outer(norms, norms), dtype=float)
+
+
+def leave_one_out_residuals(
+    residuals: FloatArray, weighted_jacobian: FloatArray, weights: FloatArray, gram: FloatArray
+) -> FloatArray:
+    """Residuals (N, d) each sample would have under the least-squares fit of the others,
+    linearised at the fit: with the weighted residual ``y_n = W r_n``, the block leverage
+    ``H_nn = A_w,n G⁺ A_w,nᵀ`` (d, d) and the fit's normal matrix ``G = Σ A_wᵀ A_w`` (p, p;
+    over all its samples, of which these N may be a subset), the left-out residual is
+    ``W⁻¹ (I − H_nn)⁻¹ y_n`` (the exact deletion identity of linear least squares).
+    ``weighted_jacobian`` (N, d, p) the fit's rows times ``weights`` (d,)."""
+    d = weighted_jacobian.shape[1]
+    inverse = gram_inverse(gram)
+    leverage = np.einsum("ndp,pq,neq->nde", weighted_jacobian, inverse, weighted_jacobian)
+    complement = np.eye(d)[None] - leverage
+    left_out = np.linalg.solve(complement, (weights * residuals)[:, :, None])[..., 0]
+    return np.asarray(left_out / weights, dtype=float)
 
 
 def parameter_part(parameter_jacobian: FloatArray, covariance: FloatArray) -> FloatArray:

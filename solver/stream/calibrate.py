@@ -34,12 +34,10 @@ from solver.model import KinematicChain
 from solver.stream.chunks import StreamProblem, count_chunk_rows
 from solver.stream.covariance import StreamedSamples, streamed_covariance_sums
 from solver.stream.coverage import (
-    INNER_FOLDS,
     PredictiveCalibration,
     RandomEffectSettings,
     SplitCoverage,
-    calibration_parameter_covariance,
-    pooled_predictive,
+    calibration_predictive,
     split_coverage,
 )
 from solver.stream.fit import (
@@ -307,23 +305,21 @@ def _predictive(
     coverage: dict[int, SplitCoverage],
 ) -> PredictiveCalibration:
     """Cov(θ̂) of the calibration (normal matrix of every used sample, meat over the
-    in-memory rows) and the model-error part and coverage of the held-out splits."""
+    in-memory rows), its model-error part and the coverage of the held-out splits."""
     fit = run.fit
-    d = problem.residual_dim
-    parameter_cov = calibration_parameter_covariance(
+    return calibration_predictive(
         problem.chain,
         fit.params,
         fit.estimated,
         fit.sums.normal.gram,
         fit.sums.errors.n,
         sample,
-        lambda point: estimate.ee_covariance(
-            point.frame_jacobians[:, list(frames)], include_noise=True
-        ),
+        estimate,
+        frames,
         problem.position_only,
         options.rotation_weight_m_per_rad,
+        coverage,
     )
-    return pooled_predictive(fit.estimated, parameter_cov, coverage, d)
 
 
 def covariance_stage(
@@ -389,8 +385,7 @@ class HeldoutProblem:
     """The held-out evaluation of rows in memory (``sample``): the chain, the two methods'
     fit settings and the splits (sent to the workers once per call); with ``coverage`` the
     calibrated method's split also estimates every part of the predictive covariance from its
-    training rows (model error by ``inner_folds``-fold nested cross-validation) and scores its
-    test rows (:func:`solver.stream.coverage.split_coverage`)."""
+    training rows and scores its test rows (:func:`solver.stream.coverage.split_coverage`)."""
 
     chain: KinematicChain
     sample: RowSample
@@ -399,7 +394,6 @@ class HeldoutProblem:
     baseline_options: FitOptions
     settings: HeldoutSettings
     coverage: RandomEffectSettings | None = None
-    inner_folds: int = INNER_FOLDS
 
 
 def _heldout_fit(
@@ -432,8 +426,6 @@ def _heldout_fit(
             evaluation.position_only,
             options,
             evaluation.coverage,
-            folds=evaluation.inner_folds,
-            seed=seed,
         )
     return predicted, coverage
 

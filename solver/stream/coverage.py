@@ -1,29 +1,33 @@
-"""Predictors trained on some rows only, for the held-out coverage of the predictive
-covariance (issue 13): every part of :mod:`solver.predictive` — geometry and compliance
-(Eq. 8–10), the random-effect covariances (§IV-C, the calibration's estimator), Cov(θ̂) and the
-model-error part (nested cross-validation inside the training rows) — estimated from the
-training rows of a split, then scored on its test rows.
+"""The predictive covariance of a calibration and its held-out coverage (issue 13).
+
+A :class:`Predictor` is a calibration of some rows as far as prediction needs it. For a held-out
+split every part of :mod:`solver.predictive` — geometry and compliance (Eq. 8–10), the
+random-effect covariances (§IV-C, the calibration's estimator), Cov(θ̂) and the model-error part —
+is estimated from the split's training rows only, and the split's test rows are scored with it.
+
+The model-error part is fitted to cross-validated residuals *inside* the rows a predictor was
+trained on: leave-one-out residuals of its deterministic fit (the exact deletion identity of
+linear least squares at the solution, :func:`solver.predictive.leave_one_out_residuals`), each
+with the covariance the other parts predict for it. Leave-one-out uses every training row as a
+test row once at the cost of one covariance estimate per predictor (refitting k folds would cost
+k more, and on a recording of 20-100 poses leave k-th out loses far more of the fit than one
+row); the random-effect covariances are not re-estimated per left-out row, an O(1/N) optimism
+that makes the model-error part slightly larger, never smaller.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.calibration import (
-    DeterministicFit,
-    FitOptions,
-    fit_deterministic,
-    identifiable_parameter_count,
-)
-from solver.covariance.estimate import EstimatorName, estimate_from_samples
+from solver.calibration import DeterministicFit, FitOptions
+from solver.covariance.estimate import CovarianceEstimate, EstimatorName, estimate_from_samples
 from solver.covariance.likelihood import ee_covariance_batch
 from solver.covariance.samples import ArraySamples
 from solver.covariance.solvers import SolverName
-from solver.errors import CalibrationError, KincalError
+from solver.errors import KincalError
 from solver.kinematics import ChainParameters, parameter_names, pose_residuals
 from solver.model import KinematicChain
 from solver.predictive import (
@@ -32,6 +36,7 @@ from solver.predictive import (
     PredictionPoint,
     coverage,
     estimate_model_error,
+    leave_one_out_residuals,
     mahalanobis_squared,
     measurement_axes,
     model_error_part,
@@ -47,19 +52,10 @@ from solver.stream.sums import CovarianceSpec
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
-INNER_FOLDS = 3
-"""Folds of the nested cross-validation that estimates a split's model-error part from its
-training rows."""
-
-MIN_RESIDUAL_SAMPLES = 2
-"""A held-out predictor is trained only when its rows give at least this many samples' worth
-of equations beyond the identifiable parameters."""
-
 NLL_TOLERANCE = 1e-3
 """The held-out predictors' ML/REML iterations stop once the predicted decrease of the whole
 negative log-likelihood is below this: θ is then within ~√(2·10⁻³) ≈ 0.05 of its standard
-errors of the optimum (the calibration itself iterates to 10⁻¹⁰ per sample), and each split
-needs 1 + ``INNER_FOLDS`` covariance estimates."""
+errors of the optimum (the calibration itself iterates to 10⁻¹⁰ per sample)."""
 
 
 @dataclass(frozen=True)
@@ -76,23 +72,26 @@ class RandomEffectSettings:
 class Predictor:
     """A calibration of some rows, as far as prediction needs it: the parameters, the columns
     of the parameters it estimated (:func:`~solver.kinematics.parameter_names` order) and their
-    sandwich covariance (p, p), the random-effect covariances (F, 6, 6) of the chain joints
-    ``frames``, the measurement noise (d, d) and the model-error variances (d,) along the
-    measurement frame's axes (zeros when not estimated)."""
+    sandwich covariance (p, p), the normal matrix ``gram`` (p, p) of its fit, the random-effect
+    covariances (F, 6, 6) of the chain joints ``frames`` and the measurement noise (d, d)."""
 
     params: ChainParameters
     estimated: IntArray
     parameter_covariance: FloatArray
+    gram: FloatArray
     frames: tuple[int, ...]
     frame_covariances: FloatArray
     noise: FloatArray
-    model_error: FloatArray
+
+    @property
+    def d(self) -> int:
+        return int(self.noise.shape[0])
 
     def point(
         self, chain: KinematicChain, joint_positions: FloatArray, loads_nm: FloatArray
     ) -> PredictionPoint:
         return prediction_point(
-            chain, self.params, self.estimated, joint_positions, loads_nm, self.noise.shape[0]
+            chain, self.params, self.estimated, joint_positions, loads_nm, self.d
         )
 
     def random_part(self, point: PredictionPoint) -> FloatArray:
@@ -109,6 +108,26 @@ def _padded(noise: FloatArray) -> FloatArray:
     return out
 
 
+def _columns(chain: KinematicChain, estimated: list[str]) -> IntArray:
+    names = parameter_names(chain)
+    return np.array([names.index(n) for n in estimated], dtype=np.intp)
+
+
+def sandwich_covariance(
+    gram: FloatArray,
+    point: PredictionPoint,
+    random: FloatArray,
+    rotation_weight: float,
+    scale: float = 1.0,
+) -> FloatArray:
+    """Cov(θ̂) (p, p) of a fit with normal matrix ``gram``, the meat summed over ``point``'s
+    rows with their Σ_E + Σ_n ``random`` (n, d, d) and multiplied by ``scale`` (used samples
+    per row given, when the rows are a subset)."""
+    weights = row_weights(random.shape[1], rotation_weight)
+    weighted = weights[None, :, None] * point.parameter_jacobian
+    return parameter_covariance(gram, scale * sandwich_meat(weighted, random, weights))
+
+
 def predictor_from_fit(
     chain: KinematicChain,
     fit: DeterministicFit,
@@ -117,11 +136,11 @@ def predictor_from_fit(
     options: FitOptions,
     settings: RandomEffectSettings,
 ) -> Predictor:
-    """The random-effect covariances (the calibration's estimator, on the fit's residuals) and
-    the sandwich Cov(θ̂) of a fit of ``rows``; no model-error part."""
+    """A deterministic fit of ``rows`` completed into a predictor: the random-effect
+    covariances (the calibration's estimator, on the fit's residuals) and the sandwich
+    Cov(θ̂)."""
     d = 3 if position_only else 6
-    names = parameter_names(chain)
-    estimated = np.array([names.index(n) for n in fit.estimated], dtype=np.intp)
+    estimated = _columns(chain, fit.estimated)
     point = prediction_point(chain, fit.params, estimated, rows.joint_positions, rows.loads_nm, d)
     spec = settings.spec
     frames = list(spec.frames)
@@ -140,60 +159,18 @@ def predictor_from_fit(
         point.frame_jacobians[:, frames], estimate.frame_covariances(), _padded(noise)
     )
     weighted = fit.jacobian.reshape(-1, estimated.size)
-    covariance = _sandwich(
-        weighted.T @ weighted, point, random, d, options.rotation_weight_m_per_rad, 1.0
-    )
+    gram = weighted.T @ weighted
+    covariance = sandwich_covariance(gram, point, random, options.rotation_weight_m_per_rad)
     return Predictor(
-        fit.params,
-        estimated,
-        covariance,
-        tuple(frames),
-        estimate.frame_covariances(),
-        noise,
-        np.zeros(d),
+        fit.params, estimated, covariance, gram, tuple(frames), estimate.frame_covariances(), noise
     )
-
-
-def train_predictor(
-    chain: KinematicChain,
-    rows: RowSample,
-    position_only: bool,
-    options: FitOptions,
-    settings: RandomEffectSettings,
-) -> Predictor:
-    """Fit geometry and compliance (Eq. 8–10) on ``rows``, then :func:`predictor_from_fit`;
-    :class:`CalibrationError` when the rows leave fewer than :data:`MIN_RESIDUAL_SAMPLES`
-    samples' worth of equations beyond the parameters (no residuals to estimate covariances
-    from)."""
-    d = 3 if position_only else 6
-    spare = d * rows.n - identifiable_parameter_count(
-        chain, position_only=position_only, options=options
-    )
-    if spare < d * MIN_RESIDUAL_SAMPLES:
-        raise CalibrationError(
-            f"{rows.n} rows leave {spare} equations beyond the parameters, fewer than "
-            f"{MIN_RESIDUAL_SAMPLES} samples' worth"
-        )
-    try:
-        fit = fit_deterministic(
-            chain,
-            rows.joint_positions,
-            rows.measured_pose,
-            rows.loads_nm,
-            position_only=position_only,
-            options=options,
-        )
-    except ZeroDivisionError as exc:  # the rows' rank reached their equations: no residual dof
-        raise CalibrationError(f"{rows.n} rows leave no residual degrees of freedom") from exc
-    return predictor_from_fit(chain, fit, rows, position_only, options, settings)
 
 
 @dataclass(frozen=True)
 class ScoredRows:
-    """Rows scored by a predictor trained without them: end-effector-frame residuals (n, d),
-    the covariance of every part but the model error (``base``, (n, d, d)), Σ_E + Σ_n alone
-    (``random``, (n, d, d)) and the measurement axes T (n, d, d) of
-    :func:`~solver.predictive.measurement_axes`."""
+    """Rows scored by a predictor: end-effector-frame residuals (n, d), the covariance of
+    every part but the model error (``base``, (n, d, d)), Σ_E + Σ_n alone (``random``) and
+    the measurement axes T (n, d, d) of :func:`~solver.predictive.measurement_axes`."""
 
     residuals: FloatArray
     base: FloatArray
@@ -220,66 +197,39 @@ class ScoredRows:
 
 
 def score_rows(
-    chain: KinematicChain, predictor: Predictor, rows: RowSample, position_only: bool
-) -> tuple[FloatArray, ScoredRows]:
-    """The predicted poses (n, 4, 4) of ``rows`` and their :class:`ScoredRows`."""
-    d = predictor.noise.shape[0]
+    chain: KinematicChain,
+    predictor: Predictor,
+    rows: RowSample,
+    position_only: bool,
+    *,
+    left_out: bool = False,
+    rotation_weight: float = 1.0,
+) -> ScoredRows:
+    """``rows`` scored by ``predictor``; ``left_out``: they are the rows it was fitted to
+    (with ``rotation_weight``, the fit's), each scored as if left out of its deterministic fit
+    (:func:`~solver.predictive.leave_one_out_residuals`)."""
     point = predictor.point(chain, rows.joint_positions, rows.loads_nm)
     residuals = pose_residuals(point.pose, rows.measured_pose, position_only=position_only)
+    if left_out:
+        weights = row_weights(predictor.d, rotation_weight)
+        weighted = weights[None, :, None] * point.parameter_jacobian
+        residuals = leave_one_out_residuals(residuals, weighted, weights, predictor.gram)
     random = predictor.random_part(point)
     base = random + parameter_part(point.parameter_jacobian, predictor.parameter_covariance)
-    return point.pose, ScoredRows(residuals, base, random, measurement_axes(point.pose, d))
+    return ScoredRows(residuals, base, random, measurement_axes(point.pose, predictor.d))
 
 
-def fold_indices(n: int, folds: int, seed: int) -> list[tuple[IntArray, IntArray]]:
-    """``folds`` (train, test) index pairs of a random partition of ``range(n)``
-    (``default_rng(seed)``), test parts of near-equal size."""
-    order = np.random.default_rng(seed).permutation(n)
-    parts = np.array_split(order, min(folds, n))
-    return [
-        (np.sort(np.concatenate(parts[:i] + parts[i + 1 :])), np.sort(part))
-        for i, part in enumerate(parts)
-    ]
-
-
-def cross_validated_rows(
+def model_error_of(
     chain: KinematicChain,
+    predictor: Predictor,
     rows: RowSample,
     position_only: bool,
-    options: FitOptions,
-    settings: RandomEffectSettings,
-    *,
-    folds: int,
-    seed: int,
-) -> ScoredRows:
-    """Every row of ``rows`` scored by a predictor trained on the other folds; a fold whose
-    training part cannot be calibrated (too few rows for the parameters or the covariances)
-    is left out."""
-    d = 3 if position_only else 6
-    parts = []
-    for train, test in fold_indices(rows.n, folds, seed):
-        try:
-            predictor = train_predictor(chain, rows.take(train), position_only, options, settings)
-        except KincalError:
-            continue
-        parts.append(score_rows(chain, predictor, rows.take(test), position_only)[1])
-    return ScoredRows.join(parts, d)
-
-
-def nested_model_error(
-    chain: KinematicChain,
-    rows: RowSample,
-    position_only: bool,
-    options: FitOptions,
-    settings: RandomEffectSettings,
-    *,
-    folds: int = INNER_FOLDS,
-    seed: int = 0,
+    rotation_weight: float,
 ) -> ModelErrorFit:
-    """The model-error part from ``rows`` alone: :func:`cross_validated_rows` inside them,
-    then :func:`~solver.predictive.estimate_model_error`."""
-    scored = cross_validated_rows(
-        chain, rows, position_only, options, settings, folds=folds, seed=seed
+    """The model-error part of a predictor from the rows it was fitted to alone: their
+    leave-one-out residuals, by :func:`~solver.predictive.estimate_model_error`."""
+    scored = score_rows(
+        chain, predictor, rows, position_only, left_out=True, rotation_weight=rotation_weight
     )
     return estimate_model_error(scored.residuals, scored.base, scored.axes)
 
@@ -287,8 +237,7 @@ def nested_model_error(
 @dataclass(frozen=True)
 class SplitCoverage:
     """One held-out split: its test rows scored by a predictor of its training rows
-    (``scored``) and the model-error part estimated inside those training rows
-    (``model_error``)."""
+    (``scored``) with the model-error part estimated from those training rows."""
 
     scored: ScoredRows
     model_error: ModelErrorFit
@@ -306,9 +255,6 @@ def split_coverage(
     position_only: bool,
     options: FitOptions,
     settings: RandomEffectSettings,
-    *,
-    folds: int = INNER_FOLDS,
-    seed: int = 0,
 ) -> SplitCoverage | None:
     """Every part from the training rows of a split (``fit`` of them given), scored on its
     test rows; None when the training rows cannot give the covariances."""
@@ -316,10 +262,9 @@ def split_coverage(
         predictor = predictor_from_fit(chain, fit, train, position_only, options, settings)
     except KincalError:
         return None
-    model_error = nested_model_error(
-        chain, train, position_only, options, settings, folds=folds, seed=seed
-    )
-    return SplitCoverage(score_rows(chain, predictor, test, position_only)[1], model_error)
+    weight = options.rotation_weight_m_per_rad
+    model_error = model_error_of(chain, predictor, train, position_only, weight)
+    return SplitCoverage(score_rows(chain, predictor, test, position_only), model_error)
 
 
 @dataclass(frozen=True)
@@ -329,67 +274,45 @@ class PredictiveCalibration:
 
     ``estimated``: the parameter names of ``parameter_covariance`` (p, p), the sandwich
     Cov(θ̂) of the calibration over every used sample; ``model_error``: the model-error part
-    fitted to the held-out residuals of all splits (None without held-out splits);
-    ``coverage``: the held-out residuals of every split under the total its training rows
-    predicted (None without splits); ``splits``: the per-seed material."""
+    from the leave-one-out residuals of the calibration's in-memory rows; ``coverage``: the
+    held-out residuals of every split under the total its training rows predicted (None
+    without splits); ``splits``: the per-seed material."""
 
     estimated: list[str]
     parameter_covariance: FloatArray
-    model_error: ModelErrorFit | None
+    model_error: ModelErrorFit
     coverage: Coverage | None
     splits: dict[int, SplitCoverage]
 
 
-def calibration_parameter_covariance(
+def calibration_predictive(
     chain: KinematicChain,
     params: ChainParameters,
     estimated: list[str],
     gram: FloatArray,
     n_used: int,
     rows: RowSample,
-    random_part: Callable[[PredictionPoint], FloatArray],
+    estimate: CovarianceEstimate,
+    frames: tuple[int, ...],
     position_only: bool,
     rotation_weight: float,
-) -> FloatArray:
-    """Sandwich Cov(θ̂) (p, p) of a calibration whose normal matrix over its ``n_used``
-    samples is ``gram``: the meat summed over ``rows`` (all or an evenly spaced subset of the
-    used samples) and scaled to ``n_used``; ``random_part(point)`` gives Σ_E + Σ_n there."""
-    d = 3 if position_only else 6
-    names = parameter_names(chain)
-    columns = np.array([names.index(n) for n in estimated], dtype=np.intp)
-    point = prediction_point(chain, params, columns, rows.joint_positions, rows.loads_nm, d)
-    return _sandwich(gram, point, random_part(point), d, rotation_weight, n_used / max(rows.n, 1))
-
-
-def _sandwich(
-    gram: FloatArray,
-    point: PredictionPoint,
-    random: FloatArray,
-    d: int,
-    rotation_weight: float,
-    scale: float,
-) -> FloatArray:
-    """Cov(θ̂) from the normal matrix and the meat over ``point``'s rows, scaled by
-    ``scale`` (the used samples per row given)."""
-    weights = row_weights(d, rotation_weight)
-    weighted = weights[None, :, None] * point.parameter_jacobian
-    return parameter_covariance(gram, scale * sandwich_meat(weighted, random, weights))
-
-
-def pooled_predictive(
-    estimated: list[str],
-    parameter_cov: FloatArray,
     splits: dict[int, SplitCoverage],
-    d: int,
 ) -> PredictiveCalibration:
-    """The calibration's model-error part from the held-out residuals of every split (each
-    scored by a predictor of its own training rows) and the coverage of the splits (each under
-    the model-error part of its nested cross-validation)."""
-    if not splits:
-        return PredictiveCalibration(estimated, parameter_cov, None, None, splits)
-    pooled = ScoredRows.join([s.scored for s in splits.values()], d)
-    model_error = estimate_model_error(pooled.residuals, pooled.base, pooled.axes)
-    distances = np.concatenate([s.distances_squared for s in splits.values()])
-    return PredictiveCalibration(
-        estimated, parameter_cov, model_error, coverage(distances, d), splits
+    """The predictive parts of a calibration whose fit of ``n_used`` samples has the normal
+    matrix ``gram``: Cov(θ̂) with the meat over ``rows`` (all or an evenly spaced subset of
+    the used samples, scaled to ``n_used``), the model-error part from the leave-one-out
+    residuals of ``rows``, and the coverage of the held-out ``splits``."""
+    d = 3 if position_only else 6
+    columns = _columns(chain, estimated)
+    point = prediction_point(chain, params, columns, rows.joint_positions, rows.loads_nm, d)
+    random = estimate.ee_covariance(point.frame_jacobians[:, list(frames)], include_noise=True)
+    covariance = sandwich_covariance(gram, point, random, rotation_weight, n_used / max(rows.n, 1))
+    noise = estimate.noise_covariance()[:d, :d]
+    predictor = Predictor(
+        params, columns, covariance, gram, frames, estimate.frame_covariances(), noise
     )
+    model_error = model_error_of(chain, predictor, rows, position_only, rotation_weight)
+    measured = None
+    if splits:
+        measured = coverage(np.concatenate([s.distances_squared for s in splits.values()]), d)
+    return PredictiveCalibration(estimated, covariance, model_error, measured, splits)

@@ -14,6 +14,7 @@ from solver.kinematics import pose_residuals
 from solver.predictive import (
     coverage,
     estimate_model_error,
+    leave_one_out_residuals,
     mahalanobis_squared,
     measurement_axes,
     model_error_part,
@@ -59,6 +60,26 @@ def test_sandwich_covariance_is_the_spread_of_weighted_least_squares_refits() ->
     )
     assert np.allclose(predicted, empirical, rtol=0.12, atol=0.05 * np.abs(predicted).max())
     assert np.allclose(np.sqrt(np.diag(predicted)), np.sqrt(np.diag(empirical)), rtol=0.05)
+
+
+def test_leave_one_out_residuals_equal_refits_without_the_sample() -> None:
+    """The deletion identity W⁻¹(I − H_nn)⁻¹ W r_n equals the residual of sample n under the
+    weighted least-squares fit of the other samples, refitted explicitly."""
+    rng = np.random.default_rng(5)
+    n, d, p = 25, 6, 7
+    jacobian = rng.normal(size=(n, d, p))
+    target = rng.normal(size=(n, d))
+    weights = row_weights(d, 0.4)
+    weighted = weights[None, :, None] * jacobian
+    design = weighted.reshape(-1, p)
+    solution = np.linalg.lstsq(design, (weights * target).reshape(-1), rcond=None)[0]
+    residuals = target - np.einsum("ndp,p->nd", jacobian, solution)
+    fast = leave_one_out_residuals(residuals, weighted, weights, design.T @ design)
+    for left in range(n):
+        others = np.delete(np.arange(n), left)
+        rows = weighted[others].reshape(-1, p)
+        refit = np.linalg.lstsq(rows, (weights * target[others]).reshape(-1), rcond=None)[0]
+        assert np.allclose(fast[left], target[left] - jacobian[left] @ refit, atol=1e-10)
 
 
 def test_parameter_part_is_the_covariance_of_the_propagated_error() -> None:
