@@ -88,7 +88,7 @@ def predictive_lines(predictive: PredictiveCovariance) -> list[str]:
         ]
         lines.append(
             f"model error (σ along the measurement frame's axes, from {error.n_residuals} "
-            f"leave-one-out residuals): {', '.join(cells)}"
+            f"cross-validated residuals): {', '.join(cells)}"
         )
     coverage = predictive.coverage
     if coverage is None:

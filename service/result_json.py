@@ -52,7 +52,7 @@ from solver.kinematics import (
 from solver.model import KinematicChain, build_chain, gravity_loads
 from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS
 from solver.stream.calibrate import BEFORE, CALIBRATED, RecordingCalibration
-from solver.stream.coverage import PredictiveCalibration
+from solver.stream.coverage import INNER_FOLDS, PredictiveCalibration
 from solver.stream.fit import StreamedFit
 from solver.stream.sums import ErrorSums
 
@@ -444,8 +444,14 @@ def _predictive_result(
         variance=variance.tolist(),
         std=np.sqrt(variance).tolist(),
         n_residuals=predictive.model_error.n_residuals,
-        method="maximum likelihood on the leave-one-out residuals of the deterministic fit, "
-        "each with Σ_E + Σ_n + J_θ Cov(θ̂) J_θᵀ",
+        method=(
+            "maximum likelihood on the held-out residuals of every split, each with "
+            "Σ_E + Σ_n + J_θ Cov(θ̂) J_θᵀ of its split's training rows"
+            if predictive.splits
+            else "maximum likelihood on the leave-one-out residuals of the deterministic fit "
+            "(no held-out splits; covariances not re-estimated per left-out sample, so what a "
+            "calibration of this size gets wrong about Σ_E is not in it)"
+        ),
     )
     report = None
     found = predictive.coverage
@@ -463,7 +469,8 @@ def _predictive_result(
             protocol=f"the held-out splits of evaluation ({len(predictive.splits)} of "
             f"{len(options.seeds)} gave covariances); per split, geometry, compliance, "
             f"covariances ({options.covariance_estimator}), Cov(θ̂) and the model-error part "
-            "(leave-one-out residuals inside the training rows) from its training rows only",
+            f"({INNER_FOLDS}-fold cross-validation inside the training rows) from its training "
+            "rows only",
         )
     return PredictiveCovariance(
         parameter_covariance=ParameterCovariance(

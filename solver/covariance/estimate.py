@@ -256,6 +256,7 @@ def estimate_from_samples(
     weak_rtol: float = WEAK_RTOL,
     max_likelihood_iterations: int = 200,
     likelihood_tolerance: float = 1e-10,
+    start_theta: FloatArray | None = None,
     notes: Sequence[str] = (),
 ) -> CovarianceEstimate:
     """The covariance calibration (paper §IV-C) of ``samples`` (:mod:`.samples`: in memory or
@@ -269,9 +270,10 @@ def estimate_from_samples(
     identifiability → moment
     solution → ML or REML by projected Fisher scoring (at most ``max_likelihood_iterations``
     steps, or once the predicted NLL decrease per sample is below ``likelihood_tolerance``;
-    each a pass over the samples, two for REML) → the unidentifiable part fixed by the
-    rule of :mod:`.identifiability` → standard errors from at most :data:`SE_SAMPLES` evenly
-    spaced samples. ``notes`` start the warnings.
+    each a pass over the samples, two for REML; started from ``start_theta`` when given, e.g.
+    the estimate of a superset of the samples, else from the moment solution) → the
+    unidentifiable part fixed by the rule of :mod:`.identifiability` → standard errors from at
+    most :data:`SE_SAMPLES` evenly spaced samples. ``notes`` start the warnings.
 
     Unidentifiable combinations are reported in words in ``identifiability``; ``warnings``
     collects noise confusions and solver trouble.
@@ -316,7 +318,7 @@ def estimate_from_samples(
         assert sub is not None
         solution = fit_likelihood(
             estimator,
-            theta,
+            theta if start_theta is None else start_theta,
             samples,
             stats,
             report.scaling,

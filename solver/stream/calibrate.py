@@ -426,6 +426,7 @@ def _heldout_fit(
             evaluation.position_only,
             options,
             evaluation.coverage,
+            seed=seed,
         )
     return predicted, coverage
 

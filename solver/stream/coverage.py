@@ -5,14 +5,17 @@ split every part of :mod:`solver.predictive` — geometry and compliance (Eq. 8�
 random-effect covariances (§IV-C, the calibration's estimator), Cov(θ̂) and the model-error part —
 is estimated from the split's training rows only, and the split's test rows are scored with it.
 
-The model-error part is fitted to cross-validated residuals *inside* the rows a predictor was
-trained on: leave-one-out residuals of its deterministic fit (the exact deletion identity of
-linear least squares at the solution, :func:`solver.predictive.leave_one_out_residuals`), each
-with the covariance the other parts predict for it. Leave-one-out uses every training row as a
-test row once at the cost of one covariance estimate per predictor (refitting k folds would cost
-k more, and on a recording of 20-100 poses leave k-th out loses far more of the fit than one
-row); the random-effect covariances are not re-estimated per left-out row, an O(1/N) optimism
-that makes the model-error part slightly larger, never smaller.
+The model-error part is fitted (:func:`solver.predictive.estimate_model_error`) to
+cross-validated residuals, each with the covariance the other parts of *its* predictor give it:
+
+- the calibration's own: the held-out residuals of its splits, whose predictors re-estimated
+  everything on their training rows — so the part also holds what a calibration of this size
+  gets wrong about Σ_E itself;
+- a split's (for its coverage): the same procedure inside the split's training rows
+  (:data:`INNER_FOLDS`-fold cross-validation, nested);
+- without held-out splits: the leave-one-out residuals of the deterministic fit (the exact
+  deletion identity of least squares at the solution, covariances not re-estimated: a weaker
+  estimate, said so in the result).
 """
 
 from __future__ import annotations
@@ -22,12 +25,17 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.calibration import DeterministicFit, FitOptions
+from solver.calibration import (
+    DeterministicFit,
+    FitOptions,
+    fit_deterministic,
+    identifiable_parameter_count,
+)
 from solver.covariance.estimate import CovarianceEstimate, EstimatorName, estimate_from_samples
 from solver.covariance.likelihood import ee_covariance_batch
 from solver.covariance.samples import ArraySamples
 from solver.covariance.solvers import SolverName
-from solver.errors import KincalError
+from solver.errors import CalibrationError, KincalError
 from solver.kinematics import ChainParameters, parameter_names, pose_residuals
 from solver.model import KinematicChain
 from solver.predictive import (
@@ -51,6 +59,14 @@ from solver.stream.sums import CovarianceSpec
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+
+INNER_FOLDS = 3
+"""Folds of the cross-validation inside a split's training rows that gives the split its own
+model-error part."""
+
+MIN_RESIDUAL_SAMPLES = 2
+"""A predictor is trained only when its rows give at least this many samples' worth of
+equations beyond the identifiable parameters."""
 
 NLL_TOLERANCE = 1e-3
 """The held-out predictors' ML/REML iterations stop once the predicted decrease of the whole
@@ -82,6 +98,8 @@ class Predictor:
     frames: tuple[int, ...]
     frame_covariances: FloatArray
     noise: FloatArray
+    theta: FloatArray | None = None
+    """The random-effect parameters θ (warm start of the predictors of subsets)."""
 
     @property
     def d(self) -> int:
@@ -135,10 +153,11 @@ def predictor_from_fit(
     position_only: bool,
     options: FitOptions,
     settings: RandomEffectSettings,
+    start_theta: FloatArray | None = None,
 ) -> Predictor:
     """A deterministic fit of ``rows`` completed into a predictor: the random-effect
-    covariances (the calibration's estimator, on the fit's residuals) and the sandwich
-    Cov(θ̂)."""
+    covariances (the calibration's estimator, on the fit's residuals; ML/REML started from
+    ``start_theta`` when given) and the sandwich Cov(θ̂)."""
     d = 3 if position_only else 6
     estimated = _columns(chain, fit.estimated)
     point = prediction_point(chain, fit.params, estimated, rows.joint_positions, rows.loads_nm, d)
@@ -153,6 +172,7 @@ def predictor_from_fit(
         noise_name=spec.noise_name,
         standard_errors=False,
         likelihood_tolerance=NLL_TOLERANCE / max(rows.n, 1),
+        start_theta=start_theta,
     )
     noise = estimate.noise_covariance()[:d, :d]
     random = ee_covariance_batch(
@@ -162,8 +182,49 @@ def predictor_from_fit(
     gram = weighted.T @ weighted
     covariance = sandwich_covariance(gram, point, random, options.rotation_weight_m_per_rad)
     return Predictor(
-        fit.params, estimated, covariance, gram, tuple(frames), estimate.frame_covariances(), noise
+        fit.params,
+        estimated,
+        covariance,
+        gram,
+        tuple(frames),
+        estimate.frame_covariances(),
+        noise,
+        estimate.theta,
     )
+
+
+def train_predictor(
+    chain: KinematicChain,
+    rows: RowSample,
+    position_only: bool,
+    options: FitOptions,
+    settings: RandomEffectSettings,
+    start_theta: FloatArray | None = None,
+) -> Predictor:
+    """Fit geometry and compliance (Eq. 8–10) on ``rows``, then :func:`predictor_from_fit`;
+    :class:`CalibrationError` when the rows leave fewer than :data:`MIN_RESIDUAL_SAMPLES`
+    samples' worth of equations beyond the parameters."""
+    d = 3 if position_only else 6
+    spare = d * rows.n - identifiable_parameter_count(
+        chain, position_only=position_only, options=options
+    )
+    if spare < d * MIN_RESIDUAL_SAMPLES:
+        raise CalibrationError(
+            f"{rows.n} rows leave {spare} equations beyond the parameters, fewer than "
+            f"{MIN_RESIDUAL_SAMPLES} samples' worth"
+        )
+    try:
+        fit = fit_deterministic(
+            chain,
+            rows.joint_positions,
+            rows.measured_pose,
+            rows.loads_nm,
+            position_only=position_only,
+            options=options,
+        )
+    except ZeroDivisionError as exc:  # the rows' rank reached their equations: no residual dof
+        raise CalibrationError(f"{rows.n} rows leave no residual degrees of freedom") from exc
+    return predictor_from_fit(chain, fit, rows, position_only, options, settings, start_theta)
 
 
 @dataclass(frozen=True)
@@ -247,6 +308,43 @@ class SplitCoverage:
         return self.scored.distances_squared(self.model_error.variance)
 
 
+def fold_indices(n: int, folds: int, seed: int) -> list[tuple[IntArray, IntArray]]:
+    """``folds`` (train, test) index pairs of a random partition of ``range(n)``
+    (``default_rng(seed)``), test parts of near-equal size."""
+    order = np.random.default_rng(seed).permutation(n)
+    parts = np.array_split(order, min(folds, n))
+    return [
+        (np.sort(np.concatenate(parts[:i] + parts[i + 1 :])), np.sort(part))
+        for i, part in enumerate(parts)
+    ]
+
+
+def cross_validated_rows(
+    chain: KinematicChain,
+    rows: RowSample,
+    position_only: bool,
+    options: FitOptions,
+    settings: RandomEffectSettings,
+    *,
+    folds: int,
+    seed: int,
+    start_theta: FloatArray | None = None,
+) -> ScoredRows:
+    """Every row of ``rows`` scored by a predictor trained on the other folds; a fold whose
+    training part cannot be calibrated is left out."""
+    d = 3 if position_only else 6
+    parts = []
+    for train, test in fold_indices(rows.n, folds, seed):
+        try:
+            predictor = train_predictor(
+                chain, rows.take(train), position_only, options, settings, start_theta
+            )
+        except KincalError:
+            continue
+        parts.append(score_rows(chain, predictor, rows.take(test), position_only))
+    return ScoredRows.join(parts, d)
+
+
 def split_coverage(
     chain: KinematicChain,
     fit: DeterministicFit,
@@ -255,15 +353,32 @@ def split_coverage(
     position_only: bool,
     options: FitOptions,
     settings: RandomEffectSettings,
+    *,
+    seed: int = 0,
 ) -> SplitCoverage | None:
-    """Every part from the training rows of a split (``fit`` of them given), scored on its
-    test rows; None when the training rows cannot give the covariances."""
+    """Every part from the training rows of a split (``fit`` of them given; the model-error
+    part by :data:`INNER_FOLDS`-fold cross-validation inside them, leave-one-out when no fold
+    can be calibrated), scored on its test rows; None when the training rows cannot give the
+    covariances."""
     try:
         predictor = predictor_from_fit(chain, fit, train, position_only, options, settings)
     except KincalError:
         return None
-    weight = options.rotation_weight_m_per_rad
-    model_error = model_error_of(chain, predictor, train, position_only, weight)
+    inner = cross_validated_rows(
+        chain,
+        train,
+        position_only,
+        options,
+        settings,
+        folds=INNER_FOLDS,
+        seed=seed,
+        start_theta=predictor.theta,
+    )
+    if inner.residuals.shape[0]:
+        model_error = estimate_model_error(inner.residuals, inner.base, inner.axes)
+    else:
+        weight = options.rotation_weight_m_per_rad
+        model_error = model_error_of(chain, predictor, train, position_only, weight)
     return SplitCoverage(score_rows(chain, predictor, test, position_only), model_error)
 
 
@@ -274,7 +389,8 @@ class PredictiveCalibration:
 
     ``estimated``: the parameter names of ``parameter_covariance`` (p, p), the sandwich
     Cov(θ̂) of the calibration over every used sample; ``model_error``: the model-error part
-    from the leave-one-out residuals of the calibration's in-memory rows; ``coverage``: the
+    from the held-out residuals of the splits (without splits: the leave-one-out residuals of
+    the calibration's in-memory rows); ``coverage``: the
     held-out residuals of every split under the total its training rows predicted (None
     without splits); ``splits``: the per-seed material."""
 
@@ -300,8 +416,8 @@ def calibration_predictive(
 ) -> PredictiveCalibration:
     """The predictive parts of a calibration whose fit of ``n_used`` samples has the normal
     matrix ``gram``: Cov(θ̂) with the meat over ``rows`` (all or an evenly spaced subset of
-    the used samples, scaled to ``n_used``), the model-error part from the leave-one-out
-    residuals of ``rows``, and the coverage of the held-out ``splits``."""
+    the used samples, scaled to ``n_used``), the model-error part from the held-out residuals
+    of ``splits`` (none: the leave-one-out residuals of ``rows``), and their coverage."""
     d = 3 if position_only else 6
     columns = _columns(chain, estimated)
     point = prediction_point(chain, params, columns, rows.joint_positions, rows.loads_nm, d)
@@ -311,8 +427,10 @@ def calibration_predictive(
     predictor = Predictor(
         params, columns, covariance, gram, frames, estimate.frame_covariances(), noise
     )
-    model_error = model_error_of(chain, predictor, rows, position_only, rotation_weight)
-    measured = None
-    if splits:
-        measured = coverage(np.concatenate([s.distances_squared for s in splits.values()]), d)
+    if not splits:
+        model_error = model_error_of(chain, predictor, rows, position_only, rotation_weight)
+        return PredictiveCalibration(estimated, covariance, model_error, None, splits)
+    pooled = ScoredRows.join([s.scored for s in splits.values()], d)
+    model_error = estimate_model_error(pooled.residuals, pooled.base, pooled.axes)
+    measured = coverage(np.concatenate([s.distances_squared for s in splits.values()]), d)
     return PredictiveCalibration(estimated, covariance, model_error, measured, splits)
