@@ -454,6 +454,66 @@ class Verdict(_Model):
     reasons: list[VerdictReason] = Field(default_factory=list)
 
 
+class ParameterCovariance(_Model):
+    """Cov(θ̂) of the parameters the deterministic fit estimated (issue 13): with the predicted
+    pose's parameter Jacobian J_θ(q) (the stacked-Jacobian columns named ``parameters``,
+    DESIGN.md §2), ``J_θ(q) Cov(θ̂) J_θ(q)ᵀ`` is the parameter-estimation part of the predicted
+    covariance. Units: local twists m and rad, compliance rad/N·m."""
+
+    parameters: list[str] = Field(description="Column names, as identifiability.removed names.")
+    matrix: list[list[float]] = Field(description="p×p, row-major, in the order of parameters.")
+    method: str
+
+
+class ModelErrorPart(_Model):
+    """Model error no term of the model describes (issue 13): a diagonal covariance along the
+    measurement frame's axes, ``T(q) diag(variance) T(q)ᵀ`` in the end-effector frame with
+    ``T = blockdiag(Rᵀ, Rᵀ)`` and R the predicted end-effector orientation in the measurement
+    frame. Fitted by maximum likelihood to the leave-one-out residuals of the deterministic
+    fit."""
+
+    axes: list[str] = Field(
+        description="x, y, z (m) [, rx, ry, rz (rad)] of the measurement frame."
+    )
+    variance: list[float] = Field(description="m² and rad², one per axis.")
+    std: list[float] = Field(description="m and rad, one per axis.")
+    n_residuals: int = Field(description="Cross-validated residuals it was fitted to.")
+    method: str
+
+
+class CoverageLevel(_Model):
+    level: float = Field(description="Expected share inside the predicted ellipsoid.")
+    observed: float = Field(description="Share of held-out poses inside it.")
+
+
+class CoverageReport(_Model):
+    """How the predicted covariance held on the held-out splits (issue 13): every part
+    estimated from a split's training rows only, scored on its test rows. A pose is inside the
+    α-ellipsoid when ``d² = rᵀ Σ_total⁻¹ r ≤ χ²_d⁻¹(α)``, r = Log(X_pred⁻¹ X_meas) (3-D
+    translation for position-only data)."""
+
+    dimension: int = Field(description="6 (full pose) or 3 (position-only).")
+    n_heldout: int = Field(description="Held-out poses scored (over all splits).")
+    n_splits: int
+    levels: list[CoverageLevel] = Field(description="The 50, 90, 95 and 99 % ellipsoids.")
+    curve: list[CoverageLevel] = Field(description="Expected vs observed, 5 % to 99 %.")
+    mean_mahalanobis_sq: float = Field(description="Mean d² over the held-out poses.")
+    chi2_mean: float = Field(description="Its value if the covariance is right: the dimension.")
+    median_mahalanobis_sq: float
+    chi2_median: float
+    protocol: str
+
+
+class PredictiveCovariance(_Model):
+    """What a predictor needs to rebuild the total predicted covariance of a new configuration
+    beyond the calibrated chain and ``covariance``: Σ_total(q) = Σ_E(q) (Eq. 12, + Σ_n) +
+    J_θ(q) Cov(θ̂) J_θ(q)ᵀ + the model-error part; and its held-out coverage."""
+
+    parameter_covariance: ParameterCovariance
+    model_error: ModelErrorPart
+    coverage: CoverageReport | None = Field(description="None without held-out splits.")
+
+
 class CalibrationResult(_Model):
     format: Literal["kincal.calibration/1"] = RESULT_FORMAT
     kincal_version: str
@@ -485,6 +545,11 @@ class CalibrationResult(_Model):
         None,
         description="Discovered terms undone on the recording (calibrate --model); None "
         "without --model.",
+    )
+    predictive: PredictiveCovariance | None = Field(
+        None,
+        description="Parameter-estimation and model-error parts of the predicted covariance "
+        "and their held-out coverage; None without covariances.",
     )
 
     @field_validator("links")

@@ -96,6 +96,13 @@ class RankingOptions(_Model):
     include_noise: bool = Field(
         False, description="Add the measurement noise Σ_n (the same for every configuration)."
     )
+    uncertainty: Literal["random_effects", "total"] = Field(
+        "random_effects",
+        description="Which covariance is scored: 'random_effects' Σ_E(q) of Eq. 12 (the "
+        "paper's score: what the robot's own randomness does at q) or 'total', the predicted "
+        "covariance Σ_E(q) + J_θ(q) Cov(θ̂) J_θ(q)ᵀ + the model-error part (also what the "
+        "calibration does not know; docs/predictive.md).",
+    )
     top: int | None = Field(None, ge=1, description="Keep only the best entries.")
 
 
@@ -163,6 +170,11 @@ class RankedConfiguration(_Model):
     trace_position_m2: float
     trace_rotation_rad2: float
     ee_std: Vector6
+    score_parts: dict[str, float] | None = Field(
+        None,
+        description="uncertainty 'total': the score of each part (random_effects, "
+        "parameters, model_error); they add up to score.",
+    )
     joint_positions_rad: list[float] | None = None
     free_rotation_rad: float | None = Field(
         None, description="IK: rotation of the target about the free axis this entry reaches."
@@ -183,6 +195,7 @@ class RankingResult(_Model):
     task_matrix: list[list[float]] = Field(description="M with score = tr(M Σ_E M^T), d×6.")
     score_unit: str
     include_noise: bool
+    uncertainty: Literal["random_effects", "total"] = "random_effects"
     n_configurations: int
     best_index: int | None
     target: TargetPose | None = None

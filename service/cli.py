@@ -424,10 +424,19 @@ def predict(
             help="Include the measurement noise Σ_n in the predicted covariance.",
         ),
     ] = True,
+    part: Annotated[
+        str,
+        typer.Option(
+            help="Which covariance the cov_ columns hold: total (Σ_E + Σ_n + parameter "
+            "estimation + model error), random-effects (Σ_E of Eq. 12 + Σ_n), noise (Σ_n), "
+            "parameters (J_θ Cov(θ̂) J_θᵀ) or model-error."
+        ),
+    ] = "total",
 ) -> None:
     """Predicted marker pose (x,y,z,qx,qy,qz,qw; measurement frame) per configuration and,
     when the result has covariances, the predicted 6×6 EE covariance (cov_00..cov_55, row-major,
-    EE frame, [v; w], m and rad; Eq. 12)."""
+    EE frame, [v; w], m and rad): by default the total, Σ_E (Eq. 12) + Σ_n + the
+    parameter-estimation part + the model-error part (docs/predictive.md)."""
     result = read_result(result_path)
     _prediction_note(result)
     chain, _ = result_json.result_chain(result)
@@ -439,13 +448,26 @@ def predict(
     )
     frame = pd.DataFrame(pose[:, :3, 3], columns=["x", "y", "z"])
     frame[["qx", "qy", "qz", "qw"]] = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
+    chosen = part.replace("-", "_")
     if result.covariance is not None:
         from service import ranking  # lazy: pulls in scikit-learn
 
-        covariance = ranking.predict_covariances(
+        if chosen not in ranking.PREDICTION_PARTS:
+            raise KincalError(
+                f"--part {part!r}: choose one of "
+                + ", ".join(p.replace("_", "-") for p in ranking.PREDICTION_PARTS)
+            )
+        if result.predictive is None and chosen in ("total", "parameters", "model_error"):
+            typer.echo(
+                f"note: {result_path} {ranking.NO_PREDICTIVE}; its parameter and model-error "
+                "parts are left out (zero)",
+                err=True,
+            )
+        covariance = ranking.predicted_covariance(
             result,
             configurations.joint_positions,
             configurations.payload_kg,
+            part=chosen,
             include_noise=noise,
         )
         names = [f"cov_{i}{j}" for i in range(6) for j in range(6)]
@@ -491,6 +513,13 @@ def rank(
     free_axis: Annotated[str, typer.Option(help="IK: auto, x, y, z or none.")] = "auto",
     payload_kg: Annotated[float | None, typer.Option(help="Payload (default: result's).")] = None,
     top: Annotated[int | None, typer.Option(help="Keep only the best N entries.")] = None,
+    uncertainty: Annotated[
+        str,
+        typer.Option(
+            help="Covariance scored: random-effects (Σ_E of Eq. 12, the paper's score) or "
+            "total (+ parameter-estimation and model-error parts)."
+        ),
+    ] = "random-effects",
 ) -> None:
     """Rank configurations by predicted task uncertainty tr(W Σ_E Wᵀ), best first (Eq. 22–23)."""
     from service import ranking
@@ -508,6 +537,7 @@ def rank(
         task_weights=task_weights,
         include_noise=include_noise,
         top=top,
+        uncertainty=uncertainty,
     )
     _prediction_note(result)
     model = ranking.uncertainty_model(result)

@@ -150,6 +150,7 @@ def ranking_options_from_flags(
     task_weights: str | None,
     include_noise: bool,
     top: int | None,
+    uncertainty: str = "random_effects",
 ) -> RankingOptions:
     """``kincal rank`` flags -> :class:`RankingOptions` (exclusive choices checked)."""
     if task_point is not None and (weights is not None or weight_matrix is not None):
@@ -171,7 +172,12 @@ def ranking_options_from_flags(
             document["matrix"] = read_weight_matrix(weight_matrix)
     try:
         return RankingOptions.model_validate(
-            {"weights": document, "include_noise": include_noise, "top": top}
+            {
+                "weights": document,
+                "include_noise": include_noise,
+                "top": top,
+                "uncertainty": uncertainty.replace("-", "_"),
+            }
         )
     except pydantic.ValidationError as exc:
         raise KincalError(_flag_error(exc)) from exc

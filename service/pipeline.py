@@ -43,6 +43,7 @@ from solver.stream.calibrate import (
     calibrate_recording,
 )
 from solver.stream.chunks import ArrayChunks, ChunkArrays, StreamProblem, release, row_ranges
+from solver.stream.coverage import PredictiveCalibration
 from solver.stream.sums import covariance_spec
 
 # Passes on local worker processes send DatasetChunkLoader: import this module once, in their
@@ -283,6 +284,8 @@ class CalibrationRun:
     notes: tuple[str, ...]
     execution: str
     timings: dict[str, float]
+    predictive: PredictiveCalibration | None = None
+    """The held-out material behind ``result.predictive`` (benchmarks take its parts apart)."""
 
     def urdf(self) -> str:
         """The calibrated URDF; :class:`KincalError` saying why when the result corrects
@@ -368,7 +371,9 @@ def calibrate_source(
     if recording.corrections is not None:
         result = result.model_copy(update={"model_corrections": recording.corrections})
     residuals = sample_residuals(setup.chain, calibrated, recording.problem.position_only)
-    return CalibrationRun(result, residuals, recording.notes, execution, timings)
+    return CalibrationRun(
+        result, residuals, recording.notes, execution, timings, calibrated.predictive
+    )
 
 
 def calibrate(

@@ -42,3 +42,22 @@ def residual_histograms(
     figure.suptitle(title, fontsize=10)
     figure.savefig(path, dpi=110)
     return path
+
+
+def coverage_figure(
+    expected: NDArray[np.float64], observed: NDArray[np.float64], *, title: str
+) -> Figure:
+    """Coverage of a predicted covariance (issue 13): the share of held-out poses inside the
+    predicted α-ellipsoid (``observed``) against α (``expected``), with the diagonal a right
+    covariance would follow."""
+    figure = Figure(figsize=(4.6, 4.2), layout="constrained")
+    ax = figure.subplots()
+    ax.plot([0.0, 1.0], [0.0, 1.0], color="0.6", linestyle="--", label="ideal")
+    ax.plot(expected, observed, marker="o", markersize=4, color="tab:blue", label="held-out")
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.0)
+    ax.set_xlabel("expected share inside the predicted ellipsoid")
+    ax.set_ylabel("observed share of held-out poses")
+    ax.legend(fontsize=8, loc="upper left")
+    ax.set_title(title, fontsize=9)
+    return figure

@@ -8,6 +8,7 @@ once per calibration with :func:`uncertainty_model` and pass it in (``model=``).
 from __future__ import annotations
 
 import hashlib
+import weakref
 from collections.abc import Sequence
 from typing import Any
 
@@ -29,7 +30,9 @@ from service import corrections, result_json
 from solver import lie
 from solver.errors import KincalError, SolverError
 from solver.ik import IKCandidate, IKOptions, ik_candidates
+from solver.kinematics import parameter_names
 from solver.model import KinematicChain
+from solver.predictive import PredictiveModel, PredictiveParts
 from solver.ranking import (
     ConfigurationScores,
     RandomEffects,
@@ -43,6 +46,10 @@ FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
 
 NO_COVARIANCE = "has no covariance: run calibrate with covariance first"
+NO_PREDICTIVE = (
+    "has no predictive covariance (Cov(θ̂) and the model-error part, issue 13): re-run "
+    "calibrate with this version of kincal"
+)
 NO_IK_SOLUTION = (
     "no configuration within the joint limits reaches the target; give it in the measurement "
     "frame (as kincal predict reports poses) or allow a free axis (--free-axis)"
@@ -98,6 +105,109 @@ def predict_covariances(
     q = corrections.true_configurations(result, model.chain, joint_positions, payload_kg)
     payload = payload_kg if payload_kg is not None else result.options.payload_kg
     return ee_covariance(model, q, payload_kg=payload, include_noise=include_noise)
+
+
+_PREDICTIVE: weakref.WeakKeyDictionary[UncertaintyModel, PredictiveModel] = (
+    weakref.WeakKeyDictionary()
+)
+"""Each uncertainty model's :class:`PredictiveModel`, built on its first "total" request (the
+service keeps one uncertainty model per calibration)."""
+
+
+def predictive_model(
+    result: CalibrationResult, model: UncertaintyModel | None = None
+) -> PredictiveModel:
+    """The calibrated chain (``model``'s, when given) with the result's Cov(θ̂) and
+    model-error part (zero when the calibration ran without held-out splits);
+    :class:`KincalError` when the result has none."""
+    if result.predictive is None:
+        raise KincalError(f"calibration result {NO_PREDICTIVE}")
+    if model is not None and model in _PREDICTIVE:
+        return _PREDICTIVE[model]
+    chain, params = (model.chain, model.params) if model else result_json.result_chain(result)
+    names = parameter_names(chain)
+    block = result.predictive
+    unknown = [n for n in block.parameter_covariance.parameters if n not in names]
+    if unknown:
+        raise KincalError(
+            f"predictive.parameter_covariance names {unknown}, not parameters of the chain; "
+            "the result is inconsistent, re-run calibrate"
+        )
+    variance = np.zeros(6)
+    if block.model_error is not None:
+        values = np.array(block.model_error.variance, dtype=float)
+        variance[: values.size] = values
+    built = PredictiveModel(
+        chain,
+        params,
+        np.array([names.index(n) for n in block.parameter_covariance.parameters], dtype=np.intp),
+        np.array(block.parameter_covariance.matrix, dtype=float).reshape(
+            len(block.parameter_covariance.parameters), -1
+        ),
+        variance,
+    )
+    if model is not None:
+        _PREDICTIVE[model] = built
+    return built
+
+
+PREDICTION_PARTS = ("total", "random_effects", "noise", "parameters", "model_error")
+"""What ``kincal predict --part`` can write: the total predicted covariance, or one part."""
+
+
+def predict_covariance_parts(
+    result: CalibrationResult,
+    joint_positions: FloatArray,
+    payload_kg: FloatArray | None = None,
+) -> dict[str, FloatArray]:
+    """Every part of the predicted covariance (N, 6, 6), EE frame, [v; w], m/rad, keyed by
+    :data:`PREDICTION_PARTS` without "total": Σ_E of the chain frames (Eq. 12), Σ_n, the
+    parameter-estimation part J_θ Cov(θ̂) J_θᵀ and the model-error part (the last two zero
+    when the result predates them: :data:`NO_PREDICTIVE`)."""
+    model = uncertainty_model(result)
+    q = corrections.true_configurations(result, model.chain, joint_positions, payload_kg)
+    payload = payload_kg if payload_kg is not None else result.options.payload_kg
+    random = ee_covariance(model, q, payload_kg=payload, include_noise=False)
+    noise = np.broadcast_to(model.effects.noise_covariance, random.shape)
+    parts = {"random_effects": random, "noise": np.array(noise)}
+    extra = predictive_parts(result, model, q, payload)
+    zeros = np.zeros_like(random)
+    parts["parameters"] = zeros if extra is None else extra.parameters
+    parts["model_error"] = zeros if extra is None else extra.model_error
+    return parts
+
+
+def predicted_covariance(
+    result: CalibrationResult,
+    joint_positions: FloatArray,
+    payload_kg: FloatArray | None = None,
+    *,
+    part: str = "total",
+    include_noise: bool = True,
+) -> FloatArray:
+    """One of :data:`PREDICTION_PARTS` at joint readings (N, k) rad, (N, 6, 6): "total" sums
+    every part (Σ_n only with ``include_noise``), "random_effects" is Σ_E (+ Σ_n with
+    ``include_noise``, Eq. 12)."""
+    parts = predict_covariance_parts(result, joint_positions, payload_kg)
+    noise = parts["noise"] if include_noise else 0.0
+    if part == "total":
+        return parts["random_effects"] + parts["parameters"] + parts["model_error"] + noise
+    if part == "random_effects":
+        return parts["random_effects"] + noise
+    return parts[part]
+
+
+def predictive_parts(
+    result: CalibrationResult,
+    model: UncertaintyModel,
+    q: FloatArray,
+    payload_kg: FloatArray | float,
+) -> PredictiveParts | None:
+    """The parameter-estimation and model-error parts at true configurations ``q`` (N, k);
+    None when the result has no ``predictive`` block."""
+    if result.predictive is None:
+        return None
+    return predictive_model(result, model).parts(q, model.loads(q, payload_kg))
 
 
 def task_metric(options: RankingOptions) -> TaskMetric:
@@ -220,8 +330,37 @@ def _configurations_document(
         scores = score_configurations(model, q, metric, payload_kg=payload)
     except SolverError as exc:
         raise KincalError(str(exc)) from exc
-    entries = _entries(scores, options.top, require_finite=require_finite)
+    scores, parts = _scored_uncertainty(result, model, metric, options, scores, q, payload)
+    entries = _entries(scores, options.top, require_finite=require_finite, score_parts=parts)
     return _document(result, model, metric, options, scores, entries, reference)
+
+
+def _scored_uncertainty(
+    result: CalibrationResult,
+    model: UncertaintyModel,
+    metric: TaskMetric,
+    options: RankingOptions,
+    scores: ConfigurationScores,
+    q: FloatArray,
+    payload: FloatArray | float,
+) -> tuple[ConfigurationScores, dict[str, FloatArray] | None]:
+    """``options.uncertainty`` "total": the scores of Σ_E plus the parameter-estimation and
+    model-error parts (and each part's score); "random_effects": ``scores`` as they are."""
+    if options.uncertainty != "total":
+        return scores, None
+    extra = predictive_parts(result, model, q, payload)
+    if extra is None:
+        raise KincalError(f"uncertainty 'total': the calibration result {NO_PREDICTIVE}")
+    form = metric.quadratic_form
+    parameters = np.einsum("ab,nab->n", form, extra.parameters)
+    model_error = np.einsum("ab,nab->n", form, extra.model_error)
+    added = extra.parameters + extra.model_error
+    total = ConfigurationScores(
+        scores.score + parameters + model_error,
+        scores.ee_variance + np.diagonal(added, axis1=1, axis2=2),
+    )
+    parts = {"random_effects": scores.score, "parameters": parameters, "model_error": model_error}
+    return total, parts
 
 
 def rank_target(
@@ -260,10 +399,14 @@ def rank_target(
     metric = task_metric(request.options)
     q = np.array([c.joint_positions for c in candidates]).reshape(-1, model.chain.n_joints)
     scores = score_configurations(model, q, metric, payload_kg=request.payload_kg)
+    scores, parts = _scored_uncertainty(
+        result, model, metric, request.options, scores, q, request.payload_kg
+    )
     entries = _entries(
         scores,
         request.options.top,
         require_finite=require_finite,
+        score_parts=parts,
         # IK solved for where the robot stands; a controller is sent the raw readings
         joint_positions=corrections.raw_readings(result, model.chain, q, request.payload_kg),
         candidates=candidates,
@@ -305,6 +448,7 @@ def _entries(
     require_finite: bool = False,
     joint_positions: FloatArray | None = None,
     candidates: Sequence[IKCandidate] = (),
+    score_parts: dict[str, FloatArray] | None = None,
 ) -> list[dict[str, Any]]:
     """The ranked entries as plain dicts with every :class:`RankedConfiguration` field."""
     order = scores.order()[:top]
@@ -318,6 +462,10 @@ def _entries(
     trace_position = scores.trace_position_m2[order].tolist()
     trace_rotation = scores.trace_rotation_rad2[order].tolist()
     score = score_array.tolist()
+    parts: list[dict[str, float] | None] = [None] * order.size
+    if score_parts is not None:
+        picked = {name: values[order].tolist() for name, values in score_parts.items()}
+        parts = [{name: values[i] for name, values in picked.items()} for i in range(order.size)]
     if joint_positions is None and not candidates:
         # The hot path: a dict display per entry (several times faster than dict(zip(...))),
         # keys in schema order; tests check it serialises exactly like the model.
@@ -329,14 +477,15 @@ def _entries(
                 "trace_position_m2": p,
                 "trace_rotation_rad2": r,
                 "ee_std": e,
+                "score_parts": sp,
                 "joint_positions_rad": None,
                 "free_rotation_rad": None,
                 "ik_translation_error_m": None,
                 "ik_rotation_error_rad": None,
                 "ik_source": None,
             }
-            for rank, (i, s, p, r, e) in enumerate(
-                zip(order.tolist(), score, trace_position, trace_rotation, std, strict=True)
+            for rank, (i, s, p, r, e, sp) in enumerate(
+                zip(order.tolist(), score, trace_position, trace_rotation, std, parts, strict=True)
             )
         ]
     out = []
@@ -349,6 +498,7 @@ def _entries(
             "trace_position_m2": trace_position[rank],
             "trace_rotation_rad2": trace_rotation[rank],
             "ee_std": std[rank],
+            "score_parts": parts[rank],
         }
         if joint_positions is not None:
             entry["joint_positions_rad"] = joint_positions[i].tolist()
@@ -383,6 +533,7 @@ def _document(
         task_matrix=metric.matrix.tolist(),
         score_unit=metric.unit,
         include_noise=options.include_noise,
+        uncertainty=options.uncertainty,
         n_configurations=int(scores.score.size),
         best_index=scores.best() if scores.score.size else None,
         ranking=[],

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
-from schemas.calibration import CalibrationResult, CovarianceResult, HeldoutSplit
+from schemas.calibration import (
+    CalibrationResult,
+    CovarianceResult,
+    HeldoutSplit,
+    PredictiveCovariance,
+)
 from schemas.ranking import RankingResult
 
 METHOD_LABELS = {"before": "Init.", "calibrated": "Cal. Ours", "gp": "Cal. GP"}
@@ -67,7 +72,41 @@ def summary(result: CalibrationResult) -> str:
             "",
             table_ii(result.evaluation.splits, position_only=result.dataset.position_only),
         ]
+    if result.predictive is not None:
+        lines += ["", *predictive_lines(result.predictive)]
     return "\n".join(lines)
+
+
+def predictive_lines(predictive: PredictiveCovariance) -> list[str]:
+    """The model-error part and the held-out coverage of the predicted covariance."""
+    lines = []
+    error = predictive.model_error
+    if error is not None:
+        cells = [
+            f"{axis} {1e3 * std:.3f} {'mm' if axis in ('x', 'y', 'z') else 'mrad'}"
+            for axis, std in zip(error.axes, error.std, strict=True)
+        ]
+        lines.append(
+            f"model error (σ along the measurement frame's axes, from {error.n_residuals} "
+            f"cross-validated residuals): {', '.join(cells)}"
+        )
+    coverage = predictive.coverage
+    if coverage is None:
+        lines.append(
+            "predictive coverage: not measured (needs held-out splits whose training rows "
+            "give covariances)"
+        )
+        return lines
+    shares = ", ".join(
+        f"{100 * c.observed:.0f} % in the {100 * c.level:.0f} %" for c in coverage.levels
+    )
+    lines.append(
+        f"predictive coverage on {coverage.n_heldout} held-out poses ({coverage.dimension}-D, "
+        f"{coverage.n_splits} splits, every part from training rows only): {shares} ellipsoid; "
+        f"mean Mahalanobis² {coverage.mean_mahalanobis_sq:.2f} (χ² mean "
+        f"{coverage.chi2_mean:.0f})"
+    )
+    return lines
 
 
 def covariance_table(covariance: CovarianceResult) -> list[str]:

@@ -3,7 +3,8 @@
 Sections: fit statistics (before / after, train / held-out), residual distributions before and
 after calibration (paper Fig. 4a), identifiability warnings (parameters removed by name,
 compliance that is not significant), random effects as σ per frame (paper Fig. 4b) when the
-result has covariances, and the held-out table (paper Table II layout).
+result has covariances, the held-out table (paper Table II layout) and the coverage of the
+predicted covariance on the held-out poses (expected vs observed share inside its ellipsoids).
 """
 
 from __future__ import annotations
@@ -17,9 +18,14 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from schemas.calibration import CalibrationResult, CovarianceResult, ErrorStats
-from service.plots import residual_histograms
-from service.report import table_ii
+from schemas.calibration import (
+    CalibrationResult,
+    CovarianceResult,
+    ErrorStats,
+    PredictiveCovariance,
+)
+from service.plots import coverage_figure, residual_histograms
+from service.report import predictive_lines, table_ii
 from service.result_json import ResidualSample
 
 _STYLE = """
@@ -58,7 +64,35 @@ def render_report(result: CalibrationResult, residuals: ResidualSample) -> str:
             "<h2>Held-out evaluation (paper Table II layout)</h2>",
             f"<p>{e(result.evaluation.protocol)}</p><pre>{e(table)}</pre>",
         ]
+    if result.predictive is not None:
+        sections += [
+            "<h2>Predicted covariance on held-out poses (coverage)</h2>",
+            _coverage(result.predictive),
+        ]
     return html_page(f"kincal report: {result.robot.name}", sections)
+
+
+def _coverage(predictive: PredictiveCovariance) -> str:
+    """The coverage plot (expected vs observed share inside the predicted ellipsoids) and its
+    numbers."""
+    e = html.escape
+    text = "".join(f"<p>{e(line)}</p>" for line in predictive_lines(predictive))
+    coverage = predictive.coverage
+    if coverage is None:
+        return text
+    figure = coverage_figure(
+        np.array([c.level for c in coverage.curve]),
+        np.array([c.observed for c in coverage.curve]),
+        title=f"{coverage.n_heldout} held-out poses, {coverage.dimension}-D, "
+        f"{coverage.n_splits} splits",
+    )
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110)
+    return (
+        png_img(buffer.getvalue(), "Coverage: expected vs observed share inside the ellipsoid")
+        + text
+        + f"<p>{e(coverage.protocol)}</p>"
+    )
 
 
 def html_page(title: str, sections: list[str]) -> str:

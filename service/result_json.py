@@ -20,6 +20,8 @@ from schemas.calibration import (
     CovarianceFrame,
     CovarianceIdentifiability,
     CovarianceResult,
+    CoverageLevel,
+    CoverageReport,
     DatasetInfo,
     ErrorStats,
     Evaluation,
@@ -28,7 +30,10 @@ from schemas.calibration import (
     HeldoutSplit,
     Identifiability,
     LinkCalibration,
+    ModelErrorPart,
     OutlierReport,
+    ParameterCovariance,
+    PredictiveCovariance,
     RobotInfo,
     SolverReport,
     Transform,
@@ -48,7 +53,9 @@ from solver.kinematics import (
     pose_residuals,
 )
 from solver.model import KinematicChain, build_chain, gravity_loads
+from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS
 from solver.stream.calibrate import BEFORE, CALIBRATED, RecordingCalibration
+from solver.stream.coverage import INNER_FOLDS, PredictiveCalibration
 from solver.stream.fit import StreamedFit
 from solver.stream.sums import ErrorSums
 from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, verdict_status
@@ -440,6 +447,9 @@ def assemble_result(
         covariance=None
         if calibrated.covariance is None
         else _covariance_result(calibrated.covariance, frame_index),
+        predictive=None
+        if calibrated.predictive is None
+        else _predictive_result(calibrated.predictive, options),
         evaluation=_evaluation(calibrated, options) if splits else None,
         verdict=_verdict(chain, options, calibrated, position_only),
         outliers=OutlierReport(
@@ -457,6 +467,59 @@ def assemble_result(
             time_s=fit.elapsed_s,
             objective=fit.cost_history[-1],
         ),
+    )
+
+
+MODEL_ERROR_AXES = ("x", "y", "z", "rx", "ry", "rz")
+
+
+def _predictive_result(
+    predictive: PredictiveCalibration, options: CalibrationOptions
+) -> PredictiveCovariance:
+    """The ``predictive`` block: Cov(θ̂), the model-error part and the held-out coverage."""
+    variance = predictive.model_error.variance
+    model_error = ModelErrorPart(
+        axes=list(MODEL_ERROR_AXES[: variance.size]),
+        variance=variance.tolist(),
+        std=np.sqrt(variance).tolist(),
+        n_residuals=predictive.model_error.n_residuals,
+        method=(
+            "maximum likelihood on the held-out residuals of every split, each with "
+            "Σ_E + Σ_n + J_θ Cov(θ̂) J_θᵀ of its split's training rows"
+            if predictive.splits
+            else "maximum likelihood on the leave-one-out residuals of the deterministic fit "
+            "(no held-out splits; covariances not re-estimated per left-out sample, so what a "
+            "calibration of this size gets wrong about Σ_E is not in it)"
+        ),
+    )
+    report = None
+    found = predictive.coverage
+    if found is not None:
+        report = CoverageReport(
+            dimension=found.dimension,
+            n_heldout=found.n,
+            n_splits=len(predictive.splits),
+            levels=[CoverageLevel(level=a, observed=found.at(a)) for a in COVERAGE_LEVELS],
+            curve=[CoverageLevel(level=a, observed=found.at(a)) for a in CURVE_LEVELS],
+            mean_mahalanobis_sq=found.mean_d2,
+            chi2_mean=float(found.dimension),
+            median_mahalanobis_sq=found.median_d2,
+            chi2_median=found.chi2_median,
+            protocol=f"the held-out splits of evaluation ({len(predictive.splits)} of "
+            f"{len(options.seeds)} gave covariances); per split, geometry, compliance, "
+            f"covariances ({options.covariance_estimator}), Cov(θ̂) and the model-error part "
+            f"({INNER_FOLDS}-fold cross-validation inside the training rows) from its training "
+            "rows only",
+        )
+    return PredictiveCovariance(
+        parameter_covariance=ParameterCovariance(
+            parameters=list(predictive.estimated),
+            matrix=predictive.parameter_covariance.tolist(),
+            method="sandwich G⁻¹ (Σ A_wᵀ W Σ_E W A_w) G⁻¹ of the weighted least-squares fit, "
+            "Σ_E (with Σ_n) from the calibrated covariances",
+        ),
+        model_error=model_error,
+        coverage=report,
     )
 
 

@@ -255,6 +255,8 @@ def estimate_from_samples(
     rank_rtol: float = RANK_RTOL,
     weak_rtol: float = WEAK_RTOL,
     max_likelihood_iterations: int = 200,
+    likelihood_tolerance: float = 1e-10,
+    start_theta: FloatArray | None = None,
     notes: Sequence[str] = (),
 ) -> CovarianceEstimate:
     """The covariance calibration (paper §IV-C) of ``samples`` (:mod:`.samples`: in memory or
@@ -267,9 +269,11 @@ def estimate_from_samples(
     with the fit Jacobian that ``samples`` need not carry), else one pass takes it. Then:
     identifiability → moment
     solution → ML or REML by projected Fisher scoring (at most ``max_likelihood_iterations``
-    steps; each a pass over the samples, two for REML) → the unidentifiable part fixed by the
-    rule of :mod:`.identifiability` → standard errors from at most :data:`SE_SAMPLES` evenly
-    spaced samples. ``notes`` start the warnings.
+    steps, or once the predicted NLL decrease per sample is below ``likelihood_tolerance``;
+    each a pass over the samples, two for REML; started from ``start_theta`` when given, e.g.
+    the estimate of a superset of the samples, else from the moment solution) → the
+    unidentifiable part fixed by the rule of :mod:`.identifiability` → standard errors from at
+    most :data:`SE_SAMPLES` evenly spaced samples. ``notes`` start the warnings.
 
     Unidentifiable combinations are reported in words in ``identifiability``; ``warnings``
     collects noise confusions and solver trouble.
@@ -314,7 +318,7 @@ def estimate_from_samples(
         assert sub is not None
         solution = fit_likelihood(
             estimator,
-            theta,
+            theta if start_theta is None else start_theta,
             samples,
             stats,
             report.scaling,
@@ -324,6 +328,7 @@ def estimate_from_samples(
             known_covariance=known,
             max_iterations=max_likelihood_iterations,
             one_step=large,
+            tolerance=likelihood_tolerance,
         )
         if not solution.converged:
             notes.append(

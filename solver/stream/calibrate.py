@@ -38,6 +38,13 @@ from solver.stream.covariance import (
     model_rule_removed,
     streamed_covariance_sums,
 )
+from solver.stream.coverage import (
+    PredictiveCalibration,
+    RandomEffectSettings,
+    SplitCoverage,
+    calibration_predictive,
+    split_coverage,
+)
 from solver.stream.fit import (
     FitRequest,
     PassCount,
@@ -284,6 +291,9 @@ class RecordingCalibration:
     sample_stride: int
     stage_s: dict[str, float]
     passes: int
+    predictive: PredictiveCalibration | None = None
+    """The parts of the predictive covariance beyond Σ_E (Cov(θ̂), model error) and their
+    held-out coverage (issue 13); None without covariances."""
 
 
 def calibrate_recording(
@@ -341,13 +351,56 @@ def calibrate_recording(
     sample = gather_rows(problem, executor, run.rule, stride)
     count.passes += 1
     splits: list[SplitError] = []
+    coverage: dict[int, SplitCoverage] = {}
     if heldout is not None:
         evaluation = HeldoutProblem(
-            problem.chain, sample, problem.position_only, options, baseline_options, heldout
+            problem.chain,
+            sample,
+            problem.position_only,
+            options,
+            baseline_options,
+            heldout,
+            None
+            if covariance is None
+            else RandomEffectSettings(covariance.spec, covariance.estimator, covariance.solver),
         )
-        splits = heldout_splits(evaluation, executor, report)
+        splits, coverage = heldout_evaluation(evaluation, executor, report)
     stage["heldout"] = time.perf_counter() - clock
-    return RecordingCalibration(run, estimate, splits, sample, stride, stage, count.passes)
+    predictive = None
+    if estimate is not None and covariance is not None:
+        predictive = _predictive(
+            problem, run, estimate, sample, covariance.spec.frames, options, coverage
+        )
+    return RecordingCalibration(
+        run, estimate, splits, sample, stride, stage, count.passes, predictive
+    )
+
+
+def _predictive(
+    problem: StreamProblem,
+    run: StreamedCalibration,
+    estimate: CovarianceEstimate,
+    sample: RowSample,
+    frames: tuple[int, ...],
+    options: FitOptions,
+    coverage: dict[int, SplitCoverage],
+) -> PredictiveCalibration:
+    """Cov(θ̂) of the calibration (normal matrix of every used sample, meat over the
+    in-memory rows), its model-error part and the coverage of the held-out splits."""
+    fit = run.fit
+    return calibration_predictive(
+        problem.chain,
+        fit.params,
+        fit.estimated,
+        fit.sums.normal.gram,
+        fit.sums.errors.n,
+        sample,
+        estimate,
+        frames,
+        problem.position_only,
+        options.rotation_weight_m_per_rad,
+        coverage,
+    )
 
 
 MODEL_RULE_ROUNDS = 3
@@ -484,7 +537,9 @@ def _all_samples(_: None, chunk: SampleChunk) -> SampleChunk:
 @dataclass(frozen=True, eq=False)
 class HeldoutProblem:
     """The held-out evaluation of rows in memory (``sample``): the chain, the two methods'
-    fit settings and the splits (sent to the workers once per call)."""
+    fit settings and the splits (sent to the workers once per call); with ``coverage`` the
+    calibrated method's split also estimates every part of the predictive covariance from its
+    training rows and scores its test rows (:func:`solver.stream.coverage.split_coverage`)."""
 
     chain: KinematicChain
     sample: RowSample
@@ -492,10 +547,14 @@ class HeldoutProblem:
     options: FitOptions
     baseline_options: FitOptions
     settings: HeldoutSettings
+    coverage: RandomEffectSettings | None = None
 
 
-def _heldout_fit(evaluation: HeldoutProblem, item: tuple[int, str]) -> FloatArray:
-    """The predicted test poses (n_test, 4, 4) of one method on one split."""
+def _heldout_fit(
+    evaluation: HeldoutProblem, item: tuple[int, str]
+) -> tuple[FloatArray, SplitCoverage | None]:
+    """The predicted test poses (n_test, 4, 4) of one method on one split, and for the
+    calibrated method (with ``evaluation.coverage``) the split's coverage."""
     seed, method = item
     sample = evaluation.sample
     train, test = split_indices(sample.n, seed, evaluation.settings.train_fraction)
@@ -508,9 +567,22 @@ def _heldout_fit(evaluation: HeldoutProblem, item: tuple[int, str]) -> FloatArra
         position_only=evaluation.position_only,
         options=options,
     )
-    return forward_kinematics(
+    predicted = forward_kinematics(
         evaluation.chain, fit.params, sample.joint_positions[test], sample.loads_nm[test]
     )
+    coverage = None
+    if method == CALIBRATED and evaluation.coverage is not None:
+        coverage = split_coverage(
+            evaluation.chain,
+            fit,
+            sample.take(train),
+            sample.take(test),
+            evaluation.position_only,
+            options,
+            evaluation.coverage,
+            seed=seed,
+        )
+    return predicted, coverage
 
 
 def heldout_splits(
@@ -521,17 +593,30 @@ def heldout_splits(
     """DESIGN.md §4 on the gathered rows: per seed, the nominal robot (frame and tool fitted)
     and the calibration fitted on the training rows and scored on the test rows, the two fits
     of a split side by side on the executor."""
+    return heldout_evaluation(evaluation, executor, progress)[0]
+
+
+def heldout_evaluation(
+    evaluation: HeldoutProblem,
+    executor: Executor,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> tuple[list[SplitError], dict[int, SplitCoverage]]:
+    """:func:`heldout_splits` and, per seed, the calibrated split's coverage (when
+    ``evaluation.coverage`` asks for it and the split's training rows gave the covariances)."""
     seeds = evaluation.settings.seeds
     predictions: dict[tuple[int, str], FloatArray] = {}
+    coverage: dict[int, SplitCoverage] = {}
     for done, seed in enumerate(seeds, start=1):
         items = [(seed, BEFORE), (seed, CALIBRATED)]
-        for item, predicted in zip(
+        for item, (predicted, scored) in zip(
             items, executor.map(_heldout_fit, evaluation, items), strict=True
         ):
             predictions[item] = predicted
+            if scored is not None:
+                coverage[seed] = scored
         if progress is not None:
             progress("heldout", done, len(seeds))
-    return score_splits(
+    splits = score_splits(
         evaluation.sample.measured_pose,
         predictions,
         [BEFORE, CALIBRATED],
@@ -539,3 +624,4 @@ def heldout_splits(
         seeds=seeds,
         train_fraction=evaluation.settings.train_fraction,
     )
+    return splits, coverage

@@ -122,6 +122,34 @@ def test_weights_top_and_payload_are_passed_through_like_the_cli(
     assert [e.score for e in default.ranking] != [e.score for e in over_http.ranking]
 
 
+def test_total_uncertainty_is_scored_like_kincal_rank_and_adds_its_parts(
+    calibrated: Calibrated, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 13: options.uncertainty 'total' scores Σ_E + J_θ Cov(θ̂) J_θᵀ + the model-error
+    part; each entry's score is the sum of its parts, the random-effects part is the default
+    ranking's score, and the answer equals ``kincal rank --uncertainty total``."""
+    q = calibrated.configurations(30, seed=12)
+    total = calibrated.api.rank(calibrated.id, q.tolist(), options={"uncertainty": "total"})
+    default = calibrated.api.rank(calibrated.id, q.tolist())
+    configs = tmp_path / "configs.csv"
+    pd.DataFrame(q, columns=list(calibrated.chain.joint_names)).to_csv(
+        configs, index=False, float_format="%.17g"
+    )
+    args = [str(configs), "--uncertainty", "total"]
+    assert total == _cli_rank(calibrated.result, args, tmp_path, monkeypatch)
+    assert total.uncertainty == "total" and default.uncertainty == "random_effects"
+    paper = {e.index: e.score for e in default.ranking}
+    assert all(e.score_parts is None for e in default.ranking)
+    for entry in total.ranking:
+        parts = entry.score_parts
+        assert parts is not None and set(parts) == {"random_effects", "parameters", "model_error"}
+        assert parts["random_effects"] == pytest.approx(paper[entry.index], rel=1e-12)
+        assert parts["parameters"] > 0.0 and parts["model_error"] >= 0.0
+        assert entry.score == pytest.approx(sum(parts.values()), rel=1e-12)
+    scores = [e.score for e in total.ranking]
+    assert scores == sorted(scores)
+
+
 def test_weights_kind_may_be_left_out(calibrated: Calibrated) -> None:
     q = calibrated.configurations(8, seed=10).tolist()
     for weights, kind in (

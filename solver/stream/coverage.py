@@ -1,0 +1,436 @@
+"""The predictive covariance of a calibration and its held-out coverage (issue 13).
+
+A :class:`Predictor` is a calibration of some rows as far as prediction needs it. For a held-out
+split every part of :mod:`solver.predictive` — geometry and compliance (Eq. 8–10), the
+random-effect covariances (§IV-C, the calibration's estimator), Cov(θ̂) and the model-error part —
+is estimated from the split's training rows only, and the split's test rows are scored with it.
+
+The model-error part is fitted (:func:`solver.predictive.estimate_model_error`) to
+cross-validated residuals, each with the covariance the other parts of *its* predictor give it:
+
+- the calibration's own: the held-out residuals of its splits, whose predictors re-estimated
+  everything on their training rows — so the part also holds what a calibration of this size
+  gets wrong about Σ_E itself;
+- a split's (for its coverage): the same procedure inside the split's training rows
+  (:data:`INNER_FOLDS`-fold cross-validation, nested);
+- without held-out splits: the leave-one-out residuals of the deterministic fit (the exact
+  deletion identity of least squares at the solution, covariances not re-estimated: a weaker
+  estimate, said so in the result).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.calibration import (
+    DeterministicFit,
+    FitOptions,
+    fit_deterministic,
+    identifiable_parameter_count,
+)
+from solver.covariance.estimate import CovarianceEstimate, EstimatorName, estimate_from_samples
+from solver.covariance.likelihood import ee_covariance_batch
+from solver.covariance.samples import ArraySamples
+from solver.covariance.solvers import SolverName
+from solver.errors import CalibrationError, KincalError
+from solver.kinematics import ChainParameters, parameter_names, pose_residuals
+from solver.model import KinematicChain
+from solver.predictive import (
+    Coverage,
+    ModelErrorFit,
+    PredictionPoint,
+    coverage,
+    estimate_model_error,
+    leave_one_out_residuals,
+    mahalanobis_squared,
+    measurement_axes,
+    model_error_part,
+    parameter_covariance,
+    parameter_part,
+    prediction_point,
+    row_weights,
+    sandwich_meat,
+)
+from solver.stream.fit import RowSample
+from solver.stream.sums import CovarianceSpec
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+INNER_FOLDS = 3
+"""Folds of the cross-validation inside a split's training rows that gives the split its own
+model-error part."""
+
+MIN_RESIDUAL_SAMPLES = 2
+"""A predictor is trained only when its rows give at least this many samples' worth of
+equations beyond the identifiable parameters."""
+
+NLL_TOLERANCE = 1e-3
+"""The held-out predictors' ML/REML iterations stop once the predicted decrease of the whole
+negative log-likelihood is below this: θ is then within ~√(2·10⁻³) ≈ 0.05 of its standard
+errors of the optimum (the calibration itself iterates to 10⁻¹⁰ per sample)."""
+
+
+@dataclass(frozen=True)
+class RandomEffectSettings:
+    """How the random-effect covariances are estimated: the frames and θ layout (``spec``),
+    the estimator and the moment solver — the calibration's own."""
+
+    spec: CovarianceSpec
+    estimator: EstimatorName
+    solver: SolverName
+
+
+@dataclass(frozen=True)
+class Predictor:
+    """A calibration of some rows, as far as prediction needs it: the parameters, the columns
+    of the parameters it estimated (:func:`~solver.kinematics.parameter_names` order) and their
+    sandwich covariance (p, p), the normal matrix ``gram`` (p, p) of its fit, the random-effect
+    covariances (F, 6, 6) of the chain joints ``frames`` and the measurement noise (d, d)."""
+
+    params: ChainParameters
+    estimated: IntArray
+    parameter_covariance: FloatArray
+    gram: FloatArray
+    frames: tuple[int, ...]
+    frame_covariances: FloatArray
+    noise: FloatArray
+    theta: FloatArray | None = None
+    """The random-effect parameters θ (warm start of the predictors of subsets)."""
+
+    @property
+    def d(self) -> int:
+        return int(self.noise.shape[0])
+
+    def point(
+        self, chain: KinematicChain, joint_positions: FloatArray, loads_nm: FloatArray
+    ) -> PredictionPoint:
+        return prediction_point(
+            chain, self.params, self.estimated, joint_positions, loads_nm, self.d
+        )
+
+    def random_part(self, point: PredictionPoint) -> FloatArray:
+        """Σ_E(q) (Eq. 12) with Σ_n, (N, d, d)."""
+        return ee_covariance_batch(
+            point.frame_jacobians[:, list(self.frames)], self.frame_covariances, _padded(self.noise)
+        )
+
+
+def _padded(noise: FloatArray) -> FloatArray:
+    out = np.zeros((6, 6))
+    d = noise.shape[0]
+    out[:d, :d] = noise
+    return out
+
+
+def _columns(chain: KinematicChain, estimated: list[str]) -> IntArray:
+    names = parameter_names(chain)
+    return np.array([names.index(n) for n in estimated], dtype=np.intp)
+
+
+def sandwich_covariance(
+    gram: FloatArray,
+    point: PredictionPoint,
+    random: FloatArray,
+    rotation_weight: float,
+    scale: float = 1.0,
+) -> FloatArray:
+    """Cov(θ̂) (p, p) of a fit with normal matrix ``gram``, the meat summed over ``point``'s
+    rows with their Σ_E + Σ_n ``random`` (n, d, d) and multiplied by ``scale`` (used samples
+    per row given, when the rows are a subset)."""
+    weights = row_weights(random.shape[1], rotation_weight)
+    weighted = weights[None, :, None] * point.parameter_jacobian
+    return parameter_covariance(gram, scale * sandwich_meat(weighted, random, weights))
+
+
+def predictor_from_fit(
+    chain: KinematicChain,
+    fit: DeterministicFit,
+    rows: RowSample,
+    position_only: bool,
+    options: FitOptions,
+    settings: RandomEffectSettings,
+    start_theta: FloatArray | None = None,
+) -> Predictor:
+    """A deterministic fit of ``rows`` completed into a predictor: the random-effect
+    covariances (the calibration's estimator, on the fit's residuals; ML/REML started from
+    ``start_theta`` when given) and the sandwich Cov(θ̂)."""
+    d = 3 if position_only else 6
+    estimated = _columns(chain, fit.estimated)
+    point = prediction_point(chain, fit.params, estimated, rows.joint_positions, rows.loads_nm, d)
+    spec = settings.spec
+    frames = list(spec.frames)
+    estimate = estimate_from_samples(
+        ArraySamples(fit.residuals, point.frame_jacobians[:, frames], point.parameter_jacobian),
+        spec.layout,
+        known=spec.known,
+        estimator=settings.estimator,
+        solver=settings.solver,
+        noise_name=spec.noise_name,
+        standard_errors=False,
+        likelihood_tolerance=NLL_TOLERANCE / max(rows.n, 1),
+        start_theta=start_theta,
+    )
+    noise = estimate.noise_covariance()[:d, :d]
+    random = ee_covariance_batch(
+        point.frame_jacobians[:, frames], estimate.frame_covariances(), _padded(noise)
+    )
+    weighted = fit.jacobian.reshape(-1, estimated.size)
+    gram = weighted.T @ weighted
+    covariance = sandwich_covariance(gram, point, random, options.rotation_weight_m_per_rad)
+    return Predictor(
+        fit.params,
+        estimated,
+        covariance,
+        gram,
+        tuple(frames),
+        estimate.frame_covariances(),
+        noise,
+        estimate.theta,
+    )
+
+
+def train_predictor(
+    chain: KinematicChain,
+    rows: RowSample,
+    position_only: bool,
+    options: FitOptions,
+    settings: RandomEffectSettings,
+    start_theta: FloatArray | None = None,
+) -> Predictor:
+    """Fit geometry and compliance (Eq. 8–10) on ``rows``, then :func:`predictor_from_fit`;
+    :class:`CalibrationError` when the rows leave fewer than :data:`MIN_RESIDUAL_SAMPLES`
+    samples' worth of equations beyond the parameters."""
+    d = 3 if position_only else 6
+    spare = d * rows.n - identifiable_parameter_count(
+        chain, position_only=position_only, options=options
+    )
+    if spare < d * MIN_RESIDUAL_SAMPLES:
+        raise CalibrationError(
+            f"{rows.n} rows leave {spare} equations beyond the parameters, fewer than "
+            f"{MIN_RESIDUAL_SAMPLES} samples' worth"
+        )
+    try:
+        fit = fit_deterministic(
+            chain,
+            rows.joint_positions,
+            rows.measured_pose,
+            rows.loads_nm,
+            position_only=position_only,
+            options=options,
+        )
+    except ZeroDivisionError as exc:  # the rows' rank reached their equations: no residual dof
+        raise CalibrationError(f"{rows.n} rows leave no residual degrees of freedom") from exc
+    return predictor_from_fit(chain, fit, rows, position_only, options, settings, start_theta)
+
+
+@dataclass(frozen=True)
+class ScoredRows:
+    """Rows scored by a predictor: end-effector-frame residuals (n, d), the covariance of
+    every part but the model error (``base``, (n, d, d)), Σ_E + Σ_n alone (``random``) and
+    the measurement axes T (n, d, d) of :func:`~solver.predictive.measurement_axes`."""
+
+    residuals: FloatArray
+    base: FloatArray
+    random: FloatArray
+    axes: FloatArray
+
+    @classmethod
+    def join(cls, parts: list[ScoredRows], d: int) -> ScoredRows:
+        if not parts:
+            empty = np.zeros((0, d, d))
+            return cls(np.zeros((0, d)), empty, empty, empty)
+        return cls(
+            np.concatenate([p.residuals for p in parts]),
+            np.concatenate([p.base for p in parts]),
+            np.concatenate([p.random for p in parts]),
+            np.concatenate([p.axes for p in parts]),
+        )
+
+    def distances_squared(self, model_error: FloatArray) -> FloatArray:
+        """Squared Mahalanobis distances (n,) under the total with these model-error
+        variances (d,)."""
+        total = self.base + model_error_part(self.axes, model_error)
+        return mahalanobis_squared(self.residuals, total)
+
+
+def score_rows(
+    chain: KinematicChain,
+    predictor: Predictor,
+    rows: RowSample,
+    position_only: bool,
+    *,
+    left_out: bool = False,
+    rotation_weight: float = 1.0,
+) -> ScoredRows:
+    """``rows`` scored by ``predictor``; ``left_out``: they are the rows it was fitted to
+    (with ``rotation_weight``, the fit's), each scored as if left out of its deterministic fit
+    (:func:`~solver.predictive.leave_one_out_residuals`)."""
+    point = predictor.point(chain, rows.joint_positions, rows.loads_nm)
+    residuals = pose_residuals(point.pose, rows.measured_pose, position_only=position_only)
+    if left_out:
+        weights = row_weights(predictor.d, rotation_weight)
+        weighted = weights[None, :, None] * point.parameter_jacobian
+        residuals = leave_one_out_residuals(residuals, weighted, weights, predictor.gram)
+    random = predictor.random_part(point)
+    base = random + parameter_part(point.parameter_jacobian, predictor.parameter_covariance)
+    return ScoredRows(residuals, base, random, measurement_axes(point.pose, predictor.d))
+
+
+def model_error_of(
+    chain: KinematicChain,
+    predictor: Predictor,
+    rows: RowSample,
+    position_only: bool,
+    rotation_weight: float,
+) -> ModelErrorFit:
+    """The model-error part of a predictor from the rows it was fitted to alone: their
+    leave-one-out residuals, by :func:`~solver.predictive.estimate_model_error`."""
+    scored = score_rows(
+        chain, predictor, rows, position_only, left_out=True, rotation_weight=rotation_weight
+    )
+    return estimate_model_error(scored.residuals, scored.base, scored.axes)
+
+
+@dataclass(frozen=True)
+class SplitCoverage:
+    """One held-out split: its test rows scored by a predictor of its training rows
+    (``scored``) with the model-error part estimated from those training rows."""
+
+    scored: ScoredRows
+    model_error: ModelErrorFit
+
+    @property
+    def distances_squared(self) -> FloatArray:
+        return self.scored.distances_squared(self.model_error.variance)
+
+
+def fold_indices(n: int, folds: int, seed: int) -> list[tuple[IntArray, IntArray]]:
+    """``folds`` (train, test) index pairs of a random partition of ``range(n)``
+    (``default_rng(seed)``), test parts of near-equal size."""
+    order = np.random.default_rng(seed).permutation(n)
+    parts = np.array_split(order, min(folds, n))
+    return [
+        (np.sort(np.concatenate(parts[:i] + parts[i + 1 :])), np.sort(part))
+        for i, part in enumerate(parts)
+    ]
+
+
+def cross_validated_rows(
+    chain: KinematicChain,
+    rows: RowSample,
+    position_only: bool,
+    options: FitOptions,
+    settings: RandomEffectSettings,
+    *,
+    folds: int,
+    seed: int,
+    start_theta: FloatArray | None = None,
+) -> ScoredRows:
+    """Every row of ``rows`` scored by a predictor trained on the other folds; a fold whose
+    training part cannot be calibrated is left out."""
+    d = 3 if position_only else 6
+    parts = []
+    for train, test in fold_indices(rows.n, folds, seed):
+        try:
+            predictor = train_predictor(
+                chain, rows.take(train), position_only, options, settings, start_theta
+            )
+        except KincalError:
+            continue
+        parts.append(score_rows(chain, predictor, rows.take(test), position_only))
+    return ScoredRows.join(parts, d)
+
+
+def split_coverage(
+    chain: KinematicChain,
+    fit: DeterministicFit,
+    train: RowSample,
+    test: RowSample,
+    position_only: bool,
+    options: FitOptions,
+    settings: RandomEffectSettings,
+    *,
+    seed: int = 0,
+) -> SplitCoverage | None:
+    """Every part from the training rows of a split (``fit`` of them given; the model-error
+    part by :data:`INNER_FOLDS`-fold cross-validation inside them, leave-one-out when no fold
+    can be calibrated), scored on its test rows; None when the training rows cannot give the
+    covariances."""
+    try:
+        predictor = predictor_from_fit(chain, fit, train, position_only, options, settings)
+    except KincalError:
+        return None
+    inner = cross_validated_rows(
+        chain,
+        train,
+        position_only,
+        options,
+        settings,
+        folds=INNER_FOLDS,
+        seed=seed,
+        start_theta=predictor.theta,
+    )
+    if inner.residuals.shape[0]:
+        model_error = estimate_model_error(inner.residuals, inner.base, inner.axes)
+    else:
+        weight = options.rotation_weight_m_per_rad
+        model_error = model_error_of(chain, predictor, train, position_only, weight)
+    return SplitCoverage(score_rows(chain, predictor, test, position_only), model_error)
+
+
+@dataclass(frozen=True)
+class PredictiveCalibration:
+    """What a predictor needs beyond the calibrated model to rebuild the total covariance of
+    a new configuration (issue 13), and how well it held on the held-out splits.
+
+    ``estimated``: the parameter names of ``parameter_covariance`` (p, p), the sandwich
+    Cov(θ̂) of the calibration over every used sample; ``model_error``: the model-error part
+    from the held-out residuals of the splits (without splits: the leave-one-out residuals of
+    the calibration's in-memory rows); ``coverage``: the
+    held-out residuals of every split under the total its training rows predicted (None
+    without splits); ``splits``: the per-seed material."""
+
+    estimated: list[str]
+    parameter_covariance: FloatArray
+    model_error: ModelErrorFit
+    coverage: Coverage | None
+    splits: dict[int, SplitCoverage]
+
+
+def calibration_predictive(
+    chain: KinematicChain,
+    params: ChainParameters,
+    estimated: list[str],
+    gram: FloatArray,
+    n_used: int,
+    rows: RowSample,
+    estimate: CovarianceEstimate,
+    frames: tuple[int, ...],
+    position_only: bool,
+    rotation_weight: float,
+    splits: dict[int, SplitCoverage],
+) -> PredictiveCalibration:
+    """The predictive parts of a calibration whose fit of ``n_used`` samples has the normal
+    matrix ``gram``: Cov(θ̂) with the meat over ``rows`` (all or an evenly spaced subset of
+    the used samples, scaled to ``n_used``), the model-error part from the held-out residuals
+    of ``splits`` (none: the leave-one-out residuals of ``rows``), and their coverage."""
+    d = 3 if position_only else 6
+    columns = _columns(chain, estimated)
+    point = prediction_point(chain, params, columns, rows.joint_positions, rows.loads_nm, d)
+    random = estimate.ee_covariance(point.frame_jacobians[:, list(frames)], include_noise=True)
+    covariance = sandwich_covariance(gram, point, random, rotation_weight, n_used / max(rows.n, 1))
+    noise = estimate.noise_covariance()[:d, :d]
+    predictor = Predictor(
+        params, columns, covariance, gram, frames, estimate.frame_covariances(), noise
+    )
+    if not splits:
+        model_error = model_error_of(chain, predictor, rows, position_only, rotation_weight)
+        return PredictiveCalibration(estimated, covariance, model_error, None, splits)
+    pooled = ScoredRows.join([s.scored for s in splits.values()], d)
+    model_error = estimate_model_error(pooled.residuals, pooled.base, pooled.axes)
+    measured = coverage(np.concatenate([s.distances_squared for s in splits.values()]), d)
+    return PredictiveCalibration(estimated, covariance, model_error, measured, splits)

@@ -1,0 +1,206 @@
+"""Issue 13, predictive covariance through the user's path: ``kincal simulate`` → ``kincal
+calibrate`` → ``kincal predict`` on poses the calibration never saw, the result JSON's held-out
+coverage, ``predict --part``, ``rank --uncertainty total``, the summary and the HTML report."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import scipy.stats
+
+from schemas.calibration import CalibrationResult
+from schemas.dataset import read_dataset
+from schemas.ranking import RankingResult
+from service import ranking, result_json
+from service.report import summary
+from service.report_html import render_report
+from solver import lie
+from tests.service.cli_support import run, run_ok
+
+N_TRAIN = 200
+N_FRESH = 600
+COV_COLUMNS = [f"cov_{i}{j}" for i in range(6) for j in range(6)]
+
+
+@dataclass(frozen=True)
+class Calibrated:
+    folder: Path
+    result_path: Path
+    result: CalibrationResult
+    fresh: pd.DataFrame
+    configs: Path
+
+
+def _calibrate_simulated(folder: Path, seed: int) -> Calibrated:
+    """A simulated Jaco2 with geometry and compliance errors and random joint-frame rotations
+    (the repo's simulator): the first N_TRAIN poses calibrated with kincal's defaults except the
+    paper's 2σ outlier rule, which truncates clean residuals (issue 13 item 1, the lead's), the
+    next N_FRESH poses of the same robot kept apart."""
+    recording = folder / "recording.csv"
+    effects = ["geometry", "compliance", "random", "camera", "marker"]
+    run_ok(
+        ["simulate", "--robot", "kinova", "--n", N_TRAIN + N_FRESH, "--seed", seed]
+        + [arg for effect in effects for arg in ("--effect", effect)]
+        + ["-o", recording]
+    )
+    data = pd.read_csv(recording)
+    data.iloc[:N_TRAIN].to_csv(folder / "train.csv", index=False, float_format="%.17g")
+    fresh = data.iloc[N_TRAIN:]
+    configs = folder / "fresh.csv"
+    fresh.to_csv(configs, index=False, float_format="%.17g")
+    result_path = folder / "result.json"
+    train = folder / "train.csv"
+    run_ok(["calibrate", train, "--robot", "kinova", "--outlier-sigma", 0, "-o", result_path])
+    result = CalibrationResult.model_validate_json(result_path.read_text(encoding="utf-8"))
+    return Calibrated(folder, result_path, result, fresh, configs)
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory: pytest.TempPathFactory) -> Calibrated:
+    return _calibrate_simulated(tmp_path_factory.mktemp("predictive"), 3)
+
+
+def _predict(calibrated: Calibrated, *args: object) -> pd.DataFrame:
+    output = calibrated.folder / f"predicted{len(args)}{'_'.join(map(str, args))}.csv"
+    run_ok(["predict", calibrated.result_path, calibrated.configs, "-o", output, *args])
+    return pd.read_csv(output)
+
+
+def _distances(predicted: pd.DataFrame, measured: pd.DataFrame) -> np.ndarray:
+    model = lie.pose_matrix(
+        predicted[["x", "y", "z"]].to_numpy(), predicted[["qx", "qy", "qz", "qw"]].to_numpy()
+    )
+    actual = lie.pose_matrix(
+        measured[["x", "y", "z"]].to_numpy(), measured[["qx", "qy", "qz", "qw"]].to_numpy()
+    )
+    residual = lie.se3_log(lie.inverse(model) @ actual)
+    covariance = predicted[COV_COLUMNS].to_numpy().reshape(-1, 6, 6)
+    return np.einsum(
+        "nd,nd->n", residual, np.linalg.solve(covariance, residual[:, :, None])[..., 0]
+    )
+
+
+def test_the_predicted_95_percent_ellipsoid_holds_93_to_97_percent_of_fresh_poses(
+    calibrated: Calibrated, tmp_path: Path
+) -> None:
+    """Acceptance (issue 13): ``kincal predict``'s default covariance (total, Σ_n included) on
+    poses of the simulated robot that took no part in the calibration; three robots (seeds 1, 2,
+    3), N_FRESH poses each, pooled (one robot alone varies by ~±1.5 %: seed 3 gives 92 %)."""
+    distances = [_distances(_predict(calibrated), calibrated.fresh)]
+    for seed in (1, 2):
+        folder = tmp_path / f"seed{seed}"
+        folder.mkdir()
+        other = _calibrate_simulated(folder, seed)
+        distances.append(_distances(_predict(other), other.fresh))
+    pooled = np.concatenate(distances)
+    inside = float(np.mean(pooled <= scipy.stats.chi2.ppf(0.95, 6)))
+    assert 0.93 <= inside <= 0.97
+    assert np.mean(pooled) == pytest.approx(6.0, rel=0.1)
+
+
+def test_without_its_new_parts_the_prediction_covers_less(calibrated: Calibrated) -> None:
+    """The old prediction (Σ_E + Σ_n, ``--part random-effects``) is narrower than the total:
+    the parameter-estimation part is what a 200-pose calibration does not know."""
+    total = _distances(_predict(calibrated), calibrated.fresh)
+    old = _distances(_predict(calibrated, "--part", "random-effects"), calibrated.fresh)
+    assert np.mean(old) > np.mean(total)
+    assert np.all(old >= total - 1e-9 * np.abs(total))
+
+
+def test_the_result_reports_the_heldout_coverage_and_what_rebuilds_the_total(
+    calibrated: Calibrated,
+) -> None:
+    predictive = calibrated.result.predictive
+    assert predictive is not None and predictive.coverage is not None
+    found = predictive.coverage
+    assert found.dimension == 6 and found.n_splits == 10
+    assert found.n_heldout == sum(
+        s.n_test for s in calibrated.result.evaluation.splits if s.method == "calibrated"
+    )
+    assert [c.level for c in found.levels] == [0.5, 0.9, 0.95, 0.99]
+    observed = [c.observed for c in found.curve]
+    assert observed == sorted(observed)
+    assert 0.88 <= next(c.observed for c in found.levels if c.level == 0.95) <= 1.0
+    assert found.chi2_mean == 6.0 and found.mean_mahalanobis_sq == pytest.approx(6.0, rel=0.35)
+    names = predictive.parameter_covariance.parameters
+    assert not set(names) & set(calibrated.result.identifiability.removed)
+    assert len(names) == calibrated.result.identifiability.rank
+    matrix = np.array(predictive.parameter_covariance.matrix)
+    assert matrix.shape == (len(names), len(names)) and np.allclose(matrix, matrix.T)
+    assert np.linalg.eigvalsh(matrix).min() >= -1e-12 * np.abs(matrix).max()
+    assert predictive.model_error is not None and len(predictive.model_error.variance) == 6
+    text = summary(calibrated.result)
+    assert "predictive coverage on" in text and "in the 95 %" in text
+
+
+def test_predict_parts_add_up_to_the_total(calibrated: Calibrated) -> None:
+    parts = {
+        part: _predict(calibrated, "--part", part)[COV_COLUMNS].to_numpy()
+        for part in ("random-effects", "noise", "parameters", "model-error")
+    }
+    total = _predict(calibrated)[COV_COLUMNS].to_numpy()
+    assert np.allclose(
+        total, parts["random-effects"] + parts["parameters"] + parts["model-error"], rtol=1e-12
+    )
+    without_noise = _predict(calibrated, "--no-noise")[COV_COLUMNS].to_numpy()
+    assert np.allclose(total - without_noise, parts["noise"], rtol=1e-9, atol=1e-18)
+    dataset = read_dataset(calibrated.configs, list(calibrated.result.robot.joint_names))
+    old = ranking.predict_covariances(calibrated.result, dataset.joint_positions)
+    assert np.allclose(parts["random-effects"], old.reshape(-1, 36), rtol=1e-12)
+
+
+def test_rank_scores_the_total_on_request_and_the_paper_score_by_default(
+    calibrated: Calibrated,
+) -> None:
+    outputs = {}
+    for name, extra in (("default", []), ("total", ["--uncertainty", "total"])):
+        path = calibrated.folder / f"ranking_{name}.json"
+        run_ok(["rank", calibrated.result_path, calibrated.configs, "-o", path, *extra])
+        outputs[name] = RankingResult.model_validate_json(path.read_text(encoding="utf-8"))
+    default, total = outputs["default"], outputs["total"]
+    assert default.uncertainty == "random_effects" and total.uncertainty == "total"
+    paper = {e.index: e.score for e in default.ranking}
+    for entry in total.ranking:
+        assert entry.score_parts is not None
+        assert entry.score_parts["random_effects"] == pytest.approx(paper[entry.index])
+        assert entry.score == pytest.approx(sum(entry.score_parts.values()))
+        assert entry.score > paper[entry.index]
+
+
+def test_the_html_report_shows_the_coverage_plot(calibrated: Calibrated) -> None:
+    dataset = read_dataset(
+        calibrated.folder / "train.csv", list(calibrated.result.robot.joint_names)
+    )
+    page = render_report(
+        calibrated.result, result_json.dataset_residuals(calibrated.result, dataset)
+    )
+    section = page.split("Predicted covariance on held-out poses (coverage)", 1)[1]
+    assert '<img alt="Coverage: expected vs observed' in section
+    assert "predictive coverage on" in section
+
+
+def test_a_result_without_the_predictive_block_still_predicts_its_random_effects(
+    calibrated: Calibrated,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Results written before issue 13: predict writes Σ_E + Σ_n and says what is missing;
+    rank --uncertainty total refuses with the reason."""
+    document = json.loads(calibrated.result_path.read_text(encoding="utf-8"))
+    document.pop("predictive")
+    old_path = calibrated.folder / "old_result.json"
+    old_path.write_text(json.dumps(document), encoding="utf-8")
+    output = calibrated.folder / "old_predicted.csv"
+    run_ok(["predict", old_path, calibrated.configs, "-o", output])
+    assert "has no predictive covariance" in capsys.readouterr().err
+    written = pd.read_csv(output)[COV_COLUMNS].to_numpy()
+    expected = _predict(calibrated, "--part", "random-effects")[COV_COLUMNS].to_numpy()
+    assert np.allclose(written, expected, rtol=1e-12)
+    args = ["rank", old_path, calibrated.configs, "-o", output, "--uncertainty", "total"]
+    code, _, err = run(args, capsys, monkeypatch)
+    assert code == 2 and "has no predictive covariance" in err
