@@ -813,15 +813,6 @@ def fleet(
     typer.echo(f"\nfleet summary written to {output}")
 
 
-<<<<<<< HEAD
-def _full_summaries(command: Any) -> None:  # typer's (vendored) click.Command
-    """``kincal --help`` lists each command with its docstring's whole first paragraph; click
-    would cut it at the first full stop ("(paper Eq.") or at 45 characters."""
-    for sub in getattr(command, "commands", {}).values():
-        if not sub.short_help and sub.help:
-            sub.short_help = " ".join(inspect.cleandoc(sub.help).split("\n\n")[0].split())
-        _full_summaries(sub)
-=======
 # --- designs (issue 16) ----------------------------------------------------------------------
 
 
@@ -1051,7 +1042,15 @@ def design_summary(out: DesignResult) -> str:
         )
     lines += [f"note: {note}" for note in out.notes]
     return "\n".join(lines)
->>>>>>> issue-16
+
+
+def _full_summaries(command: Any) -> None:  # typer's (vendored) click.Command
+    """``kincal --help`` lists each command with its docstring's whole first paragraph; click
+    would cut it at the first full stop ("(paper Eq.") or at 45 characters."""
+    for sub in getattr(command, "commands", {}).values():
+        if not sub.short_help and sub.help:
+            sub.short_help = " ".join(inspect.cleandoc(sub.help).split("\n\n")[0].split())
+        _full_summaries(sub)
 
 
 def main() -> None:
