@@ -253,13 +253,24 @@ class ComplianceCalibration(_Model):
         description="Estimated and more than 2 standard errors from zero; otherwise the data "
         "cannot tell this compliance from none."
     )
+    pruned: bool = Field(
+        False,
+        description="Fixed at 0 and the fit repeated: estimated negative (deflecting against "
+        "the gravity torque, which no spring does) or with a standard error above 0.01 rad/N·m "
+        "(not identified in any physical range).",
+    )
 
 
 class Identifiability(_Model):
     n_parameters: int
     rank: int
     condition_number: float
-    removed: list[str]
+    removed: list[str] = Field(description="Parameters the data cannot identify (not fitted).")
+    pruned: list[str] = Field(
+        default_factory=list,
+        description="Compliances fixed at 0: negative, or with a standard error beyond any "
+        "physical compliance (> 0.01 rad/N·m).",
+    )
 
 
 class ErrorStats(_Model):

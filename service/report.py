@@ -65,6 +65,12 @@ def summary(result: CalibrationResult) -> str:
             + ("" if c.significant else "   not significant (within 2 standard errors of 0)")
             for c in estimated
         ]
+    lines += [
+        f"  {c.axis:<28} fixed at 0: negative (no spring deflects against its load) or not "
+        "identified in any physical range"
+        for c in result.compliance
+        if c.pruned
+    ]
     if result.covariance is not None:
         lines += ["", *covariance_table(result.covariance)]
     if result.evaluation is not None:

@@ -229,6 +229,7 @@ def _compliance(chain: KinematicChain, fit: StreamedFit) -> list[ComplianceCalib
                 estimated=stderr is not None,
                 significant=stderr is not None
                 and abs(float(fit.params.compliance_rad_per_nm[a])) > 2.0 * stderr,
+                pruned=f"compliance.{axis.name}" in fit.pruned,
             )
         )
     return out
@@ -433,6 +434,7 @@ def assemble_result(
             rank=fit.rank,
             condition_number=fit.condition_number,
             removed=fit.removed,
+            pruned=fit.pruned,
         ),
         fit=FitStatistics(
             before=FitPhase(

@@ -59,6 +59,9 @@ class FitOptions:
     diagonal, relative to the largest, falls below this (columns scaled to unit norm first).
     ``free_links``: indices of the links ``L_i`` (0-based) to calibrate, None = all;
     ``(0, k)`` calibrates only the measurement frame and the tool offset.
+    ``non_negative_compliance``: a compliance estimated negative (no spring bends against the
+    torque on it, DESIGN.md §2: c ≥ 0) or not identified in any physical range is fixed at 0
+    and the fit repeated (see :func:`implausible_compliance_columns`).
     """
 
     max_iterations: int = 50
@@ -67,6 +70,7 @@ class FitOptions:
     rank_tolerance: float = 1e-7
     free_links: tuple[int, ...] | None = None
     fit_compliance: bool = True
+    non_negative_compliance: bool = True
 
 
 @dataclass(frozen=True)
@@ -92,6 +96,7 @@ class DeterministicFit:
     residuals: FloatArray
     jacobian: FloatArray
     elapsed_s: float
+    pruned: list[str] = field(default_factory=list)  # compliance fixed at 0: not physical
     notes: list[str] = field(default_factory=list)
 
 
@@ -174,6 +179,17 @@ def fit_deterministic(
 
     first = normal_equations(jacobian[:, :, keep].reshape(-1, keep.size), residual.reshape(-1))
     run = gauss_newton(chain, params, keep, (first, jacobian[:, :, keep]), evaluate, options)
+    pruned: list[int] = []
+    while options.non_negative_compliance:
+        negative = implausible_compliance_columns(
+            chain, run.params, keep, parameter_standard_errors(run.normal)
+        )
+        if negative.size == 0:
+            break
+        pruned += negative.tolist()
+        keep = np.setdiff1d(keep, negative)
+        start_point = without_compliance(chain, run.params, negative)
+        run = gauss_newton(chain, start_point, keep, evaluate(start_point), evaluate, options)
     final_residual = pose_residuals(
         forward_kinematics(chain, run.params, joint_positions, loads_nm),
         measured_pose,
@@ -182,7 +198,7 @@ def fit_deterministic(
     return DeterministicFit(
         params=run.params,
         estimated=[names[i] for i in keep],
-        removed=removed_names(names, keep),
+        removed=[n for n in removed_names(names, keep) if names.index(n) not in pruned],
         standard_errors=parameter_standard_errors(run.normal),
         rank=rank,
         condition_number=condition,
@@ -192,7 +208,47 @@ def fit_deterministic(
         residuals=final_residual,
         jacobian=run.payload,
         elapsed_s=time.perf_counter() - started,
+        pruned=[names[i] for i in sorted(pruned)],
     )
+
+
+PLAUSIBLE_COMPLIANCE_RAD_PER_NM = 0.01
+"""A compliance whose standard error exceeds this (10 mrad per N·m; the joints of arms are
+about 1e-5 to 1e-3 rad/N·m) is not identified by the data in any physical range."""
+
+
+def implausible_compliance_columns(
+    chain: KinematicChain,
+    params: ChainParameters,
+    keep: NDArray[np.intp],
+    standard_errors: FloatArray,
+) -> NDArray[np.intp]:
+    """The compliance columns among ``keep`` (:func:`solver.kinematics.parameter_names` order,
+    ``standard_errors`` aligned with ``keep``) that no physical joint could have: a negative
+    value (deflecting against the gravity torque on it, which no elastic element does;
+    DESIGN.md §2, ``c ≥ 0`` in rad/N·m), or a standard error above
+    :data:`PLAUSIBLE_COMPLIANCE_RAD_PER_NM` (the torque on it barely varies, so the data say
+    nothing about it)."""
+    offset = 6 * chain.n_links
+    values = params.compliance_rad_per_nm
+    return np.array(
+        [
+            c
+            for c, stderr in zip(keep, standard_errors, strict=True)
+            if c >= offset
+            and (values[c - offset] < 0.0 or stderr > PLAUSIBLE_COMPLIANCE_RAD_PER_NM)
+        ],
+        dtype=np.intp,
+    )
+
+
+def without_compliance(
+    chain: KinematicChain, params: ChainParameters, columns: NDArray[np.intp]
+) -> ChainParameters:
+    """``params`` with the compliance of ``columns`` set to 0."""
+    compliance = params.compliance_rad_per_nm.copy()
+    compliance[np.asarray(columns) - 6 * chain.n_links] = 0.0
+    return ChainParameters(params.links, compliance)
 
 
 def check_sample_count(

@@ -12,7 +12,13 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.calibration import FitOptions, check_sample_count, fit_deterministic
+from solver.calibration import (
+    FitOptions,
+    check_sample_count,
+    fit_deterministic,
+    implausible_compliance_columns,
+    without_compliance,
+)
 from solver.covariance.estimate import (
     FULL_LIKELIHOOD_SAMPLES,
     SE_SAMPLES,
@@ -150,16 +156,14 @@ def calibrate_streamed_fits(
     clock = time.perf_counter()
     rule: Rule | None = None
     if settings.outlier_rule == "none":
+        request = FitRequest(start, keep, options, covariance=covariance)
         first, baseline = fit_streamed_together(
             problem,
             executor,
-            [
-                FitRequest(start, keep, options, covariance=covariance),
-                FitRequest(baseline_start, baseline_keep, baseline_options),
-            ],
+            [request, FitRequest(baseline_start, baseline_keep, baseline_options)],
             count,
         )
-        fit = first
+        fit = first = non_negative_fit(problem, executor, first, request, count)
         report("fit")
     else:
         (first,) = fit_streamed_together(
@@ -228,16 +232,46 @@ def fits_under_rule(
     (refit_start, refit_keep), (baseline_start, baseline_keep) = warm_starts(
         problem, executor, used_head, [options, baseline_options]
     )
+    refit = FitRequest(refit_start, refit_keep, options, rule, covariance=covariance)
     fit, baseline = fit_streamed_together(
         problem,
         executor,
-        [
-            FitRequest(refit_start, refit_keep, options, rule, covariance=covariance),
-            FitRequest(baseline_start, baseline_keep, baseline_options, rule),
-        ],
+        [refit, FitRequest(baseline_start, baseline_keep, baseline_options, rule)],
         count,
     )
-    return fit, baseline
+    return non_negative_fit(problem, executor, fit, refit, count), baseline
+
+
+def non_negative_fit(
+    problem: StreamProblem,
+    executor: Executor,
+    fit: StreamedFit,
+    request: FitRequest,
+    count: PassCount,
+) -> StreamedFit:
+    """``fit`` with every compliance no physical joint could have (negative, or not
+    identified in any physical range) fixed at 0 and the fit repeated from there, as
+    :func:`solver.calibration.fit_deterministic` does in memory; the fixed ones are listed in
+    ``pruned``."""
+    if not request.options.non_negative_compliance:
+        return fit
+    names = parameter_names(problem.chain)
+    keep = np.array([names.index(n) for n in fit.estimated], dtype=np.intp)
+    pruned: list[str] = []
+    while (
+        negative := implausible_compliance_columns(
+            problem.chain, fit.params, keep, fit.standard_errors
+        )
+    ).size:
+        pruned += [names[c] for c in negative]
+        keep = np.setdiff1d(keep, negative)
+        start = without_compliance(problem.chain, fit.params, negative)
+        (fit,) = fit_streamed_together(
+            problem, executor, [replace(request, start=start, keep=keep)], count
+        )
+    if not pruned:
+        return fit
+    return replace(fit, removed=[n for n in fit.removed if n not in pruned], pruned=pruned)
 
 
 # --- the whole calibration of a recording --------------------------------------------------

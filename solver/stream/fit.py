@@ -270,6 +270,7 @@ class StreamedFit:
     sums: FitSums
     passes: int
     elapsed_s: float
+    pruned: list[str] = dataclasses.field(default_factory=list)
 
 
 def scaled_condition_number(gram: FloatArray) -> float:
@@ -546,14 +547,16 @@ def warm_start(
     problem: StreamProblem, head: RowSample, options: FitOptions
 ) -> tuple[ChainParameters, IntArray]:
     """In-memory fit of the head rows (closed-form alignment, pivoted-QR pruning, Eq. 10):
-    its parameters start the streamed fit and its kept columns are the streamed fit's."""
+    its parameters start the streamed fit and its kept columns are the streamed fit's. Which
+    compliances are physical is decided on the whole recording, after the streamed fit
+    (:func:`solver.stream.calibrate.non_negative_fit`), not on the head rows."""
     fit = fit_deterministic(
         problem.chain,
         head.joint_positions,
         head.measured_pose,
         head.loads_nm,
         position_only=problem.position_only,
-        options=options,
+        options=dataclasses.replace(options, non_negative_compliance=False),
     )
     names = parameter_names(problem.chain)
     keep = np.array([names.index(name) for name in fit.estimated], dtype=np.intp)
