@@ -480,8 +480,8 @@ class ModelErrorPart(_Model):
     """Model error no term of the model describes (issue 13): a diagonal covariance along the
     measurement frame's axes, ``T(q) diag(variance) T(q)ᵀ`` in the end-effector frame with
     ``T = blockdiag(Rᵀ, Rᵀ)`` and R the predicted end-effector orientation in the measurement
-    frame. Fitted by maximum likelihood to the leave-one-out residuals of the deterministic
-    fit."""
+    frame. Fitted by maximum likelihood to cross-validated residuals (``method`` says which);
+    docs/predictive.md."""
 
     axes: list[str] = Field(
         description="x, y, z (m) [, rx, ry, rz (rad)] of the measurement frame."

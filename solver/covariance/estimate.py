@@ -305,7 +305,10 @@ def estimate_from_samples(
             f"moment solver {solver_used!r} ended with status {moment.status!r}"
             + (f": {moment.message}" if moment.message else "")
         )
-    theta = resolve_null_space(moment.theta, report, layout)
+    if start_theta is None or estimator == "moment":
+        theta = resolve_null_space(moment.theta, report, layout)
+    else:  # the likelihood fit starts elsewhere: the rule is applied to its answer only
+        theta = moment.theta
     solution = moment
     sub = sample_subset
     if sub is None and (estimator != "moment" or standard_errors):
@@ -336,7 +339,7 @@ def estimate_from_samples(
             )
         theta = resolve_null_space(solution.theta, report, layout)
     cov, unc = None, None
-    if sub is not None:
+    if sub is not None and standard_errors:
         try:
             cov = _theta_covariance(
                 estimator, theta, sub, stats, report, transform, known, scale=stats.n_samples

@@ -15,6 +15,8 @@ any axis of a flex) that the test rejects at ``level`` with probability ``power`
 The level is the first step's Holm threshold, α over the number of candidates tested, so
 "nothing found" reads "nothing larger than this". A measurement-frame drift mixes metres and
 radians: its translation and rotation parts get one size each (its test keeps 6 dof).
+The robust statistic is bounded by the number of samples; where the bound lies below the
+critical value no size is detectable (:func:`robust_can_reject`) and the size is infinite.
 """
 
 from __future__ import annotations
@@ -95,6 +97,9 @@ def smallest_detectable(
         dof = min(null.dof, null.n_samples) - term.size
         if dof <= 0:
             continue
+        if not robust_can_reject(term.size, null.n_samples, level):
+            out += [DetectableSize(term, name, np.inf) for name, _ in size_groups(term)]
+            continue
         covariance = estimate_covariance(null, columns, scale2)
         needed = noncentrality_needed(term.size, dof, level, power)
         for parameter, indices in size_groups(term):
@@ -102,6 +107,19 @@ def smallest_detectable(
             largest = float(np.linalg.eigvalsh(block)[-1]) if np.all(np.isfinite(block)) else np.inf
             out.append(DetectableSize(term, parameter, float(np.sqrt(needed * largest))))
     return out
+
+
+def robust_can_reject(m: int, n_samples: int, level: float) -> bool:
+    """Can the cluster-robust score statistic reach ``level`` at all?
+
+    ``T = sᵀ(Σ u_n u_nᵀ)⁻¹ s`` with ``s = Σ u_n`` never exceeds the number of samples N
+    (Cauchy–Schwarz), and it is referred to F(m, N − m) after dividing by m: when
+    ``m · F_{1−level}(m, N − m) ≥ N`` no effect of any size is found (e.g. 23 samples against
+    some 80 candidates at α = 0.01). The size is then infinite.
+    """
+    if n_samples - m <= 0:
+        return False
+    return bool(m * scipy.stats.f.isf(level, m, n_samples - m) < n_samples)
 
 
 def estimate_covariance(null: NullModel, columns: FloatArray, scale2: float) -> FloatArray:
