@@ -3,7 +3,8 @@
 Recordings of a Kinova Jaco2 from :mod:`benchmarks.pinocchio_sim` (Pinocchio only, no kincal
 formula), clean or with 1 % detector failures (5 mm and 10° in the marker frame), go through the
 user's path: ``kincal calibrate DATA --robot kinova`` with default options (``--no-heldout``:
-the held-out splits do not touch the covariances) and ``kincal predict --no-noise`` on 40 new
+the held-out splits do not touch the covariances) and ``kincal predict --part random-effects
+--no-noise`` (Σ_E of Eq. 12 alone) on 40 new
 configurations. Per seed it reports
 
 * the share of clean samples the outlier rule removed and of detector failures it caught;
@@ -102,7 +103,16 @@ def run_one(
     q_new = robot.sample_q(N_CONFIGURATIONS, rng)
     configs = write_configurations(robot, q_new, folder / f"configs_{n}_{seed}.csv")
     poses = folder / f"poses_{n}_{seed}.csv"
-    kincal("predict", str(result_path), str(configs), "--no-noise", "-o", str(poses))
+    kincal(
+        "predict",
+        str(result_path),
+        str(configs),
+        "--part",
+        "random-effects",
+        "--no-noise",
+        "-o",
+        str(poses),
+    )
     predicted = pd.read_csv(poses)[[f"cov_{i}{j}" for i in range(6) for j in range(6)]]
     predicted_cov = predicted.to_numpy().reshape(-1, 6, 6)
     true_cov = np.array([true_ee_covariance(robot, truth, q) for q in q_new])

@@ -212,12 +212,12 @@ def test_real_fr3_recording_heldout_coverage_is_within_the_acceptance_band(
     tmp_path: Path,
 ) -> None:
     """Acceptance (issue 13) on the real FR3 recording, 10 held-out splits through ``kincal
-    calibrate`` (the 2σ rule off: it truncates the residuals and the test rows; issue 13 item
-    1): 90-98 % of held-out poses inside the predicted 95 % ellipsoid, mean Mahalanobis² within
+    calibrate`` with its defaults (the model-based outlier rule keeps the clean rows; the 2σ rule
+    truncated the residuals and the test rows): 90-98 % of held-out poses inside the predicted 95 % ellipsoid, mean Mahalanobis² within
     25 % of its χ² mean."""
     output = tmp_path / "fr3.json"
     recording = REAL_DATA / "philnad_fr3_eye_in_hand" / "fr3_poses.csv"
-    run_ok(["calibrate", recording, "--robot", "panda", "--outlier-sigma", 0, "-o", output])
+    run_ok(["calibrate", recording, "--robot", "panda", "-o", output])
     result = CalibrationResult.model_validate_json(output.read_text(encoding="utf-8"))
     assert result.predictive is not None and result.predictive.coverage is not None
     found = result.predictive.coverage
