@@ -213,8 +213,8 @@ def test_real_fr3_recording_heldout_coverage_is_within_the_acceptance_band(
 ) -> None:
     """Acceptance (issue 13) on the real FR3 recording, 10 held-out splits through ``kincal
     calibrate`` with its defaults (the model-based outlier rule keeps the clean rows; the 2σ rule
-    truncated the residuals and the test rows): 90-98 % of held-out poses inside the predicted 95 % ellipsoid, mean Mahalanobis² within
-    25 % of its χ² mean."""
+    truncated the residuals and the test rows): 90-98 % of held-out poses inside the predicted
+    95 % ellipsoid, mean Mahalanobis² within 25 % of its χ² mean."""
     output = tmp_path / "fr3.json"
     recording = REAL_DATA / "philnad_fr3_eye_in_hand" / "fr3_poses.csv"
     run_ok(["calibrate", recording, "--robot", "panda", "-o", output])
