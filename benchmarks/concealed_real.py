@@ -174,9 +174,9 @@ def baseline(name: str) -> Baseline:
 
 def candidate_joints(base: Baseline, effect: Effect) -> list[int | None]:
     """Joints where the effect's term is testable on the unmodified recording."""
-    if not effect.on_joint:
-        return [None]
-    joints = [0] if effect.effect == "base_flex" else range(base.chain.n_joints)
+    joints: list[int | None] | range = [None]
+    if effect.on_joint:
+        joints = [0] if effect.effect == "base_flex" else range(base.chain.n_joints)
     found: list[int | None] = []
     for j in joints:
         size = stated(base, effect, j)

@@ -64,20 +64,24 @@ def test_judging_counts_wrong_names_and_accepts_only_the_right_joint() -> None:
 
 
 def test_real_benchmark_runs_on_a_shipped_recording_and_prints_its_table() -> None:
-    """``concealed_effects.py --real`` on a tiny input: the UR10e, one effect, one seed."""
+    """``concealed_effects.py --real`` on a tiny input: the FR3, one effect, one seed; the
+    UR10e (21 usable samples) states no detectable size, so nothing is concealed there."""
     from benchmarks import concealed_real
 
     lines: list[str] = []
     text, rows, runs = concealed_real.main(
         seeds=1,
         workers=1,
-        recordings=["ur10e"],
+        recordings=["fr3", "ur10e"],
         effects=["backlash_direction"],
         sizes=(4.0,),
         echo=lines.append,
     )
     assert text.startswith("| Recording |") and len(rows) == 1 and len(runs) == 1
     (run,) = runs
-    assert run.truth > 0 and run.joint is not None
-    assert any("unmodified UR10e" in line for line in lines)
-    assert concealed_real.baseline("ur10e").named == []  # nothing named on the recording as is
+    assert run.recording == "fr3" and run.truth > 0 and run.joint is not None
+    assert any("unmodified UR10e: nothing named" in line for line in lines)
+    ur10e = concealed_real.baseline("ur10e")
+    assert all(
+        not concealed_real.candidate_joints(ur10e, e) for e in concealed_real.EFFECTS.values()
+    )
