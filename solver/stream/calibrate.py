@@ -641,17 +641,20 @@ def heldout_evaluation(
     seeds = evaluation.settings.seeds
     predictions: dict[tuple[int, str], FloatArray] = {}
     coverage: dict[int, SplitCoverage] = {}
-    # every split's two fits in one map: the executor's contiguous blocks then give each
-    # worker as many calibrated splits (the costly ones) as the others
-    items = [(seed, method) for seed in seeds for method in (BEFORE, CALIBRATED)]
-    for item, (predicted, scored) in zip(
-        items, executor.map(_heldout_fit, evaluation, items), strict=True
-    ):
-        predictions[item] = predicted
-        if scored is not None:
-            coverage[item[0]] = scored
-    if progress is not None:
-        progress("heldout", len(seeds), len(seeds))
+    # one split per worker per map: the executor's contiguous blocks then give each worker a
+    # split's cheap and costly fit, and progress (where a job notices a cancel) comes often
+    batch = max(1, executor.n_workers)
+    for first in range(0, len(seeds), batch):
+        chunk = seeds[first : first + batch]
+        items = [(seed, method) for seed in chunk for method in (BEFORE, CALIBRATED)]
+        for item, (predicted, scored) in zip(
+            items, executor.map(_heldout_fit, evaluation, items), strict=True
+        ):
+            predictions[item] = predicted
+            if scored is not None:
+                coverage[item[0]] = scored
+        if progress is not None:
+            progress("heldout", first + len(chunk), len(seeds))
     splits = score_splits(
         evaluation.sample.measured_pose,
         predictions,
