@@ -231,12 +231,19 @@ def _compare_with_truth(
     injected = set(truth["outlier_rows"])
     echo(
         f"outliers: {len(injected & flagged)} of {len(injected)} injected outliers removed, "
-        f"{len(flagged - injected)} clean samples removed by the 2-sigma rule"
+        f"{len(flagged - injected)} clean samples removed (outlier rule: "
+        f"{result.outliers.rule})"
     )
     echo("compliance, calibrated vs true (rad/Nm):")
     for entry in result.compliance:
         true_value = truth["compliance_rad_per_nm"].get(entry.axis, 0.0)
-        shown = f"{entry.value_rad_per_nm: .2e}" if entry.estimated else "  (not identifiable)"
+        shown = (
+            f"{entry.value_rad_per_nm: .2e}"
+            if entry.estimated
+            else "  (fixed at 0: not physical)"
+            if entry.pruned
+            else "  (not identifiable)"
+        )
         echo(f"  {entry.axis:<28} {shown}   true {true_value: .2e}")
     clean = np.setdiff1d(np.arange(n_samples), recording.outliers)
     predicted = result_json.predict_poses(result, recording.joint_positions[clean])
