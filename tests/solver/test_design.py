@@ -139,6 +139,26 @@ def test_gradient_matches_finite_differences(criterion: str) -> None:
         assert numeric == pytest.approx(gradient[n], rel=1e-5)
 
 
+@pytest.mark.parametrize("criterion", ["D", "A", "I", "E"])
+@pytest.mark.parametrize("recorded", [0, 3], ids=["first", "sequential"])
+def test_swap_values_are_the_criterion_of_the_swapped_sets(criterion: str, recorded: int) -> None:
+    """The exchange's rank-r updates give the criterion of each swapped set exactly."""
+    _, _, block = kinova()
+    block = dataclasses.replace(block, prior=block.information(np.arange(recorded)) - block.prior)
+    root = np.eye(block.dimension)[:, :5]
+    problem = DesignProblem((block,), criterion, 8, task_root=root)  # type: ignore[arg-type]
+    current = np.arange(10, 18)
+    pool = np.array([0, 5, 20, 33, 39])
+    for position in (0, 7):
+        expected = []
+        for n in pool:
+            trial = current.copy()
+            trial[position] = n
+            expected.append(problem.set_value(trial))
+        got = problem.swap_values(current, position, pool)
+        np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12)
+
+
 @settings(max_examples=50, deadline=None)
 @given(seed=st.integers(0, 10_000), k=st.integers(1, 10))
 def test_capped_simplex_projection(seed: int, k: int) -> None:
