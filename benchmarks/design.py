@@ -1,9 +1,19 @@
-"""Calibration designs (issue 16): held-out error and predicted variance against the number of
-poses, for random poses and kincal's designs, on simulated Jaco2, Panda and UR10e with
-candidates in a working box; and the time of a D-optimal design of 10⁴ candidates, K = 30.
+"""Calibration designs (issue 16) on simulated Jaco2, Panda and UR10e, candidates in a working box.
 
-FIGAROH 1.0.2's posture selection runs only if a separate interpreter with figaroh is given
-(``--figaroh-python``); it is never a kincal dependency. Usage::
+For K poses, on one candidate set per seed, it compares: K random poses from the volume,
+kincal's designs (``kincal design`` defaults: D; and I for the volume), FIGAROH 1.0.2's posture
+selection on the same candidates (its SOCP weights' K largest, and its Detmax exchange for K),
+against 50 random poses. Every design is scored by one yardstick
+(:class:`solver.design.prediction.Yardstick`): the parameter part of the predicted pose variance
+(mean over held-out configurations in the volume) and the worst identifiable parameter's
+standard error, both as ratios to 50 random poses (median over seeds); and by the held-out
+position error of a simulated calibration (kincal defaults, truth perturbed per seed).
+
+``bound`` rows: the relaxation of criterion I with repeats allowed (w ≤ 1) on the same
+candidates — no K poses from them can have a lower variance (the argument of docs/design.md).
+
+FIGAROH runs only if a separate interpreter with figaroh is given (``--figaroh-python``); it is
+never a kincal dependency (``benchmarks/figaroh_posture_driver.py`` runs under it). Usage::
 
     python benchmarks/design.py [--seeds 10] [--poses 15,25,50] [--figaroh-python PATH]
 """
@@ -11,26 +21,40 @@ FIGAROH 1.0.2's posture selection runs only if a separate interpreter with figar
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
+import tempfile
 import time
+import xml.etree.ElementTree as ET
+from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import PoseDataset
 from schemas.design import DesignOptions
 from service import pipeline
 from service.design import run_design
+from service.result_json import predict_poses
 from service.robots import RobotDescription, load_robot
 from solver import lie
 from solver.design.candidates import Volume, WorkspaceBox, sample_candidates, tip_poses
-from solver.kinematics import forward_kinematics
-from solver.model import build_chain, gravity_loads
+from solver.design.criteria import DesignProblem
+from solver.design.prediction import Yardstick, task_root
+from solver.design.relaxation import solve_first_order
+from solver.kinematics import ChainParameters, forward_kinematics
+from solver.model import KinematicChain, build_chain, gravity_loads
 from solver.simulate import SimulationSpec, true_parameters
 
+FloatArray = NDArray[np.float64]
+
 UR10E = Path(__file__).resolve().parents[1] / "data/real/figaroh_ur10_experiment/ur10e_robot.urdf"
-NOISE = np.r_[[5e-5] * 3, [np.radians(0.003)] * 3]
+DRIVER = Path(__file__).resolve().with_name("figaroh_posture_driver.py")
+NOISE = np.r_[[5e-5] * 3, [np.radians(0.003)] * 3]  # kincal design's defaults (m, rad)
+REFERENCE_POSES = 50
 
 
 def robots() -> dict[str, RobotDescription]:
@@ -41,20 +65,23 @@ def robots() -> dict[str, RobotDescription]:
     }
 
 
-def working_box(robot: RobotDescription) -> tuple[np.ndarray, np.ndarray]:
-    chain = build_chain(robot.urdf_xml, robot.base_frame, robot.tip_frame)
+def robot_chain(robot: RobotDescription) -> KinematicChain:
+    return build_chain(robot.urdf_xml, robot.base_frame, robot.tip_frame)
+
+
+def working_box(chain: KinematicChain) -> tuple[FloatArray, FloatArray]:
+    """The middle 40 % of the reachable tip positions along each base axis."""
     tips = tip_poses(chain, sample_candidates(chain, 4000, np.random.default_rng(0)))[:, :3, 3]
     return np.percentile(tips, 30, axis=0), np.percentile(tips, 70, axis=0)
 
 
 def heldout_error_mm(
-    robot: RobotDescription, q: np.ndarray, heldout: np.ndarray, seed: int
+    robot: RobotDescription, q: FloatArray, heldout: FloatArray, seed: int
 ) -> float:
     """Simulate the true robot at q (noise as NOISE), calibrate with kincal's defaults (no
     covariance), return the mean translation error (mm) at ``heldout`` against the truth."""
     options = CalibrationOptions(covariance="none", heldout=False)
-    setup = pipeline.check_calibration(robot, options)
-    chain = setup.chain
+    chain = pipeline.check_calibration(robot, options).chain
     rng = np.random.default_rng(seed)
     params, _ = true_parameters(chain, SimulationSpec(n_samples=1, seed=seed), rng)
     truth = forward_kinematics(chain, params, q, gravity_loads(chain, q))
@@ -63,84 +90,210 @@ def heldout_error_mm(
         chain.joint_names, q, measured[:, :3, 3], lie.matrix_to_quaternion_xyzw(measured[:, :3, :3])
     )
     result = pipeline.calibrate(dataset, robot, options)
-    from service.result_json import predict_poses
-
     predicted = predict_poses(result, heldout, None)
     expected = forward_kinematics(chain, params, heldout, gravity_loads(chain, heldout))
     return float(1e3 * np.mean(np.linalg.norm(predicted[:, :3, 3] - expected[:, :3, 3], axis=1)))
 
 
-def compare(seeds: int, poses: list[int]) -> None:
-    print("robot  K   method   held-out mm (median)  pred. variance ratio to random-K")
-    for name, robot in robots().items():
-        low, high = working_box(robot)
-        chain = build_chain(robot.urdf_xml, robot.base_frame, robot.tip_frame)
-        volume = Volume(box=WorkspaceBox(low, high))
-        for k in poses:
-            errors: dict[str, list[float]] = {"random": [], "design": []}
-            variance: dict[str, list[float]] = {"random": [], "design": []}
-            for seed in range(seeds):
-                rng = np.random.default_rng([seed, 3])
-                heldout = sample_candidates(chain, 200, rng, volume)
+def figaroh_urdf(robot: RobotDescription, chain: KinematicChain) -> bytes:
+    """The robot's URDF for FIGAROH: no meshes (none are shipped), and the chain's continuous
+    joints made revolute within kincal's limits (FIGAROH's candidate loader writes one angle
+    per joint into q, where Pinocchio's continuous joints take cos and sin). Same kinematics."""
+    root = ET.fromstring(robot.urdf_xml)
+    for link in root.findall("link"):
+        for tag in ("visual", "collision"):
+            for element in link.findall(tag):
+                link.remove(element)
+    for joint in root.findall("joint"):  # not the transmissions' joint references
+        name = joint.get("name", "")
+        if joint.get("type") != "continuous" or name not in chain.joint_names:
+            continue
+        i = chain.joint_names.index(name)
+        joint.set("type", "revolute")
+        limit = joint.find("limit")
+        if limit is None:
+            limit = ET.SubElement(joint, "limit", effort="1", velocity="1")
+        limit.set("lower", repr(float(chain.lower_limits[i])))
+        limit.set("upper", repr(float(chain.upper_limits[i])))
+    return ET.tostring(root)
+
+
+def figaroh_designs(
+    python: str,
+    robot: RobotDescription,
+    chain: KinematicChain,
+    candidates: FloatArray,
+    poses: list[int],
+    seed: int,
+) -> dict:  # type: ignore[type-arg]
+    """FIGAROH's posture selection on ``candidates`` through its own interpreter."""
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        (work / "robot.urdf").write_bytes(figaroh_urdf(robot, chain))
+        # FIGAROH's candidate format (YAML; JSON is YAML).
+        (work / "candidates.yaml").write_text(
+            json.dumps(
+                {
+                    "calibration_joint_names": list(chain.joint_names),
+                    "calibration_joint_configurations": candidates.tolist(),
+                }
+            )
+        )
+        request = {
+            "urdf": str(work / "robot.urdf"),
+            "base_frame": robot.base_frame,
+            "tool_frame": robot.tip_frame,
+            "candidates_yaml": str(work / "candidates.yaml"),
+            "poses": poses,
+            "seed": seed,
+            "work_dir": str(work),
+        }
+        (work / "request.json").write_text(json.dumps(request))
+        done = subprocess.run(
+            [python, str(DRIVER), str(work / "request.json"), str(work / "answer.json")],
+            capture_output=True, text=True, check=False, cwd=work,
+        )  # fmt: skip
+        if done.returncode != 0:
+            raise RuntimeError(f"FIGAROH driver failed:\n{done.stderr[-4000:]}")
+        answer: dict = json.loads((work / "answer.json").read_text())  # type: ignore[type-arg]
+    return answer
+
+
+@dataclass(frozen=True)
+class Settings:
+    seeds: int = 10
+    poses: tuple[int, ...] = (15, 25, 50)
+    candidates: int = 1000
+    heldout: int = 300
+    figaroh_python: str | None = None
+    calibrate: bool = True
+
+
+def compare_robot(
+    name: str, robot: RobotDescription, settings: Settings
+) -> dict[tuple[int, str], list[tuple[float, ...]]]:
+    """Per (K, method): per seed (variance ratio, worst σ ratio, held-out mm) to 50 random."""
+    chain = robot_chain(robot)
+    params = ChainParameters.nominal(chain)
+    low, high = working_box(chain)
+    volume = Volume(box=WorkspaceBox(low, high))
+    box = {"low_m": tuple(low), "high_m": tuple(high)}
+    rows: dict[tuple[int, str], list[tuple[float, ...]]] = defaultdict(list)
+    for seed in range(settings.seeds):
+        rng = np.random.default_rng([seed, 7])
+        heldout = sample_candidates(chain, settings.heldout, rng, volume)
+        random_q = sample_candidates(chain, max(*settings.poses, REFERENCE_POSES), rng, volume)
+        candidates = sample_candidates(chain, settings.candidates, rng, volume)
+        loads = gravity_loads(chain, candidates)
+        yardstick = Yardstick.on(chain, params, heldout, gravity_loads(chain, heldout), NOISE)
+        reference = yardstick.score(
+            random_q[:REFERENCE_POSES], gravity_loads(chain, random_q[:REFERENCE_POSES])
+        )
+        block = yardstick.block(candidates, loads)
+        figaroh = (
+            None
+            if settings.figaroh_python is None
+            else figaroh_designs(
+                settings.figaroh_python, robot, chain, candidates, list(settings.poses), seed
+            )
+        )
+        for k in settings.poses:
+            designs: dict[str, FloatArray] = {"random": random_q[:k]}
+            for criterion in ("D", "I"):
                 options = DesignOptions(
-                    n_poses=k, n_candidates=1000, seed=seed,
-                    box={"low_m": tuple(low), "high_m": tuple(high)},
+                    n_poses=k, seed=seed, box=box, criterion=criterion,
                     calibration=CalibrationOptions(covariance="none"),
                 )  # fmt: skip
-                designed = run_design(robot, options, task=heldout)
-                q_design = np.array([p.joint_positions for p in designed.poses])
-                q_random = sample_candidates(chain, k, rng, volume)
-                random = run_design(
-                    robot,
-                    options.model_copy(update={"n_poses": k}),
-                    candidates=q_random,
-                    task=heldout,
-                )
-                variance["design"].append(designed.mean_pose_variance_m2)
-                variance["random"].append(random.mean_pose_variance_m2)
-                errors["design"].append(heldout_error_mm(robot, q_design, heldout, seed))
-                errors["random"].append(heldout_error_mm(robot, q_random, heldout, seed))
-            for method in ("random", "design"):
-                ratio = np.median(variance[method]) / np.median(variance["random"])
-                print(
-                    f"{name:6} {k:3d} {method:8} {np.median(errors[method]):8.4f}"
-                    f"              {ratio:.3f}"
-                )
+                document = run_design(robot, options, candidates=candidates)
+                designs[f"kincal-{criterion}"] = candidates[[p.candidate for p in document.poses]]
+            if figaroh is not None:
+                designs["figaroh-socp"] = candidates[figaroh["ranking"][:k]]
+                designs["figaroh-detmax"] = candidates[figaroh["detmax"][str(k)]]
+            for method, q in designs.items():
+                variance, worst = yardstick.score(q, gravity_loads(chain, q))
+                error = heldout_error_mm(robot, q, heldout, seed) if settings.calibrate else np.nan
+                rows[(k, method)].append((variance / reference[0], worst / reference[1], error))
+            relaxation = solve_first_order(
+                DesignProblem(
+                    (block,), "I", k, task_root=task_root(yardstick.task), distinct=False
+                ),
+                gap_tolerance=1e-6,
+            )
+            rows[(k, "bound")].append((-relaxation.upper_bound / reference[0], np.nan, np.nan))
+        if settings.calibrate:
+            q50 = random_q[:REFERENCE_POSES]
+            rows[(REFERENCE_POSES, "random")].append(
+                (1.0, 1.0, heldout_error_mm(robot, q50, heldout, seed))
+            )
+        if figaroh is not None:
+            rows[(len(figaroh["threshold_selection"]), "figaroh-threshold")].append(
+                (*_ratios(yardstick, chain, candidates[figaroh["threshold_selection"]], reference),
+                 np.nan)
+            )  # fmt: skip
+    return rows
 
 
-def timing() -> None:
+def _ratios(
+    yardstick: Yardstick, chain: KinematicChain, q: FloatArray, reference: tuple[float, float]
+) -> tuple[float, float]:
+    variance, worst = yardstick.score(q, gravity_loads(chain, q))
+    return variance / reference[0], worst / reference[1]
+
+
+def compare(settings: Settings, names: list[str] | None = None) -> list[str]:
+    lines = [
+        "robot    K  method             variance/50rnd  worst-σ/50rnd  held-out mm  (median, "
+        f"{settings.seeds} seeds, {settings.candidates} candidates)"
+    ]
+    for name, robot in robots().items():
+        if names is not None and name not in names:
+            continue
+        rows = compare_robot(name, robot, settings)
+        for (k, method), values in sorted(rows.items(), key=lambda item: item[0]):
+            v, s, e = (_median(column) for column in np.array(values).T)
+            lines.append(f"{name:7} {k:3d}  {method:17}  {v:13.3f}  {s:13.3f}  {e:11.4f}")
+    return lines
+
+
+def _median(values: FloatArray) -> float:
+    finite = values[np.isfinite(values)]
+    return float(np.median(finite)) if finite.size else float("nan")
+
+
+def timing(n_candidates: int = 10_000, n_poses: int = 30) -> str:
     robot = load_robot("kinova")
     started = time.perf_counter()
-    out = run_design(robot, DesignOptions(n_poses=30, n_candidates=10_000))
-    print(
-        f"D-optimal, 10^4 candidates, K=30: {time.perf_counter() - started:.1f} s total "
+    out = run_design(robot, DesignOptions(n_poses=n_poses, n_candidates=n_candidates))
+    return (
+        f"D-optimal, {n_candidates} candidates, K={n_poses}: "
+        f"{time.perf_counter() - started:.1f} s total "
         f"(relaxation {out.criterion.elapsed_s:.1f} s, {out.criterion.iterations} iterations, "
         f"efficiency {out.criterion.efficiency:.3f})"
     )
-
-
-def figaroh(python: str | None) -> None:
-    if python is None:
-        print("FIGAROH: not run (pass --figaroh-python /path/to/venv/bin/python)")
-        return
-    probe = subprocess.run(
-        [python, "-c", "import figaroh, importlib.metadata as m; print(m.version('figaroh'))"],
-        capture_output=True, text=True, check=False,
-    )  # fmt: skip
-    print(f"FIGAROH: {probe.stdout.strip() or probe.stderr.strip().splitlines()[-1]}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--poses", default="15,25,50")
+    parser.add_argument("--candidates", type=int, default=1000)
+    parser.add_argument("--robots", default=None, help="comma-separated: jaco2,panda,ur10e")
     parser.add_argument("--figaroh-python", default=None)
+    parser.add_argument("--no-calibrate", action="store_true", help="skip held-out errors")
     parser.add_argument("--skip-timing", action="store_true")
     args = parser.parse_args()
-    compare(args.seeds, [int(v) for v in args.poses.split(",")])
+    settings = Settings(
+        seeds=args.seeds,
+        poses=tuple(int(v) for v in args.poses.split(",")),
+        candidates=args.candidates,
+        figaroh_python=args.figaroh_python,
+        calibrate=not args.no_calibrate,
+    )
+    names = None if args.robots is None else args.robots.split(",")
+    for line in compare(settings, names):
+        print(line, flush=True)
     if not args.skip_timing:
-        timing()
-    figaroh(args.figaroh_python)
+        print(timing())
 
 
 if __name__ == "__main__":

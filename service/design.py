@@ -243,9 +243,12 @@ def run_design(
     candidates: FloatArray | None = None,
     task: FloatArray | None = None,
     recorded: Recorded | None = None,
+    model: DesignModel | None = None,
 ) -> DesignResult:
-    """Choose ``options.n_poses`` poses (see the module docstring)."""
-    model = design_model(robot, options, recorded)
+    """Choose ``options.n_poses`` poses (see the module docstring); ``model``: the
+    :func:`design_model` of these arguments when the caller has already built it."""
+    if model is None:
+        model = design_model(robot, options, recorded)
     chain = model.chain
     q, notes = candidate_set(model, options, candidates)
     if recorded is not None:

@@ -26,7 +26,7 @@ from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.robots import resolve_robot
-from service.design import DesignJobParams, run_design
+from service.design import DesignJobParams, design_model, run_design
 from service.storage.models import Job
 from service.tasks import robot_description
 
@@ -94,14 +94,14 @@ def design_now(state: ServiceState, params: DesignJobParams) -> DesignResult:
     """The design of a request, in the calling thread."""
     robot = robot_description(params.robot, state.files)
     body = params.request
-    from service.design import design_model
-
-    k = design_model(robot, body.options).chain.n_joints
+    model = design_model(robot, body.options)
+    k = model.chain.n_joints
     return run_design(
         robot,
         body.options,
         candidates=_matrix(body.candidates_rad, "candidates_rad", k),
         task=_matrix(body.task_rad, "task_rad", k),
+        model=model,
     )
 
 

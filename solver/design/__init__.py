@@ -26,8 +26,9 @@ IntArray = NDArray[np.intp]
 
 Method = Literal["auto", "clarabel", "first_order"]
 CLARABEL_MAX_CANDIDATES = 200
-"""``auto`` solves the relaxation with Clarabel up to this many candidates (its interior-point
-steps factor a dense PSD cone coupled to every candidate), with the first-order method beyond."""
+"""``auto`` solves the relaxation with Clarabel up to this many candidates (its second-order cone
+program grows with candidates × parameters: about 5 s at 200 candidates and 35 parameters), with
+the first-order method beyond."""
 
 
 @dataclass(frozen=True)

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from solver.calibration import nominal_pose
 from solver.errors import SolverError
-from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import KinematicChain, sample_configurations
 
 FloatArray = NDArray[np.float64]
@@ -91,11 +91,8 @@ class Volume:
         return self.box is None and self.cone is None
 
 
-def tip_poses(chain: KinematicChain, joint_positions: FloatArray) -> FloatArray:
-    """Nominal tip poses (N, 4, 4) in the base frame, rigid joints."""
-    params = ChainParameters.nominal(chain)
-    zero = np.zeros((joint_positions.shape[0], len(chain.compliance_axes)))
-    return forward_kinematics(chain, params, joint_positions, zero)
+tip_poses = nominal_pose
+"""Nominal tip poses (N, 4, 4) in the base frame, rigid joints (the calibration's own)."""
 
 
 def sample_candidates(

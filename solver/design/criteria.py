@@ -111,6 +111,51 @@ class DesignProblem:
         np.add.at(weights, index, 1.0 / self.count)
         return self.value(weights)
 
+    def swap_values(self, index: IntArray, position: int, pool: IntArray) -> FloatArray:
+        """The criterion of the K poses ``index`` with ``index[position]`` replaced by each
+        candidate of ``pool`` (P,) -> (P,), by rank-r updates of the information without the
+        pose removed, ``C = (M − M_i)⁻¹``: D adds ``log det(I + F_n C F_nᵀ) / p`` (matrix
+        determinant lemma), A and I subtract ``tr((I + F_n C F_nᵀ)⁻¹ W_n W_nᵀ)`` with
+        ``W_n = F_n C R`` (Woodbury). E, or a singular ``M − M_i``, is evaluated set by set."""
+        if self.criterion == "E":
+            return self._swap_values_by_sets(index, position, pool)
+        total = np.zeros(pool.size)
+        for block in self.blocks:
+            kept = np.delete(index, position)
+            m = block.information(kept)
+            try:
+                chol = scipy.linalg.cholesky(m, lower=True, check_finite=False)
+            except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+                return self._swap_values_by_sets(index, position, pool)
+            p = block.dimension
+            inv_chol = scipy.linalg.solve_triangular(
+                chol, np.eye(p), lower=True, check_finite=False
+            )
+            f = block.factors[pool]  # (P, r, p)
+            whitened = f @ inv_chol.T  # F_n L⁻ᵀ: F_n C F_nᵀ = whitenedᵀ whitened
+            r = f.shape[1]
+            s = np.eye(r) + whitened @ whitened.transpose(0, 2, 1)
+            if self.criterion == "D":
+                total += (2.0 * np.sum(np.log(np.diag(chol))) + np.linalg.slogdet(s)[1]) / p
+                continue
+            root = np.eye(p) if self.criterion == "A" else self.task_root
+            assert root is not None
+            c_root = inv_chol.T @ (inv_chol @ root)  # C R
+            base = float(np.sum((inv_chol @ root) ** 2))  # tr(Rᵀ C R)
+            w = f @ c_root  # (P, r, c)
+            reduction = np.sum(np.linalg.solve(s, w) * w, axis=(1, 2))
+            scale = 1.0 / p if self.criterion == "A" else 1.0
+            total += -(base - reduction) * scale
+        return total
+
+    def _swap_values_by_sets(self, index: IntArray, position: int, pool: IntArray) -> FloatArray:
+        values = np.empty(pool.size)
+        trial = index.copy()
+        for j, n in enumerate(pool):
+            trial[position] = n
+            values[j] = self.set_value(trial)
+        return values
+
 
 def criterion_value(
     criterion: Criterion, information: FloatArray, task_root: FloatArray | None

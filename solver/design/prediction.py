@@ -11,10 +11,16 @@ variance"; the sensor noise comes on top).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.design.information import InformationBlock
+from solver.design.information import (
+    InformationBlock,
+    geometry_information,
+    whitened_pose_jacobian,
+)
 from solver.kinematics import ChainParameters, evaluate_chain, parameter_names, stacked_jacobian
 from solver.model import KinematicChain
 
@@ -71,3 +77,54 @@ def predicted_pose_variance(information: FloatArray, task_jacobian: FloatArray) 
     """``tr(Ĵ_t M⁻¹ Ĵ_tᵀ)`` per task configuration (N_t,), m² + rad²."""
     covariance = parameter_covariance(information)
     return np.einsum("nri,ij,nrj->n", task_jacobian, covariance, task_jacobian)
+
+
+@dataclass(frozen=True)
+class Yardstick:
+    """How designs are compared on one working volume: the identifiable parameters and their
+    equilibration fixed by ``reference`` (the geometry block of held-out configurations in
+    the volume, the calibration's pruning rule), and the equilibrated pose Jacobians ``task``
+    (N_t, rows, p) of those held-out configurations. Every design is scored on the same
+    parameters, units, noise and task, whatever candidates it came from."""
+
+    chain: KinematicChain
+    params: ChainParameters
+    noise_std: FloatArray
+    reference: InformationBlock
+    task: FloatArray
+
+    @classmethod
+    def on(
+        cls,
+        chain: KinematicChain,
+        params: ChainParameters,
+        heldout: FloatArray,
+        heldout_loads_nm: FloatArray,
+        noise_std: FloatArray,
+    ) -> Yardstick:
+        reference = geometry_information(chain, params, heldout, heldout_loads_nm, noise_std)
+        rows = noise_std.shape[0]
+        task = equilibrated_pose_jacobian(chain, params, heldout, heldout_loads_nm, reference, rows)
+        return cls(chain, params, noise_std, reference, task)
+
+    def block(self, joint_positions: FloatArray, loads_nm: FloatArray) -> InformationBlock:
+        """The information block of candidate configurations in the yardstick's parameters
+        and units (no prior), so that criterion I is exactly :meth:`score`'s variance."""
+        rows = whitened_pose_jacobian(
+            self.chain, self.params, joint_positions, loads_nm, self.noise_std
+        )
+        columns = block_columns(self.chain, self.reference)
+        p = columns.size
+        return replace(
+            self.reference,
+            factors=np.ascontiguousarray(rows[:, :, columns] / self.reference.scale),
+            prior=np.zeros((p, p)),
+        )
+
+    def score(self, joint_positions: FloatArray, loads_nm: FloatArray) -> tuple[float, float]:
+        """(the parameter part of the predicted pose variance, mean over the task, m² + rad²;
+        the worst identifiable parameter's standard error, equilibrated: in units of the
+        sensor noise) of recording ``joint_positions`` (N, k), repeats counted."""
+        information = self.block(joint_positions, loads_nm).information()
+        variance = float(np.mean(predicted_pose_variance(information, self.task)))
+        return variance, float(np.max(standard_errors(self.reference, information)[1]))

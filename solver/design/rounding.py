@@ -85,20 +85,19 @@ def exchange(
         gradient[current] = -np.inf
         pool = np.argsort(-gradient, kind="stable")[:pool_size]
         best = (value + 1e-9 * max(1.0, abs(value)), -1, -1)
+        pool = pool[np.isfinite(gradient[pool])]
         for i in range(current.size):
             others = [int(c) for j, c in enumerate(current) if j != i]
-            for n in pool:
-                if not np.isfinite(gradient[n]) or not spaced(
-                    joint_positions, others, int(n), spacing_rad
-                ):
-                    continue
-                trial = current.copy()
-                trial[i] = n
-                trial_value = problem.set_value(trial)
-                if trial_value > best[0]:
-                    best = (trial_value, i, int(n))
+            keep = [spaced(joint_positions, others, int(n), spacing_rad) for n in pool]
+            allowed = pool[np.array(keep, dtype=bool)]
+            if allowed.size == 0:
+                continue
+            values = problem.swap_values(current, i, allowed)
+            j = int(np.argmax(values))
+            if values[j] > best[0]:
+                best = (float(values[j]), i, int(allowed[j]))
         if best[1] < 0:
             break
         current[best[1]] = best[2]
-        value = best[0]
+        value = problem.set_value(current)
     return current

@@ -3,6 +3,7 @@ design, Clarabel and the first-order method agree, gradients match finite differ
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -81,17 +82,22 @@ def test_geometry_information_is_the_fits_inverse_covariance() -> None:
 
 
 @pytest.mark.parametrize("criterion", ["D", "A", "I"])
-def test_clarabel_and_first_order_agree(criterion: str) -> None:
+@pytest.mark.parametrize("recorded", [0, 3], ids=["first", "sequential"])
+def test_clarabel_and_first_order_agree(criterion: str, recorded: int) -> None:
     """The acceptance bar: both solvers of the relaxation reach the same criterion (1e-4,
-    relative for A and I whose values carry units)."""
+    relative for A and I whose values carry units), with and without the information of a
+    recording already made (the prior of a sequential design)."""
     _, _, block = kinova()
+    block = dataclasses.replace(block, prior=block.information(np.arange(recorded)) - block.prior)
     root = np.linalg.cholesky(block.information() / block.n_candidates + np.eye(block.dimension))
     problem = DesignProblem((block,), criterion, 8, task_root=root)  # type: ignore[arg-type]
     clarabel = solve_clarabel(problem)
     first = solve_first_order(problem)
     scale = 1.0 if criterion == "D" else abs(clarabel.value)
     assert abs(clarabel.value - first.value) <= 1e-4 * scale
-    assert first.status == "optimal"
+    assert first.status == "optimal" and clarabel.status == "optimal"
+    assert clarabel.value <= first.upper_bound + 1e-9 * scale
+    assert first.value <= clarabel.upper_bound + 1e-9 * scale
 
 
 @pytest.mark.parametrize("criterion", ["D", "A", "E"])
@@ -134,6 +140,26 @@ def test_gradient_matches_finite_differences(criterion: str) -> None:
         down[n] -= h
         numeric = (problem.value(up) - problem.value(down)) / (2 * h)
         assert numeric == pytest.approx(gradient[n], rel=1e-5)
+
+
+@pytest.mark.parametrize("criterion", ["D", "A", "I", "E"])
+@pytest.mark.parametrize("recorded", [0, 3], ids=["first", "sequential"])
+def test_swap_values_are_the_criterion_of_the_swapped_sets(criterion: str, recorded: int) -> None:
+    """The exchange's rank-r updates give the criterion of each swapped set exactly."""
+    _, _, block = kinova()
+    block = dataclasses.replace(block, prior=block.information(np.arange(recorded)) - block.prior)
+    root = np.eye(block.dimension)[:, :5]
+    problem = DesignProblem((block,), criterion, 8, task_root=root)  # type: ignore[arg-type]
+    current = np.arange(10, 18)
+    pool = np.array([0, 5, 20, 33, 39])
+    for position in (0, 7):
+        expected = []
+        for n in pool:
+            trial = current.copy()
+            trial[position] = n
+            expected.append(problem.set_value(trial))
+        got = problem.swap_values(current, position, pool)
+        np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12)
 
 
 @settings(max_examples=50, deadline=None)

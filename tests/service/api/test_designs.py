@@ -5,10 +5,14 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from schemas.design import DesignOptions
 from service.api import designs
+from service.design import run_design
+from service.robots import load_robot
 from tests.service.api.conftest import assert_problem
 from tests.service.api.test_jobs import worker_client  # noqa: F401  (fixture)
 
@@ -37,7 +41,13 @@ def test_given_candidates_and_same_answer_as_the_cli_pipeline(client: TestClient
     body = {**BODY, "candidates_rad": candidates}
     response = client.post("/api/v1/designs", json=body)
     assert response.status_code == 200, response.text
-    assert response.json()["candidate_source"] == "given"
+    document = response.json()
+    assert document["candidate_source"] == "given"
+    direct = run_design(
+        load_robot("kinova"), DesignOptions(**BODY["options"]), candidates=np.array(candidates)
+    )
+    assert [p["candidate"] for p in document["poses"]] == [p.candidate for p in direct.poses]
+    assert document["criterion"]["value"] == pytest.approx(direct.criterion.value, rel=1e-9)
 
 
 def test_large_design_runs_as_a_job(
