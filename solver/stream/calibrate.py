@@ -175,7 +175,7 @@ def calibrate_streamed_fits(
         fit, baseline = fits_under_rule(
             problem, executor, head, rule, options, baseline_options, covariance, count
         )
-        stage["warm_start"] = time.perf_counter() - warm - fit.elapsed_s
+        stage["warm_start"] = max(0.0, time.perf_counter() - warm - fit.elapsed_s)
     stage["deterministic"] = time.perf_counter() - clock - stage["warm_start"]
     report("baseline")
     return StreamedCalibration(
