@@ -56,7 +56,8 @@ class CalibrationOptions(_Model):
         "model",
         description="How gross errors (detector failures) are screened out: 'model' judges each "
         "sample against its own predicted covariance Σ_E(q) (Eq. 12) at the family-wise "
-        "outlier_level, iterated with the fit, and keeps clean data; 'sigma' is the paper's "
+        "outlier_level, iterated with the fit, and keeps clean data (with covariance 'none' "
+        "only its first, robust per-component step runs); 'sigma' is the paper's "
         "§V-A rule (drop a sample with a residual component beyond outlier_sigma standard "
         "deviations: ~21 % of clean 6-D samples at 2σ, so its covariances come out too "
         "small); 'none' keeps every sample. Giving only outlier_sigma selects 'sigma' "
