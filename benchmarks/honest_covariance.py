@@ -19,6 +19,7 @@ Usage: ``python -m benchmarks.honest_covariance [--sizes 119,2000] [--seeds 10] 
 from __future__ import annotations
 
 import argparse
+import functools
 import statistics
 import subprocess
 import sys
@@ -45,6 +46,7 @@ PAPER_W = np.diag([0.4, 0.4, 0.0, 0.1, 0.1, 0.0])
 N_CONFIGURATIONS = 40
 
 
+@functools.cache
 def jaco2() -> PinocchioRobot:
     description = load_robot("kinova")
     return PinocchioRobot.from_urdf(

@@ -15,7 +15,7 @@ import pandas as pd
 import pydantic
 import typer
 
-from schemas.calibration import CalibrationResult, Verdict
+from schemas.calibration import CalibrationResult
 from schemas.dataset import read_configurations, read_dataset, write_dataset
 from schemas.design import DesignOptions, DesignResult
 from service import pipeline, result_json, scenarios
@@ -28,7 +28,7 @@ from service.flags import (
     read_config,
     target_request,
 )
-from service.report import ranking_summary, summary
+from service.report import ranking_summary, summary, verdict_text
 from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
 from solver import lie
 from solver.errors import KincalError
@@ -366,15 +366,6 @@ def calibrate(
             err=True,
         )
         raise typer.Exit(3)
-
-
-def verdict_text(verdict: Verdict) -> str:
-    """The verdict's reasons, one block each: cause, then the fix."""
-    lines = [f"verdict: {verdict.status}"]
-    for reason in verdict.reasons:
-        lines.append(f"  {reason.severity}: {reason.message}")
-        lines.append(f"    fix: {reason.fix}")
-    return "\n".join(lines)
 
 
 def execution_summary(run: pipeline.CalibrationRun) -> str:

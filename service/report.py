@@ -7,6 +7,7 @@ from schemas.calibration import (
     CovarianceResult,
     HeldoutSplit,
     PredictiveCovariance,
+    Verdict,
 )
 from schemas.ranking import RankingResult
 
@@ -150,3 +151,12 @@ def ranking_summary(ranking: RankingResult) -> str:
         f"ranked {ranking.n_configurations} {what}; best: index {best.index}, score "
         f"{best.score:.4g} {ranking.score_unit} (worst {ranking.ranking[-1].score:.4g})"
     )
+
+
+def verdict_text(verdict: Verdict) -> str:
+    """The verdict's reasons, one block each: cause, then the fix."""
+    lines = [f"verdict: {verdict.status}"]
+    for reason in verdict.reasons:
+        lines.append(f"  {reason.severity}: {reason.message}")
+        lines.append(f"    fix: {reason.fix}")
+    return "\n".join(lines)

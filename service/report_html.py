@@ -41,11 +41,25 @@ code { background: #f2f2f2; padding: 0 .2rem; }
 """
 
 
+def _verdict(result: CalibrationResult) -> list[str]:
+    """The verdict first, where a reader looks: each reason with its fix."""
+    verdict = result.verdict
+    if verdict is None or not verdict.reasons:
+        return []
+    e = html.escape
+    items = "".join(
+        f"<li><b>{e(r.severity)}</b>: {e(r.message)}<br>fix: {e(r.fix)}</li>"
+        for r in verdict.reasons
+    )
+    return [f"<h2>Verdict: {e(verdict.status)}</h2>", f"<ul>{items}</ul>"]
+
+
 def render_report(result: CalibrationResult, residuals: ResidualSample) -> str:
     """The HTML report of ``result``; ``residuals`` of (some of) the samples it used."""
     e = html.escape
     sections = [
         f"<h1>kincal calibration report: {e(result.robot.name)}</h1>",
+        *_verdict(result),
         _overview(result),
         "<h2>Fit (mean and RMS error)</h2>",
         _fit_table(result),

@@ -255,18 +255,17 @@ def estimate_model_error(
 
 def mahalanobis_squared(residuals: FloatArray, covariances: FloatArray) -> FloatArray:
     """``d²_n = r_nᵀ Σ_n⁻¹ r_n`` (N,) for residuals (N, d) and covariances (N, d, d); inf where
-    Σ_n is singular and r_n leaves its range (the prediction says that pose is impossible)."""
-    out = np.empty(residuals.shape[0])
-    for n, (r, covariance) in enumerate(zip(residuals, covariances, strict=True)):
-        values, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
-        cut = max(float(values.max()), 0.0) * 1e-12
-        along = vectors.T @ r
-        inside = values > cut
-        if np.any(np.abs(along[~inside]) > 1e-9 * max(float(np.linalg.norm(r)), 1e-300)):
-            out[n] = np.inf
-        else:
-            out[n] = float(np.sum(along[inside] ** 2 / values[inside]))
-    return out
+    Σ_n is singular and r_n leaves its range (the prediction says that pose is impossible).
+    Eigenvalues below 1e-12 of a sample's largest count as zero."""
+    values, vectors = np.linalg.eigh(0.5 * (covariances + covariances.transpose(0, 2, 1)))
+    cut = np.clip(values.max(axis=1), 0.0, None) * 1e-12
+    along = np.einsum("nde,nd->ne", vectors, residuals)
+    inside = values > cut[:, None]
+    norm = np.maximum(np.linalg.norm(residuals, axis=1), 1e-300)
+    outside = np.any(~inside & (np.abs(along) > 1e-9 * norm[:, None]), axis=1)
+    safe = np.where(inside, values, 1.0)
+    d2 = np.sum(np.where(inside, along**2 / safe, 0.0), axis=1)
+    return np.where(outside, np.inf, d2)
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from solver.covariance.likelihood import ee_covariance_batch
 from solver.covariance.samples import ArraySamples, SampleChunk
 from solver.executors import Executor
 from solver.kinematics import ChainParameters
+from solver.predictive import mahalanobis_squared
 from solver.stream.chunks import (
     Block,
     StreamProblem,
@@ -274,22 +275,11 @@ class _Predicted:
     threshold: float
 
 
-def mahalanobis_squared(samples: SampleChunk, predicted: _Predicted) -> FloatArray:
-    """``r_nᵀ Σ_E(q_n)⁻¹ r_n`` (n,) of each sample's residual against its predicted covariance
-    (Eq. 12, noise included). A direction no part of the model spreads into (Σ_E singular)
-    gets a variance of 10⁻¹² of the largest, so any residual along it counts as far."""
+def _beyond(predicted: _Predicted, samples: SampleChunk) -> NDArray[np.int64]:
     covariance = ee_covariance_batch(
         samples.frame_jacobians, predicted.frame_covariances, predicted.noise_covariance
     )
-    d = covariance.shape[-1]
-    floor = 1e-12 * np.trace(covariance, axis1=1, axis2=2) / d
-    covariance = covariance + floor[:, None, None] * np.eye(d)
-    solved = np.linalg.solve(covariance, samples.residuals[:, :, None])[:, :, 0]
-    return np.asarray(np.einsum("nd,nd->n", samples.residuals, solved))
-
-
-def _beyond(predicted: _Predicted, samples: SampleChunk) -> NDArray[np.int64]:
-    far = mahalanobis_squared(samples, predicted) > predicted.threshold
+    far = mahalanobis_squared(samples.residuals, covariance) > predicted.threshold
     return samples.rows[far].astype(np.int64)
 
 

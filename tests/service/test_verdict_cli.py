@@ -226,3 +226,30 @@ def test_implausible_compliance_columns() -> None:
         offset + 1,
         offset + 2,
     ]
+
+
+def test_the_html_report_leads_with_a_failed_verdict(
+    simulated: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    report = tmp_path / "report.html"
+    code, _, _, _ = _calibrate(
+        [
+            simulated,
+            "--robot",
+            "kinova",
+            "--no-heldout",
+            "--max-iterations",
+            "1",
+            "--report",
+            report,
+        ],
+        tmp_path,
+        capsys,
+        monkeypatch,
+    )
+    text = report.read_text()
+    assert code == 3 and "Verdict: failed" in text and "--max-iterations" in text
+    assert text.index("Verdict: failed") < text.index("Fit (mean and RMS error)")
