@@ -187,8 +187,10 @@ def fit_deterministic(
         if negative.size == 0:
             break
         pruned += negative.tolist()
+        start_point = without_compliance(
+            chain, run.params, keep, run.normal, negative, converged=run.converged
+        )
         keep = np.setdiff1d(keep, negative)
-        start_point = without_compliance(chain, run.params, negative)
         run = gauss_newton(chain, start_point, keep, evaluate(start_point), evaluate, options)
     final_residual = pose_residuals(
         forward_kinematics(chain, run.params, joint_positions, loads_nm),
@@ -243,12 +245,39 @@ def implausible_compliance_columns(
 
 
 def without_compliance(
-    chain: KinematicChain, params: ChainParameters, columns: NDArray[np.intp]
+    chain: KinematicChain,
+    params: ChainParameters,
+    keep: NDArray[np.intp],
+    normal: NormalEquations,
+    columns: NDArray[np.intp],
+    *,
+    converged: bool,
 ) -> ChainParameters:
-    """``params`` with the compliance of ``columns`` set to 0."""
-    compliance = params.compliance_rad_per_nm.copy()
-    compliance[np.asarray(columns) - 6 * chain.n_links] = 0.0
-    return ChainParameters(params.links, compliance)
+    """Where a fit at ``params`` goes with the compliance of ``columns`` (among ``keep``) set
+    to 0. From a converged fit: the Gauss–Newton step of Eq. (10) from the linearisation at
+    ``params`` (``normal``: the normal equations there, over ``keep``) with those components
+    of the step fixed at minus their value, the other kept columns solved given that change,
+    ``x_f = A_fᵀA_f⁻¹ (A_fᵀy − A_fᵀA_c x_c)``; the refit without ``columns`` then starts next
+    to its optimum (its first evaluation usually confirms it) rather than a step away. From
+    a fit its iteration limit stopped: ``params`` with only those compliances set to 0 (the
+    refit gets the same iteration limit, and says so if it is not enough)."""
+    if not converged:
+        compliance = params.compliance_rad_per_nm.copy()
+        compliance[np.asarray(columns) - 6 * chain.n_links] = 0.0
+        return ChainParameters(params.links, compliance)
+    fixed = np.isin(keep, columns)
+    change = -params.compliance_rad_per_nm[keep[fixed] - 6 * chain.n_links]
+    free = ~fixed
+    reduced = NormalEquations(
+        normal.gram[np.ix_(free, free)],
+        normal.cross[free] - normal.gram[np.ix_(free, fixed)] @ change,
+        normal.cost,
+        normal.n_rows,
+    )
+    step = np.zeros(keep.size)
+    step[fixed] = change  # the compliance lands on exactly 0: c + (−c)
+    step[free] = gauss_newton_step(reduced)
+    return _apply_step(params, step, keep, chain)
 
 
 def check_sample_count(

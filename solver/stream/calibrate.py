@@ -36,7 +36,7 @@ from solver.covariance.samples import (
 from solver.covariance.solvers import SolverName
 from solver.evaluation import SplitError, score_splits, split_indices
 from solver.executors import Executor
-from solver.kinematics import forward_kinematics, parameter_names
+from solver.kinematics import ChainParameters, forward_kinematics, parameter_names
 from solver.model import KinematicChain
 from solver.stream.chunks import StreamProblem, count_chunk_rows
 from solver.stream.covariance import (
@@ -101,10 +101,12 @@ class StreamedCalibration:
     and "before" fit's warm starts; "deterministic": the streamed fits); ``passes``: passes
     over the data; ``covariance``: the covariance statistics at ``fit.params`` when a fit
     pass took them along (None: the covariance stage needs a pass for them); ``head``: the
-    first rows in memory (the warm starts' rows)."""
+    first rows in memory (the warm starts' rows); ``first``: the streamed fit of every row
+    the paper's 2σ rule and no rule judge (None for the model rule, whose first step judges
+    at the head rows' fit)."""
 
     n_rows: int
-    first: StreamedFit
+    first: StreamedFit | None
     fit: StreamedFit
     baseline: StreamedFit
     rule: Rule | None
@@ -125,20 +127,21 @@ def calibrate_streamed_fits(
     progress: Callable[[str], None] | None = None,
 ) -> StreamedCalibration:
     """Deterministic calibration of a streamed recording: warm start on the head rows, the
-    first fit, the outlier rule's first step, the refit on the kept samples and the "before"
-    fit (measurement frame and tool on the nominal robot).
+    outlier rule's first step, the refit on the kept samples and the "before" fit
+    (measurement frame and tool on the nominal robot).
 
-    The rule's first step is the paper's 2σ rule ("sigma") or, for "model", the same
-    per-component test with the median and scaled MAD of the head rows' residuals at the
-    first fit and a family-wise threshold (:func:`family_wise_z`); the model-based second step
-    needs the covariances and runs in :func:`calibrate_recording`.
+    The rule's first step is the paper's 2σ rule ("sigma", at a streamed first fit of every
+    row) or, for "model", the same per-component test with the median and scaled MAD of the
+    head rows' residuals at the head rows' fit and a family-wise threshold
+    (:func:`family_wise_z`); the model-based second step needs the covariances and runs in
+    :func:`calibrate_recording`.
 
-    Passes: one to prepare the chunks (while the driver fits the head rows), the first fit's
-    (its last pass leaves the residuals the rule is applied to), then the refit's and the
-    "before" fit's together; with ``covariance`` the refit's passes after the first also take
-    the covariance statistics (:attr:`StreamedCalibration.covariance`). ``progress(stage)`` is
-    called as "read", "fit" (the first fit) and "baseline" (the refit and the "before" fit)
-    end.
+    Passes: one to prepare the chunks (while the driver fits the head rows), for "sigma" the
+    first fit's (its last pass leaves the residuals the rule is applied to), then the refit's
+    and the "before" fit's together; with ``covariance`` the refit's passes after the first
+    also take the covariance statistics (:attr:`StreamedCalibration.covariance`).
+    ``progress(stage)`` is called as "read", "fit" (the rule's first step) and "baseline"
+    (the refit and the "before" fit) end.
     """
     report = progress or (lambda stage: None)
     count = PassCount()
@@ -166,14 +169,34 @@ def calibrate_streamed_fits(
         fit = first = non_negative_fit(problem, executor, first, request, count)
         report("fit")
     else:
-        (first,) = fit_streamed_together(
-            problem, executor, [FitRequest(start, keep, options, keep_residuals=True)], count
-        )
+        if settings.outlier_rule == "sigma":
+            (first,) = fit_streamed_together(
+                problem, executor, [FitRequest(start, keep, options, keep_residuals=True)], count
+            )
+            rule = sigma_rule(first, settings)
+            expect_pruning = implausible_columns(problem, first).size > 0
+        else:
+            # the robust first step needs no streamed fit: the head rows' fit, whose parameters
+            # start the streamed fits, judges every row (median and MAD resist the outliers
+            # that fit has seen); the model-based second step judges every row again
+            first = None
+            rule = robust_first_step(problem, head, start, n_rows, settings)
+            negative = implausible_compliance_columns(
+                problem.chain, start, keep, np.zeros(keep.size)
+            )
+            expect_pruning = negative.size > 0
         report("fit")
-        rule = first_step_rule(problem, head, first, n_rows, settings)
         warm = time.perf_counter()
         fit, baseline = fits_under_rule(
-            problem, executor, head, rule, options, baseline_options, covariance, count
+            problem,
+            executor,
+            head,
+            rule,
+            options,
+            baseline_options,
+            covariance,
+            count,
+            expect_pruning=expect_pruning,
         )
         stage["warm_start"] = max(0.0, time.perf_counter() - warm - fit.elapsed_s)
     stage["deterministic"] = time.perf_counter() - clock - stage["warm_start"]
@@ -197,23 +220,27 @@ def _removed(fit: StreamedFit, rule: Rule | None) -> NDArray[np.int64]:
     return np.sort(removed)
 
 
-def first_step_rule(
+def sigma_rule(first: StreamedFit, settings: StreamSettings) -> OutlierRule:
+    """The paper's §V-A rule at the first fit's parameters: per component, the mean and σ of
+    every sample it used, ``outlier_sigma`` standard deviations."""
+    spread = first.sums.spread
+    return OutlierRule(first.params, spread.mean, spread.std, settings.outlier_sigma)
+
+
+def robust_first_step(
     problem: StreamProblem,
     head: RowSample,
-    first: StreamedFit,
+    params: ChainParameters,
     n_rows: int,
     settings: StreamSettings,
 ) -> OutlierRule:
-    """The per-component rule at the first fit's parameters: the paper's (mean, σ of every
-    used sample, ``outlier_sigma``) or the model rule's robust first step (median and
-    1.4826·MAD of the head rows, threshold :func:`family_wise_z` at ``outlier_level``)."""
-    if settings.outlier_rule == "sigma":
-        spread = first.sums.spread
-        return OutlierRule(first.params, spread.mean, spread.std, settings.outlier_sigma)
-    residuals = head.residuals_at(problem, first.params)
+    """The model rule's robust first step at ``params``: per component, the median and
+    1.4826·MAD of the head rows' residuals, threshold :func:`family_wise_z` at
+    ``outlier_level`` for ``n_rows`` rows."""
+    residuals = head.residuals_at(problem, params)
     centre, scale = robust_spread(residuals)
     z = family_wise_z(settings.outlier_level, n_rows, problem.residual_dim)
-    return OutlierRule(first.params, centre, scale, z)
+    return OutlierRule(params, centre, scale, z)
 
 
 def fits_under_rule(
@@ -225,21 +252,39 @@ def fits_under_rule(
     baseline_options: FitOptions,
     covariance: CovarianceSpec | None,
     count: PassCount,
+    *,
+    expect_pruning: bool = False,
 ) -> tuple[StreamedFit, StreamedFit]:
     """The refit and the "before" fit on the samples ``rule`` keeps, side by side, each
-    warm-started on the head rows it keeps."""
+    warm-started on the head rows it keeps. ``expect_pruning``: the fit before had
+    compliances :func:`non_negative_fit` fixes at 0, so the refit will most likely be
+    repeated: only the repeat's passes take the covariance statistics along (when the guess
+    is wrong the covariance stage takes them in a pass of its own; the numbers are the same)."""
     used_head = head.kept_by(problem, rule)
     (refit_start, refit_keep), (baseline_start, baseline_keep) = warm_starts(
         problem, executor, used_head, [options, baseline_options]
     )
-    refit = FitRequest(refit_start, refit_keep, options, rule, covariance=covariance)
+    deferred = expect_pruning and options.non_negative_compliance
+    refit = FitRequest(
+        refit_start, refit_keep, options, rule, covariance=None if deferred else covariance
+    )
     fit, baseline = fit_streamed_together(
         problem,
         executor,
         [refit, FitRequest(baseline_start, baseline_keep, baseline_options, rule)],
         count,
     )
-    return non_negative_fit(problem, executor, fit, refit, count), baseline
+    return non_negative_fit(
+        problem, executor, fit, replace(refit, covariance=covariance), count
+    ), baseline
+
+
+def implausible_columns(problem: StreamProblem, fit: StreamedFit) -> IntArray:
+    """The compliance columns of ``fit`` no physical joint could have
+    (:func:`~solver.calibration.implausible_compliance_columns`)."""
+    names = parameter_names(problem.chain)
+    keep = np.array([names.index(n) for n in fit.estimated], dtype=np.intp)
+    return implausible_compliance_columns(problem.chain, fit.params, keep, fit.standard_errors)
 
 
 def non_negative_fit(
@@ -258,16 +303,17 @@ def non_negative_fit(
     names = parameter_names(problem.chain)
     keep = np.array([names.index(n) for n in fit.estimated], dtype=np.intp)
     pruned: list[str] = []
-    while (
-        negative := implausible_compliance_columns(
-            problem.chain, fit.params, keep, fit.standard_errors
-        )
-    ).size:
+    while (negative := implausible_columns(problem, fit)).size:
         pruned += [names[c] for c in negative]
+        start = without_compliance(
+            problem.chain, fit.params, keep, fit.sums.normal, negative, converged=fit.converged
+        )
         keep = np.setdiff1d(keep, negative)
-        start = without_compliance(problem.chain, fit.params, negative)
         (fit,) = fit_streamed_together(
-            problem, executor, [replace(request, start=start, keep=keep)], count
+            problem,
+            executor,
+            [replace(request, start=start, keep=keep, start_is_close=fit.converged)],
+            count,
         )
     if not pruned:
         return fit
@@ -498,6 +544,7 @@ def screen_by_model(
             baseline_options,
             covariance.spec,
             count,
+            expect_pruning=bool(run.fit.pruned),
         )
         run = replace(
             run,

@@ -325,6 +325,10 @@ class FitRequest:
     rule: Rule | None = None
     keep_residuals: bool = False
     covariance: CovarianceSpec | None = None
+    start_is_close: bool = False
+    """The start is expected to be the optimum (e.g. from
+    :func:`~solver.calibration.without_compliance`): the first pass takes the covariance
+    statistics along as well."""
 
 
 @dataclass
@@ -368,7 +372,9 @@ def fit_streamed_together(
                     request.rule,
                     collect_removed=request.rule is not None and passes[i] == 0,
                     keep_residuals=request.keep_residuals,
-                    covariance=request.covariance if passes[i] > 0 else None,
+                    covariance=(
+                        request.covariance if passes[i] > 0 or request.start_is_close else None
+                    ),
                 )
             )
         results = _run_pass(problem, executor, evaluations)
