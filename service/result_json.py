@@ -55,7 +55,7 @@ from solver.kinematics import (
 from solver.model import KinematicChain, build_chain, gravity_loads
 from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS
 from solver.stream.calibrate import BEFORE, CALIBRATED, RecordingCalibration
-from solver.stream.coverage import INNER_FOLDS, PredictiveCalibration
+from solver.stream.coverage import INNER_CV_ROWS, INNER_FOLDS, PredictiveCalibration
 from solver.stream.fit import StreamedFit
 from solver.stream.sums import ErrorSums
 from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, verdict_status
@@ -510,8 +510,7 @@ def _predictive_result(
             protocol=f"the held-out splits of evaluation ({len(predictive.splits)} of "
             f"{len(options.seeds)} gave covariances); per split, geometry, compliance, "
             f"covariances ({options.covariance_estimator}), Cov(θ̂) and the model-error part "
-            f"({INNER_FOLDS}-fold cross-validation inside the training rows) from its training "
-            "rows only",
+            f"({_model_error_protocol(predictive)}) from its training rows only",
         )
     return PredictiveCovariance(
         parameter_covariance=ParameterCovariance(
@@ -523,6 +522,21 @@ def _predictive_result(
         model_error=model_error,
         coverage=report,
     )
+
+
+def _model_error_protocol(predictive: PredictiveCalibration) -> str:
+    """How the held-out splits got their model-error parts, in words."""
+    nested = sum(split.nested for split in predictive.splits.values())
+    inner = f"{INNER_FOLDS}-fold cross-validation inside the training rows"
+    loo = (
+        "leave-one-out residuals of the training rows' fit (more than "
+        f"{INNER_CV_ROWS} training rows, or no inner fold could be calibrated)"
+    )
+    if nested == len(predictive.splits):
+        return inner
+    if nested == 0:
+        return loo
+    return f"{inner} in {nested} splits, {loo} in the others"
 
 
 @dataclass(frozen=True)

@@ -233,3 +233,21 @@ def test_coverage_benchmark_runs_on_a_small_recording() -> None:
     assert row.dimension == 6 and row.n_used == 23 and row.n_heldout > 0
     assert len(row.total) == 4 and all(0.0 <= v <= 1.0 for v in row.total)
     assert "UR10e" in coverage_benchmark.table([row])
+
+
+def test_splits_with_many_training_rows_take_the_model_error_from_leave_one_out(
+    tmp_path: Path,
+) -> None:
+    """Issue 17: beyond INNER_CV_ROWS training rows a split's model-error part comes from the
+    leave-one-out residuals of its own fit (one covariance estimate per split, not four); the
+    result says so, and the held-out poses are still covered."""
+    recording = tmp_path / "recording.csv"
+    effects = ["--effect", "geometry", "--effect", "random"]
+    run_ok(["simulate", "--robot", "kinova", "--n", 620, "--seed", 5, *effects, "-o", recording])
+    out = tmp_path / "result.json"
+    run_ok(["calibrate", recording, "--robot", "kinova", "--seeds", "1,2,3", "-o", out])
+    found = CalibrationResult.model_validate_json(out.read_text()).predictive
+    assert found is not None and found.coverage is not None
+    assert "leave-one-out" in found.coverage.protocol and "3-fold" not in found.coverage.protocol
+    assert found.coverage.n_heldout == 3 * 62
+    assert 0.85 <= next(c.observed for c in found.coverage.levels if c.level == 0.95) <= 1.0
