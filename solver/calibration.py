@@ -48,6 +48,9 @@ from solver.model import KinematicChain, gravity_loads, sample_configurations
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 Payload = TypeVar("Payload")
+StepRule = Callable[[ChainParameters, FloatArray, NDArray[np.intp]], ChainParameters]
+"""``apply(params, step, keep)``: how a Gauss–Newton step over the columns ``keep`` moves the
+parameters."""
 
 
 @dataclass(frozen=True)
@@ -378,14 +381,17 @@ def gauss_newton(
     first: tuple[NormalEquations, Payload],
     evaluate: Callable[[ChainParameters], tuple[NormalEquations, Payload]],
     options: FitOptions,
+    apply: StepRule | None = None,
 ) -> GaussNewtonRun[Payload]:
     """The iteration of Eq. (10) over the columns ``keep`` (:func:`gauss_newton_iteration`)
     with the normal equations (and payload) at ``start`` given as ``first`` and
     ``evaluate(params)`` giving them at any other point — from arrays in memory or summed
-    over streamed chunks."""
+    over streamed chunks. ``apply``: how a step moves the parameters (default: the chain's
+    local link corrections and compliances); a measurement model with unknowns of its own
+    (:mod:`solver.measurement`) passes its own."""
     iteration: Generator[
         ChainParameters, tuple[NormalEquations, Payload], GaussNewtonRun[Payload]
-    ] = gauss_newton_iteration(chain, start, keep, options)
+    ] = gauss_newton_iteration(chain, start, keep, options, apply)
     params = next(iteration)
     answer = first
     while True:
@@ -402,6 +408,7 @@ def gauss_newton_iteration(
     start: ChainParameters,
     keep: NDArray[np.intp],
     options: FitOptions,
+    apply: StepRule | None = None,
 ) -> Generator[ChainParameters, tuple[NormalEquations, Payload], GaussNewtonRun[Payload]]:
     """The iteration of Eq. (10) over the columns ``keep``, as a generator: it yields each
     point where it needs the normal equations (``start`` first) and is sent them (with any
@@ -426,7 +433,7 @@ def gauss_newton_iteration(
             break
         iterations += 1
         params, normal, payload = yield from _accept_step(
-            params, step, keep, (normal, payload), chain
+            params, step, keep, (normal, payload), chain, apply
         )
         costs.append(normal.cost)
         if abs(costs[-2] - normal.cost) <= options.tolerance * max(costs[-2], 1e-300):
@@ -441,6 +448,7 @@ def _accept_step(
     keep: NDArray[np.intp],
     current: tuple[NormalEquations, Payload],
     chain: KinematicChain,
+    apply: StepRule | None = None,
 ) -> Generator[
     ChainParameters,
     tuple[NormalEquations, Payload],
@@ -459,7 +467,11 @@ def _accept_step(
     slope = -2.0 * float(step @ current[0].cross)
     scale = 1.0
     for _ in range(20):
-        candidate = _apply_step(params, scale * step, keep, chain)
+        candidate = (
+            _apply_step(params, scale * step, keep, chain)
+            if apply is None
+            else apply(params, scale * step, keep)
+        )
         normal, payload = yield candidate
         if normal.cost <= cost:
             return candidate, normal, payload
@@ -487,20 +499,38 @@ def identifiable_columns(
     ``jacobian`` (N, d, P): all P columns, weighted like the fit. Returns kept column indices
     (sorted), the rank and the condition number of the kept, scaled columns.
     """
+    free = free_columns(chain, options, jacobian.shape[2])
+    return pivoted_columns(jacobian.reshape(-1, jacobian.shape[2]), free, options.rank_tolerance)
+
+
+def free_columns(chain: KinematicChain, options: FitOptions, n_columns: int) -> BoolArray:
+    """The chain columns ``options`` lets the fit move (n_columns,): the links of
+    ``free_links`` (all if None) and, with ``fit_compliance``, the compliances; columns beyond
+    the chain's (a measurement model's own unknowns) are free."""
     n_link_cols = 6 * chain.n_links
-    free = np.zeros(jacobian.shape[2], dtype=bool)
+    free = np.zeros(n_columns, dtype=bool)
     links = range(chain.n_links) if options.free_links is None else options.free_links
     for i in links:
         free[6 * i : 6 * i + 6] = True
-    free[n_link_cols:] = options.fit_compliance
+    free[n_link_cols : n_link_cols + len(chain.compliance_axes)] = options.fit_compliance
+    free[n_link_cols + len(chain.compliance_axes) :] = True
+    return free
+
+
+def pivoted_columns(
+    design: FloatArray, free: BoolArray, rank_tolerance: float
+) -> tuple[NDArray[np.intp], int, float]:
+    """The ``free`` columns of ``design`` (m, P) that survive column-pivoted QR of the
+    unit-norm-scaled columns (a pivot below ``rank_tolerance`` of the first is dependent):
+    kept indices (sorted), rank, condition number of the kept scaled columns."""
     candidates = np.flatnonzero(free)
-    a = jacobian[:, :, candidates].reshape(-1, candidates.size)
+    a = design[:, candidates]
     norms = np.linalg.norm(a, axis=0)
     nonzero = norms > 1e-12 * max(norms.max(), 1e-300)
     candidates, a, norms = candidates[nonzero], a[:, nonzero], norms[nonzero]
     _, upper, pivots = scipy.linalg.qr(a / norms, mode="economic", pivoting=True)
     diagonal = np.abs(np.diag(upper))
-    rank = int(np.sum(diagonal > options.rank_tolerance * diagonal[0]))
+    rank = int(np.sum(diagonal > rank_tolerance * diagonal[0]))
     keep = np.sort(candidates[pivots[:rank]])
     singular = np.linalg.svd(
         a[:, np.isin(candidates, keep)] / norms[np.isin(candidates, keep)], compute_uv=False
