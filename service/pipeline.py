@@ -23,10 +23,15 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.calibration import CalibrationOptions, CalibrationResult, ModelCorrections
+from schemas.calibration import (
+    CalibrationOptions,
+    CalibrationResult,
+    ModelCorrections,
+    RobotInfo,
+)
 from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_chunks, read_dataset
 from schemas.discovery import FindingsResult
-from service import discovery
+from service import discovery, measurement_run
 from service.result_json import ResidualSample, assemble_result, chain_for, sample_residuals
 from service.robots import RobotDescription
 from service.urdf_export import export_urdf
@@ -35,6 +40,7 @@ from solver.calibration import FitOptions
 from solver.covariance.layout import ROTATION_AXIS_NAMES
 from solver.errors import KincalError, ModelError
 from solver.executors import Executor, InProcessExecutor, ProcessExecutor, preload_in_workers
+from solver.measurement import MeasurementModel
 from solver.model import KinematicChain
 from solver.stream.calibrate import (
     CovarianceSettings,
@@ -324,6 +330,9 @@ def calibrate_source(
     where the passes run (default :func:`default_executor`; the caller keeps ownership of one
     it passes); ``name``: the recording's name in the result (default: the file's).
     """
+    model = measurement_run.measurement_for(setup.options, setup.chain, source, marker)
+    if model is not None:
+        return _calibrate_measured(source, setup, model, marker=marker, name=name)
     started = time.perf_counter()
     recording = open_recording(source, setup, stream, marker=marker, name=name)
     timings = {"open": time.perf_counter() - started}
@@ -373,6 +382,58 @@ def calibrate_source(
     residuals = sample_residuals(setup.chain, calibrated, recording.problem.position_only)
     return CalibrationRun(
         result, residuals, recording.notes, execution, timings, calibrated.predictive
+    )
+
+
+def _calibrate_measured(
+    source: str | Path | PoseDataset,
+    setup: CalibrationSetup,
+    model: MeasurementModel,
+    *,
+    marker: int | None,
+    name: str | None,
+) -> CalibrationRun:
+    """A recording whose rows are not marker poses or positions (ball in socket, several
+    markers, pose components, a frame on the base, a sensor on the chain): read into memory
+    and calibrated by :mod:`service.measurement_run`."""
+    if setup.findings is not None:
+        raise KincalError(
+            f"--model (a discovery's findings) is available for pose and position recordings; "
+            f"not with measurement '{model.name}'"
+        )
+    started = time.perf_counter()
+    recording = measurement_run.read_measured(
+        source, setup.chain, setup.options, model, marker=marker, name=name
+    )
+    timings = {"open": time.perf_counter() - started}
+    calibrated = measurement_run.calibrate_measurement(
+        recording,
+        setup.chain,
+        setup.options,
+        fit_options(setup.options),
+        fit_options(setup.options, baseline=True, n_links=setup.chain.n_links),
+    )
+    timings["calibration"] = calibrated.elapsed_s
+    robot = setup.robot
+    result = measurement_run.measurement_result(
+        calibrated,
+        robot=RobotInfo(
+            name=robot.name,
+            base_frame=robot.base_frame,
+            tip_frame=robot.tip_frame,
+            joint_names=list(setup.chain.joint_names),
+            urdf_sha256=setup.chain.urdf_sha256,
+            urdf=robot.urdf_xml,
+        ),
+        chain=setup.chain,
+        options=setup.options,
+    )
+    return CalibrationRun(
+        result,
+        measurement_run.measurement_residuals(calibrated),
+        (),
+        "in memory (measurement model)",
+        timings,
     )
 
 
