@@ -185,7 +185,12 @@ def simulate(
 
 @app.command()
 def calibrate(
-    data: Annotated[Path, typer.Argument(help="Dataset: CSV, Parquet or JSON; or a folder of ball-in-socket hole_<k>.csv files.")],
+    data: Annotated[
+        Path,
+        typer.Argument(
+            help="Dataset: CSV, Parquet or JSON; or a folder of ball-in-socket hole_<k>.csv files."
+        ),
+    ],
     output: OutputOpt,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,

@@ -107,26 +107,22 @@ def measurement_for(
 ) -> MeasurementModel | None:
     """The model the recording is calibrated with here, or None (pose/position: streamed)."""
     kind = measurement_kind(options, source)
-    if kind == "auto" and marker is None and not isinstance(source, PoseDataset):
-        if figaroh_marker_count(source) > 1:
-            kind = "markers"
+    several = not isinstance(source, PoseDataset) and figaroh_marker_count(source) > 1
+    if kind == "auto" and marker is None and several:
+        kind = "markers"
     argument = options.measurement.partition(":")[2]
     if kind in ("auto", "pose", "position"):
         return None
     if kind == "point":
         return FixedPoints(1)  # sockets and distances come with the rows (socket_rows)
     if kind == "markers":
-        return MultiMarker(max(figaroh_marker_count(source), 2))
+        count = 0 if isinstance(source, PoseDataset) else figaroh_marker_count(source)
+        return MultiMarker(max(count, 2))
     if kind == "components":
         return PoseComponents(tuple(c.strip() for c in argument.split(",")))
     if kind == "relative-base":
         return RelativeBase()
-    if kind == "eye-on-head":
-        if argument not in chain.joint_names:
-            raise KincalError(
-                f"measurement eye-on-head:{argument}: not a joint of the chain; choose one of "
-                f"{', '.join(chain.joint_names[:-1])}"
-            )
+    if kind == "eye-on-head":  # the joint is checked by service.pipeline.check_calibration
         return EyeOnHead(sensor_joint=list(chain.joint_names).index(argument))
     raise KincalError(f"measurement {options.measurement!r} is not known")
 
@@ -336,7 +332,9 @@ def measurement_result(
     after_heldout = _heldout(model, splits, CALIBRATED)
     before_heldout = _heldout(model, splits, BEFORE)
     after_train = _stats(model, fit.residuals)
-    tool_positions = _tool_positions(chain, fit, recording.rows.take(np.flatnonzero(calibrated.kept)))
+    tool_positions = _tool_positions(
+        chain, fit, recording.rows.take(np.flatnonzero(calibrated.kept))
+    )
     evidence = FitEvidence(
         converged=fit.converged,
         iterations=fit.iterations,
@@ -439,8 +437,7 @@ def measurement_result(
             unknowns=unknowns,
             labels=list(recording.labels),
             constraint_residuals_m=[
-                float(v) / getattr(model, "distance_weight", 1.0)
-                for v in fit.constraint_residuals
+                float(v) / getattr(model, "distance_weight", 1.0) for v in fit.constraint_residuals
             ],
             notes=list(calibrated.notes),
         ),
@@ -468,10 +465,10 @@ __all__ = [
     "IN_MEMORY_MODELS",
     "MeasuredRecording",
     "MeasurementCalibration",
+    "PoseComponents",
     "calibrate_measurement",
     "measurement_for",
     "measurement_residuals",
     "measurement_result",
     "read_measured",
 ]
-

@@ -73,7 +73,8 @@ def read_socket_folder(path: str | Path, joint_names: Sequence[str]) -> SocketRe
             "a ball-in-socket recording holds one headerless CSV of joint positions per socket"
         )
     k = len(joint_names)
-    blocks, sockets = [], []
+    blocks: list[NDArray[np.float64]] = []
+    sockets: list[str] = []
     holes: dict[str, dict[int, int]] = {}
     for placement, hole, file in files:
         name = f"{placement}/{file.name}" if placement != "." else file.name
