@@ -161,16 +161,32 @@ class DatasetChunkLoader:
     processes and Dask workers read and validate their own chunks."""
 
     plan: DatasetChunks
+    position_only: bool = False
+    """Drop the file's orientations (``measurement`` 'position')."""
 
     def __call__(self, ref: ChunkRef) -> ChunkArrays:
         dataset = self.plan.read(ref)
         return ChunkArrays(
             dataset.joint_positions,
             dataset.position_m,
-            dataset.quaternion_xyzw,
+            None if self.position_only else dataset.quaternion_xyzw,
             dataset.payload_kg,
             ref.first_row,
         )
+
+
+def measured_position_only(
+    options: CalibrationOptions, file_position_only: bool, source: str
+) -> bool:
+    """Whether the recording is calibrated position-only: the file's columns, unless the
+    ``measurement`` option says 'position' (orientations ignored); 'pose' on a file without
+    orientations is refused with the fix."""
+    if options.measurement == "pose" and file_position_only:
+        raise KincalError(
+            f"measurement 'pose' needs the orientation columns qx,qy,qz,qw; {source} has "
+            "positions only: use --measurement position (or auto)"
+        )
+    return file_position_only or options.measurement == "position"
 
 
 @dataclass(frozen=True)
@@ -215,11 +231,12 @@ def open_recording(
             source=name,
         )
         if plan.n_rows > IN_MEMORY_ROWS and setup.findings is None:
+            position_only = measured_position_only(options, plan.position_only, plan.source)
             problem = StreamProblem(
                 chain,
-                DatasetChunkLoader(plan),
+                DatasetChunkLoader(plan, position_only),
                 plan.refs,
-                position_only=plan.position_only,
+                position_only=position_only,
                 gravity_base_m_s2=np.asarray(options.gravity_base_m_s2, dtype=float),
                 payload_kg=options.payload_kg,
                 block_rows=stream.block_rows,
@@ -238,16 +255,17 @@ def open_recording(
     if setup.findings is not None:
         carried = discovery.carry_model(setup.findings, dataset, setup.robot)
         dataset, corrections, notes = carried.dataset, carried.record, tuple(carried.notes)
+    position_only = measured_position_only(options, dataset.is_position_only, dataset.source)
     problem = StreamProblem(
         chain,
         ArrayChunks(
             dataset.joint_positions,
             dataset.position_m,
-            dataset.quaternion_xyzw,
+            None if position_only else dataset.quaternion_xyzw,
             dataset.payload_kg,
         ),
         row_ranges(dataset.n_samples, stream.chunk_rows),
-        position_only=dataset.is_position_only,
+        position_only=position_only,
         gravity_base_m_s2=np.asarray(options.gravity_base_m_s2, dtype=float),
         payload_kg=options.payload_kg,
         block_rows=stream.block_rows,

@@ -8,6 +8,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from benchmarks import platonics
@@ -159,3 +160,36 @@ def test_http_refuses_a_folder_measurement_with_problem_json(tmp_path: Path) -> 
     assert response.status_code == 422
     assert response.headers["content-type"].startswith("application/problem+json")
     assert "kincal calibrate" in response.json()["detail"]
+
+
+FR3 = REAL_DATA / "philnad_fr3_eye_in_hand/fr3_poses.csv"
+
+
+def test_position_measurement_ignores_the_recorded_orientations(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """--measurement position on a full-pose file equals the same file without its
+    quaternion columns (to 1e-9)."""
+    import pandas as pd
+
+    stripped = tmp_path / "positions.csv"
+    pd.read_csv(FR3).drop(columns=["qx", "qy", "qz", "qw"]).to_csv(stripped, index=False)
+    base = ["--robot", "panda", "--covariance", "none", "--seeds", "1,2"]
+    out_a, out_b = tmp_path / "a.json", tmp_path / "b.json"
+    code, _, err = run(
+        ["calibrate", FR3, *base, "--measurement", "position", "-o", out_a], capsys, monkeypatch
+    )
+    assert code == 0, err
+    code, _, err = run(["calibrate", stripped, *base, "-o", out_b], capsys, monkeypatch)
+    assert code == 0, err
+    a, b = json.loads(out_a.read_text()), json.loads(out_b.read_text())
+    assert a["dataset"]["position_only"] and b["dataset"]["position_only"]
+    for link_a, link_b in zip(a["links"], b["links"], strict=True):
+        np.testing.assert_allclose(link_a["placement"], link_b["placement"], atol=1e-9)
+    heldout_a, heldout_b = a["fit"]["after"]["heldout"], b["fit"]["after"]["heldout"]
+    assert heldout_a["rotation_mean_deg"] is None
+    assert heldout_a["translation_mean_mm"] == pytest.approx(heldout_b["translation_mean_mm"])
+    code, _, err = run(
+        ["calibrate", stripped, *base, "--measurement", "pose", "-o", out_b], capsys, monkeypatch
+    )
+    assert code == 2 and "--measurement position" in err
