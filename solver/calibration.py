@@ -22,7 +22,6 @@ Every step reduces to sums over samples, so the same code serves in-memory array
 from __future__ import annotations
 
 import functools
-import time
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
@@ -33,16 +32,13 @@ import scipy.linalg.blas
 from numpy.typing import NDArray
 
 from solver import lie
-from solver.alignment import align_full_pose, align_position_only
 from solver.errors import CalibrationError
 from solver.kinematics import (
     ChainParameters,
     evaluate_chain,
-    forward_kinematics,
-    parameter_names,
-    pose_residuals,
     stacked_jacobian,
 )
+from solver.measurement import models as measurement_models
 from solver.model import KinematicChain, gravity_loads, sample_configurations
 
 FloatArray = NDArray[np.float64]
@@ -105,9 +101,13 @@ class DeterministicFit:
 
 def nominal_pose(chain: KinematicChain, joint_positions: FloatArray) -> FloatArray:
     """URDF forward kinematics base -> tip, rigid; (N, 4, 4)."""
-    params = ChainParameters.nominal(chain)
-    zero_loads = np.zeros((joint_positions.shape[0], len(chain.compliance_axes)))
-    return forward_kinematics(chain, params, joint_positions, zero_loads)
+    return measurement_models.nominal_pose(chain, joint_positions)
+
+
+def pose_measurement(*, position_only: bool) -> measurement_models.FullPose:
+    """The measurement model of a pose recording: :class:`~solver.measurement.Position` when
+    only positions were measured, else :class:`~solver.measurement.FullPose`."""
+    return measurement_models.Position() if position_only else measurement_models.FullPose()
 
 
 def initial_parameters(
@@ -117,16 +117,13 @@ def initial_parameters(
     *,
     position_only: bool,
 ) -> ChainParameters:
-    """Nominal geometry; closed-form measurement frame folded into L_1, tool into L_{k+1}."""
-    nominal = nominal_pose(chain, joint_positions)
-    if position_only:
-        world, tool = align_position_only(nominal, measured_pose[:, :3, 3])
-    else:
-        world, tool = align_full_pose(nominal, measured_pose)
-    links = chain.nominal_links.copy()
-    links[0] = world @ links[0]
-    links[-1] = links[-1] @ tool
-    return ChainParameters(links, np.zeros(len(chain.compliance_axes)))
+    """Nominal geometry; closed-form measurement frame folded into L_1, tool into L_{k+1}
+    (:meth:`solver.measurement.FullPose.start`)."""
+    rows = measurement_models.MeasurementRows.of(
+        joint_positions, np.zeros((joint_positions.shape[0], 0)), measured_pose
+    )
+    start = pose_measurement(position_only=position_only).start(chain, rows)
+    return ChainParameters(start.links, start.compliance_rad_per_nm)
 
 
 def weighted(values: FloatArray, *, position_only: bool, rotation_weight: float) -> FloatArray:
@@ -150,68 +147,39 @@ def fit_deterministic(
     """Paper Eq. (10): iterate ``x_w = A_w^+ y_w`` and re-linearise until the cost settles.
 
     ``measured_pose`` (N, 4, 4) in the measurement frame (rotation ignored if position-only);
-    ``loads_nm`` (N, n_axes) from :func:`solver.model.gravity_loads`.
+    ``loads_nm`` (N, n_axes) from :func:`solver.model.gravity_loads`. The fit of the pose
+    measurement model (:func:`solver.measurement.fit_measurement` with
+    :func:`pose_measurement`), after the sample count is checked against the chain.
     """
-    started = time.perf_counter()
-    params = start or initial_parameters(
-        chain, joint_positions, measured_pose, position_only=position_only
-    )
-    names = parameter_names(chain)
-    rows = 3 if position_only else 6
-
-    def linearise(p: ChainParameters) -> tuple[FloatArray, FloatArray]:
-        evaluation = evaluate_chain(chain, p, joint_positions, loads_nm)
-        residual = pose_residuals(evaluation.pose, measured_pose, position_only=position_only)
-        jacobian = stacked_jacobian(evaluation)[:, :rows]
-        w = options.rotation_weight_m_per_rad
-        return (
-            weighted(residual, position_only=position_only, rotation_weight=w),
-            weighted(jacobian, position_only=position_only, rotation_weight=w),
-        )
+    from solver.measurement.fit import fit_measurement  # it builds on this module
 
     check_sample_count(
         chain, joint_positions.shape[0], position_only=position_only, options=options
     )
-    residual, jacobian = linearise(params)
-    keep, rank, condition = identifiable_columns(jacobian, chain, options)
-
-    def evaluate(p: ChainParameters) -> tuple[NormalEquations, FloatArray]:
-        r, j = linearise(p)
-        kept = j[:, :, keep]
-        return normal_equations(kept.reshape(-1, keep.size), r.reshape(-1)), kept
-
-    first = normal_equations(jacobian[:, :, keep].reshape(-1, keep.size), residual.reshape(-1))
-    run = gauss_newton(chain, params, keep, (first, jacobian[:, :, keep]), evaluate, options)
-    pruned: list[int] = []
-    while options.non_negative_compliance:
-        negative = implausible_compliance_columns(
-            chain, run.params, keep, parameter_standard_errors(run.normal)
-        )
-        if negative.size == 0:
-            break
-        pruned += negative.tolist()
-        keep = np.setdiff1d(keep, negative)
-        start_point = without_compliance(chain, run.params, negative)
-        run = gauss_newton(chain, start_point, keep, evaluate(start_point), evaluate, options)
-    final_residual = pose_residuals(
-        forward_kinematics(chain, run.params, joint_positions, loads_nm),
-        measured_pose,
-        position_only=position_only,
+    rows = measurement_models.MeasurementRows.of(joint_positions, loads_nm, measured_pose)
+    fit = fit_measurement(
+        chain,
+        pose_measurement(position_only=position_only),
+        rows,
+        options,
+        start=None
+        if start is None
+        else measurement_models.ModelParameters(start.links, start.compliance_rad_per_nm),
     )
     return DeterministicFit(
-        params=run.params,
-        estimated=[names[i] for i in keep],
-        removed=[n for n in removed_names(names, keep) if names.index(n) not in pruned],
-        standard_errors=parameter_standard_errors(run.normal),
-        rank=rank,
-        condition_number=condition,
-        iterations=run.iterations,
-        converged=run.converged,
-        cost_history=run.cost_history,
-        residuals=final_residual,
-        jacobian=run.payload,
-        elapsed_s=time.perf_counter() - started,
-        pruned=[names[i] for i in sorted(pruned)],
+        params=ChainParameters(fit.params.links, fit.params.compliance_rad_per_nm),
+        estimated=fit.estimated,
+        removed=fit.removed,
+        standard_errors=fit.standard_errors,
+        rank=fit.rank,
+        condition_number=fit.condition_number,
+        iterations=fit.iterations,
+        converged=fit.converged,
+        cost_history=fit.cost_history,
+        residuals=fit.residuals,
+        jacobian=fit.jacobian,
+        elapsed_s=fit.elapsed_s,
+        pruned=fit.pruned,
     )
 
 

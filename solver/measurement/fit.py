@@ -49,7 +49,8 @@ class MeasurementFit:
     """Result of :func:`fit_measurement`; fields as :class:`solver.calibration.DeterministicFit`
     (``estimated``/``removed`` over the chain's and the model's parameter names,
     ``standard_errors`` aligned with ``estimated``), ``residuals`` (N, d) unweighted in the
-    model's frame, ``constraint_residuals`` (c,) of its known distances."""
+    model's frame, ``constraint_residuals`` (c,) of its known distances, ``jacobian``
+    (N, d, p) of the rows over the estimated columns, weighted like the fit."""
 
     model: MeasurementModel
     params: ModelParameters
@@ -63,6 +64,7 @@ class MeasurementFit:
     cost_history: list[float]
     residuals: FloatArray
     constraint_residuals: FloatArray
+    jacobian: FloatArray
     elapsed_s: float
     pruned: list[str] = dataclasses.field(default_factory=list)
 
@@ -83,14 +85,20 @@ def _stacked(
     params: ModelParameters,
     rows: MeasurementRows,
     weights: FloatArray,
-) -> tuple[FloatArray, FloatArray]:
-    """Weighted design (N·d + c, P + E) and target (N·d + c,) of Eq. (10)."""
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Weighted design (N·d + c, P + E) and target (N·d + c,) of Eq. (10), and the rows'
+    weighted Jacobian (N, d, P + E)."""
     residual, jacobian = model.linearise(chain, params, rows)
     assert jacobian is not None
     extra_r, extra_a = model.constraints(chain, params)
-    design = (jacobian * weights[None, :, None]).reshape(-1, jacobian.shape[2])
-    target = (residual * weights).reshape(-1)
-    return np.concatenate([design, extra_a]), np.concatenate([target, extra_r])
+    if np.any(weights != 1.0):
+        jacobian = jacobian * weights[None, :, None]
+        residual = residual * weights
+    design = jacobian.reshape(-1, jacobian.shape[2])
+    target = residual.reshape(-1)
+    if extra_r.size:
+        return np.concatenate([design, extra_a]), np.concatenate([target, extra_r]), jacobian
+    return design, target, jacobian
 
 
 def fit_measurement(
@@ -114,7 +122,7 @@ def fit_measurement(
     params = start if start is not None else model.start(chain, rows)
     names = parameter_names(chain) + model.extra_names()
     weights = row_weights(model, options)
-    design, target = _stacked(chain, model, params, rows, weights)
+    design, target, jacobian = _stacked(chain, model, params, rows, weights)
     free = free_columns(chain, options, len(names))
     free[: chain_column_count(chain)] &= model.visible_columns(chain)
     keep, rank, condition = pivoted_columns(design, free, options.rank_tolerance)
@@ -127,16 +135,24 @@ def fit_measurement(
             f"{keep.size // model.dim + 1} configurations (3x that is advisable)"
         )
 
-    def evaluate(p: ChainParameters) -> tuple[NormalEquations, None]:
+    def evaluate(p: ChainParameters) -> tuple[NormalEquations, FloatArray]:
         assert isinstance(p, ModelParameters)
-        a, y = _stacked(chain, model, p, rows, weights)
-        return normal_equations(a[:, keep], y), None
+        a, y, j = _stacked(chain, model, p, rows, weights)
+        kept = j[:, :, keep]
+        if y.size == kept.size:  # no extra equations: the design is the rows' Jacobian
+            return normal_equations(kept.reshape(-1, keep.size), y), kept
+        return normal_equations(a[:, keep], y), kept
 
     def apply(p: ChainParameters, step: FloatArray, columns: IntArray) -> ChainParameters:
         return model.apply(chain, p, step, columns)
 
-    first = normal_equations(design[:, keep], target)
-    run = gauss_newton(chain, params, keep, (first, None), evaluate, options, apply)
+    kept = jacobian[:, :, keep]
+    first = (
+        normal_equations(kept.reshape(-1, keep.size), target)
+        if target.size == kept.size
+        else normal_equations(design[:, keep], target)
+    )
+    run = gauss_newton(chain, params, keep, (first, kept), evaluate, options, apply)
     pruned: list[int] = []
     n_chain = chain_column_count(chain)
     while options.non_negative_compliance:
@@ -170,6 +186,7 @@ def fit_measurement(
         cost_history=run.cost_history,
         residuals=residual,
         constraint_residuals=model.constraints(chain, final)[0],
+        jacobian=run.payload,
         elapsed_s=time.perf_counter() - started,
         pruned=[names[i] for i in sorted(pruned)],
     )

@@ -259,7 +259,7 @@ class FullPose(MeasurementModel):
         return forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
 
     def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
-        nominal = _nominal_pose(chain, rows.joint_positions)
+        nominal = nominal_pose(chain, rows.joint_positions)
         if self.position_only:
             world, tool = align_position_only(nominal, rows.measured[:, :3, 3])
         else:
@@ -310,7 +310,8 @@ class Position(FullPose):
         return True
 
 
-def _nominal_pose(chain: KinematicChain, joint_positions: FloatArray) -> FloatArray:
+def nominal_pose(chain: KinematicChain, joint_positions: FloatArray) -> FloatArray:
+    """URDF forward kinematics base -> tip, rigid; (N, 4, 4)."""
     zero_loads = np.zeros((joint_positions.shape[0], len(chain.compliance_axes)))
     return forward_kinematics(chain, ChainParameters.nominal(chain), joint_positions, zero_loads)
 
@@ -480,7 +481,7 @@ class FixedPoints(MeasurementModel):
     def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
         """Nominal chain; the ball offset ``t`` (flange frame) and the points from the linear
         least squares ``p_n + R_n t = P_{g(n)}`` (exact when the nominal chain is)."""
-        nominal = _nominal_pose(chain, rows.joint_positions)
+        nominal = nominal_pose(chain, rows.joint_positions)
         n = rows.n
         design = np.zeros((n, 3, 3 + 3 * self.n_points))
         design[:, :, :3] = nominal[:, :3, :3]
@@ -586,7 +587,7 @@ class MultiMarker(MeasurementModel):
     def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
         """Measurement frame from the first marker (:func:`align_position_only`), then every
         marker's offset by linear least squares ``R_W R_n t_j = p_m,j − R_W p_n − t_W``."""
-        nominal = _nominal_pose(chain, rows.joint_positions)
+        nominal = nominal_pose(chain, rows.joint_positions)
         world, _ = align_position_only(nominal, rows.measured[:, 0])
         rotation = world[:3, :3] @ nominal[:, :3, :3]
         design = rotation.reshape(-1, 3)
