@@ -23,7 +23,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from schemas.calibration import (
-    BaselineFit,
     CalibrationOptions,
     CalibrationResult,
     DatasetInfo,
@@ -50,11 +49,8 @@ from schemas.dataset.constraints import (
 )
 from service.result_json import (
     ResidualSample,
-    _compliance,
     _error_stats,
-    _link_stderr,
-    _links,
-    _transform,
+    chain_fields,
     kincal_version,
 )
 from solver import lie
@@ -366,21 +362,7 @@ def measurement_result(
         ),
         robot=robot,
         options=options,
-        measurement_frame=_transform(
-            fit.params.links[0] @ lie.inverse(chain.nominal_links[0]), *_link_stderr(fit, chain, 0)
-        ),
-        tool=_transform(
-            lie.inverse(chain.nominal_links[-1]) @ fit.params.links[-1],
-            *_link_stderr(fit, chain, chain.n_links - 1),
-        ),
-        baseline=BaselineFit(
-            measurement_frame=_transform(
-                baseline.params.links[0] @ lie.inverse(chain.nominal_links[0])
-            ),
-            tool=_transform(lie.inverse(chain.nominal_links[-1]) @ baseline.params.links[-1]),
-        ),
-        links=_links(chain, fit),
-        compliance=_compliance(chain, fit),
+        **chain_fields(chain, fit, baseline),
         identifiability=Identifiability(
             n_parameters=len(parameter_names(chain)) + len(model.extra_names()),
             rank=fit.rank,

@@ -8,7 +8,7 @@ import datetime as dt
 import functools
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -398,6 +398,28 @@ def _verdict(
     )
 
 
+def chain_fields(chain: KinematicChain, fit: FittedChain, baseline: FittedChain) -> dict[str, Any]:
+    """The result's fields of the calibrated chain: ``measurement_frame``, ``tool``,
+    ``baseline`` (frame and tool of the "before" fit), ``links`` and ``compliance``."""
+    return {
+        "measurement_frame": _transform(
+            fit.params.links[0] @ lie.inverse(chain.nominal_links[0]), *_link_stderr(fit, chain, 0)
+        ),
+        "tool": _transform(
+            lie.inverse(chain.nominal_links[-1]) @ fit.params.links[-1],
+            *_link_stderr(fit, chain, chain.n_links - 1),
+        ),
+        "baseline": BaselineFit(
+            measurement_frame=_transform(
+                baseline.params.links[0] @ lie.inverse(chain.nominal_links[0])
+            ),
+            tool=_transform(lie.inverse(chain.nominal_links[-1]) @ baseline.params.links[-1]),
+        ),
+        "links": _links(chain, fit),
+        "compliance": _compliance(chain, fit),
+    }
+
+
 def assemble_result(
     *,
     source: str,
@@ -427,21 +449,7 @@ def assemble_result(
             urdf=robot.urdf_xml,
         ),
         options=options,
-        measurement_frame=_transform(
-            fit.params.links[0] @ lie.inverse(chain.nominal_links[0]), *_link_stderr(fit, chain, 0)
-        ),
-        tool=_transform(
-            lie.inverse(chain.nominal_links[-1]) @ fit.params.links[-1],
-            *_link_stderr(fit, chain, chain.n_links - 1),
-        ),
-        baseline=BaselineFit(
-            measurement_frame=_transform(
-                baseline.params.links[0] @ lie.inverse(chain.nominal_links[0])
-            ),
-            tool=_transform(lie.inverse(chain.nominal_links[-1]) @ baseline.params.links[-1]),
-        ),
-        links=_links(chain, fit),
-        compliance=_compliance(chain, fit),
+        **chain_fields(chain, fit, baseline),
         identifiability=Identifiability(
             n_parameters=len(parameter_names(chain)),
             rank=fit.rank,
