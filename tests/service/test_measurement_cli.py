@@ -193,3 +193,17 @@ def test_position_measurement_ignores_the_recorded_orientations(
         ["calibrate", stripped, *base, "--measurement", "pose", "-o", out_b], capsys, monkeypatch
     )
     assert code == 2 and "--measurement position" in err
+
+
+def test_design_refuses_a_measurement_it_cannot_plan(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    config = tmp_path / "options.toml"
+    config.write_text('measurement = "point"\n')
+    code, _, stderr = run(
+        ["design", "--robot", "kinova", "--config", config, "-o", tmp_path / "d.json"],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 2
+    assert "measurement 'point' is not supported by the design" in stderr
