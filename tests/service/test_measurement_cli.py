@@ -207,3 +207,53 @@ def test_design_refuses_a_measurement_it_cannot_plan(
     )
     assert code == 2
     assert "measurement 'point' is not supported by the design" in stderr
+
+
+@pytest.mark.parametrize(
+    ("measurement", "model_name"),
+    [("components:tz,rx,ry", "plane contact"), ("eye-on-head:panda_joint2", "eye-on-head")],
+)
+def test_pose_like_measurements_calibrate_through_the_cli_to_the_noise_floor(
+    measurement: str,
+    model_name: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A simulated plane contact (z, roll, pitch of the tool in the plane's frame) and a
+    sensor riding after joint 2 (the tip in its moving frame), written as pose CSVs:
+    ``kincal calibrate --measurement ...`` exits 0 and its held-out error is at the noise."""
+    import pandas as pd
+
+    from solver import lie
+    from solver.model import sample_configurations
+    from tests.conftest import chain
+    from tests.solver.test_measurement import MODELS, NOISE, _base, _rows
+
+    c = chain("panda")
+    model = MODELS[model_name]
+    rng = np.random.default_rng(3)
+    truth = _base(c, model)
+    truth = model.apply(
+        c, truth, 5e-4 * rng.standard_normal(6 * c.n_links), np.arange(6 * c.n_links)
+    )
+    rows = _rows(c, model, truth, sample_configurations(c, 200, rng), rng)
+    quaternion = lie.matrix_to_quaternion_xyzw(rows.measured[:, :3, :3])
+    table = pd.DataFrame(rows.joint_positions, columns=list(c.joint_names))
+    table[["x", "y", "z"]] = rows.measured[:, :3, 3]
+    table[["qx", "qy", "qz", "qw"]] = quaternion
+    data = tmp_path / "contact.csv"
+    table.to_csv(data, index=False)
+    out = tmp_path / "result.json"
+    args = ["calibrate", data, "--robot", "panda", "--measurement", measurement]
+    code, _, stderr = run([*args, "--rigid", "-o", out], capsys, monkeypatch)
+    assert code == 0, stderr
+    result = json.loads(out.read_text())
+    assert result["measurement"]["type"] == measurement
+    after = result["fit"]["after"]["heldout"]
+    before = result["fit"]["before"]["heldout"]
+    translation_rows = len(model.translation_rows)
+    # mean norm of the translation rows of 0.1 mm noise: at most 1.2x its expected value
+    expected_mm = 1e3 * NOISE * {1: np.sqrt(2 / np.pi), 3: np.sqrt(8 / np.pi)}[translation_rows]
+    assert after["translation_mean_mm"] <= 1.2 * expected_mm, (after, expected_mm)
+    assert after["translation_mean_mm"] < before["translation_mean_mm"]
