@@ -36,7 +36,7 @@ from service.result_json import ResidualSample, assemble_result, chain_for, samp
 from service.robots import RobotDescription
 from service.urdf_export import export_urdf
 from service.urdf_export import refusal as urdf_refusal
-from solver.calibration import FitOptions
+from solver.calibration import FitOptions, pose_measurement
 from solver.covariance.layout import ROTATION_AXIS_NAMES
 from solver.errors import KincalError, ModelError
 from solver.executors import Executor, InProcessExecutor, ProcessExecutor, preload_in_workers
@@ -236,7 +236,7 @@ def open_recording(
                 chain,
                 DatasetChunkLoader(plan, position_only),
                 plan.refs,
-                position_only=position_only,
+                measurement=pose_measurement(position_only=position_only),
                 gravity_base_m_s2=np.asarray(options.gravity_base_m_s2, dtype=float),
                 payload_kg=options.payload_kg,
                 block_rows=stream.block_rows,
@@ -265,7 +265,7 @@ def open_recording(
             dataset.payload_kg,
         ),
         row_ranges(dataset.n_samples, stream.chunk_rows),
-        position_only=position_only,
+        measurement=pose_measurement(position_only=position_only),
         gravity_base_m_s2=np.asarray(options.gravity_base_m_s2, dtype=float),
         payload_kg=options.payload_kg,
         block_rows=stream.block_rows,
