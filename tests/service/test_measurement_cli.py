@@ -31,10 +31,13 @@ def test_panda_ball_in_socket_calibrates_with_defaults(
     is detected as 'point' and calibrates with exit 0; the held-out ball-centre scatter drops
     more than 5x."""
     out = tmp_path / "result.json"
-    code, stdout, stderr = run(
-        ["calibrate", SOCKETS / "panda_right", "--robot", "panda", "-o", out], capsys, monkeypatch
-    )
+    report = tmp_path / "report.html"
+    args = ["calibrate", SOCKETS / "panda_right", "--robot", "panda", "--report", report]
+    code, stdout, stderr = run([*args, "-o", out], capsys, monkeypatch)
     assert code == 0, stderr
+    page = report.read_text()
+    assert "point (residual in the robot base frame)" in page
+    assert "removed by the model rule (level 0.01)" in page
     result = json.loads(out.read_text())
     measurement = result["measurement"]
     assert measurement["type"] == "point"
