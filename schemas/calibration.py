@@ -138,6 +138,26 @@ class CalibrationOptions(_Model):
         "noise_std; None = estimate Σ_n with the rest.",
     )
 
+    measurement: str = Field(
+        "auto",
+        description="What each row measures (docs/measurements.md): 'pose' (x,y,z and "
+        "quaternion), 'position' (x,y,z), 'components:tz,rx,ry' (chosen pose components in the "
+        "measurement frame, e.g. a plane contact), 'point' (ball in socket: a folder of "
+        "headerless hole_<k>.csv joint files, one unknown point per socket file), 'markers' "
+        "(every FIGAROH marker of the file at once, each with its own offset), "
+        "'relative-base' (the marker in the frame of an unknown marker on the robot base), "
+        "'eye-on-head:<joint>' (the sensor rides on the body after that joint), or 'auto' "
+        "(a folder of hole files: point; a FIGAROH file with several markers and no --marker: "
+        "markers; otherwise pose or position by the file's columns).",
+    )
+    point_distance_m: float | None = Field(
+        None,
+        gt=0.0,
+        description="Measurement 'point': known distance between the sockets hole_0 and hole_1 "
+        "of each placement, m (0.05 for the platonics tool). Without it the link lengths stay "
+        "the URDF's (a robot scaled about its base fits every socket as well).",
+    )
+
     @model_validator(mode="after")
     def _solver_fits_structure(self) -> CalibrationOptions:
         if self.covariance == "full" and self.covariance_solver == "nnls":
@@ -146,6 +166,20 @@ class CalibrationOptions(_Model):
                 "'clarabel' with covariance 'full'"
             )
         return self
+
+    @field_validator("measurement")
+    @classmethod
+    def _measurement_known(cls, value: str) -> str:
+        kind, _, argument = value.partition(":")
+        plain = ("auto", "pose", "position", "point", "markers", "relative-base")
+        if kind in plain and not argument:
+            return value
+        if kind in ("components", "eye-on-head") and argument:
+            return value
+        raise ValueError(
+            f"unknown measurement {value!r}; choose auto, pose, position, point, markers, "
+            "relative-base, components:<tx,ty,tz,rx,ry,rz subset> or eye-on-head:<joint>"
+        )
 
     @field_validator("outlier_sigma")
     @classmethod
@@ -526,6 +560,29 @@ class PredictiveCovariance(_Model):
     coverage: CoverageReport | None = Field(description="None without held-out splits.")
 
 
+class MeasuredUnknown(_Model):
+    name: str = Field(description="e.g. point_0.x (a socket), marker_2.z (a marker offset).")
+    value: float = Field(description="m")
+    stderr: float | None = Field(description="m; None where the data do not identify it.")
+
+
+class MeasurementResult(_Model):
+    """What each row measured and the measurement's own unknowns (issue 15): sockets of a
+    ball-in-socket recording (robot base frame), marker offsets (flange frame)."""
+
+    type: str = Field(description="The measurement model, as the measurement option names it.")
+    frame: str = Field(description="The frame its residual is expressed in.")
+    components: list[str] = Field(description="The residual's components per row.")
+    unknowns: list[MeasuredUnknown]
+    labels: list[str] = Field(
+        default_factory=list, description="Sockets (placement/hole) or markers, in order."
+    )
+    constraint_residuals_m: list[float] = Field(
+        default_factory=list, description="Known socket distance minus the fitted one, m."
+    )
+    notes: list[str] = Field(default_factory=list)
+
+
 class CalibrationResult(_Model):
     format: Literal["kincal.calibration/1"] = RESULT_FORMAT
     kincal_version: str
@@ -562,6 +619,11 @@ class CalibrationResult(_Model):
         None,
         description="Parameter-estimation and model-error parts of the predicted covariance "
         "and their held-out coverage; None without covariances.",
+    )
+    measurement: MeasurementResult | None = Field(
+        None,
+        description="The measurement model and its own unknowns; None for pose and position "
+        "recordings.",
     )
 
     @field_validator("links")

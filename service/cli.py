@@ -185,7 +185,12 @@ def simulate(
 
 @app.command()
 def calibrate(
-    data: Annotated[Path, typer.Argument(help="Dataset: CSV, Parquet or JSON.")],
+    data: Annotated[
+        Path,
+        typer.Argument(
+            help="Dataset: CSV, Parquet or JSON; or a folder of ball-in-socket hole_<k>.csv files."
+        ),
+    ],
     output: OutputOpt,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,
@@ -249,6 +254,10 @@ def calibrate(
     noise_covariance: Annotated[
         Path | None,
         typer.Option(help=option_help("noise_covariance", "; a JSON file holding the 6×6 array")),
+    ] = None,
+    measurement: Annotated[str | None, typer.Option(help=option_help("measurement"))] = None,
+    point_distance: Annotated[
+        float | None, typer.Option(help=option_help("point_distance_m"))
     ] = None,
     marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
     executor: ExecutorOpt = None,
@@ -318,6 +327,8 @@ def calibrate(
             "noise_covariance": None
             if noise_covariance is None
             else read_noise_covariance(noise_covariance),
+            "measurement": measurement,
+            "point_distance_m": point_distance,
         },
     )
     findings = None

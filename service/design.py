@@ -129,6 +129,13 @@ def design_model(
     d = 3 if options.measurement == "position" else 6
     noise_std = np.r_[[options.noise_mm * 1e-3] * 3, [np.radians(options.noise_deg)] * 3]
     if recorded is None:
+        kind = options.calibration.measurement.partition(":")[0]
+        if kind not in ("auto", "pose", "position"):
+            raise KincalError(
+                f"kincal design plans pose or position recordings (its --measurement); the "
+                f"calibration options' measurement {options.calibration.measurement!r} is not "
+                "supported by the design yet: leave it out of the config"
+            )
         setup = pipeline.check_calibration(robot, options.calibration)
         chain, params, calibration = (
             setup.chain,

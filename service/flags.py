@@ -57,6 +57,8 @@ CALIBRATION_FLAGS: dict[str, str] = {
     "covariance_axes": "--covariance-axes",
     "noise_std": "--noise-std",
     "noise_covariance": "--noise-covariance",
+    "measurement": "--measurement",
+    "point_distance_m": "--point-distance",
 }
 """The ``kincal calibrate`` flag of every field of :class:`CalibrationOptions` (the HTTP body
 and a ``--config`` TOML file use the field names themselves); a test keeps this table, the

@@ -23,18 +23,24 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.calibration import CalibrationOptions, CalibrationResult, ModelCorrections
+from schemas.calibration import (
+    CalibrationOptions,
+    CalibrationResult,
+    ModelCorrections,
+    RobotInfo,
+)
 from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_chunks, read_dataset
 from schemas.discovery import FindingsResult
-from service import discovery
+from service import discovery, measurement_run
 from service.result_json import ResidualSample, assemble_result, chain_for, sample_residuals
 from service.robots import RobotDescription
 from service.urdf_export import export_urdf
 from service.urdf_export import refusal as urdf_refusal
-from solver.calibration import FitOptions
+from solver.calibration import FitOptions, pose_measurement
 from solver.covariance.layout import ROTATION_AXIS_NAMES
 from solver.errors import KincalError, ModelError
 from solver.executors import Executor, InProcessExecutor, ProcessExecutor, preload_in_workers
+from solver.measurement import MeasurementModel
 from solver.model import KinematicChain
 from solver.stream.calibrate import (
     CovarianceSettings,
@@ -114,6 +120,14 @@ def check_calibration(
             f"{'are not joints of the chain' if unknown else 'given twice'}; "
             f"choose among {', '.join(names)}"
         )
+    kind, _, joint = options.measurement.partition(":")
+    if kind == "eye-on-head" and joint not in names[:-1]:
+        raise ModelError(
+            f"measurement eye-on-head:{joint}: not a joint of the chain before its last; "
+            f"choose one of {', '.join(names[:-1])}"
+        )
+    if kind == "components":
+        measurement_run.PoseComponents(tuple(c.strip() for c in joint.split(",")))
     return CalibrationSetup(
         robot,
         chain,
@@ -147,16 +161,32 @@ class DatasetChunkLoader:
     processes and Dask workers read and validate their own chunks."""
 
     plan: DatasetChunks
+    position_only: bool = False
+    """Drop the file's orientations (``measurement`` 'position')."""
 
     def __call__(self, ref: ChunkRef) -> ChunkArrays:
         dataset = self.plan.read(ref)
         return ChunkArrays(
             dataset.joint_positions,
             dataset.position_m,
-            dataset.quaternion_xyzw,
+            None if self.position_only else dataset.quaternion_xyzw,
             dataset.payload_kg,
             ref.first_row,
         )
+
+
+def measured_position_only(
+    options: CalibrationOptions, file_position_only: bool, source: str
+) -> bool:
+    """Whether the recording is calibrated position-only: the file's columns, unless the
+    ``measurement`` option says 'position' (orientations ignored); 'pose' on a file without
+    orientations is refused with the fix."""
+    if options.measurement == "pose" and file_position_only:
+        raise KincalError(
+            f"measurement 'pose' needs the orientation columns qx,qy,qz,qw; {source} has "
+            "positions only: use --measurement position (or auto)"
+        )
+    return file_position_only or options.measurement == "position"
 
 
 @dataclass(frozen=True)
@@ -201,11 +231,12 @@ def open_recording(
             source=name,
         )
         if plan.n_rows > IN_MEMORY_ROWS and setup.findings is None:
+            position_only = measured_position_only(options, plan.position_only, plan.source)
             problem = StreamProblem(
                 chain,
-                DatasetChunkLoader(plan),
+                DatasetChunkLoader(plan, position_only),
                 plan.refs,
-                position_only=plan.position_only,
+                measurement=pose_measurement(position_only=position_only),
                 gravity_base_m_s2=np.asarray(options.gravity_base_m_s2, dtype=float),
                 payload_kg=options.payload_kg,
                 block_rows=stream.block_rows,
@@ -224,16 +255,17 @@ def open_recording(
     if setup.findings is not None:
         carried = discovery.carry_model(setup.findings, dataset, setup.robot)
         dataset, corrections, notes = carried.dataset, carried.record, tuple(carried.notes)
+    position_only = measured_position_only(options, dataset.is_position_only, dataset.source)
     problem = StreamProblem(
         chain,
         ArrayChunks(
             dataset.joint_positions,
             dataset.position_m,
-            dataset.quaternion_xyzw,
+            None if position_only else dataset.quaternion_xyzw,
             dataset.payload_kg,
         ),
         row_ranges(dataset.n_samples, stream.chunk_rows),
-        position_only=dataset.is_position_only,
+        measurement=pose_measurement(position_only=position_only),
         gravity_base_m_s2=np.asarray(options.gravity_base_m_s2, dtype=float),
         payload_kg=options.payload_kg,
         block_rows=stream.block_rows,
@@ -324,6 +356,9 @@ def calibrate_source(
     where the passes run (default :func:`default_executor`; the caller keeps ownership of one
     it passes); ``name``: the recording's name in the result (default: the file's).
     """
+    model = measurement_run.measurement_for(setup.options, setup.chain, source, marker)
+    if model is not None:
+        return _calibrate_measured(source, setup, model, marker=marker, name=name)
     started = time.perf_counter()
     recording = open_recording(source, setup, stream, marker=marker, name=name)
     timings = {"open": time.perf_counter() - started}
@@ -373,6 +408,58 @@ def calibrate_source(
     residuals = sample_residuals(setup.chain, calibrated, recording.problem.position_only)
     return CalibrationRun(
         result, residuals, recording.notes, execution, timings, calibrated.predictive
+    )
+
+
+def _calibrate_measured(
+    source: str | Path | PoseDataset,
+    setup: CalibrationSetup,
+    model: MeasurementModel,
+    *,
+    marker: int | None,
+    name: str | None,
+) -> CalibrationRun:
+    """A recording whose rows are not marker poses or positions (ball in socket, several
+    markers, pose components, a frame on the base, a sensor on the chain): read into memory
+    and calibrated by :mod:`service.measurement_run`."""
+    if setup.findings is not None:
+        raise KincalError(
+            f"--model (a discovery's findings) is available for pose and position recordings; "
+            f"not with measurement '{model.name}'"
+        )
+    started = time.perf_counter()
+    recording = measurement_run.read_measured(
+        source, setup.chain, setup.options, model, marker=marker, name=name
+    )
+    timings = {"open": time.perf_counter() - started}
+    calibrated = measurement_run.calibrate_measurement(
+        recording,
+        setup.chain,
+        setup.options,
+        fit_options(setup.options),
+        fit_options(setup.options, baseline=True, n_links=setup.chain.n_links),
+    )
+    timings["calibration"] = calibrated.elapsed_s
+    robot = setup.robot
+    result = measurement_run.measurement_result(
+        calibrated,
+        robot=RobotInfo(
+            name=robot.name,
+            base_frame=robot.base_frame,
+            tip_frame=robot.tip_frame,
+            joint_names=list(setup.chain.joint_names),
+            urdf_sha256=setup.chain.urdf_sha256,
+            urdf=robot.urdf_xml,
+        ),
+        chain=setup.chain,
+        options=setup.options,
+    )
+    return CalibrationRun(
+        result,
+        measurement_run.measurement_residuals(calibrated),
+        (),
+        "in memory (measurement model)",
+        timings,
     )
 
 

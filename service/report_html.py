@@ -22,6 +22,7 @@ from schemas.calibration import (
     CalibrationResult,
     CovarianceResult,
     ErrorStats,
+    OutlierReport,
     PredictiveCovariance,
 )
 from service.plots import coverage_figure, residual_histograms
@@ -132,12 +133,17 @@ def _overview(result: CalibrationResult) -> str:
             f"{result.dataset.source}: {result.dataset.n_samples} samples, "
             f"{'position only' if result.dataset.position_only else 'full pose'}",
         ),
-        (
-            "Outliers",
-            f"{len(outliers.removed_rows)} removed by the {outliers.sigma}σ rule, "
-            f"{outliers.n_used} used"
-            if outliers.sigma
-            else "rule disabled",
+        ("Outliers", _outlier_text(outliers)),
+        *(
+            []
+            if result.measurement is None
+            else [
+                (
+                    "Measurement",
+                    f"{result.measurement.type} (residual in the "
+                    f"{result.measurement.frame}); " + "; ".join(result.measurement.notes),
+                )
+            ]
         ),
         (
             "Solver",
@@ -265,3 +271,13 @@ def _random_effects(covariance: CovarianceResult | None) -> str:
 def png_img(png: bytes, alt: str) -> str:
     encoded = base64.b64encode(png).decode("ascii")
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{encoded}">'
+
+
+def _outlier_text(outliers: OutlierReport) -> str:
+    """Which rule screened the samples and what it removed."""
+    removed = f"{len(outliers.removed_rows)} removed"
+    if outliers.rule == "none":
+        return f"rule disabled, {outliers.n_used} used"
+    if outliers.rule == "sigma":
+        return f"{removed} by the {outliers.sigma}σ rule, {outliers.n_used} used"
+    return f"{removed} by the model rule (level {outliers.level}), {outliers.n_used} used"

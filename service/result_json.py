@@ -8,6 +8,7 @@ import datetime as dt
 import functools
 from dataclasses import dataclass
 from importlib import metadata
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -56,7 +57,6 @@ from solver.model import KinematicChain, build_chain, gravity_loads
 from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS
 from solver.stream.calibrate import BEFORE, CALIBRATED, RecordingCalibration
 from solver.stream.coverage import INNER_CV_ROWS, INNER_FOLDS, PredictiveCalibration
-from solver.stream.fit import StreamedFit
 from solver.stream.sums import ErrorSums
 from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, verdict_status
 
@@ -184,8 +184,21 @@ def _transform(
     )
 
 
+class FittedChain(Protocol):
+    """What the result JSON reads of a fit: a streamed pose fit or a measurement model's."""
+
+    @property
+    def params(self) -> ChainParameters: ...
+    @property
+    def estimated(self) -> list[str]: ...
+    @property
+    def standard_errors(self) -> FloatArray: ...
+    @property
+    def pruned(self) -> list[str]: ...
+
+
 def _link_stderr(
-    fit: StreamedFit, chain: KinematicChain, link: int
+    fit: FittedChain, chain: KinematicChain, link: int
 ) -> tuple[tuple[float | None, ...], tuple[float | None, ...]]:
     """Standard errors of link ``link``'s local twist components (None where not estimated)."""
     lookup = dict(zip(fit.estimated, fit.standard_errors.tolist(), strict=True))
@@ -194,7 +207,7 @@ def _link_stderr(
     return tuple(values[:3]), tuple(values[3:])
 
 
-def _links(chain: KinematicChain, fit: StreamedFit) -> list[LinkCalibration]:
+def _links(chain: KinematicChain, fit: FittedChain) -> list[LinkCalibration]:
     out = []
     for i, name in enumerate(chain.link_names):
         correction = lie.se3_log(lie.inverse(chain.nominal_links[i]) @ fit.params.links[i])
@@ -213,7 +226,7 @@ def _links(chain: KinematicChain, fit: StreamedFit) -> list[LinkCalibration]:
     return out
 
 
-def _compliance(chain: KinematicChain, fit: StreamedFit) -> list[ComplianceCalibration]:
+def _compliance(chain: KinematicChain, fit: FittedChain) -> list[ComplianceCalibration]:
     lookup = dict(zip(fit.estimated, fit.standard_errors.tolist(), strict=True))
     out = []
     for a, axis in enumerate(chain.compliance_axes):
@@ -385,6 +398,28 @@ def _verdict(
     )
 
 
+def chain_fields(chain: KinematicChain, fit: FittedChain, baseline: FittedChain) -> dict[str, Any]:
+    """The result's fields of the calibrated chain: ``measurement_frame``, ``tool``,
+    ``baseline`` (frame and tool of the "before" fit), ``links`` and ``compliance``."""
+    return {
+        "measurement_frame": _transform(
+            fit.params.links[0] @ lie.inverse(chain.nominal_links[0]), *_link_stderr(fit, chain, 0)
+        ),
+        "tool": _transform(
+            lie.inverse(chain.nominal_links[-1]) @ fit.params.links[-1],
+            *_link_stderr(fit, chain, chain.n_links - 1),
+        ),
+        "baseline": BaselineFit(
+            measurement_frame=_transform(
+                baseline.params.links[0] @ lie.inverse(chain.nominal_links[0])
+            ),
+            tool=_transform(lie.inverse(chain.nominal_links[-1]) @ baseline.params.links[-1]),
+        ),
+        "links": _links(chain, fit),
+        "compliance": _compliance(chain, fit),
+    }
+
+
 def assemble_result(
     *,
     source: str,
@@ -414,21 +449,7 @@ def assemble_result(
             urdf=robot.urdf_xml,
         ),
         options=options,
-        measurement_frame=_transform(
-            fit.params.links[0] @ lie.inverse(chain.nominal_links[0]), *_link_stderr(fit, chain, 0)
-        ),
-        tool=_transform(
-            lie.inverse(chain.nominal_links[-1]) @ fit.params.links[-1],
-            *_link_stderr(fit, chain, chain.n_links - 1),
-        ),
-        baseline=BaselineFit(
-            measurement_frame=_transform(
-                baseline.params.links[0] @ lie.inverse(chain.nominal_links[0])
-            ),
-            tool=_transform(lie.inverse(chain.nominal_links[-1]) @ baseline.params.links[-1]),
-        ),
-        links=_links(chain, fit),
-        compliance=_compliance(chain, fit),
+        **chain_fields(chain, fit, baseline),
         identifiability=Identifiability(
             n_parameters=len(parameter_names(chain)),
             rank=fit.rank,

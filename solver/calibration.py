@@ -21,8 +21,8 @@ Every step reduces to sums over samples, so the same code serves in-memory array
 
 from __future__ import annotations
 
+import dataclasses
 import functools
-import time
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
@@ -33,21 +33,21 @@ import scipy.linalg.blas
 from numpy.typing import NDArray
 
 from solver import lie
-from solver.alignment import align_full_pose, align_position_only
 from solver.errors import CalibrationError
 from solver.kinematics import (
     ChainParameters,
     evaluate_chain,
-    forward_kinematics,
-    parameter_names,
-    pose_residuals,
     stacked_jacobian,
 )
+from solver.measurement import models as measurement_models
 from solver.model import KinematicChain, gravity_loads, sample_configurations
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 Payload = TypeVar("Payload")
+StepRule = Callable[[ChainParameters, FloatArray, NDArray[np.intp]], ChainParameters]
+"""``apply(params, step, keep)``: how a Gauss–Newton step over the columns ``keep`` moves the
+parameters."""
 
 
 @dataclass(frozen=True)
@@ -102,9 +102,13 @@ class DeterministicFit:
 
 def nominal_pose(chain: KinematicChain, joint_positions: FloatArray) -> FloatArray:
     """URDF forward kinematics base -> tip, rigid; (N, 4, 4)."""
-    params = ChainParameters.nominal(chain)
-    zero_loads = np.zeros((joint_positions.shape[0], len(chain.compliance_axes)))
-    return forward_kinematics(chain, params, joint_positions, zero_loads)
+    return measurement_models.nominal_pose(chain, joint_positions)
+
+
+def pose_measurement(*, position_only: bool) -> measurement_models.FullPose:
+    """The measurement model of a pose recording: :class:`~solver.measurement.Position` when
+    only positions were measured, else :class:`~solver.measurement.FullPose`."""
+    return measurement_models.Position() if position_only else measurement_models.FullPose()
 
 
 def initial_parameters(
@@ -114,16 +118,13 @@ def initial_parameters(
     *,
     position_only: bool,
 ) -> ChainParameters:
-    """Nominal geometry; closed-form measurement frame folded into L_1, tool into L_{k+1}."""
-    nominal = nominal_pose(chain, joint_positions)
-    if position_only:
-        world, tool = align_position_only(nominal, measured_pose[:, :3, 3])
-    else:
-        world, tool = align_full_pose(nominal, measured_pose)
-    links = chain.nominal_links.copy()
-    links[0] = world @ links[0]
-    links[-1] = links[-1] @ tool
-    return ChainParameters(links, np.zeros(len(chain.compliance_axes)))
+    """Nominal geometry; closed-form measurement frame folded into L_1, tool into L_{k+1}
+    (:meth:`solver.measurement.FullPose.start`)."""
+    rows = measurement_models.MeasurementRows.of(
+        joint_positions, np.zeros((joint_positions.shape[0], 0)), measured_pose
+    )
+    start = pose_measurement(position_only=position_only).start(chain, rows)
+    return ChainParameters(start.links, start.compliance_rad_per_nm)
 
 
 def weighted(values: FloatArray, *, position_only: bool, rotation_weight: float) -> FloatArray:
@@ -147,70 +148,39 @@ def fit_deterministic(
     """Paper Eq. (10): iterate ``x_w = A_w^+ y_w`` and re-linearise until the cost settles.
 
     ``measured_pose`` (N, 4, 4) in the measurement frame (rotation ignored if position-only);
-    ``loads_nm`` (N, n_axes) from :func:`solver.model.gravity_loads`.
+    ``loads_nm`` (N, n_axes) from :func:`solver.model.gravity_loads`. The fit of the pose
+    measurement model (:func:`solver.measurement.fit_measurement` with
+    :func:`pose_measurement`), after the sample count is checked against the chain.
     """
-    started = time.perf_counter()
-    params = start or initial_parameters(
-        chain, joint_positions, measured_pose, position_only=position_only
-    )
-    names = parameter_names(chain)
-    rows = 3 if position_only else 6
-
-    def linearise(p: ChainParameters) -> tuple[FloatArray, FloatArray]:
-        evaluation = evaluate_chain(chain, p, joint_positions, loads_nm)
-        residual = pose_residuals(evaluation.pose, measured_pose, position_only=position_only)
-        jacobian = stacked_jacobian(evaluation)[:, :rows]
-        w = options.rotation_weight_m_per_rad
-        return (
-            weighted(residual, position_only=position_only, rotation_weight=w),
-            weighted(jacobian, position_only=position_only, rotation_weight=w),
-        )
+    from solver.measurement.fit import fit_measurement  # it builds on this module
 
     check_sample_count(
         chain, joint_positions.shape[0], position_only=position_only, options=options
     )
-    residual, jacobian = linearise(params)
-    keep, rank, condition = identifiable_columns(jacobian, chain, options)
-
-    def evaluate(p: ChainParameters) -> tuple[NormalEquations, FloatArray]:
-        r, j = linearise(p)
-        kept = j[:, :, keep]
-        return normal_equations(kept.reshape(-1, keep.size), r.reshape(-1)), kept
-
-    first = normal_equations(jacobian[:, :, keep].reshape(-1, keep.size), residual.reshape(-1))
-    run = gauss_newton(chain, params, keep, (first, jacobian[:, :, keep]), evaluate, options)
-    pruned: list[int] = []
-    while options.non_negative_compliance:
-        negative = implausible_compliance_columns(
-            chain, run.params, keep, parameter_standard_errors(run.normal)
-        )
-        if negative.size == 0:
-            break
-        pruned += negative.tolist()
-        start_point = without_compliance(
-            chain, run.params, keep, run.normal, negative, converged=run.converged
-        )
-        keep = np.setdiff1d(keep, negative)
-        run = gauss_newton(chain, start_point, keep, evaluate(start_point), evaluate, options)
-    final_residual = pose_residuals(
-        forward_kinematics(chain, run.params, joint_positions, loads_nm),
-        measured_pose,
-        position_only=position_only,
+    rows = measurement_models.MeasurementRows.of(joint_positions, loads_nm, measured_pose)
+    fit = fit_measurement(
+        chain,
+        pose_measurement(position_only=position_only),
+        rows,
+        options,
+        start=None
+        if start is None
+        else measurement_models.ModelParameters(start.links, start.compliance_rad_per_nm),
     )
     return DeterministicFit(
-        params=run.params,
-        estimated=[names[i] for i in keep],
-        removed=[n for n in removed_names(names, keep) if names.index(n) not in pruned],
-        standard_errors=parameter_standard_errors(run.normal),
-        rank=rank,
-        condition_number=condition,
-        iterations=run.iterations,
-        converged=run.converged,
-        cost_history=run.cost_history,
-        residuals=final_residual,
-        jacobian=run.payload,
-        elapsed_s=time.perf_counter() - started,
-        pruned=[names[i] for i in sorted(pruned)],
+        params=ChainParameters(fit.params.links, fit.params.compliance_rad_per_nm),
+        estimated=fit.estimated,
+        removed=fit.removed,
+        standard_errors=fit.standard_errors,
+        rank=fit.rank,
+        condition_number=fit.condition_number,
+        iterations=fit.iterations,
+        converged=fit.converged,
+        cost_history=fit.cost_history,
+        residuals=fit.residuals,
+        jacobian=fit.jacobian,
+        elapsed_s=fit.elapsed_s,
+        pruned=fit.pruned,
     )
 
 
@@ -252,6 +222,7 @@ def without_compliance(
     columns: NDArray[np.intp],
     *,
     converged: bool,
+    apply: StepRule | None = None,
 ) -> ChainParameters:
     """Where a fit at ``params`` goes with the compliance of ``columns`` (among ``keep``) set
     to 0. From a converged fit: the Gauss–Newton step of Eq. (10) from the linearisation at
@@ -260,11 +231,13 @@ def without_compliance(
     ``x_f = A_fᵀA_f⁻¹ (A_fᵀy − A_fᵀA_c x_c)``; the refit without ``columns`` then starts next
     to its optimum (its first evaluation usually confirms it) rather than a step away. From
     a fit its iteration limit stopped: ``params`` with only those compliances set to 0 (the
-    refit gets the same iteration limit, and says so if it is not enough)."""
+    refit gets the same iteration limit, and says so if it is not enough). ``apply``: how a
+    step moves the parameters (default: the chain's; a measurement model's carries its own
+    unknowns, columns after the chain's)."""
     if not converged:
         compliance = params.compliance_rad_per_nm.copy()
         compliance[np.asarray(columns) - 6 * chain.n_links] = 0.0
-        return ChainParameters(params.links, compliance)
+        return dataclasses.replace(params, compliance_rad_per_nm=compliance)
     fixed = np.isin(keep, columns)
     change = -params.compliance_rad_per_nm[keep[fixed] - 6 * chain.n_links]
     free = ~fixed
@@ -277,6 +250,8 @@ def without_compliance(
     step = np.zeros(keep.size)
     step[fixed] = change  # the compliance lands on exactly 0: c + (−c)
     step[free] = gauss_newton_step(reduced)
+    if apply is not None:
+        return apply(params, step, keep)
     return _apply_step(params, step, keep, chain)
 
 
@@ -407,14 +382,17 @@ def gauss_newton(
     first: tuple[NormalEquations, Payload],
     evaluate: Callable[[ChainParameters], tuple[NormalEquations, Payload]],
     options: FitOptions,
+    apply: StepRule | None = None,
 ) -> GaussNewtonRun[Payload]:
     """The iteration of Eq. (10) over the columns ``keep`` (:func:`gauss_newton_iteration`)
     with the normal equations (and payload) at ``start`` given as ``first`` and
     ``evaluate(params)`` giving them at any other point — from arrays in memory or summed
-    over streamed chunks."""
+    over streamed chunks. ``apply``: how a step moves the parameters (default: the chain's
+    local link corrections and compliances); a measurement model with unknowns of its own
+    (:mod:`solver.measurement`) passes its own."""
     iteration: Generator[
         ChainParameters, tuple[NormalEquations, Payload], GaussNewtonRun[Payload]
-    ] = gauss_newton_iteration(chain, start, keep, options)
+    ] = gauss_newton_iteration(chain, start, keep, options, apply)
     params = next(iteration)
     answer = first
     while True:
@@ -431,6 +409,7 @@ def gauss_newton_iteration(
     start: ChainParameters,
     keep: NDArray[np.intp],
     options: FitOptions,
+    apply: StepRule | None = None,
 ) -> Generator[ChainParameters, tuple[NormalEquations, Payload], GaussNewtonRun[Payload]]:
     """The iteration of Eq. (10) over the columns ``keep``, as a generator: it yields each
     point where it needs the normal equations (``start`` first) and is sent them (with any
@@ -455,7 +434,7 @@ def gauss_newton_iteration(
             break
         iterations += 1
         params, normal, payload = yield from _accept_step(
-            params, step, keep, (normal, payload), chain
+            params, step, keep, (normal, payload), chain, apply
         )
         costs.append(normal.cost)
         if abs(costs[-2] - normal.cost) <= options.tolerance * max(costs[-2], 1e-300):
@@ -470,6 +449,7 @@ def _accept_step(
     keep: NDArray[np.intp],
     current: tuple[NormalEquations, Payload],
     chain: KinematicChain,
+    apply: StepRule | None = None,
 ) -> Generator[
     ChainParameters,
     tuple[NormalEquations, Payload],
@@ -488,7 +468,11 @@ def _accept_step(
     slope = -2.0 * float(step @ current[0].cross)
     scale = 1.0
     for _ in range(20):
-        candidate = _apply_step(params, scale * step, keep, chain)
+        candidate = (
+            _apply_step(params, scale * step, keep, chain)
+            if apply is None
+            else apply(params, scale * step, keep)
+        )
         normal, payload = yield candidate
         if normal.cost <= cost:
             return candidate, normal, payload
@@ -516,20 +500,38 @@ def identifiable_columns(
     ``jacobian`` (N, d, P): all P columns, weighted like the fit. Returns kept column indices
     (sorted), the rank and the condition number of the kept, scaled columns.
     """
+    free = free_columns(chain, options, jacobian.shape[2])
+    return pivoted_columns(jacobian.reshape(-1, jacobian.shape[2]), free, options.rank_tolerance)
+
+
+def free_columns(chain: KinematicChain, options: FitOptions, n_columns: int) -> BoolArray:
+    """The chain columns ``options`` lets the fit move (n_columns,): the links of
+    ``free_links`` (all if None) and, with ``fit_compliance``, the compliances; columns beyond
+    the chain's (a measurement model's own unknowns) are free."""
     n_link_cols = 6 * chain.n_links
-    free = np.zeros(jacobian.shape[2], dtype=bool)
+    free = np.zeros(n_columns, dtype=bool)
     links = range(chain.n_links) if options.free_links is None else options.free_links
     for i in links:
         free[6 * i : 6 * i + 6] = True
-    free[n_link_cols:] = options.fit_compliance
+    free[n_link_cols : n_link_cols + len(chain.compliance_axes)] = options.fit_compliance
+    free[n_link_cols + len(chain.compliance_axes) :] = True
+    return free
+
+
+def pivoted_columns(
+    design: FloatArray, free: BoolArray, rank_tolerance: float
+) -> tuple[NDArray[np.intp], int, float]:
+    """The ``free`` columns of ``design`` (m, P) that survive column-pivoted QR of the
+    unit-norm-scaled columns (a pivot below ``rank_tolerance`` of the first is dependent):
+    kept indices (sorted), rank, condition number of the kept scaled columns."""
     candidates = np.flatnonzero(free)
-    a = jacobian[:, :, candidates].reshape(-1, candidates.size)
+    a = design[:, candidates]
     norms = np.linalg.norm(a, axis=0)
     nonzero = norms > 1e-12 * max(norms.max(), 1e-300)
     candidates, a, norms = candidates[nonzero], a[:, nonzero], norms[nonzero]
     _, upper, pivots = scipy.linalg.qr(a / norms, mode="economic", pivoting=True)
     diagonal = np.abs(np.diag(upper))
-    rank = int(np.sum(diagonal > options.rank_tolerance * diagonal[0]))
+    rank = int(np.sum(diagonal > rank_tolerance * diagonal[0]))
     keep = np.sort(candidates[pivots[:rank]])
     singular = np.linalg.svd(
         a[:, np.isin(candidates, keep)] / norms[np.isin(candidates, keep)], compute_uv=False

@@ -72,6 +72,22 @@ def se3_exp(twist: FloatArray) -> FloatArray:
     return out
 
 
+def so3_right_jacobian_inverse(rotation_vector_rad: FloatArray) -> FloatArray:
+    """``Jr⁻¹(φ) = I + ½[φ]x + c [φ]x²`` with ``c = 1/θ² − (1 + cos θ) / (2 θ sin θ)``;
+    (..., 3) -> (..., 3, 3). ``Log(Exp(φ) Exp(δ)) ≈ φ + Jr⁻¹(φ) δ``; equals ``pin.Jlog3``."""
+    angle_rad = np.linalg.norm(rotation_vector_rad, axis=-1)
+    small = angle_rad < _SMALL_ANGLE_RAD
+    safe = np.where(small, 1.0, angle_rad)
+    c = np.where(
+        small,
+        1.0 / 12.0 + angle_rad**2 / 720.0 + angle_rad**4 / 30240.0,
+        1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)),
+    )
+    w_hat = skew(rotation_vector_rad)
+    eye = np.broadcast_to(np.eye(3), w_hat.shape)
+    return np.asarray(eye + 0.5 * w_hat + c[..., None, None] * (w_hat @ w_hat), dtype=float)
+
+
 def se3_log(transform: FloatArray) -> FloatArray:
     """``Log`` of a transform as a twist ``[v; w]``; (..., 4, 4) -> (..., 6). = ``pin.log6``."""
     w = so3_log(transform[..., :3, :3])

@@ -174,6 +174,13 @@ def create_calibration(
         if body.discovery_id is not None:
             carried, findings = carried_discovery(state, principal.tenant_id, body, robot)
         pipeline.check_calibration(robot, body.options, findings)
+        kind = body.options.measurement.partition(":")[0]
+        if kind in ("point", "markers"):
+            raise ModelError(
+                f"measurement {kind!r} reads a folder of ball-in-socket hole files or every "
+                "marker of a FIGAROH file; the service calibrates one uploaded dataset (pose or "
+                "position per row): run kincal calibrate on the folder or file instead"
+            )
         return carried
 
     return jobs_common.accept_dataset_job(

@@ -27,6 +27,7 @@ from solver.batch_chain import (
 from solver.errors import CalibrationError
 from solver.executors import Executor
 from solver.gravity import StaticGravityModel, static_gravity_loads
+from solver.measurement.models import FullPose
 from solver.model import STANDARD_GRAVITY_BASE, KinematicChain
 
 FloatArray = NDArray[np.float64]
@@ -103,13 +104,16 @@ class StreamProblem:
     base frame; ``payload_kg`` for chunks without a payload column; ``block_rows``: samples per
     vectorised block inside a chunk (cache-sized working arrays); ``cache_bytes``: prepared
     chunks (joint motions, loads, measured poses, ~290 B/sample for 6 joints) each worker
-    process may keep between passes, 0 = re-read every pass (memory then independent of N).
+    process may keep between passes, 0 = re-read every pass (memory then independent of N);
+    ``measurement``: what a row measures, :class:`~solver.measurement.FullPose` or
+    :class:`~solver.measurement.Position` (the other measurement models are calibrated in
+    memory, :mod:`solver.measurement.fit`).
     """
 
     chain: KinematicChain
     load: ChunkLoader
     refs: tuple[Any, ...]
-    position_only: bool
+    measurement: FullPose
     gravity_base_m_s2: FloatArray = field(default_factory=lambda: STANDARD_GRAVITY_BASE.copy())
     payload_kg: float = 0.0
     block_rows: int = 8192
@@ -117,8 +121,13 @@ class StreamProblem:
     token: str = field(default_factory=lambda: uuid.uuid4().hex)
 
     @property
+    def position_only(self) -> bool:
+        """Whether the rows are positions (:class:`~solver.measurement.Position`)."""
+        return self.measurement.position_only
+
+    @property
     def residual_dim(self) -> int:
-        return 3 if self.position_only else 6
+        return self.measurement.dim
 
 
 # --- per-process caches (one per worker; never shared between processes) -------------------

@@ -45,6 +45,8 @@ VALUES: dict[str, tuple[list[str], Any]] = {
     "covariance_axes": (["--covariance-axes", "rotation"], "rotation"),
     "noise_std": (["--noise-std", "1e-4,1e-4,1e-4,1e-3,1e-3,1e-3"], [1e-4] * 3 + [1e-3] * 3),
     "noise_covariance": (["--noise-covariance", "{noise}"], NOISE),
+    "measurement": (["--measurement", "components:tz,rx,ry"], "components:tz,rx,ry"),
+    "point_distance_m": (["--point-distance", "0.05"], 0.05),
 }
 """A non-default value of every option, as calibrate flags and as JSON."""
 

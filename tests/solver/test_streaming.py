@@ -15,6 +15,7 @@ from solver.calibration import (
     fit_deterministic,
     normal_equations,
     outlier_mask,
+    pose_measurement,
 )
 from solver.covariance.estimate import estimate_covariances
 from solver.covariance.layout import make_layout
@@ -22,6 +23,7 @@ from solver.covariance.statistics import build_moment_statistics
 from solver.executors import InProcessExecutor, blocks, make_executor
 from solver.gravity import StaticGravityModel, static_gravity_loads
 from solver.kinematics import evaluate_chain, parameter_names
+from solver.measurement import FullPose
 from solver.simulate import SimulatedRecording, SimulationSpec, look_at, simulate_recording
 from solver.stream.calibrate import (
     CovarianceSettings,
@@ -66,7 +68,11 @@ def _problem(rec: SimulatedRecording, chunk_rows: int, block_rows: int) -> Strea
     )
     n = rec.joint_positions.shape[0]
     return StreamProblem(
-        chain(ROBOT), source, row_ranges(n, chunk_rows), position_only=False, block_rows=block_rows
+        chain(ROBOT),
+        source,
+        row_ranges(n, chunk_rows),
+        measurement=FullPose(),
+        block_rows=block_rows,
     )
 
 
@@ -299,7 +305,13 @@ def _problem_of(rec: SimulatedRecording, *, position_only: bool) -> StreamProble
     quaternion = None if position_only else lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
     source = ArrayChunks(rec.joint_positions, pose[:, :3, 3], quaternion)
     rows = row_ranges(rec.joint_positions.shape[0], 300)
-    return StreamProblem(chain(ROBOT), source, rows, position_only=position_only, block_rows=128)
+    return StreamProblem(
+        chain(ROBOT),
+        source,
+        rows,
+        measurement=pose_measurement(position_only=position_only),
+        block_rows=128,
+    )
 
 
 @pytest.mark.parametrize(

@@ -41,6 +41,8 @@ INVALID: dict[str, list[Any]] = {
     "covariance_axes": ["twist"],
     "noise_std": [[1e-4, 1e-4], [0, 0, 0, -1e-3, 0, 0]],
     "noise_covariance": [[[1e-6]], ASYMMETRIC, [[0.0] * 6] * 5],
+    "measurement": ["sockets", "components:tz,roll", "eye-on-head:knee", "point", "markers"],
+    "point_distance_m": [0.0, -0.05, "far"],
 }
 """At least one invalid value per option (a new option must be added here)."""
 

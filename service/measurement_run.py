@@ -1,0 +1,456 @@
+"""Calibrations whose rows are not a marker pose or position (issue 15): ball in socket,
+several markers at once, chosen pose components, a frame on the base, a sensor on the chain.
+
+:func:`measurement_for` reads the ``measurement`` option (and, for 'auto', the source) into a
+:class:`~solver.measurement.models.MeasurementModel`, or None for the streamed pose/position
+calibration of :mod:`service.pipeline`. :func:`calibrate_measurement` reads the recording into
+memory, fits it (:func:`solver.measurement.fit_measurement`, Eq. 8–10), screens gross errors,
+runs the held-out splits of DESIGN.md §4 and assembles the same result JSON, with the model's
+own unknowns in ``measurement``. The covariance calibration (Eq. 12–17) is defined for pose
+and position residuals only: asked for explicitly it is refused with the reason, by default it
+is skipped with a note.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas.calibration import (
+    CalibrationOptions,
+    CalibrationResult,
+    DatasetInfo,
+    ErrorStats,
+    Evaluation,
+    FitPhase,
+    FitStatistics,
+    HeldoutSplit,
+    Identifiability,
+    MeasuredUnknown,
+    MeasurementResult,
+    OutlierReport,
+    RobotInfo,
+    SolverReport,
+    Verdict,
+    VerdictReason,
+)
+from schemas.dataset import PoseDataset, read_dataset
+from schemas.dataset.constraints import (
+    figaroh_marker_count,
+    is_socket_folder,
+    read_all_markers,
+    read_socket_folder,
+)
+from service.result_json import (
+    ResidualSample,
+    _error_stats,
+    chain_fields,
+    kincal_version,
+)
+from solver import lie
+from solver.calibration import FitOptions, outlier_mask
+from solver.errors import KincalError
+from solver.kinematics import parameter_names
+from solver.measurement import (
+    EyeOnHead,
+    FixedPoints,
+    KnownDistance,
+    MeasurementFit,
+    MeasurementModel,
+    MeasurementRows,
+    MultiMarker,
+    PoseComponents,
+    RelativeBase,
+    fit_measurement,
+    heldout_errors,
+    row_errors,
+)
+from solver.measurement.fit import HeldoutError
+from solver.model import KinematicChain, gravity_loads
+from solver.stream.calibrate import BEFORE, CALIBRATED
+from solver.stream.screening import family_wise_z, robust_spread
+from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, verdict_status
+
+BoolArray = NDArray[np.bool_]
+
+IN_MEMORY_MODELS = ("point", "markers", "components", "relative-base", "eye-on-head")
+"""Measurements calibrated in memory here; 'pose' and 'position' stream (service.pipeline)."""
+
+
+def measurement_kind(options: CalibrationOptions, source: str | Path | PoseDataset) -> str:
+    """The measurement in effect: the option, or for 'auto' what the source is."""
+    kind = options.measurement.partition(":")[0]
+    if kind != "auto":
+        return kind
+    if isinstance(source, PoseDataset):
+        return "auto"
+    if is_socket_folder(source):
+        return "point"
+    return "auto"
+
+
+def measurement_for(
+    options: CalibrationOptions,
+    chain: KinematicChain,
+    source: str | Path | PoseDataset,
+    marker: int | None,
+) -> MeasurementModel | None:
+    """The model the recording is calibrated with here, or None (pose/position: streamed)."""
+    kind = measurement_kind(options, source)
+    several = not isinstance(source, PoseDataset) and figaroh_marker_count(source) > 1
+    if kind == "auto" and marker is None and several:
+        kind = "markers"
+    argument = options.measurement.partition(":")[2]
+    if kind in ("auto", "pose", "position"):
+        return None
+    if kind == "point":
+        return FixedPoints(1)  # sockets and distances come with the rows (socket_rows)
+    if kind == "markers":
+        count = 0 if isinstance(source, PoseDataset) else figaroh_marker_count(source)
+        return MultiMarker(max(count, 2))
+    if kind == "components":
+        return PoseComponents(tuple(c.strip() for c in argument.split(",")))
+    if kind == "relative-base":
+        return RelativeBase()
+    if kind == "eye-on-head":  # the joint is checked by service.pipeline.check_calibration
+        return EyeOnHead(sensor_joint=list(chain.joint_names).index(argument))
+    raise KincalError(f"measurement {options.measurement!r} is not known")
+
+
+@dataclass(frozen=True)
+class MeasuredRecording:
+    """Rows for a model, the model completed by them (sockets, markers), the recording's
+    name, labels of its sockets or markers, and whether rows carry a measured rotation."""
+
+    model: MeasurementModel
+    rows: MeasurementRows
+    source: str
+    labels: tuple[str, ...]
+    position_only: bool
+
+
+def _loads(chain: KinematicChain, options: CalibrationOptions, q: np.ndarray) -> np.ndarray:
+    """Gravity loads (N, n_axes) N·m of the joint positions, as the streamed path takes them."""
+    return gravity_loads(
+        chain,
+        q,
+        gravity_base=np.asarray(options.gravity_base_m_s2, dtype=float),
+        payload_kg=options.payload_kg,
+    )
+
+
+def read_measured(
+    source: str | Path | PoseDataset,
+    chain: KinematicChain,
+    options: CalibrationOptions,
+    model: MeasurementModel,
+    *,
+    marker: int | None = None,
+    name: str | None = None,
+) -> MeasuredRecording:
+    """The recording in memory as ``model``'s rows (:class:`KincalError` / ``DatasetError``
+    naming the file and the fix when it does not hold what the model needs)."""
+    if isinstance(model, FixedPoints):
+        if isinstance(source, PoseDataset) or not is_socket_folder(source):
+            raise KincalError(
+                f"measurement 'point' needs a folder of ball-in-socket hole_<k>.csv files "
+                f"(headerless joint positions, one file per socket); got {source}"
+            )
+        sockets = read_socket_folder(source, chain.joint_names)
+        distances: list[KnownDistance] = []
+        if options.point_distance_m is not None:
+            for holes in sockets.holes.values():
+                if 0 in holes and 1 in holes:
+                    distances.append(KnownDistance(holes[0], holes[1], options.point_distance_m))
+        points = FixedPoints(len(sockets.sockets), tuple(distances))
+        q = sockets.joint_positions
+        rows = MeasurementRows.of(q, _loads(chain, options, q), None, sockets.socket)
+        return MeasuredRecording(points, rows, name or sockets.source, sockets.sockets, True)
+    if isinstance(source, PoseDataset):
+        dataset = source
+    elif isinstance(model, MultiMarker):
+        markers = read_all_markers(source, chain.joint_names, chain.other_joint_names)
+        q = markers.joint_positions
+        rows = MeasurementRows.of(q, _loads(chain, options, q), markers.marker_positions_m)
+        labels = tuple(f"marker {j + 1}" for j in range(model.n_markers))
+        return MeasuredRecording(model, rows, name or markers.source, labels, True)
+    else:
+        dataset = read_dataset(
+            source,
+            chain.joint_names,
+            other_joint_names=chain.other_joint_names,
+            marker=marker,
+            source=name,
+        )
+    q = dataset.joint_positions
+    pose = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
+    needs_rotation = isinstance(model, PoseComponents) and bool(model.rotation_rows)
+    if isinstance(model, (RelativeBase, EyeOnHead)) and not dataset.is_position_only:
+        model = dataclasses.replace(model, measure_position_only=False)
+    elif isinstance(model, (RelativeBase, EyeOnHead)):
+        model = dataclasses.replace(model, measure_position_only=True)
+    if needs_rotation and dataset.is_position_only:
+        raise KincalError(
+            f"measurement {options.measurement}: the rotation components need quaternion "
+            f"columns qx,qy,qz,qw in {dataset.source}; choose translation components only"
+        )
+    if isinstance(model, MultiMarker):
+        raise KincalError("measurement 'markers' needs a FIGAROH file with several markers")
+    rows = MeasurementRows.of(q, _loads(chain, options, q), pose)
+    return MeasuredRecording(model, rows, name or dataset.source, (), dataset.is_position_only)
+
+
+def check_covariance_request(options: CalibrationOptions, model: MeasurementModel) -> str | None:
+    """Refuse an explicitly requested covariance calibration the model does not support; a
+    note when the default one is skipped (None: nothing to say)."""
+    if model.supports_covariance or options.covariance == "none":
+        return None
+    if "covariance" in options.model_fields_set:
+        raise KincalError(
+            f"covariance calibration (paper Eq. 12-17) is not available for measurement "
+            f"'{model.name}' yet (it is defined for pose and position residuals); pass "
+            "--covariance none"
+        )
+    return (
+        f"covariances of the random perturbations not estimated: Eq. 12 is not available for "
+        f"measurement '{model.name}' yet"
+    )
+
+
+def screen(
+    model: MeasurementModel,
+    fit: MeasurementFit,
+    options: CalibrationOptions,
+) -> tuple[BoolArray, str]:
+    """Rows kept by the outlier rule at the first fit and a note on the rule applied. 'sigma':
+    the paper's §V-A rule; 'model': its robust first step (median and 1.4826·MAD per
+    component, family-wise threshold at outlier_level; the Σ_E-based second step needs the
+    covariances, which this measurement does not have yet)."""
+    rule = options.screening
+    n = fit.residuals.shape[0]
+    if rule == "none":
+        return np.ones(n, dtype=bool), "no outlier screening"
+    if rule == "sigma":
+        sigma = options.outlier_sigma or 2.0
+        return outlier_mask(fit.residuals, sigma), f"§V-A rule at {sigma} σ"
+    centre, scale = robust_spread(fit.residuals)
+    z = family_wise_z(options.outlier_level, n, model.dim)
+    kept = np.all(np.abs(fit.residuals - centre) <= z * np.where(scale > 0, scale, np.inf), axis=1)
+    return kept, (
+        f"model rule, robust first step only (|z| <= {z:.2f} per component); its Σ_E step "
+        f"needs covariances, not available for measurement '{model.name}'"
+    )
+
+
+@dataclass(frozen=True)
+class MeasurementCalibration:
+    """What :func:`calibrate_measurement` produced, before it becomes the result JSON."""
+
+    recording: MeasuredRecording
+    fit: MeasurementFit
+    baseline: MeasurementFit
+    kept: BoolArray
+    splits: list[HeldoutError]
+    notes: tuple[str, ...]
+    elapsed_s: float
+
+
+def calibrate_measurement(
+    recording: MeasuredRecording,
+    chain: KinematicChain,
+    options: CalibrationOptions,
+    fit_options: FitOptions,
+    baseline_options: FitOptions,
+) -> MeasurementCalibration:
+    """Fit, outlier rule, refit and "before" fit on the kept rows, held-out splits."""
+    started = time.perf_counter()
+    model, rows = recording.model, recording.rows
+    notes = [n for n in [check_covariance_request(options, model)] if n]
+    first = fit_measurement(chain, model, rows, fit_options)
+    kept, rule_note = screen(model, first, options)
+    notes.append(rule_note)
+    used = rows.take(np.flatnonzero(kept))
+    fit = fit_measurement(chain, model, used, fit_options) if not kept.all() else first
+    baseline = fit_measurement(chain, model, used, baseline_options)
+    splits: list[HeldoutError] = []
+    if options.heldout:
+        splits = heldout_errors(
+            chain,
+            model,
+            used,
+            {BEFORE: baseline_options, CALIBRATED: fit_options},
+            options.seeds,
+            options.train_fraction,
+        )
+    return MeasurementCalibration(
+        recording, fit, baseline, kept, splits, tuple(notes), time.perf_counter() - started
+    )
+
+
+def _stats(model: MeasurementModel, residuals: np.ndarray) -> ErrorStats:
+    translation_mm, rotation_deg = row_errors(model, residuals)
+    return _error_stats(translation_mm, rotation_deg if model.rotation_rows else None)
+
+
+def _heldout(model: MeasurementModel, splits: list[HeldoutError], method: str) -> ErrorStats | None:
+    mine = [s for s in splits if s.method == method]
+    if not mine:
+        return None
+    translation = np.array([s.translation_mm for s in mine])
+    rotation = np.array([s.rotation_deg for s in mine]) if model.rotation_rows else None
+    stats = _error_stats(translation, rotation)
+    return stats.model_copy(update={"n_samples": sum(s.n_test for s in mine)})
+
+
+def measurement_result(
+    calibrated: MeasurementCalibration,
+    *,
+    robot: RobotInfo,
+    chain: KinematicChain,
+    options: CalibrationOptions,
+) -> CalibrationResult:
+    """The result JSON of a measurement-model calibration (same schema as a pose one; the
+    measurement's own unknowns in ``measurement``; ``covariance`` None)."""
+    recording, fit, baseline = calibrated.recording, calibrated.fit, calibrated.baseline
+    model = recording.model
+    lookup = dict(zip(fit.estimated, fit.standard_errors.tolist(), strict=True))
+    unknowns = [
+        MeasuredUnknown(name=n, value=float(v), stderr=lookup.get(n))
+        for n, v in zip(model.extra_names(), fit.params.extra, strict=True)
+    ]
+    splits = calibrated.splits
+    after_heldout = _heldout(model, splits, CALIBRATED)
+    before_heldout = _heldout(model, splits, BEFORE)
+    after_train = _stats(model, fit.residuals)
+    tool_positions = _tool_positions(
+        chain, fit, recording.rows.take(np.flatnonzero(calibrated.kept))
+    )
+    evidence = FitEvidence(
+        converged=fit.converged,
+        iterations=fit.iterations,
+        max_iterations=options.max_iterations,
+        n_equations=fit.residuals.size + fit.constraint_residuals.size,
+        n_parameters=len(fit.estimated),
+        train_rms_translation_m=1e-3 * after_train.translation_rms_mm,
+        train_rms_rotation_rad=None
+        if after_train.rotation_rms_deg is None
+        else float(np.radians(after_train.rotation_rms_deg)),
+        heldout_translation_m=None
+        if after_heldout is None
+        else 1e-3 * after_heldout.translation_mean_mm,
+        heldout_before_translation_m=None
+        if before_heldout is None
+        else 1e-3 * before_heldout.translation_mean_mm,
+        position_spread_m=position_spread_m(tool_positions),
+        reach_m=reach_m(chain.nominal_links[:, :3, 3]),
+    )
+    reasons = check_fit(evidence)
+    removed = np.flatnonzero(~calibrated.kept)
+    return CalibrationResult(
+        kincal_version=kincal_version(),
+        created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        dataset=DatasetInfo(
+            source=recording.source,
+            n_samples=recording.rows.n,
+            position_only=not model.rotation_rows,
+        ),
+        robot=robot,
+        options=options,
+        **chain_fields(chain, fit, baseline),
+        identifiability=Identifiability(
+            n_parameters=len(parameter_names(chain)) + len(model.extra_names()),
+            rank=fit.rank,
+            condition_number=fit.condition_number,
+            removed=fit.removed,
+            pruned=fit.pruned,
+        ),
+        fit=FitStatistics(
+            before=FitPhase(train=_stats(model, baseline.residuals), heldout=before_heldout),
+            after=FitPhase(train=after_train, heldout=after_heldout),
+        ),
+        evaluation=Evaluation(
+            protocol=f"{len(options.seeds)} random train/test splits "
+            f"({options.train_fraction:.0%} train), seeds {options.seeds}, after outlier "
+            f"removal, on all {int(calibrated.kept.sum())} used rows; the model's own unknowns "
+            "(sockets, marker offsets) fitted on the training rows too",
+            splits=[
+                HeldoutSplit(
+                    method=s.method,
+                    seed=s.seed,
+                    n_train=s.n_train,
+                    n_test=s.n_test,
+                    translation_mm=s.translation_mm,
+                    rotation_deg=s.rotation_deg if model.rotation_rows else None,
+                )
+                for s in splits
+            ],
+        )
+        if splits
+        else None,
+        outliers=OutlierReport(
+            rule=options.screening,
+            level=options.outlier_level if options.screening == "model" else None,
+            sigma=options.outlier_sigma if options.screening == "sigma" else None,
+            n_input=recording.rows.n,
+            n_used=int(calibrated.kept.sum()),
+            removed_rows=[int(i) + 1 for i in removed],
+        ),
+        solver=SolverReport(
+            name="gauss_newton",
+            status="optimal" if fit.converged else "iteration_limit",
+            iterations=fit.iterations,
+            time_s=fit.elapsed_s,
+            objective=fit.cost_history[-1],
+        ),
+        verdict=Verdict(
+            status=verdict_status(reasons),
+            reasons=[VerdictReason(**dataclasses.asdict(r)) for r in reasons],
+        ),
+        measurement=MeasurementResult(
+            type=options.measurement if options.measurement != "auto" else model.name,
+            frame=model.frame,
+            components=list(model.components),
+            unknowns=unknowns,
+            labels=list(recording.labels),
+            constraint_residuals_m=[
+                float(v) / getattr(model, "distance_weight", 1.0) for v in fit.constraint_residuals
+            ],
+            notes=list(calibrated.notes),
+        ),
+    )
+
+
+def _tool_positions(
+    chain: KinematicChain, fit: MeasurementFit, rows: MeasurementRows
+) -> np.ndarray:
+    from solver.kinematics import forward_kinematics
+
+    return forward_kinematics(chain, fit.params, rows.joint_positions, rows.loads_nm)[:, :3, 3]
+
+
+def measurement_residuals(calibrated: MeasurementCalibration) -> ResidualSample:
+    """Residuals of the used rows before and after, in the model's frame."""
+    return ResidualSample(
+        calibrated.baseline.residuals,
+        calibrated.fit.residuals,
+        f"the {int(calibrated.kept.sum())} rows used ({calibrated.recording.model.frame})",
+    )
+
+
+__all__ = [
+    "IN_MEMORY_MODELS",
+    "MeasuredRecording",
+    "MeasurementCalibration",
+    "PoseComponents",
+    "calibrate_measurement",
+    "measurement_for",
+    "measurement_residuals",
+    "measurement_result",
+    "read_measured",
+]

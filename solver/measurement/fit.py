@@ -1,0 +1,274 @@
+"""Gauss–Newton (paper Eq. 8–10), outlier rule (§V-A) and held-out evaluation (DESIGN.md §4)
+for any :class:`~solver.measurement.models.MeasurementModel`, rows in memory.
+
+The same core as the pose fit (:func:`solver.calibration.gauss_newton`, pivoted-QR pruning
+:func:`solver.calibration.pivoted_columns`, standard errors, the compliance rule), over the
+chain's columns and the model's own unknowns together.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.calibration import (
+    FitOptions,
+    NormalEquations,
+    free_columns,
+    gauss_newton,
+    implausible_compliance_columns,
+    normal_equations,
+    outlier_mask,
+    parameter_standard_errors,
+    pivoted_columns,
+    removed_names,
+    without_compliance,
+)
+from solver.errors import CalibrationError
+from solver.evaluation import split_indices
+from solver.kinematics import ChainParameters, parameter_names
+from solver.measurement.models import (
+    MeasurementModel,
+    MeasurementRows,
+    ModelParameters,
+    chain_column_count,
+)
+from solver.model import KinematicChain
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class MeasurementFit:
+    """Result of :func:`fit_measurement`; fields as :class:`solver.calibration.DeterministicFit`
+    (``estimated``/``removed`` over the chain's and the model's parameter names,
+    ``standard_errors`` aligned with ``estimated``), ``residuals`` (N, d) unweighted in the
+    model's frame, ``constraint_residuals`` (c,) of its known distances, ``jacobian``
+    (N, d, p) of the rows over the estimated columns, weighted like the fit."""
+
+    model: MeasurementModel
+    params: ModelParameters
+    estimated: list[str]
+    removed: list[str]
+    standard_errors: FloatArray
+    rank: int
+    condition_number: float
+    iterations: int
+    converged: bool
+    cost_history: list[float]
+    residuals: FloatArray
+    constraint_residuals: FloatArray
+    jacobian: FloatArray
+    elapsed_s: float
+    pruned: list[str] = dataclasses.field(default_factory=list)
+
+    def standard_error(self, name: str) -> float:
+        return float(self.standard_errors[self.estimated.index(name)])
+
+
+def row_weights(model: MeasurementModel, options: FitOptions) -> FloatArray:
+    """Weights of the residual rows (d,): rotation rows times the rotation weight."""
+    weights = np.ones(model.dim)
+    weights[list(model.rotation_rows)] = options.rotation_weight_m_per_rad
+    return weights
+
+
+def _stacked(
+    chain: KinematicChain,
+    model: MeasurementModel,
+    params: ModelParameters,
+    rows: MeasurementRows,
+    weights: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Weighted design (N·d + c, P + E) and target (N·d + c,) of Eq. (10), and the rows'
+    weighted Jacobian (N, d, P + E)."""
+    residual, jacobian = model.linearise(chain, params, rows)
+    assert jacobian is not None
+    extra_r, extra_a = model.constraints(chain, params)
+    if np.any(weights != 1.0):
+        jacobian = jacobian * weights[None, :, None]
+        residual = residual * weights
+    design = jacobian.reshape(-1, jacobian.shape[2])
+    target = residual.reshape(-1)
+    if extra_r.size:
+        return np.concatenate([design, extra_a]), np.concatenate([target, extra_r]), jacobian
+    return design, target, jacobian
+
+
+def fit_measurement(
+    chain: KinematicChain,
+    model: MeasurementModel,
+    rows: MeasurementRows,
+    options: FitOptions | None = None,
+    *,
+    start: ModelParameters | None = None,
+    columns: IntArray | None = None,
+) -> MeasurementFit:
+    """Paper Eq. (10) for ``model``: ``x = A⁺ y`` over the chain's columns the options free and
+    the model sees, and the model's own unknowns, re-linearised until the cost settles;
+    columns the data cannot identify removed up front by pivoted QR; a compliance no physical
+    joint could have fixed at 0 and the fit repeated (as the pose fit does). ``columns``:
+    fit exactly these columns (indices into the chain's and the model's parameter names)
+    instead of choosing them by pivoted QR, e.g. those of another fit of the same rows."""
+    started = time.perf_counter()
+    options = options or FitOptions()
+    model.check_rows(rows)
+    params = start if start is not None else model.start(chain, rows)
+    names = parameter_names(chain) + model.extra_names()
+    weights = row_weights(model, options)
+    design, target, jacobian = _stacked(chain, model, params, rows, weights)
+    free = free_columns(chain, options, len(names))
+    free[: chain_column_count(chain)] &= model.visible_columns(chain)
+    keep, rank, condition = pivoted_columns(design, free, options.rank_tolerance)
+    if columns is not None:
+        keep, rank = np.sort(np.asarray(columns, dtype=np.intp)), len(columns)
+    if target.size <= keep.size:
+        raise CalibrationError(
+            f"measurement '{model.name}': {rows.n} rows give {target.size} equations for "
+            f"{keep.size} identifiable parameters; record at least "
+            f"{keep.size // model.dim + 1} configurations (3x that is advisable)"
+        )
+
+    def evaluate(p: ChainParameters) -> tuple[NormalEquations, FloatArray]:
+        assert isinstance(p, ModelParameters)
+        a, y, j = _stacked(chain, model, p, rows, weights)
+        kept = j[:, :, keep]
+        if y.size == kept.size:  # no extra equations: the design is the rows' Jacobian
+            return normal_equations(kept.reshape(-1, keep.size), y), kept
+        return normal_equations(a[:, keep], y), kept
+
+    def apply(p: ChainParameters, step: FloatArray, columns: IntArray) -> ChainParameters:
+        return model.apply(chain, p, step, columns)
+
+    kept = jacobian[:, :, keep]
+    first = (
+        normal_equations(kept.reshape(-1, keep.size), target)
+        if target.size == kept.size
+        else normal_equations(design[:, keep], target)
+    )
+    run = gauss_newton(chain, params, keep, (first, kept), evaluate, options, apply)
+    pruned: list[int] = []
+    n_chain = chain_column_count(chain)
+    while options.non_negative_compliance:
+        errors = parameter_standard_errors(run.normal)
+        in_chain = keep < n_chain
+        negative = implausible_compliance_columns(
+            chain, run.params, keep[in_chain], errors[in_chain]
+        )
+        if negative.size == 0:
+            break
+        pruned += negative.tolist()
+        restart = without_compliance(
+            chain, run.params, keep, run.normal, negative, converged=run.converged, apply=apply
+        )
+        keep = np.setdiff1d(keep, negative)
+        run = gauss_newton(chain, restart, keep, evaluate(restart), evaluate, options, apply)
+    final = run.params
+    assert isinstance(final, ModelParameters)
+    residual, _ = model.linearise(chain, final, rows, jacobian=False)
+    return MeasurementFit(
+        model=model,
+        params=final,
+        estimated=[names[i] for i in keep],
+        removed=[n for n in removed_names(names, keep) if names.index(n) not in pruned],
+        standard_errors=parameter_standard_errors(run.normal),
+        rank=rank,
+        condition_number=condition,
+        iterations=run.iterations,
+        converged=run.converged,
+        cost_history=run.cost_history,
+        residuals=residual,
+        constraint_residuals=model.constraints(chain, final)[0],
+        jacobian=run.payload,
+        elapsed_s=time.perf_counter() - started,
+        pruned=[names[i] for i in sorted(pruned)],
+    )
+
+
+def row_errors(model: MeasurementModel, residuals: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Per row: translation error (mm, norm of the translation rows; for several markers the
+    mean of each marker's) and rotation error (deg, norm of the rotation rows; 0 without)."""
+    translation = residuals[:, list(model.translation_rows)]
+    per_point = (
+        translation.reshape(residuals.shape[0], -1, 3) if translation.shape[1] % 3 == 0 else None
+    )
+    if per_point is not None and per_point.shape[1] > 1:
+        translation_mm = 1e3 * np.linalg.norm(per_point, axis=2).mean(axis=1)
+    else:
+        translation_mm = 1e3 * np.linalg.norm(translation, axis=1)
+    rotation = residuals[:, list(model.rotation_rows)]
+    return translation_mm, np.degrees(np.linalg.norm(rotation, axis=1))
+
+
+def screened_fit(
+    chain: KinematicChain,
+    model: MeasurementModel,
+    rows: MeasurementRows,
+    options: FitOptions,
+    sigma: float | None,
+) -> tuple[MeasurementFit, MeasurementFit, BoolArray]:
+    """The paper's §V-A rule for any model: fit, keep the rows whose every residual component
+    is within ``sigma`` standard deviations of its mean (None: keep all), refit on them.
+    Returns the first fit, the refit and the kept mask (N,)."""
+    first = fit_measurement(chain, model, rows, options)
+    if sigma is None:
+        return first, first, np.ones(rows.n, dtype=bool)
+    kept = outlier_mask(first.residuals, sigma)
+    return first, fit_measurement(chain, model, rows.take(np.flatnonzero(kept)), options), kept
+
+
+@dataclass(frozen=True)
+class HeldoutError:
+    """One split of DESIGN.md §4 for a measurement model: mean and RMS of the test rows'
+    translation errors (mm; for sockets the distance of the held-out ball centres from the
+    socket point fitted on the training rows) and mean rotation error (deg; 0 without)."""
+
+    method: str
+    seed: int
+    n_train: int
+    n_test: int
+    translation_mm: float
+    translation_rms_mm: float
+    rotation_deg: float
+    component_rms: tuple[float, ...]
+    """RMS of each residual component over the test rows (d,), m and rad."""
+
+
+def heldout_errors(
+    chain: KinematicChain,
+    model: MeasurementModel,
+    rows: MeasurementRows,
+    methods: dict[str, FitOptions],
+    seeds: Iterable[int],
+    train_fraction: float = 0.9,
+) -> list[HeldoutError]:
+    """Per seed and method (fit settings): fit on the training rows of
+    :func:`solver.evaluation.split_indices`, score the test rows at that fit (the model's own
+    unknowns — socket points, marker offsets — from the training rows too)."""
+    out = []
+    for seed in seeds:
+        train, test = split_indices(rows.n, seed, train_fraction)
+        for method, options in methods.items():
+            fit = fit_measurement(chain, model, rows.take(train), options)
+            residual, _ = model.linearise(chain, fit.params, rows.take(test), jacobian=False)
+            translation_mm, rotation_deg = row_errors(model, residual)
+            out.append(
+                HeldoutError(
+                    method,
+                    seed,
+                    int(train.size),
+                    int(test.size),
+                    float(translation_mm.mean()),
+                    float(np.sqrt(np.mean(translation_mm**2))),
+                    float(rotation_deg.mean()),
+                    tuple(float(v) for v in np.sqrt(np.mean(residual**2, axis=0))),
+                )
+            )
+    return out

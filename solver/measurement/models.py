@@ -1,0 +1,775 @@
+"""Measurement models: what one recorded row measures about the chain (issue 15).
+
+Every model gives, for N rows at once, its residual ``r`` (N, d) (measured minus predicted, in
+the model's :attr:`MeasurementModel.frame`), the Jacobian ``A`` (N, d, P + E) of ``r`` with the
+convention of the Gauss–Newton step of Eq. (10) — ``r(θ ⊕ δ) ≈ r(θ) − A δ`` — over the P chain
+columns of :func:`solver.kinematics.parameter_names` (local link twists m/rad, compliance
+rad/N·m) and the E unknowns of its own (:meth:`MeasurementModel.extra_names`), and the chain
+columns it can see at all (:meth:`MeasurementModel.visible_columns`).
+
+The chain side always comes from :func:`solver.kinematics.evaluate_chain`: the end-effector
+pose ``X`` (measurement frame ← tip) and the tip-local twist ``t = J_tip δ`` each chain column
+moves it by (``X ← X·Exp(t)``, paper Eq. 9). Each model only chains its own derivative onto
+``J_tip``:
+
+- :class:`FullPose`, :class:`Position`: the residuals of DESIGN.md §2 (tip frame), with the
+  Jacobian of Eq. (9) used since the paper (exact where the residual is zero);
+- :class:`PoseComponents`: chosen components of ``[p_m − p; Log(R_m Rᵀ)]`` in the
+  measurement frame (e.g. a plane contact: z, rx, ry), exact Jacobian;
+- :class:`FixedPoints`: ball in socket, ``P_g − p`` in the robot base frame with one unknown
+  point per socket and optional known distances between sockets;
+- :class:`MultiMarker`: m markers per row, each ``p_m,j − (p + R t_j)`` with its own offset
+  ``t_j`` on the flange;
+- :class:`RelativeBase`: the marker measured in the frame of another unknown marker carried
+  by the robot base (that frame is ``L_1``);
+- :class:`EyeOnHead`: the sensor carried by the link after a chosen joint of the chain; the
+  measurement is the tip in that moving sensor frame.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver import lie
+from solver.alignment import align_full_pose, align_position_only
+from solver.errors import CalibrationError
+from solver.kinematics import (
+    TWIST_COMPONENTS,
+    ChainParameters,
+    evaluate_chain,
+    forward_kinematics,
+    pose_residuals,
+    stacked_jacobian,
+)
+from solver.model import KinematicChain
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class ModelParameters(ChainParameters):
+    """The chain's parameters and a measurement model's own unknowns ``extra`` (E,), in the
+    order of :meth:`MeasurementModel.extra_names` (m for points and offsets)."""
+
+    extra: FloatArray = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass(frozen=True, eq=False)
+class MeasurementRows:
+    """Rows of a recording as every model takes them: joint positions (N, k) rad, gravity
+    loads (N, n_axes) N·m, what was measured (``measured``: (N, 4, 4) poses for the pose
+    models, (N, m, 3) marker positions in m for :class:`MultiMarker`, (N, 0) for
+    :class:`FixedPoints`) and ``group`` (N,): the socket of each row (0 elsewhere)."""
+
+    joint_positions: FloatArray
+    loads_nm: FloatArray
+    measured: FloatArray
+    group: IntArray
+
+    @classmethod
+    def of(
+        cls,
+        joint_positions: FloatArray,
+        loads_nm: FloatArray,
+        measured: FloatArray | None = None,
+        group: IntArray | None = None,
+    ) -> MeasurementRows:
+        n = joint_positions.shape[0]
+        return cls(
+            np.asarray(joint_positions, dtype=float),
+            np.asarray(loads_nm, dtype=float),
+            np.zeros((n, 0)) if measured is None else np.asarray(measured, dtype=float),
+            np.zeros(n, dtype=np.intp) if group is None else np.asarray(group, dtype=np.intp),
+        )
+
+    @property
+    def n(self) -> int:
+        return int(self.joint_positions.shape[0])
+
+    def take(self, index: IntArray) -> MeasurementRows:
+        return MeasurementRows(
+            self.joint_positions[index],
+            self.loads_nm[index],
+            self.measured[index],
+            self.group[index],
+        )
+
+
+def chain_column_count(chain: KinematicChain) -> int:
+    """P: link twists (6 per link) and compliances."""
+    return 6 * chain.n_links + len(chain.compliance_axes)
+
+
+def tip_linearisation(
+    chain: KinematicChain, params: ChainParameters, rows: MeasurementRows
+) -> tuple[FloatArray, FloatArray]:
+    """End-effector pose ``X`` (N, 4, 4) and the tip-local twist per chain column ``J_tip``
+    (N, 6, P) (paper Eq. 9, :func:`solver.kinematics.stacked_jacobian`)."""
+    evaluation = evaluate_chain(chain, params, rows.joint_positions, rows.loads_nm)
+    return evaluation.pose, stacked_jacobian(evaluation)
+
+
+class MeasurementModel(ABC):
+    """What a row measures; see the module docstring for the conventions."""
+
+    name: str = ""
+
+    @property
+    @abstractmethod
+    def dim(self) -> int:
+        """Residual rows per recorded row (d)."""
+
+    @property
+    @abstractmethod
+    def frame(self) -> str:
+        """The frame the residual is expressed in, in words."""
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        """Name of each residual row (d,), e.g. ``x, y, z``."""
+        return tuple(f"r{i}" for i in range(self.dim))
+
+    @property
+    def translation_rows(self) -> tuple[int, ...]:
+        """Residual rows in m (their norm is a row's translation error)."""
+        return tuple(range(self.dim))
+
+    @property
+    def rotation_rows(self) -> tuple[int, ...]:
+        """Residual rows in rad (their norm is a row's rotation error)."""
+        return ()
+
+    @property
+    def supports_covariance(self) -> bool:
+        """Whether the random-perturbation covariances of Eq. (12) are defined for it."""
+        return False
+
+    def extra_names(self) -> list[str]:
+        """Names of the model's own unknowns (E)."""
+        return []
+
+    def visible_columns(self, chain: KinematicChain) -> BoolArray:
+        """Chain columns (P,) the measurement depends on at all (others stay at the start)."""
+        return np.ones(chain_column_count(chain), dtype=bool)
+
+    @abstractmethod
+    def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
+        """A first guess in the Gauss–Newton basin (closed form where there is one)."""
+
+    @abstractmethod
+    def linearise(
+        self,
+        chain: KinematicChain,
+        params: ModelParameters,
+        rows: MeasurementRows,
+        *,
+        jacobian: bool = True,
+    ) -> tuple[FloatArray, FloatArray | None]:
+        """Residual (N, d) and, with ``jacobian``, ``A`` (N, d, P + E)."""
+
+    def constraints(
+        self, chain: KinematicChain, params: ModelParameters
+    ) -> tuple[FloatArray, FloatArray]:
+        """Extra equations beside the rows (known distances): residual (c,), ``A`` (c, P+E)."""
+        return np.zeros(0), np.zeros((0, chain_column_count(chain) + len(self.extra_names())))
+
+    def check_rows(self, rows: MeasurementRows) -> None:  # noqa: B027 (most models check)
+        """A clear :class:`CalibrationError` when ``rows`` do not fit the model."""
+
+    def apply(
+        self, chain: KinematicChain, params: ChainParameters, step: FloatArray, keep: IntArray
+    ) -> ModelParameters:
+        """A Gauss–Newton step over the columns ``keep``: local link corrections
+        ``L_i ← L_i·Exp(δ_i)``, compliances and the model's unknowns added."""
+        p = chain_column_count(chain)
+        extra = params.extra if isinstance(params, ModelParameters) else np.zeros(0)
+        full = np.zeros(p + extra.size)
+        full[keep] = step
+        twists = full[: 6 * chain.n_links].reshape(chain.n_links, 6)
+        return ModelParameters(
+            params.links @ lie.se3_exp(twists),
+            params.compliance_rad_per_nm + full[6 * chain.n_links : p],
+            extra + full[p:],
+        )
+
+    def _with_extra_columns(self, chain_jacobian: FloatArray) -> FloatArray:
+        """``chain_jacobian`` (N, d, P) with zero columns for the model's unknowns."""
+        n, d, _ = chain_jacobian.shape
+        return np.concatenate([chain_jacobian, np.zeros((n, d, len(self.extra_names())))], axis=2)
+
+
+def _links_folded(
+    chain: KinematicChain, first: int, world: FloatArray, tool: FloatArray, base: ChainParameters
+) -> ModelParameters:
+    """``base`` with ``world`` folded into link ``first`` and ``tool`` into the last link."""
+    links = base.links.copy()
+    links[first] = world @ links[first]
+    links[-1] = links[-1] @ tool
+    return ModelParameters(links, np.zeros(len(chain.compliance_axes)))
+
+
+# --- full pose and position (DESIGN.md §2) ------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FullPose(MeasurementModel):
+    """The marker's pose in the measurement frame: ``r = Log(X⁻¹ X_m)`` (N, 6), [v; w] in m and
+    rad, tip frame; ``A = J_tip`` (Eq. 9)."""
+
+    name = "pose"
+
+    @property
+    def dim(self) -> int:
+        return 6
+
+    @property
+    def frame(self) -> str:
+        return "end effector (tip) frame"
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        return TWIST_COMPONENTS
+
+    @property
+    def translation_rows(self) -> tuple[int, ...]:
+        return (0, 1, 2)
+
+    @property
+    def rotation_rows(self) -> tuple[int, ...]:
+        return (3, 4, 5)
+
+    @property
+    def supports_covariance(self) -> bool:
+        return True
+
+    @property
+    def position_only(self) -> bool:
+        return False
+
+    def predicted_pose(
+        self, chain: KinematicChain, params: ChainParameters, rows: MeasurementRows
+    ) -> FloatArray:
+        """The pose the model predicts for each row (N, 4, 4), measurement frame."""
+        return forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+
+    def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
+        nominal = nominal_pose(chain, rows.joint_positions)
+        if self.position_only:
+            world, tool = align_position_only(nominal, rows.measured[:, :3, 3])
+        else:
+            world, tool = align_full_pose(nominal, rows.measured)
+        return _links_folded(chain, 0, world, tool, ChainParameters.nominal(chain))
+
+    def linearise(
+        self,
+        chain: KinematicChain,
+        params: ModelParameters,
+        rows: MeasurementRows,
+        *,
+        jacobian: bool = True,
+    ) -> tuple[FloatArray, FloatArray | None]:
+        d = self.dim
+        if not jacobian:
+            pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+            return pose_residuals(pose, rows.measured, position_only=self.position_only), None
+        pose, j_tip = tip_linearisation(chain, params, rows)
+        residual = pose_residuals(pose, rows.measured, position_only=self.position_only)
+        return residual, self._with_extra_columns(j_tip[:, :d])
+
+    def check_rows(self, rows: MeasurementRows) -> None:
+        _check_pose_rows(self, rows)
+
+
+@dataclass(frozen=True)
+class Position(FullPose):
+    """The marker's position: ``r = Rᵀ (p_m − p)`` (N, 3), m, tip frame (the translation of
+    ``X⁻¹ X_m`` whatever the unmeasured rotation); ``A = J_tip[:3]``."""
+
+    name = "position"
+
+    @property
+    def dim(self) -> int:
+        return 3
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        return TWIST_COMPONENTS[:3]
+
+    @property
+    def rotation_rows(self) -> tuple[int, ...]:
+        return ()
+
+    @property
+    def position_only(self) -> bool:
+        return True
+
+
+def nominal_pose(chain: KinematicChain, joint_positions: FloatArray) -> FloatArray:
+    """URDF forward kinematics base -> tip, rigid; (N, 4, 4)."""
+    zero_loads = np.zeros((joint_positions.shape[0], len(chain.compliance_axes)))
+    return forward_kinematics(chain, ChainParameters.nominal(chain), joint_positions, zero_loads)
+
+
+def _check_pose_rows(model: MeasurementModel, rows: MeasurementRows) -> None:
+    if rows.measured.shape[1:] != (4, 4):
+        raise CalibrationError(
+            f"measurement '{model.name}' needs a measured pose per row (x,y,z and, for "
+            f"rotations, qx,qy,qz,qw columns); the rows carry {rows.measured.shape[1:]} values"
+        )
+
+
+# --- chosen pose components -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PoseComponents(MeasurementModel):
+    """Chosen components of the pose error in the measurement frame,
+    ``e = [p_m − p; Log(R_m Rᵀ)]`` (x, y, z in m; rx, ry, rz in rad), e.g. a plane contact
+    measures z, rx, ry of the tool in the frame of the plane. With ``X ← X·Exp([v; w])``:
+    ``δe_t = −R v`` and ``δe_r = −Jr⁻¹(Log(R_m Rᵀ)) R w`` (exact)."""
+
+    selected: tuple[str, ...] = ("tz", "rx", "ry")
+    name = "components"
+
+    def __post_init__(self) -> None:
+        unknown = [c for c in self.selected if c not in TWIST_COMPONENTS]
+        if unknown or not self.selected or len(set(self.selected)) != len(self.selected):
+            raise CalibrationError(
+                f"measurement components {list(self.selected)}: choose distinct components "
+                f"among {', '.join(TWIST_COMPONENTS)} (e.g. tz,rx,ry for a plane contact)"
+            )
+
+    @property
+    def index(self) -> IntArray:
+        return np.array([TWIST_COMPONENTS.index(c) for c in self.selected], dtype=np.intp)
+
+    @property
+    def dim(self) -> int:
+        return len(self.selected)
+
+    @property
+    def frame(self) -> str:
+        return "measurement frame"
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        return self.selected
+
+    @property
+    def translation_rows(self) -> tuple[int, ...]:
+        return tuple(i for i, c in enumerate(self.selected) if c.startswith("t"))
+
+    @property
+    def rotation_rows(self) -> tuple[int, ...]:
+        return tuple(i for i, c in enumerate(self.selected) if c.startswith("r"))
+
+    def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
+        """The nominal chain: without all six components there is no closed-form alignment;
+        the measurement frame must be near the robot base (e.g. the plane under the robot)."""
+        return ModelParameters(chain.nominal_links.copy(), np.zeros(len(chain.compliance_axes)))
+
+    def linearise(
+        self,
+        chain: KinematicChain,
+        params: ModelParameters,
+        rows: MeasurementRows,
+        *,
+        jacobian: bool = True,
+    ) -> tuple[FloatArray, FloatArray | None]:
+        if jacobian:
+            pose, j_tip = tip_linearisation(chain, params, rows)
+        else:
+            pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+        rotation = pose[:, :3, :3]
+        rotation_error = lie.so3_log(rows.measured[:, :3, :3] @ np.swapaxes(rotation, 1, 2))
+        error = np.concatenate([rows.measured[:, :3, 3] - pose[:, :3, 3], rotation_error], axis=1)
+        residual = error[:, self.index]
+        if not jacobian:
+            return residual, None
+        full = np.empty_like(j_tip)
+        full[:, :3] = rotation @ j_tip[:, :3]
+        full[:, 3:] = lie.so3_right_jacobian_inverse(rotation_error) @ (rotation @ j_tip[:, 3:])
+        return residual, self._with_extra_columns(full[:, self.index])
+
+    def check_rows(self, rows: MeasurementRows) -> None:
+        _check_pose_rows(self, rows)
+
+
+# --- ball in socket ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class KnownDistance:
+    """``|P_a − P_b| = distance_m`` between two sockets (0-based)."""
+
+    a: int
+    b: int
+    distance_m: float
+
+
+@dataclass(frozen=True)
+class FixedPoints(MeasurementModel):
+    """Ball in socket: the tool point (the ball centre, the tip link's translation) of every
+    row of socket g is the same unknown point ``P_g`` of the robot base frame.
+    ``r = P_g − p`` (N, 3), m, robot base frame; ``A_chain = R J_tip[:3]``, ``A_{P_g} = −I``.
+
+    ``distances``: known socket distances, each one more equation
+    ``distance_weight·(d − |P_a − P_b|)`` with ``A_{P_a} = w uᵀ``, ``A_{P_b} = −w uᵀ``,
+    ``u = (P_a − P_b)/|P_a − P_b|`` (without one, the scale of the robot is not identified
+    when its link lengths are fitted). The base frame is the robot's: ``L_1`` is not fitted
+    (a rigid motion of it and of every point together changes no residual).
+    """
+
+    n_points: int = 1
+    distances: tuple[KnownDistance, ...] = ()
+    distance_weight: float = 1.0
+    name = "point"
+
+    def __post_init__(self) -> None:
+        if self.n_points < 1:
+            raise CalibrationError("measurement 'point' needs at least one socket")
+        for d in self.distances:
+            if not (0 <= d.a < self.n_points and 0 <= d.b < self.n_points) or d.a == d.b:
+                raise CalibrationError(
+                    f"known distance between sockets {d.a} and {d.b}: choose two different "
+                    f"sockets among 0..{self.n_points - 1}"
+                )
+            if not d.distance_m > 0.0:
+                raise CalibrationError(
+                    f"known distance between sockets {d.a} and {d.b} is {d.distance_m} m; "
+                    "give a positive distance in m"
+                )
+
+    @property
+    def dim(self) -> int:
+        return 3
+
+    @property
+    def frame(self) -> str:
+        return "robot base frame"
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        return ("x", "y", "z")
+
+    def extra_names(self) -> list[str]:
+        return [f"point_{g}.{a}" for g in range(self.n_points) for a in ("x", "y", "z")]
+
+    def visible_columns(self, chain: KinematicChain) -> BoolArray:
+        """Not ``L_1`` (the points are in the robot base frame); without a known distance
+        not the link translations before the tool either: a robot scaled about its base with
+        its points fits every socket as well, down to a robot shrunk to a point, so the
+        lengths stay the URDF's (rotations, i.e. joint offsets and axis tilts, the ball
+        offset and the points are fitted)."""
+        visible = np.ones(chain_column_count(chain), dtype=bool)
+        visible[:6] = False
+        if not self.distances:
+            for link in range(1, chain.n_links - 1):
+                visible[6 * link : 6 * link + 3] = False
+        return visible
+
+    def points(self, params: ModelParameters) -> FloatArray:
+        """The socket points (G, 3), m, robot base frame."""
+        return params.extra.reshape(self.n_points, 3)
+
+    def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
+        """Nominal chain; the ball offset ``t`` (flange frame) and the points from the linear
+        least squares ``p_n + R_n t = P_{g(n)}`` (exact when the nominal chain is)."""
+        nominal = nominal_pose(chain, rows.joint_positions)
+        n = rows.n
+        design = np.zeros((n, 3, 3 + 3 * self.n_points))
+        design[:, :, :3] = nominal[:, :3, :3]
+        for i, g in enumerate(rows.group):
+            design[i, :, 3 + 3 * g : 6 + 3 * g] = -np.eye(3)
+        solution = np.linalg.lstsq(
+            design.reshape(3 * n, -1), -nominal[:, :3, 3].reshape(-1), rcond=None
+        )[0]
+        tool = np.eye(4)
+        tool[:3, 3] = solution[:3]
+        base = _links_folded(chain, 0, np.eye(4), tool, ChainParameters.nominal(chain))
+        return replace(base, extra=np.asarray(solution[3:], dtype=float))
+
+    def linearise(
+        self,
+        chain: KinematicChain,
+        params: ModelParameters,
+        rows: MeasurementRows,
+        *,
+        jacobian: bool = True,
+    ) -> tuple[FloatArray, FloatArray | None]:
+        points = self.points(params)[rows.group]
+        if not jacobian:
+            pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+            return points - pose[:, :3, 3], None
+        pose, j_tip = tip_linearisation(chain, params, rows)
+        residual = points - pose[:, :3, 3]
+        a = self._with_extra_columns(pose[:, :3, :3] @ j_tip[:, :3])
+        p = chain_column_count(chain)
+        for axis in range(3):
+            a[np.arange(rows.n), axis, p + 3 * rows.group + axis] = -1.0
+        return residual, a
+
+    def constraints(
+        self, chain: KinematicChain, params: ModelParameters
+    ) -> tuple[FloatArray, FloatArray]:
+        p = chain_column_count(chain)
+        points = self.points(params)
+        residual = np.zeros(len(self.distances))
+        a = np.zeros((len(self.distances), p + 3 * self.n_points))
+        for i, known in enumerate(self.distances):
+            delta = points[known.a] - points[known.b]
+            length = float(np.linalg.norm(delta))
+            unit = delta / max(length, 1e-300)
+            residual[i] = self.distance_weight * (known.distance_m - length)
+            a[i, p + 3 * known.a : p + 3 * known.a + 3] = self.distance_weight * unit
+            a[i, p + 3 * known.b : p + 3 * known.b + 3] = -self.distance_weight * unit
+        return residual, a
+
+    def check_rows(self, rows: MeasurementRows) -> None:
+        counts = np.bincount(rows.group, minlength=self.n_points)
+        if rows.group.size and (rows.group.min() < 0 or rows.group.max() >= self.n_points):
+            raise CalibrationError(
+                f"measurement 'point': rows name socket {int(rows.group.max())} but the model "
+                f"has {self.n_points} socket(s)"
+            )
+        few = [g for g in range(self.n_points) if counts[g] < 2]
+        if few:
+            raise CalibrationError(
+                f"measurement 'point': socket(s) {few} have fewer than 2 rows; record several "
+                "configurations with the ball in each socket"
+            )
+
+
+# --- several markers --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MultiMarker(MeasurementModel):
+    """m markers per row, positions (N, m, 3) in the measurement frame, each at its own unknown
+    offset ``t_j`` (m) on the flange (the frame before the tip link, which is then not fitted:
+    the offsets carry it). ``r_j = p_m,j − (p + R t_j)`` (N, 3m), m, measurement frame;
+    ``A_chain,j = R [I, −[t_j]x] J_tip``, ``A_{t_j} = R``."""
+
+    n_markers: int = 2
+    name = "markers"
+
+    @property
+    def dim(self) -> int:
+        return 3 * self.n_markers
+
+    @property
+    def frame(self) -> str:
+        return "measurement frame"
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        return tuple(f"m{j + 1}.{a}" for j in range(self.n_markers) for a in ("x", "y", "z"))
+
+    def extra_names(self) -> list[str]:
+        return [f"marker_{j + 1}.{a}" for j in range(self.n_markers) for a in ("x", "y", "z")]
+
+    def visible_columns(self, chain: KinematicChain) -> BoolArray:
+        visible = np.ones(chain_column_count(chain), dtype=bool)
+        last = 6 * (chain.n_links - 1)
+        visible[last : last + 6] = False
+        return visible
+
+    def offsets(self, params: ModelParameters) -> FloatArray:
+        """Marker offsets (m, 3) in the flange frame, m."""
+        return params.extra.reshape(self.n_markers, 3)
+
+    def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
+        """Measurement frame from the first marker (:func:`align_position_only`), then every
+        marker's offset by linear least squares ``R_W R_n t_j = p_m,j − R_W p_n − t_W``."""
+        nominal = nominal_pose(chain, rows.joint_positions)
+        world, _ = align_position_only(nominal, rows.measured[:, 0])
+        rotation = world[:3, :3] @ nominal[:, :3, :3]
+        design = rotation.reshape(-1, 3)
+        offsets = []
+        for j in range(self.n_markers):
+            rhs = rows.measured[:, j] - nominal[:, :3, 3] @ world[:3, :3].T - world[:3, 3]
+            offsets.append(np.linalg.lstsq(design, rhs.reshape(-1), rcond=None)[0])
+        base = _links_folded(chain, 0, world, np.eye(4), ChainParameters.nominal(chain))
+        return replace(base, extra=np.concatenate(offsets))
+
+    def linearise(
+        self,
+        chain: KinematicChain,
+        params: ModelParameters,
+        rows: MeasurementRows,
+        *,
+        jacobian: bool = True,
+    ) -> tuple[FloatArray, FloatArray | None]:
+        offsets = self.offsets(params)
+        if jacobian:
+            pose, j_tip = tip_linearisation(chain, params, rows)
+        else:
+            pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+        rotation = pose[:, :3, :3]
+        predicted = pose[:, None, :3, 3] + np.einsum("nij,mj->nmi", rotation, offsets)
+        residual = (rows.measured - predicted).reshape(rows.n, -1)
+        if not jacobian:
+            return residual, None
+        p = chain_column_count(chain)
+        a = np.zeros((rows.n, self.dim, p + self.dim))
+        for j, offset in enumerate(offsets):
+            lever = np.concatenate([np.eye(3), -lie.skew(offset)], axis=1)  # (3, 6)
+            a[:, 3 * j : 3 * j + 3, :p] = rotation @ (lever @ j_tip)
+            a[:, 3 * j : 3 * j + 3, p + 3 * j : p + 3 * j + 3] = rotation
+        return residual, a
+
+    def check_rows(self, rows: MeasurementRows) -> None:
+        if rows.measured.shape[1:] != (self.n_markers, 3):
+            raise CalibrationError(
+                f"measurement 'markers' with {self.n_markers} markers needs x,y,z of each "
+                f"marker per row; the rows carry {rows.measured.shape[1:]} values"
+            )
+
+
+# --- a frame carried by the base; a sensor carried by the chain -------------------------------
+
+
+@dataclass(frozen=True)
+class RelativeBase(FullPose):
+    """The marker measured in the frame of another marker rigidly carried by the robot base
+    (TIAGo's Vicon files: the gripper in the frame of a base marker), both unknown. That frame
+    is the measurement frame of Eq. (7): ``L_1`` (base marker ← robot base) is fitted with the
+    chain, ``L_{k+1}`` carries the gripper marker. Residuals as :class:`FullPose` (or
+    :class:`Position` with ``position_only``), tip frame."""
+
+    measure_position_only: bool = True
+    name = "relative-base"
+
+    @property
+    def dim(self) -> int:
+        return 3 if self.measure_position_only else 6
+
+    @property
+    def frame(self) -> str:
+        return "end effector (tip) frame; measurement frame = the marker on the robot base"
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        return TWIST_COMPONENTS[: self.dim]
+
+    @property
+    def rotation_rows(self) -> tuple[int, ...]:
+        return () if self.measure_position_only else (3, 4, 5)
+
+    @property
+    def position_only(self) -> bool:
+        return self.measure_position_only
+
+
+@dataclass(frozen=True)
+class EyeOnHead(MeasurementModel):
+    """A sensor carried by the chain's body after joint ``sensor_joint`` (0-based): it measures
+    the tip in its own moving frame S, ``X_S = S⁻¹ X_{0,j}(q)⁻¹ X_0E(q)``, which is the chain
+    after that joint with ``S⁻¹`` folded into the next link. Links and compliances before
+    the sensor cancel (not fitted). Residuals as :class:`FullPose` (or :class:`Position` with
+    ``position_only``), tip frame."""
+
+    sensor_joint: int = 0
+    measure_position_only: bool = False
+    name = "eye-on-head"
+
+    @property
+    def inner(self) -> FullPose:
+        return Position() if self.measure_position_only else FullPose()
+
+    @property
+    def dim(self) -> int:
+        return self.inner.dim
+
+    @property
+    def frame(self) -> str:
+        return f"end effector (tip) frame; measured from a sensor after joint {self.sensor_joint}"
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        return self.inner.components
+
+    @property
+    def translation_rows(self) -> tuple[int, ...]:
+        return self.inner.translation_rows
+
+    @property
+    def rotation_rows(self) -> tuple[int, ...]:
+        return self.inner.rotation_rows
+
+    def _hidden_axes(self, chain: KinematicChain) -> IntArray:
+        return np.array(
+            [
+                a
+                for a, ax in enumerate(chain.compliance_axes)
+                if ax.joint_index <= self.sensor_joint
+            ],
+            dtype=np.intp,
+        )
+
+    def visible_columns(self, chain: KinematicChain) -> BoolArray:
+        visible = np.ones(chain_column_count(chain), dtype=bool)
+        visible[: 6 * (self.sensor_joint + 1)] = False
+        visible[6 * chain.n_links + self._hidden_axes(chain)] = False
+        return visible
+
+    def _suffix(
+        self, chain: KinematicChain, params: ChainParameters, rows: MeasurementRows
+    ) -> tuple[ModelParameters, MeasurementRows]:
+        """Parameters and rows whose forward kinematics is the chain after the sensor: links
+        and joints up to the sensor made identity, compliances there unloaded."""
+        if not 0 <= self.sensor_joint < chain.n_joints - 1:
+            raise CalibrationError(
+                f"measurement 'eye-on-head': sensor joint {self.sensor_joint} must be a joint "
+                f"of the chain before its last (0..{chain.n_joints - 2})"
+            )
+        links = params.links.copy()
+        links[: self.sensor_joint + 1] = np.eye(4)
+        q = rows.joint_positions.copy()
+        q[:, : self.sensor_joint + 1] = 0.0
+        loads = rows.loads_nm.copy()
+        loads[:, self._hidden_axes(chain)] = 0.0
+        suffix = ModelParameters(links, params.compliance_rad_per_nm)
+        return suffix, MeasurementRows(q, loads, rows.measured, rows.group)
+
+    def predicted_pose(
+        self, chain: KinematicChain, params: ChainParameters, rows: MeasurementRows
+    ) -> FloatArray:
+        """The tip in the sensor frame for each row (N, 4, 4)."""
+        suffix, moved = self._suffix(chain, params, rows)
+        return forward_kinematics(chain, suffix, moved.joint_positions, moved.loads_nm)
+
+    def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
+        """Nominal chain, with the sensor frame (closed-form alignment of the chain after the
+        sensor to the measurements) folded into the link after the sensor."""
+        nominal = ChainParameters.nominal(chain)
+        suffix, moved = self._suffix(chain, nominal, rows)
+        pose = forward_kinematics(chain, suffix, moved.joint_positions, moved.loads_nm)
+        if self.measure_position_only:
+            world, tool = align_position_only(pose, rows.measured[:, :3, 3])
+        else:
+            world, tool = align_full_pose(pose, rows.measured)
+        return _links_folded(chain, self.sensor_joint + 1, world, tool, nominal)
+
+    def linearise(
+        self,
+        chain: KinematicChain,
+        params: ModelParameters,
+        rows: MeasurementRows,
+        *,
+        jacobian: bool = True,
+    ) -> tuple[FloatArray, FloatArray | None]:
+        suffix, moved = self._suffix(chain, params, rows)
+        residual, a = self.inner.linearise(chain, suffix, moved, jacobian=jacobian)
+        if a is not None:
+            a[:, :, : chain_column_count(chain)] *= self.visible_columns(chain)
+        return residual, a
+
+    def check_rows(self, rows: MeasurementRows) -> None:
+        _check_pose_rows(self, rows)

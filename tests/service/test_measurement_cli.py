@@ -1,0 +1,262 @@
+"""Measurement models through the user's path (issue 15): ball-in-socket folders and the
+4-marker TIAGo file calibrate with ``kincal calibrate`` and their held-out error drops; bad
+input is refused with the fix."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import platonics
+from service.robots import example_robot_data_dir
+from tests.conftest import REAL_DATA
+from tests.service.cli_support import run
+
+SOCKETS = REAL_DATA / "platonics_ball_socket"
+TIAGO_QUALISYS = REAL_DATA / "figaroh_tiago_mocap/qualysis/qualysis_base_hand_calibration.csv"
+
+
+def _tiago_urdf() -> Path:
+    return example_robot_data_dir() / "robots/tiago_description/robots/tiago.urdf"
+
+
+def test_panda_ball_in_socket_calibrates_with_defaults(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A platonics Panda folder (a placement folder with two sockets, headerless joint files)
+    is detected as 'point' and calibrates with exit 0; the held-out ball-centre scatter drops
+    more than 5x."""
+    out = tmp_path / "result.json"
+    report = tmp_path / "report.html"
+    args = ["calibrate", SOCKETS / "panda_right", "--robot", "panda", "--report", report]
+    code, stdout, stderr = run([*args, "-o", out], capsys, monkeypatch)
+    assert code == 0, stderr
+    page = report.read_text()
+    assert "point (residual in the robot base frame)" in page
+    assert "removed by the model rule (level 0.01)" in page
+    result = json.loads(out.read_text())
+    measurement = result["measurement"]
+    assert measurement["type"] == "point"
+    assert measurement["labels"] == ["world_frame/hole_0", "world_frame/hole_1"]
+    assert [u["name"] for u in measurement["unknowns"]][:3] == [
+        "point_0.x",
+        "point_0.y",
+        "point_0.z",
+    ]
+    assert any("not estimated" in note for note in measurement["notes"])
+    assert result["covariance"] is None
+    before = result["fit"]["before"]["heldout"]["translation_mean_mm"]
+    after = result["fit"]["after"]["heldout"]["translation_mean_mm"]
+    assert after < before / 5, (before, after)
+    assert "held-out" in stdout
+
+
+def test_known_socket_distance_is_met(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "result.json"
+    config = tmp_path / "options.toml"
+    config.write_text('measurement = "point"\npoint_distance_m = 0.05\nseeds = [1, 2, 3]\n')
+    code, _, stderr = run(
+        ["calibrate", SOCKETS / "panda_right", "--robot", "panda", "--config", config, "-o", out],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 0, stderr
+    result = json.loads(out.read_text())
+    (gap,) = result["measurement"]["constraint_residuals_m"]
+    assert abs(gap) < 1e-3  # 50 mm met to within a millimetre (one equation among 180)
+    assert result["fit"]["after"]["heldout"]["translation_mean_mm"] < 0.5
+
+
+def test_tiago_qualisys_file_calibrates_all_four_markers_at_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "result.json"
+    args = ["calibrate", TIAGO_QUALISYS, "--urdf", _tiago_urdf(), "--base", "base_footprint"]
+    code, _, stderr = run([*args, "--tip", "arm_7_link", "-o", out], capsys, monkeypatch)
+    assert code == 0, stderr
+    result = json.loads(out.read_text())
+    measurement = result["measurement"]
+    assert measurement["type"] == "markers"
+    assert len(measurement["unknowns"]) == 12
+    assert measurement["components"][:4] == ["m1.x", "m1.y", "m1.z", "m2.x"]
+    before = result["fit"]["before"]["heldout"]["translation_mean_mm"]
+    after = result["fit"]["after"]["heldout"]["translation_mean_mm"]
+    assert after < before
+
+
+def test_covariance_asked_for_a_point_constraint_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    args = ["calibrate", SOCKETS / "panda_right", "--robot", "panda", "-o", tmp_path / "r.json"]
+    code, _, stderr = run([*args, "--covariance", "diag"], capsys, monkeypatch)
+    assert code == 2
+    assert "measurement 'point'" in stderr and "--covariance none" in stderr
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--measurement", "sockets"], "unknown measurement 'sockets'"),
+        (["--measurement", "components:tz,roll"], "tz,rx,ry"),
+        (["--measurement", "eye-on-head:neck"], "not a joint of the chain"),
+        (["--point-distance", "-1"], "point_distance_m"),
+    ],
+)
+def test_bad_measurement_options_name_the_fix(
+    flags: list[str],
+    message: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    args = ["calibrate", SOCKETS / "panda_right", "--robot", "panda", "-o", tmp_path / "r.json"]
+    code, _, stderr = run([*args, *flags], capsys, monkeypatch)
+    assert code == 2
+    assert message in stderr
+    assert "Traceback" not in stderr
+
+
+def test_bad_hole_file_is_named_with_the_fix(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    folder = tmp_path / "arm" / "front"
+    folder.mkdir(parents=True)
+    shutil.copy(SOCKETS / "panda_right/world_frame/hole_0.csv", folder / "hole_0.csv")
+    (folder / "hole_1.csv").write_text("0.1,0.2,0.3\n0.1,0.2,0.3\n")
+    code, _, stderr = run(
+        ["calibrate", tmp_path / "arm", "--robot", "panda", "-o", tmp_path / "r.json"],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 2
+    assert "front/hole_1.csv: 3 columns but the chain has 7 joints" in stderr
+
+
+def test_platonics_benchmark_smoke() -> None:
+    line, numbers = platonics.row("panda_right", seeds=2)
+    assert line.startswith("| panda_right |")
+    assert numbers["after_mm"] < numbers["before_mm"]
+
+
+def test_http_refuses_a_folder_measurement_with_problem_json(tmp_path: Path) -> None:
+    """The service calibrates one uploaded file: 'point' and 'markers' get a 422 saying so."""
+    from fastapi.testclient import TestClient
+
+    from service.api.app import create_app
+    from tests.service.api.conftest import fresh_database_url, make_settings, upload_csv
+
+    with (
+        fresh_database_url(tmp_path) as url,
+        TestClient(create_app(make_settings(tmp_path, url))) as client,
+    ):
+        dataset = upload_csv(client).json()
+        response = client.post(
+            "/api/v1/calibrations",
+            json={"dataset_id": dataset["id"], "options": {"measurement": "point"}},
+        )
+    assert response.status_code == 422
+    assert response.headers["content-type"].startswith("application/problem+json")
+    assert "kincal calibrate" in response.json()["detail"]
+
+
+FR3 = REAL_DATA / "philnad_fr3_eye_in_hand/fr3_poses.csv"
+
+
+def test_position_measurement_ignores_the_recorded_orientations(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """--measurement position on a full-pose file equals the same file without its
+    quaternion columns (to 1e-9)."""
+    import pandas as pd
+
+    stripped = tmp_path / "positions.csv"
+    pd.read_csv(FR3).drop(columns=["qx", "qy", "qz", "qw"]).to_csv(stripped, index=False)
+    base = ["--robot", "panda", "--covariance", "none", "--seeds", "1,2"]
+    out_a, out_b = tmp_path / "a.json", tmp_path / "b.json"
+    code, _, err = run(
+        ["calibrate", FR3, *base, "--measurement", "position", "-o", out_a], capsys, monkeypatch
+    )
+    assert code == 0, err
+    code, _, err = run(["calibrate", stripped, *base, "-o", out_b], capsys, monkeypatch)
+    assert code == 0, err
+    a, b = json.loads(out_a.read_text()), json.loads(out_b.read_text())
+    assert a["dataset"]["position_only"] and b["dataset"]["position_only"]
+    for link_a, link_b in zip(a["links"], b["links"], strict=True):
+        np.testing.assert_allclose(link_a["placement"], link_b["placement"], atol=1e-9)
+    heldout_a, heldout_b = a["fit"]["after"]["heldout"], b["fit"]["after"]["heldout"]
+    assert heldout_a["rotation_mean_deg"] is None
+    assert heldout_a["translation_mean_mm"] == pytest.approx(heldout_b["translation_mean_mm"])
+    code, _, err = run(
+        ["calibrate", stripped, *base, "--measurement", "pose", "-o", out_b], capsys, monkeypatch
+    )
+    assert code == 2 and "--measurement position" in err
+
+
+def test_design_refuses_a_measurement_it_cannot_plan(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    config = tmp_path / "options.toml"
+    config.write_text('measurement = "point"\n')
+    code, _, stderr = run(
+        ["design", "--robot", "kinova", "--config", config, "-o", tmp_path / "d.json"],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 2
+    assert "measurement 'point' is not supported by the design" in stderr
+
+
+@pytest.mark.parametrize(
+    ("measurement", "model_name"),
+    [("components:tz,rx,ry", "plane contact"), ("eye-on-head:panda_joint2", "eye-on-head")],
+)
+def test_pose_like_measurements_calibrate_through_the_cli_to_the_noise_floor(
+    measurement: str,
+    model_name: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A simulated plane contact (z, roll, pitch of the tool in the plane's frame) and a
+    sensor riding after joint 2 (the tip in its moving frame), written as pose CSVs:
+    ``kincal calibrate --measurement ...`` exits 0 and its held-out error is at the noise."""
+    import pandas as pd
+
+    from solver import lie
+    from solver.model import sample_configurations
+    from tests.conftest import chain
+    from tests.solver.test_measurement import MODELS, NOISE, _base, _rows
+
+    c = chain("panda")
+    model = MODELS[model_name]
+    rng = np.random.default_rng(3)
+    truth = _base(c, model)
+    truth = model.apply(
+        c, truth, 5e-4 * rng.standard_normal(6 * c.n_links), np.arange(6 * c.n_links)
+    )
+    rows = _rows(c, model, truth, sample_configurations(c, 200, rng), rng)
+    quaternion = lie.matrix_to_quaternion_xyzw(rows.measured[:, :3, :3])
+    table = pd.DataFrame(rows.joint_positions, columns=list(c.joint_names))
+    table[["x", "y", "z"]] = rows.measured[:, :3, 3]
+    table[["qx", "qy", "qz", "qw"]] = quaternion
+    data = tmp_path / "contact.csv"
+    table.to_csv(data, index=False)
+    out = tmp_path / "result.json"
+    args = ["calibrate", data, "--robot", "panda", "--measurement", measurement]
+    code, _, stderr = run([*args, "--rigid", "-o", out], capsys, monkeypatch)
+    assert code == 0, stderr
+    result = json.loads(out.read_text())
+    assert result["measurement"]["type"] == measurement
+    after = result["fit"]["after"]["heldout"]
+    before = result["fit"]["before"]["heldout"]
+    translation_rows = len(model.translation_rows)
+    # mean norm of the translation rows of 0.1 mm noise: at most 1.2x its expected value
+    expected_mm = 1e3 * NOISE * {1: np.sqrt(2 / np.pi), 3: np.sqrt(8 / np.pi)}[translation_rows]
+    assert after["translation_mean_mm"] <= 1.2 * expected_mm, (after, expected_mm)
+    assert after["translation_mean_mm"] < before["translation_mean_mm"]
