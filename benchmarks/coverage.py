@@ -175,8 +175,15 @@ def _row(
     )
 
 
+def markdown(header: list[str], rows: list[list[str]]) -> str:
+    """A markdown table."""
+    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
 def table(rows: list[CoverageRow]) -> str:
-    """The markdown table of the README."""
+    """The markdown table of the calibrate-reported coverage (README)."""
     header = [
         "Recording",
         "Outlier rule",
@@ -189,16 +196,22 @@ def table(rows: list[CoverageRow]) -> str:
         "Total: mean d² (χ² mean)",
         "Time",
     ]
-    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
-    for r in rows:
-        total = " / ".join(f"{100 * v:.0f}" for v in r.total)
-        lines.append(
-            f"| {r.label} | {r.rule} | {r.n_used} / {r.n_input} | {r.dimension} | {r.n_heldout} "
-            f"| {100 * r.random_95:.0f} % / {r.random_mean:.1f} "
-            f"| {100 * r.parameters_95:.0f} % / {r.parameters_mean:.1f} "
-            f"| {total} | {r.total_mean:.2f} ({r.dimension}) | {r.seconds:.0f} s |"
-        )
-    return "\n".join(lines)
+    body = [
+        [
+            r.label,
+            r.rule,
+            f"{r.n_used} / {r.n_input}",
+            str(r.dimension),
+            str(r.n_heldout),
+            f"{100 * r.random_95:.0f} % / {r.random_mean:.1f}",
+            f"{100 * r.parameters_95:.0f} % / {r.parameters_mean:.1f}",
+            " / ".join(f"{100 * v:.0f}" for v in r.total),
+            f"{r.total_mean:.2f} ({r.dimension})",
+            f"{r.seconds:.0f} s",
+        ]
+        for r in rows
+    ]
+    return markdown(header, body)
 
 
 FOLDS = 10
@@ -308,16 +321,21 @@ def fold_table(rows: list[FoldCoverage]) -> str:
         "Failed folds",
         "Time",
     ]
-    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
-    for r in rows:
-        shares = " / ".join(f"{100 * r.found.at(a):.0f}" for a in COVERAGE_LEVELS)
-        lines.append(
-            f"| {r.label} | {r.n_input} | {r.found.dimension} | {r.found.n} / {r.screened} "
-            f"| {100 * r.before.at(0.95):.0f} % / {r.before.mean_d2:.1f} "
-            f"| {shares} | {r.found.mean_d2:.2f} ({r.found.dimension}) | {len(r.failed)} "
-            f"| {r.seconds:.0f} s |"
-        )
-    return "\n".join(lines)
+    body = [
+        [
+            r.label,
+            str(r.n_input),
+            str(r.found.dimension),
+            f"{r.found.n} / {r.screened}",
+            f"{100 * r.before.at(0.95):.0f} % / {r.before.mean_d2:.1f}",
+            " / ".join(f"{100 * r.found.at(a):.0f}" for a in COVERAGE_LEVELS),
+            f"{r.found.mean_d2:.2f} ({r.found.dimension})",
+            str(len(r.failed)),
+            f"{r.seconds:.0f} s",
+        ]
+        for r in rows
+    ]
+    return markdown(header, body)
 
 
 def main(seeds: int = 10, names: list[str] | None = None, folds: int = FOLDS) -> str:
