@@ -44,7 +44,7 @@ def summary(result: CalibrationResult) -> str:
         f"identifiable parameters: {result.identifiability.rank} of "
         f"{result.identifiability.n_parameters} "
         f"({len(result.identifiability.removed)} removed as unidentifiable)",
-        f"Gauss-Newton: {result.solver.status} after {result.solver.iterations} iterations "
+        f"Levenberg-Marquardt: {result.solver.status} after {result.solver.iterations} iterations "
         f"({result.solver.time_s:.2f} s)",
     ]
     for phase_name, phase in (("before", fit.before), ("after", fit.after)):

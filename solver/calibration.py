@@ -1,18 +1,20 @@
 """Deterministic calibration of geometry and compliance (paper Eq. 8–10, §V-A).
 
-Gauss–Newton on the stacked end-effector-frame residuals with the columns of
-:func:`solver.kinematics.stacked_jacobian`, after a closed-form alignment of the measurement frame
-and tool offset. Columns that the data cannot identify are removed once, up front, by a
-column-pivoted QR and reported by name; the same columns stay fixed through the iterations.
+Damped Gauss–Newton (Levenberg–Marquardt) on the stacked end-effector-frame residuals with the
+columns of :func:`solver.kinematics.stacked_jacobian`, after a closed-form alignment of the
+measurement frame and tool offset. Columns that the data cannot identify are removed once, up
+front, by a column-pivoted QR and reported by name; the same columns stay fixed through the
+iterations.
 
 Every step reduces to sums over samples, so the same code serves in-memory arrays
 (:func:`fit_deterministic`) and data streamed in chunks (:mod:`solver.stream`):
 
-- the Gauss–Newton step (Eq. 10) is solved from the normal equations :class:`NormalEquations`
-  (``JᵀJ``, ``Jᵀr``, ``rᵀr``), which add over chunks; :func:`gauss_newton_iteration` is the one
-  iteration (step halving included), a generator that yields each point where it needs the
-  normal equations — :func:`gauss_newton` feeds it from a callable, the streamed fit from
-  passes over the data that several fits share;
+- the step of Eq. (10), damped (:func:`damped_step`), is solved from the normal equations
+  :class:`NormalEquations` (``JᵀJ``, ``Jᵀr``, ``rᵀr``), which add over chunks;
+  :func:`levenberg_marquardt_iteration` is the one iteration (the damping schedule included), a
+  generator that yields each point where it needs the normal equations —
+  :func:`levenberg_marquardt` feeds it from a callable, the streamed fit from passes over the
+  data that several fits share;
 - the pruning (:func:`identifiable_columns`) is a column-pivoted QR of an in-memory stacked
   Jacobian; the streamed fit runs it on its warm-start rows (see :mod:`solver.stream`);
 - the outlier rule (§V-A) is :func:`within_spread` of a per-component :class:`ResidualSpread`,
@@ -178,7 +180,7 @@ def fit_deterministic(
         return normal_equations(kept.reshape(-1, keep.size), r.reshape(-1)), kept
 
     first = normal_equations(jacobian[:, :, keep].reshape(-1, keep.size), residual.reshape(-1))
-    run = gauss_newton(chain, params, keep, (first, jacobian[:, :, keep]), evaluate, options)
+    run = levenberg_marquardt(chain, params, keep, (first, jacobian[:, :, keep]), evaluate, options)
     pruned: list[int] = []
     while options.non_negative_compliance:
         negative = implausible_compliance_columns(
@@ -189,7 +191,9 @@ def fit_deterministic(
         pruned += negative.tolist()
         keep = np.setdiff1d(keep, negative)
         start_point = without_compliance(chain, run.params, negative)
-        run = gauss_newton(chain, start_point, keep, evaluate(start_point), evaluate, options)
+        run = levenberg_marquardt(
+            chain, start_point, keep, evaluate(start_point), evaluate, options
+        )
     final_residual = pose_residuals(
         forward_kinematics(chain, run.params, joint_positions, loads_nm),
         measured_pose,
@@ -334,19 +338,32 @@ def _gram(design: FloatArray) -> FloatArray:
     return np.asarray(np.triu(upper) + np.triu(upper, 1).T, dtype=float)
 
 
-def gauss_newton_step(normal: NormalEquations) -> FloatArray:
-    """``x = (AᵀA)⁻¹ Aᵀy`` (p,) with the columns scaled to unit norm first (Jacobi), so the
-    solve sees the condition number of the scaled columns, squared; falls back to the
-    minimum-norm least-squares solution if the scaled Gram is not positive definite."""
+def damped_step(normal: NormalEquations, damping: float) -> FloatArray:
+    """The Levenberg–Marquardt step of Eq. (10) (Marquardt 1963), (p,):
+
+        (AᵀA + λ diag(AᵀA)) x = Aᵀy,
+
+    solved with the columns scaled to unit norm (Jacobi, ``D = diag(AᵀA)``): ``(S + λ I) z =
+    D^{-1/2} Aᵀy``, ``x = D^{-1/2} z`` with ``S = D^{-1/2} AᵀA D^{-1/2}``, so λ (``damping``,
+    dimensionless) is relative to each column's own scale. ``damping`` 0 is the Gauss–Newton
+    step ``x = (AᵀA)⁻¹ Aᵀy``; a larger λ shortens the step and turns it towards the gradient
+    ``Aᵀy``. Falls back to the minimum-norm least-squares solution if ``S + λ I`` is not
+    positive definite."""
     norms = np.sqrt(np.clip(np.diag(normal.gram), 0.0, None))
     norms = np.where(norms > 0.0, norms, 1.0)
-    scaled = normal.gram / np.outer(norms, norms)
+    scaled = normal.gram / np.outer(norms, norms) + damping * np.eye(norms.size)
     rhs = normal.cross / norms
     try:
         solution = scipy.linalg.solve(scaled, rhs, assume_a="pos", check_finite=False)
     except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
         solution = np.linalg.lstsq(scaled, rhs, rcond=None)[0]
     return np.asarray(solution / norms, dtype=float)
+
+
+def predicted_decrease(normal: NormalEquations, step: FloatArray) -> float:
+    """Decrease of the linearised cost ``‖y − A x‖²`` by the step x: ``2 xᵀAᵀy − xᵀAᵀA x``
+    (m², with the rows weighted like the fit)."""
+    return float(2.0 * step @ normal.cross - step @ normal.gram @ step)
 
 
 def parameter_standard_errors(normal: NormalEquations) -> FloatArray:
@@ -359,9 +376,11 @@ def parameter_standard_errors(normal: NormalEquations) -> FloatArray:
 
 
 @dataclass(frozen=True)
-class GaussNewtonRun(Generic[Payload]):
-    """Result of :func:`gauss_newton`: final parameters, the normal equations there (kept
-    columns) and whatever the evaluation returned with them (``payload``)."""
+class LeastSquaresRun(Generic[Payload]):
+    """Result of :func:`levenberg_marquardt`: final parameters, the normal equations there (kept
+    columns) and whatever the evaluation returned with them (``payload``); ``iterations``:
+    accepted steps; ``trials``: points evaluated after the start (each a pass over the data
+    when streaming)."""
 
     params: ChainParameters
     normal: NormalEquations
@@ -369,104 +388,125 @@ class GaussNewtonRun(Generic[Payload]):
     iterations: int
     converged: bool
     cost_history: list[float]
+    trials: int = 0
 
 
-def gauss_newton(
+def levenberg_marquardt(
     chain: KinematicChain,
     start: ChainParameters,
     keep: NDArray[np.intp],
     first: tuple[NormalEquations, Payload],
     evaluate: Callable[[ChainParameters], tuple[NormalEquations, Payload]],
     options: FitOptions,
-) -> GaussNewtonRun[Payload]:
-    """The iteration of Eq. (10) over the columns ``keep`` (:func:`gauss_newton_iteration`)
-    with the normal equations (and payload) at ``start`` given as ``first`` and
-    ``evaluate(params)`` giving them at any other point — from arrays in memory or summed
-    over streamed chunks."""
+) -> LeastSquaresRun[Payload]:
+    """The damped iteration of Eq. (10) over the columns ``keep``
+    (:func:`levenberg_marquardt_iteration`) with the normal equations (and payload) at
+    ``start`` given as ``first`` and ``evaluate(params)`` giving them at any other point —
+    from arrays in memory or summed over streamed chunks."""
     iteration: Generator[
-        ChainParameters, tuple[NormalEquations, Payload], GaussNewtonRun[Payload]
-    ] = gauss_newton_iteration(chain, start, keep, options)
+        ChainParameters, tuple[NormalEquations, Payload], LeastSquaresRun[Payload]
+    ] = levenberg_marquardt_iteration(chain, start, keep, options)
     params = next(iteration)
     answer = first
     while True:
         try:
             params = iteration.send(answer)
         except StopIteration as done:
-            run: GaussNewtonRun[Payload] = done.value
+            run: LeastSquaresRun[Payload] = done.value
             return run
         answer = evaluate(params)
 
 
-def gauss_newton_iteration(
+FIRST_DAMPING = 1e-3
+"""λ of :func:`damped_step` after the first step that raised the cost (relative to the unit
+diagonal of the scaled normal matrix); before that the steps are Gauss–Newton's (λ = 0)."""
+
+MAX_TRIALS = 30
+"""Trial points per iteration at most; if none lowers the cost the iterate stays (and the
+iteration stops)."""
+
+
+def levenberg_marquardt_iteration(
     chain: KinematicChain,
     start: ChainParameters,
     keep: NDArray[np.intp],
     options: FitOptions,
-) -> Generator[ChainParameters, tuple[NormalEquations, Payload], GaussNewtonRun[Payload]]:
-    """The iteration of Eq. (10) over the columns ``keep``, as a generator: it yields each
-    point where it needs the normal equations (``start`` first) and is sent them (with any
-    payload) back; it returns the :class:`GaussNewtonRun`.
+) -> Generator[ChainParameters, tuple[NormalEquations, Payload], LeastSquaresRun[Payload]]:
+    """Levenberg–Marquardt on Eq. (10) over the columns ``keep``, as a generator: it yields
+    each point where it needs the normal equations (``start`` first) and is sent them (with
+    any payload) back; it returns the :class:`LeastSquaresRun`. As a generator, several fits
+    can share each pass over streamed data.
 
-    Step from the normal equations, halve it while the cost rises (at most 20 halvings),
-    stop when the relative cost change — achieved, or predicted by the linearisation before
-    the step is tried — is below ``options.tolerance``, or after ``options.max_iterations``
-    steps. As a generator, several fits can share each pass over streamed data.
+    Each iteration tries ``θ ⊕ x(λ)`` with ``x(λ)`` :func:`damped_step`; the gain ratio
+    ``ρ = (cost − cost_new) / (2xᵀAᵀy − xᵀAᵀAx)`` (achieved over predicted decrease) sets λ
+    (Nielsen 1999): a trial that lowers the cost is accepted and λ ← λ·max(1/3, 1 − (2ρ − 1)³);
+    one that raises it is rejected and λ ← max(ν λ, :data:`FIRST_DAMPING`), ν doubling per
+    rejection (ν = 2 after an acceptance). λ starts at 0: where Gauss–Newton's full steps lower
+    the cost the iterates are exactly Gauss–Newton's. Near-singular directions (a long, flat
+    valley) no longer force ever shorter steps along the Gauss–Newton direction: the damped
+    step turns towards the gradient there.
+
+    Stops when the relative cost change — achieved, or predicted for the undamped step
+    (``xᵀAᵀy`` of the Gauss–Newton step, zero only at a stationary point) before it is tried —
+    is below ``options.tolerance``, or after ``options.max_iterations`` accepted steps.
     """
     params = start
     normal, payload = yield start
     costs = [normal.cost]
     converged = False
-    iterations = 0
+    iterations = trials = 0
+    damping = 0.0
     while iterations < options.max_iterations:
-        step = gauss_newton_step(normal)
         # The full step lowers the linearised cost by xᵀAᵀy; below the tolerance the iterate
-        # has settled and trying the step (a pass over the data when streaming) is pointless.
-        if float(step @ normal.cross) <= options.tolerance * max(costs[-1], 1e-300):
+        # has settled and trying a step (a pass over the data when streaming) is pointless.
+        if float(damped_step(normal, 0.0) @ normal.cross) <= options.tolerance * max(
+            costs[-1], 1e-300
+        ):
             converged = True
             break
         iterations += 1
-        params, normal, payload = yield from _accept_step(
-            params, step, keep, (normal, payload), chain
+        params, normal, payload, damping, tried = yield from _damped_trials(
+            params, (normal, payload), damping, keep, chain
         )
+        trials += tried
         costs.append(normal.cost)
         if abs(costs[-2] - normal.cost) <= options.tolerance * max(costs[-2], 1e-300):
             converged = True
             break
-    return GaussNewtonRun(params, normal, payload, iterations, converged, costs)
+    return LeastSquaresRun(params, normal, payload, iterations, converged, costs, trials)
 
 
-def _accept_step(
+def _damped_trials(
     params: ChainParameters,
-    step: FloatArray,
-    keep: NDArray[np.intp],
     current: tuple[NormalEquations, Payload],
+    damping: float,
+    keep: NDArray[np.intp],
     chain: KinematicChain,
 ) -> Generator[
     ChainParameters,
     tuple[NormalEquations, Payload],
-    tuple[ChainParameters, NormalEquations, Payload],
+    tuple[ChainParameters, NormalEquations, Payload, float, int],
 ]:
-    """Apply a Gauss–Newton step, shortened while the cost rises (at most 20 tries); if none
-    lowers the cost, stay (the caller then sees no change and stops). Yields each trial point
-    for its normal equations.
-
-    Each shorter trial goes to the minimum of the parabola through the current cost, its
-    slope along the step (``−2 xᵀAᵀy``) and the failed trial, kept within [0.1, 0.5] of the
-    failed length (safeguarded backtracking): with large residuals the Gauss–Newton step can
-    overshoot by orders of magnitude, and each trial is a pass over the data when streaming.
-    """
-    cost = current[0].cost
-    slope = -2.0 * float(step @ current[0].cross)
-    scale = 1.0
-    for _ in range(20):
-        candidate = _apply_step(params, scale * step, keep, chain)
-        normal, payload = yield candidate
-        if normal.cost <= cost:
-            return candidate, normal, payload
-        curvature = (normal.cost - cost - slope * scale) / scale**2
-        best = -slope / (2.0 * curvature) if curvature > 0.0 else 0.5 * scale
-        scale = float(np.clip(best, 0.1 * scale, 0.5 * scale))
-    return params, *current
+    """One Levenberg–Marquardt iteration: damped steps (:func:`damped_step`) from ``params``
+    until one lowers the cost, λ updated by the gain ratio as
+    :func:`levenberg_marquardt_iteration` says. Yields each trial point for its normal
+    equations; returns the accepted point, its normal equations and payload, the next λ and
+    the number of trials (the current point and its λ if none of :data:`MAX_TRIALS` lowered
+    the cost)."""
+    normal = current[0]
+    growth = 2.0
+    for trial in range(1, MAX_TRIALS + 1):
+        step = damped_step(normal, damping)
+        candidate = _apply_step(params, step, keep, chain)
+        new_normal, new_payload = yield candidate
+        if new_normal.cost <= normal.cost:
+            predicted = predicted_decrease(normal, step)
+            ratio = (normal.cost - new_normal.cost) / predicted if predicted > 0.0 else 0.0
+            damping *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
+            return candidate, new_normal, new_payload, damping, trial
+        damping = max(growth * damping, FIRST_DAMPING)
+        growth *= 2.0
+    return params, *current, damping, MAX_TRIALS
 
 
 def _apply_step(
