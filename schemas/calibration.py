@@ -80,7 +80,10 @@ class CalibrationOptions(_Model):
         50, ge=1, le=1000, description="Levenberg-Marquardt iterations at most (Eq. 10, damped)."
     )
     tolerance: float = Field(
-        1e-10, gt=0.0, lt=1.0, description="Relative cost change at which Levenberg-Marquardt stops."
+        1e-10,
+        gt=0.0,
+        lt=1.0,
+        description="Relative cost change at which Levenberg-Marquardt stops.",
     )
     rank_tolerance: float = Field(
         1e-7,
