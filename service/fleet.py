@@ -191,6 +191,8 @@ def robot_parameters(result: CalibrationResult) -> list[_Parameter]:
             axes = ("vx", "vy", "vz", "wx", "wy", "wz")
             frame_errors = frame.std_stderr or (None,) * 6
             for axis, std, se in zip(axes, frame.std, frame_errors, strict=True):
+                if std is None:  # not identifiable: nothing to compare
+                    continue
                 unit = "m" if axis.startswith("v") else "rad"
                 out.append(_Parameter(f"sigma.{frame.name}.{axis}", frame.name, unit, std, se))
     after = result.fit.after.train.translation_rms_mm

@@ -116,22 +116,33 @@ def predictive_lines(predictive: PredictiveCovariance) -> list[str]:
     return lines
 
 
+AXES = ("x", "y", "z", "rx", "ry", "rz")
+
+
 def covariance_table(covariance: CovarianceResult) -> list[str]:
-    """σ per frame and axis (paper Fig. 4b as text): mm and mrad, '*' = not identifiable alone."""
+    """σ per frame and axis (paper Fig. 4b as text): mm and mrad, '*' = not identifiable alone,
+    'n/i' = not identifiable (each listed below with the reason)."""
     solver = covariance.solver
     lines = [
         f"random perturbations, σ per frame ({covariance.estimator}, {solver.name}: "
         f"{solver.status}, {solver.time_s:.2f} s; mm and mrad; * = only a sum with other "
-        "frames is identifiable):",
-        f"  {'frame':<28}" + "".join(f"{axis:>9}" for axis in ("x", "y", "z", "rx", "ry", "rz")),
+        "frames is identifiable; n/i = not identifiable):",
+        f"  {'frame':<28}" + "".join(f"{axis:>9}" for axis in AXES),
     ]
+    unseen = []
     for frame in [*covariance.frames, covariance.noise]:
         flags = frame.identifiable or (True,) * 6
         cells = [
-            f"{1e3 * std:8.3f}{' ' if ok else '*'}"
+            f"{'n/i':>8} " if std is None else f"{1e3 * std:8.3f}{' ' if ok else '*'}"
             for std, ok in zip(frame.std, flags, strict=True)
         ]
         lines.append(f"  {frame.name:<28}" + "".join(cells))
+        unseen += [
+            f"  {frame.name} {axis}: not identifiable ({reason})"
+            for axis, reason in zip(AXES, frame.not_identifiable or (), strict=False)
+            if reason is not None
+        ]
+    lines += unseen
     identifiability = covariance.identifiability
     lines.append(
         f"  identifiable covariance entries: rank {identifiability.rank} of "
