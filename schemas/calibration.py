@@ -275,8 +275,10 @@ class Identifiability(_Model):
     removed: list[str] = Field(description="Parameters the data cannot identify (not fitted).")
     pruned: list[str] = Field(
         default_factory=list,
-        description="Compliances fixed at 0: negative, or with a standard error beyond any "
-        "physical compliance (> 0.01 rad/N·m).",
+        description="Parameters fixed and the fit repeated: compliances at 0 (negative, or "
+        "with a standard error beyond any physical compliance, > 0.01 rad/N·m) and inner-link "
+        "twist components at their nominal value (standard error > 0.1 rad or > 0.05 m: the "
+        "data do not place them in any physical range).",
     )
 
 

@@ -72,6 +72,12 @@ def summary(result: CalibrationResult) -> str:
         for c in result.compliance
         if c.pruned
     ]
+    links = [name for name in result.identifiability.pruned if not name.startswith("compliance.")]
+    if links:
+        lines.append(
+            f"link corrections fixed at nominal (standard error beyond any physical URDF error, "
+            f"> 0.1 rad or > 5 cm): {', '.join(links)}"
+        )
     if result.covariance is not None:
         lines += ["", *covariance_table(result.covariance)]
     if result.evaluation is not None:

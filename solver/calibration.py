@@ -62,8 +62,9 @@ class FitOptions:
     ``free_links``: indices of the links ``L_i`` (0-based) to calibrate, None = all;
     ``(0, k)`` calibrates only the measurement frame and the tool offset.
     ``non_negative_compliance``: a compliance estimated negative (no spring bends against the
-    torque on it, DESIGN.md §2: c ≥ 0) or not identified in any physical range is fixed at 0
-    and the fit repeated (see :func:`implausible_compliance_columns`).
+    torque on it, DESIGN.md §2: c ≥ 0) or not identified in any physical range is fixed at 0,
+    an inner link's twist component not identified in any physical range at its nominal value,
+    and the fit repeated (see :func:`implausible_columns`).
     """
 
     max_iterations: int = 50
@@ -183,14 +184,14 @@ def fit_deterministic(
     run = levenberg_marquardt(chain, params, keep, (first, jacobian[:, :, keep]), evaluate, options)
     pruned: list[int] = []
     while options.non_negative_compliance:
-        negative = implausible_compliance_columns(
+        negative = implausible_columns(
             chain, run.params, keep, parameter_standard_errors(run.normal)
         )
         if negative.size == 0:
             break
         pruned += negative.tolist()
         keep = np.setdiff1d(keep, negative)
-        start_point = without_compliance(chain, run.params, negative)
+        start_point = without_columns(chain, run.params, negative)
         run = levenberg_marquardt(
             chain, start_point, keep, evaluate(start_point), evaluate, options
         )
@@ -253,6 +254,59 @@ def without_compliance(
     compliance = params.compliance_rad_per_nm.copy()
     compliance[np.asarray(columns) - 6 * chain.n_links] = 0.0
     return ChainParameters(params.links, compliance)
+
+
+PLAUSIBLE_LINK_ROTATION_RAD = 0.1
+"""A rotation component of an inner link's correction whose standard error exceeds this (5.7°;
+a URDF's joint frames are off by milliradians) is not identified in any physical range."""
+
+PLAUSIBLE_LINK_TRANSLATION_M = 0.05
+"""Likewise a translation component whose standard error exceeds 5 cm."""
+
+
+def implausible_columns(
+    chain: KinematicChain,
+    params: ChainParameters,
+    keep: NDArray[np.intp],
+    standard_errors: FloatArray,
+) -> NDArray[np.intp]:
+    """The columns among ``keep`` (``standard_errors`` aligned with ``keep``) that the data do
+    not determine in any physical range: the compliances of
+    :func:`implausible_compliance_columns`, and the twist components of the inner links
+    ``L_2 … L_k`` (not ``L_1``, which carries the measurement frame, nor ``L_{k+1}``, the
+    tool: both may be anywhere) whose standard error exceeds
+    :data:`PLAUSIBLE_LINK_TRANSLATION_M` (tx, ty, tz) or :data:`PLAUSIBLE_LINK_ROTATION_RAD`
+    (rx, ry, rz). Such a component only follows a direction of the cost the data barely see
+    (e.g. a wrist whose joints hardly move: the link frame drifts by radians along a flat,
+    curved valley and no iteration limit is enough)."""
+    links = [
+        c
+        for c, stderr in zip(keep, standard_errors, strict=True)
+        if 6 <= c < 6 * (chain.n_links - 1)
+        and stderr > (PLAUSIBLE_LINK_TRANSLATION_M if c % 6 < 3 else PLAUSIBLE_LINK_ROTATION_RAD)
+    ]
+    compliance = implausible_compliance_columns(chain, params, keep, standard_errors)
+    return np.array(sorted([*links, *compliance.tolist()]), dtype=np.intp)
+
+
+def without_columns(
+    chain: KinematicChain, params: ChainParameters, columns: NDArray[np.intp]
+) -> ChainParameters:
+    """``params`` with the parameters of ``columns`` at their nominal value: a compliance at 0;
+    a link twist component at 0 in the link's total correction ``ξ = Log(L_nominal⁻¹ L)``
+    (``L = L_nominal Exp(ξ)``, ξ (6,) [v; w] in m and rad)."""
+    columns = np.asarray(columns, dtype=np.intp)
+    offset = 6 * chain.n_links
+    result = without_compliance(chain, params, columns[columns >= offset])
+    link_columns = columns[columns < offset]
+    if link_columns.size == 0:
+        return result
+    links = result.links.copy()
+    for link in np.unique(link_columns // 6):
+        correction = lie.se3_log(lie.inverse(chain.nominal_links[link]) @ links[link])
+        correction[link_columns[link_columns // 6 == link] % 6] = 0.0
+        links[link] = chain.nominal_links[link] @ lie.se3_exp(correction)
+    return ChainParameters(links, result.compliance_rad_per_nm)
 
 
 def check_sample_count(

@@ -16,8 +16,8 @@ from solver.calibration import (
     FitOptions,
     check_sample_count,
     fit_deterministic,
-    implausible_compliance_columns,
-    without_compliance,
+    implausible_columns,
+    without_columns,
 )
 from solver.covariance.estimate import (
     FULL_LIKELIHOOD_SAMPLES,
@@ -249,23 +249,22 @@ def non_negative_fit(
     request: FitRequest,
     count: PassCount,
 ) -> StreamedFit:
-    """``fit`` with every compliance no physical joint could have (negative, or not
-    identified in any physical range) fixed at 0 and the fit repeated from there, as
-    :func:`solver.calibration.fit_deterministic` does in memory; the fixed ones are listed in
-    ``pruned``."""
+    """``fit`` with every parameter the data do not place in a physical range fixed
+    (:func:`solver.calibration.implausible_columns`: a compliance negative or unidentified at
+    0, an inner link's twist component unidentified at its nominal value) and the fit repeated
+    from there, as :func:`solver.calibration.fit_deterministic` does in memory; the fixed ones
+    are listed in ``pruned``."""
     if not request.options.non_negative_compliance:
         return fit
     names = parameter_names(problem.chain)
     keep = np.array([names.index(n) for n in fit.estimated], dtype=np.intp)
     pruned: list[str] = []
     while (
-        negative := implausible_compliance_columns(
-            problem.chain, fit.params, keep, fit.standard_errors
-        )
+        negative := implausible_columns(problem.chain, fit.params, keep, fit.standard_errors)
     ).size:
         pruned += [names[c] for c in negative]
         keep = np.setdiff1d(keep, negative)
-        start = without_compliance(problem.chain, fit.params, negative)
+        start = without_columns(problem.chain, fit.params, negative)
         (fit,) = fit_streamed_together(
             problem, executor, [replace(request, start=start, keep=keep)], count
         )

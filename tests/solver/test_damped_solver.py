@@ -74,3 +74,35 @@ def test_far_start_converges_to_the_exact_robot() -> None:
     assert fit.converged and fit.iterations < FitOptions().max_iterations
     predicted = forward_kinematics(c, fit.params, q, loads)
     assert np.abs(predicted - measured).max() < 1e-9
+
+
+def test_implausible_link_components_are_pruned_to_nominal() -> None:
+    """Inner-link components whose standard error is beyond any physical URDF error are
+    fixed at their nominal value; the measurement frame (L_1) and the tool (L_{k+1}) never."""
+    from solver import lie
+    from solver.calibration import (
+        PLAUSIBLE_LINK_ROTATION_RAD,
+        PLAUSIBLE_LINK_TRANSLATION_M,
+        implausible_columns,
+        without_columns,
+    )
+
+    c = chain("kinova")
+    rng = np.random.default_rng(2)
+    params = ChainParameters(c.nominal_links, np.zeros(len(c.compliance_axes)))
+    params = params.with_link_corrections(rng.normal(scale=0.05, size=(c.n_links, 6)))
+    last = 6 * (c.n_links - 1)
+    keep = np.array([0, 5, 6, 9, 13, last - 1, last + 3], dtype=np.intp)
+    big_t, big_r = 2 * PLAUSIBLE_LINK_TRANSLATION_M, 2 * PLAUSIBLE_LINK_ROTATION_RAD
+    stderr = np.array([big_t, big_r, big_t, big_r, 0.5 * big_t, big_r, big_r])
+    # L_1 (0, 5) and the tool (last + 3) may be anywhere; 13 (ty of L_3) is plausible
+    assert implausible_columns(c, params, keep, stderr).tolist() == [6, 9, last - 1]
+    fixed = without_columns(c, params, np.array([6, 9, last - 1], dtype=np.intp))
+    for link, components in ((1, [0, 3]), (c.n_links - 2, [5])):
+        correction = lie.se3_log(lie.inverse(c.nominal_links[link]) @ fixed.links[link])
+        before = lie.se3_log(lie.inverse(c.nominal_links[link]) @ params.links[link])
+        assert np.allclose(correction[components], 0.0, atol=1e-12)
+        others = [i for i in range(6) if i not in components]
+        assert np.allclose(correction[others], before[others], atol=1e-12)
+    untouched = [i for i in range(c.n_links) if i not in (1, c.n_links - 2)]
+    assert np.array_equal(fixed.links[untouched], params.links[untouched])
