@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from schemas.calibration import CalibrationOptions
+from schemas.calibration import CalibrationOptions, Verdict
 from schemas.discovery import DiscoveryOptions
 from schemas.limits import MAX_JOINT_POSITION, MAX_PAYLOAD_KG
 from schemas.ranking import RankingOptions, TargetPose
@@ -192,6 +192,12 @@ class CalibrationPublic(BaseModel):
         None, description="The discovery whose findings the calibration carries, if any."
     )
     status: JobStatus
+    verdict: Verdict | None = Field(
+        None,
+        description="Once succeeded: whether the calibration is fit to use (ok, warning or "
+        "failed, each reason with its cause and fix; the result's verdict). A failed one has "
+        "no URDF unless asked for with GET .../urdf?force=true.",
+    )
     options: CalibrationOptions
     links: CalibrationLinks
 

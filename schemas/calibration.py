@@ -20,6 +20,9 @@ Vector3 = tuple[float, float, float]
 Matrix4 = Annotated[list[list[float]], Field(min_length=4, max_length=4)]
 Matrix6 = Annotated[list[list[float]], Field(min_length=6, max_length=6)]
 Vector6 = tuple[float, float, float, float, float, float]
+OptionalVector6 = tuple[
+    float | None, float | None, float | None, float | None, float | None, float | None
+]
 
 
 class _Model(BaseModel):
@@ -77,10 +80,13 @@ class CalibrationOptions(_Model):
         "from its mean (0 or null: no screening).",
     )
     max_iterations: int = Field(
-        50, ge=1, le=1000, description="Gauss-Newton iterations at most (Eq. 10)."
+        50, ge=1, le=1000, description="Levenberg-Marquardt iterations at most (Eq. 10, damped)."
     )
     tolerance: float = Field(
-        1e-10, gt=0.0, lt=1.0, description="Relative cost change at which Gauss-Newton stops."
+        1e-10,
+        gt=0.0,
+        lt=1.0,
+        description="Relative cost change at which Levenberg-Marquardt stops.",
     )
     rank_tolerance: float = Field(
         1e-7,
@@ -303,8 +309,10 @@ class Identifiability(_Model):
     removed: list[str] = Field(description="Parameters the data cannot identify (not fitted).")
     pruned: list[str] = Field(
         default_factory=list,
-        description="Compliances fixed at 0: negative, or with a standard error beyond any "
-        "physical compliance (> 0.01 rad/N·m).",
+        description="Parameters fixed and the fit repeated: compliances at 0 (negative, or "
+        "with a standard error beyond any physical compliance, > 0.01 rad/N·m) and inner-link "
+        "twist components at their nominal value (standard error > 0.1 rad or > 0.05 m: the "
+        "data do not place them in any physical range).",
     )
 
 
@@ -382,13 +390,17 @@ class CovarianceFrame(_Model):
 
     ``name`` is the joint whose frame (right after L_i, before the joint moves) carries the
     perturbation, or ``"noise"`` for the measurement noise (end-effector frame). ``matrix`` is
-    6x6 in [v; w] order, m² / m·rad / rad²; ``std`` the square roots of its diagonal (m, rad).
+    6x6 in [v; w] order, m² / m·rad / rad²; ``std`` the square roots of its diagonal (m, rad),
+    None for an axis the data cannot see (``not_identifiable`` says why; ``matrix`` keeps the
+    value the identifiability rule set there, so Eq. 12 sums as fitted).
     """
 
     name: str
     joint_index: int | None = Field(description="0-based chain joint; None for the noise.")
     matrix: Matrix6
-    std: Vector6
+    std: OptionalVector6 = Field(
+        description="σ per axis x, y, z, rx, ry, rz (m, rad); null: not identifiable."
+    )
     std_stderr: tuple[float | None, ...] | None = Field(
         None, description="Standard error of each std entry (None where not identifiable)."
     )
@@ -401,7 +413,16 @@ class CovarianceFrame(_Model):
     identifiable: tuple[bool, ...] | None = Field(
         None,
         description="Per axis: determined by the data on its own (False: only a combination "
-        "with other frames is, see identifiability.null_directions).",
+        "with other frames is, see identifiability.null_directions, or not at all, see "
+        "not_identifiable).",
+    )
+    not_identifiable: tuple[str | None, ...] | None = Field(
+        None,
+        description="Per axis: why the data cannot see this axis's variance (its std is "
+        "null), or null where they can. Rule: the axis's effect on the end-effector covariance "
+        "(Eq. 12) over the recording's configurations is nil or does not vary (RMS variation "
+        "below 1e-3 of its size), so a constant end-effector error looks the same "
+        "(README, σ that the data cannot see).",
     )
 
 

@@ -190,8 +190,11 @@ class HealthPair(_Model):
 class Step(_Model):
     step: int
     candidate: str
-    action: Literal["accepted", "ambiguous", "rejected_heldout", "unexplained"]
-    p_value: float
+    action: Literal["accepted", "ambiguous", "rejected_heldout", "unexplained", "pruned"] = Field(
+        description="pruned: a compliance, flex or backlash that fit below zero in the final "
+        "model, removed (fixed at 0) and the model refit"
+    )
+    p_value: float | None
     heldout_before_mm: float | None
     heldout_after_mm: float | None
 

@@ -238,8 +238,10 @@ class KincalClient:
     def report(self, calibration_id: str) -> str:
         return self._request("GET", f"{API}/calibrations/{calibration_id}/report").text
 
-    def urdf(self, calibration_id: str) -> str:
-        return self._request("GET", f"{API}/calibrations/{calibration_id}/urdf").text
+    def urdf(self, calibration_id: str, *, force: bool = False) -> str:
+        """The calibrated URDF; ``force``: also of a calibration whose verdict is failed."""
+        query = "?force=true" if force else ""
+        return self._request("GET", f"{API}/calibrations/{calibration_id}/urdf{query}").text
 
     def cancel(self, calibration_id: str) -> dict[str, Any]:
         return dict(self._request("POST", f"{API}/calibrations/{calibration_id}/cancel").json())

@@ -163,7 +163,7 @@ def discover(
                 step=s.step,
                 candidate=s.candidate,
                 action=s.action,  # type: ignore[arg-type]
-                p_value=s.p_value,
+                p_value=None if math.isnan(s.p_value) else s.p_value,
                 heldout_before_mm=s.heldout_before_mm,
                 heldout_after_mm=s.heldout_after_mm,
             )

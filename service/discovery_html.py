@@ -205,7 +205,8 @@ def _steps(findings: FindingsResult) -> str:
     )
     rows = "".join(
         f"<tr><td>{s.step}</td><td>{e(s.candidate)}</td><td>{e(s.action)}</td>"
-        f"<td>{s.p_value:.3g}</td>{_cell(s.heldout_before_mm, 3)}"
+        f"<td>{'–' if s.p_value is None else f'{s.p_value:.3g}'}</td>"
+        f"{_cell(s.heldout_before_mm, 3)}"
         f"{_cell(s.heldout_after_mm, 3)}</tr>"
         for s in findings.steps
     )

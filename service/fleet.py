@@ -15,17 +15,29 @@ corrections are only comparable in one gauge: the pruning QR may drop a differen
 interchangeable columns on different data, so a robot whose removed columns differ from the
 fleet's most common set is left out of the link-correction comparison (and listed).
 
+Only estimated values are compared: a compliance fixed at 0 as implausible (negative, or not
+identified in any physical range: ``pruned``) and a σ the data cannot see (``std`` null) are not
+values of the robot and never make it an outlier.
+
 Population spread per parameter: median, MAD (scaled by 1.4826, a σ for Gaussian data), mean,
 std, min, max. A robot is an outlier in a parameter when its robust z-score
-``(x − median) / (1.4826 · MAD)`` exceeds the threshold (default 3.5, Iglewicz & Hoaglin), e.g.
-a worn joint: much larger compliance or perturbation σ at that joint than the rest of the fleet;
-and when the deviation exceeds 3 of that robot's own standard errors of the parameter (a poorly
-identified parameter, e.g. a wrist compliance, scatters without anything being wrong; a σ
-without a standard error, at the boundary 0, is never flagged).
+``(x − median) / (1.4826 · MAD)`` exceeds the threshold, e.g. a worn joint: much larger
+compliance or perturbation σ at that joint than the rest of the fleet; and when the deviation
+exceeds 3 of that robot's own standard errors of the parameter (a poorly identified parameter,
+e.g. a wrist compliance, scatters without anything being wrong; a σ without a standard error, at
+the boundary 0, is never flagged).
+
+The threshold is family-wise (:func:`family_wise_z`): the MAD of a dozen robots is itself a
+rough estimate, and a fleet compares dozens of parameters, so Iglewicz & Hoaglin's 3.5 alone
+flags a healthy robot in most fleets (12 Gaussian robots: 12 % per parameter). A parameter over
+n robots is flagged beyond the larger of ``z_threshold`` (3.5) and the |z| the largest of n
+Gaussian robots exceeds with probability ``false_alarm / m`` (m parameters compared): a fleet
+of healthy robots raises any alarm with probability at most ``false_alarm`` (default 1 %).
 """
 
 from __future__ import annotations
 
+import functools
 import json
 from collections import Counter
 from collections.abc import Sequence
@@ -45,6 +57,9 @@ from solver.kinematics import TWIST_COMPONENTS
 FLEET_FORMAT = "kincal.fleet/1"
 MAD_TO_SIGMA = 1.4826
 DEFAULT_Z_THRESHOLD = 3.5
+FALSE_ALARM = 0.01
+"""Probability that a fleet of healthy robots (each parameter Gaussian over the fleet) shows any
+outlier at all (see :func:`family_wise_z`)."""
 SIGNIFICANCE = 3.0
 """A flagged deviation from the median must also exceed this many of the robot's own standard
 errors (a poorly identified parameter scatters without anything being wrong)."""
@@ -114,6 +129,7 @@ class ParameterSpread:
     std: float
     min: float
     max: float
+    z_threshold: float | None = DEFAULT_Z_THRESHOLD  # |robust z| to be flagged (None: < 3 robots)
 
 
 @dataclass(frozen=True)
@@ -126,6 +142,7 @@ class Outlier:
     value: float
     median: float
     robust_z: float
+    z_threshold: float = DEFAULT_Z_THRESHOLD  # the parameter's (family-wise) threshold
 
 
 @dataclass(frozen=True)
@@ -151,6 +168,7 @@ class FleetReport:
     population: list[ParameterSpread]
     outliers: list[Outlier]
     failures: dict[str, str] = field(default_factory=dict)
+    false_alarm: float = FALSE_ALARM
     format: str = FLEET_FORMAT
 
     def to_json(self) -> str:
@@ -191,6 +209,8 @@ def robot_parameters(result: CalibrationResult) -> list[_Parameter]:
             axes = ("vx", "vy", "vz", "wx", "wy", "wz")
             frame_errors = frame.std_stderr or (None,) * 6
             for axis, std, se in zip(axes, frame.std, frame_errors, strict=True):
+                if std is None:  # not identifiable: nothing to compare
+                    continue
                 unit = "m" if axis.startswith("v") else "rad"
                 out.append(_Parameter(f"sigma.{frame.name}.{axis}", frame.name, unit, std, se))
     after = result.fit.after.train.translation_rms_mm
@@ -210,10 +230,39 @@ def robust_z(values: np.ndarray) -> tuple[float, float, np.ndarray]:
     return median, scale, z
 
 
+_NULL_DRAWS = 200_000
+_NULL_VALUES = 40_000_000
+
+
+@functools.lru_cache(maxsize=256)
+def family_wise_z(n_robots: int, tail: float) -> float:
+    """The |robust z| (:func:`robust_z`) that the largest of ``n_robots`` values drawn from one
+    Gaussian exceeds with probability ``tail``: the (1 − tail) quantile of
+    ``max_i |x_i − median(x)| / (1.4826 · MAD(x))`` over simulated fleets (fixed seed; at least
+    100 exceedances expected, at most :data:`_NULL_VALUES` values drawn). With few robots the
+    MAD scatters and the quantile is far beyond 3.5 (6 robots, tail 1e-3: ≈ 22)."""
+    if n_robots < 3:
+        return float("inf")
+    draws = int(min(max(_NULL_DRAWS, 100.0 / tail), _NULL_VALUES // n_robots))
+    rng = np.random.default_rng(20261125)
+    largest = []
+    chunk = max(1, 2_000_000 // n_robots)
+    for start in range(0, draws, chunk):
+        x = rng.standard_normal((min(chunk, draws - start), n_robots))
+        deviation = np.abs(x - np.median(x, axis=1, keepdims=True))
+        largest.append(deviation.max(axis=1) / (MAD_TO_SIGMA * np.median(deviation, axis=1)))
+    return float(np.quantile(np.concatenate(largest), 1.0 - tail))
+
+
 def summarise_fleet(
-    outcomes: Sequence[RobotOutcome], robot: str, *, z_threshold: float = DEFAULT_Z_THRESHOLD
+    outcomes: Sequence[RobotOutcome],
+    robot: str,
+    *,
+    z_threshold: float = DEFAULT_Z_THRESHOLD,
+    false_alarm: float = FALSE_ALARM,
 ) -> FleetReport:
-    """Population spread and robust-z outliers over the calibrated robots."""
+    """Population spread and robust-z outliers over the calibrated robots (thresholds: the
+    module docstring)."""
     done = [o for o in outcomes if o.result is not None]
     params = {o.serial: robot_parameters(o.result) for o in done if o.result is not None}
     gauges = {
@@ -230,6 +279,7 @@ def summarise_fleet(
             table.setdefault(p.name, {})[serial] = p
             meta[p.name] = (p.joint, p.unit)
     population, outliers = [], []
+    compared = max(1, sum(len(by_robot) >= 3 for by_robot in table.values()))
     for name, by_robot in table.items():
         serials = list(by_robot)
         values = np.array([by_robot[s].value for s in serials])
@@ -243,6 +293,7 @@ def summarise_fleet(
             ]
         )
         median, scale, z = robust_z(values)
+        threshold = max(z_threshold, family_wise_z(values.size, false_alarm / compared))
         joint, unit = meta[name]
         population.append(
             ParameterSpread(
@@ -256,14 +307,15 @@ def summarise_fleet(
                 float(values.std(ddof=1)) if values.size > 1 else 0.0,
                 float(values.min()),
                 float(values.max()),
+                threshold if np.isfinite(threshold) else None,
             )
         )
         if values.size >= 3:
             significant = np.abs(values - median) > SIGNIFICANCE * stderr
             outliers += [
-                Outlier(s, name, joint, float(v), median, float(zi))
+                Outlier(s, name, joint, float(v), median, float(zi), threshold)
                 for s, v, zi, sig in zip(serials, values, z, significant, strict=True)
-                if abs(zi) > z_threshold and sig
+                if abs(zi) > threshold and sig
             ]
     outliers.sort(key=lambda o: -abs(o.robust_z))
     robots = []
@@ -281,7 +333,9 @@ def summarise_fleet(
             )
         )
     failures = {o.serial: o.error or "" for o in outcomes if o.result is None}
-    return FleetReport(robot, len(outcomes), z_threshold, robots, population, outliers, failures)
+    return FleetReport(
+        robot, len(outcomes), z_threshold, robots, population, outliers, failures, false_alarm
+    )
 
 
 def calibrate_fleet(
@@ -317,14 +371,20 @@ def fleet_table(report: FleetReport, *, max_parameters: int | None = None) -> st
         for r in report.robots
     ]
     lines += [f"{serial:<16} FAILED: {error}" for serial, error in report.failures.items()]
-    lines += ["", f"outliers (|robust z| > {report.z_threshold:g}): {len(report.outliers)}"]
+    lines += [
+        "",
+        f"outliers (|robust z| beyond the larger of {report.z_threshold:g} and the level a "
+        f"fleet of healthy robots reaches with probability {report.false_alarm:g}, per "
+        f"parameter): {len(report.outliers)}",
+    ]
     if report.outliers:
         lines.append(
-            f"{'serial':<16} {'joint':<22} {'parameter':<40} {'value':>12} {'median':>12} {'z':>7}"
+            f"{'serial':<16} {'joint':<22} {'parameter':<40} {'value':>12} {'median':>12} "
+            f"{'z':>7} {'beyond':>7}"
         )
         lines += [
             f"{o.serial:<16} {o.joint or '-':<22} {o.parameter:<40} {o.value:>12.4g} "
-            f"{o.median:>12.4g} {o.robust_z:>7.1f}"
+            f"{o.median:>12.4g} {o.robust_z:>7.1f} {o.z_threshold:>7.1f}"
             for o in report.outliers
         ]
     shown = report.population[:max_parameters] if max_parameters else report.population

@@ -413,7 +413,12 @@ class JobRunner:
                     return
             elif kind == "done":
                 finished = repository.finish_job(
-                    session, job.id, self.runner_id, repository.SUCCEEDED, artifacts=outcome[1]
+                    session,
+                    job.id,
+                    self.runner_id,
+                    repository.SUCCEEDED,
+                    artifacts=outcome[1],
+                    summary=outcome[2] if len(outcome) > 2 else None,
                 )
             else:
                 finished = repository.finish_job(

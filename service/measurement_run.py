@@ -402,7 +402,7 @@ def measurement_result(
             removed_rows=[int(i) + 1 for i in removed],
         ),
         solver=SolverReport(
-            name="gauss_newton",
+            name="levenberg_marquardt",
             status="optimal" if fit.converged else "iteration_limit",
             iterations=fit.iterations,
             time_s=fit.elapsed_s,

@@ -44,7 +44,7 @@ def summary(result: CalibrationResult) -> str:
         f"identifiable parameters: {result.identifiability.rank} of "
         f"{result.identifiability.n_parameters} "
         f"({len(result.identifiability.removed)} removed as unidentifiable)",
-        f"Gauss-Newton: {result.solver.status} after {result.solver.iterations} iterations "
+        f"Levenberg-Marquardt: {result.solver.status} after {result.solver.iterations} iterations "
         f"({result.solver.time_s:.2f} s)",
     ]
     for phase_name, phase in (("before", fit.before), ("after", fit.after)):
@@ -72,6 +72,12 @@ def summary(result: CalibrationResult) -> str:
         for c in result.compliance
         if c.pruned
     ]
+    links = [name for name in result.identifiability.pruned if not name.startswith("compliance.")]
+    if links:
+        lines.append(
+            f"link corrections fixed at nominal (standard error beyond any physical URDF error, "
+            f"> 0.1 rad or > 5 cm): {', '.join(links)}"
+        )
     if result.covariance is not None:
         lines += ["", *covariance_table(result.covariance)]
     if result.evaluation is not None:
@@ -116,22 +122,33 @@ def predictive_lines(predictive: PredictiveCovariance) -> list[str]:
     return lines
 
 
+AXES = ("x", "y", "z", "rx", "ry", "rz")
+
+
 def covariance_table(covariance: CovarianceResult) -> list[str]:
-    """σ per frame and axis (paper Fig. 4b as text): mm and mrad, '*' = not identifiable alone."""
+    """σ per frame and axis (paper Fig. 4b as text): mm and mrad, '*' = not identifiable alone,
+    'n/i' = not identifiable (each listed below with the reason)."""
     solver = covariance.solver
     lines = [
         f"random perturbations, σ per frame ({covariance.estimator}, {solver.name}: "
         f"{solver.status}, {solver.time_s:.2f} s; mm and mrad; * = only a sum with other "
-        "frames is identifiable):",
-        f"  {'frame':<28}" + "".join(f"{axis:>9}" for axis in ("x", "y", "z", "rx", "ry", "rz")),
+        "frames is identifiable; n/i = not identifiable):",
+        f"  {'frame':<28}" + "".join(f"{axis:>9}" for axis in AXES),
     ]
+    unseen = []
     for frame in [*covariance.frames, covariance.noise]:
         flags = frame.identifiable or (True,) * 6
         cells = [
-            f"{1e3 * std:8.3f}{' ' if ok else '*'}"
+            f"{'n/i':>8} " if std is None else f"{1e3 * std:8.3f}{' ' if ok else '*'}"
             for std, ok in zip(frame.std, flags, strict=True)
         ]
         lines.append(f"  {frame.name:<28}" + "".join(cells))
+        unseen += [
+            f"  {frame.name} {axis}: not identifiable ({reason})"
+            for axis, reason in zip(AXES, frame.not_identifiable or (), strict=False)
+            if reason is not None
+        ]
+    lines += unseen
     identifiability = covariance.identifiability
     lines.append(
         f"  identifiable covariance entries: rank {identifiability.rank} of "

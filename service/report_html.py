@@ -26,7 +26,7 @@ from schemas.calibration import (
     PredictiveCovariance,
 )
 from service.plots import coverage_figure, residual_histograms
-from service.report import predictive_lines, table_ii
+from service.report import AXES, predictive_lines, table_ii
 from service.result_json import ResidualSample
 
 _STYLE = """
@@ -261,8 +261,19 @@ def _random_effects(covariance: CovarianceResult | None) -> str:
     figure.savefig(buffer, format="png", dpi=110)
     warnings = "".join(f'<p class="warn">{e(w)}</p>' for w in covariance.identifiability.warnings)
     fixed = ", ".join(e(f) for f in covariance.identifiability.fixed)
+    unseen = "".join(
+        f"<li>{e(frame.name)} {axis}: not identifiable ({e(reason)})</li>"
+        for frame in frames
+        for axis, reason in zip(AXES, frame.not_identifiable or (), strict=False)
+        if reason is not None
+    )
     return (
         png_img(buffer.getvalue(), "Standard deviation per frame")
+        + (
+            f"<p>σ not shown (the data cannot see these axes):</p><ul>{unseen}</ul>"
+            if unseen
+            else ""
+        )
         + (f"<p>Fixed entries: {fixed}</p>" if fixed else "")
         + warnings
     )

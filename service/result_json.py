@@ -298,11 +298,15 @@ def _covariance_frame(frame: FrameCovariance, joint_index: int | None) -> Covari
         name=frame.name,
         joint_index=joint_index,
         matrix=frame.covariance.tolist(),
-        std=tuple(float(v) for v in frame.std),  # type: ignore[arg-type]
+        std=tuple(  # type: ignore[arg-type]
+            None if reason is not None else float(v)
+            for v, reason in zip(frame.std, frame.unseen, strict=True)
+        ),
         std_stderr=optional(frame.std_se),
         std_ci_low=optional(frame.std_ci_low),
         std_ci_high=optional(frame.std_ci_high),
         identifiable=tuple(bool(v) for v in frame.identifiable),
+        not_identifiable=frame.unseen if any(r is not None for r in frame.unseen) else None,
     )
 
 
@@ -484,7 +488,7 @@ def assemble_result(
             removed_rows=[int(i) + 1 for i in fits.removed_rows],
         ),
         solver=SolverReport(
-            name="gauss_newton",
+            name="levenberg_marquardt",
             status="optimal" if fit.converged else "iteration_limit",
             iterations=fit.iterations,
             time_s=fit.elapsed_s,

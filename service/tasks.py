@@ -127,7 +127,8 @@ def calibration_job(ctx: JobContext) -> None:
     passes on the Dask cluster of ``KINCAL_DASK_ADDRESS`` if set, else in this worker),
     carrying a discovery's findings if the job names one (as ``kincal calibrate --model``);
     artifacts: result JSON, HTML report, calibrated URDF (none when the result corrects the
-    joint readings, which a URDF cannot express: see :func:`service.urdf_export.refusal`)."""
+    joint readings, which a URDF cannot express: see :func:`service.urdf_export.refusal`);
+    the verdict goes in the job's summary, which its status shows."""
     ctx.progress("loading", 0.0)
     params = CalibrationJobParams.model_validate(ctx.params)
     robot = robot_description(params.robot, ctx.files)
@@ -151,6 +152,8 @@ def calibration_job(ctx: JobContext) -> None:
         )
     ctx.progress("report", REPORT_FRACTION)
     ctx.write_artifact("result", "result.json", run.result.model_dump_json(indent=1).encode())
+    if run.result.verdict is not None:
+        ctx.summary["verdict"] = run.result.verdict.model_dump(mode="json")
     if run.urdf_refusal is None:
         ctx.write_artifact("urdf", "calibrated.urdf", run.urdf().encode())
     ctx.write_artifact("report", "report.html", run.report_html().encode())

@@ -2,8 +2,8 @@
 
 A worker never touches the database (it does not even import it): it reads input files, writes
 artifact files atomically, and sends ``("progress", stage, fraction, iteration)`` messages and
-one outcome (``("done", artifacts)`` or ``("failed", message)``) per job. Cancellation kills
-the process (the service replaces it), so job functions need no cancellation checks.
+one outcome (``("done", artifacts, summary)`` or ``("failed", message)``) per job. Cancellation
+kills the process (the service replaces it), so job functions need no cancellation checks.
 """
 
 from __future__ import annotations
@@ -40,6 +40,8 @@ class JobContext:
     files: FileStore
     _send: Callable[[tuple[Any, ...]], None] = field(repr=False)
     artifacts: dict[str, str] = field(default_factory=dict)
+    summary: dict[str, Any] = field(default_factory=dict)
+    """What the job's status shows of its result once it succeeded (JSON-able)."""
 
     def progress(
         self, stage: str, fraction: float | None = None, iteration: int | None = None
@@ -131,4 +133,4 @@ def _run_job(
         log.exception("job failed with an internal error")
         return ("failed", f"internal error in job {job_id}; the service log has the details")
     log.info("job finished", extra={"duration_s": round(time.perf_counter() - started, 3)})
-    return ("done", ctx.artifacts)
+    return ("done", ctx.artifacts, ctx.summary or None)

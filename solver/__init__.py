@@ -12,8 +12,9 @@ Eq. 7  product of exponentials :func:`solver.kinematics.forward_kinematics`,
                                :func:`solver.batch_chain.sweep_chain` (batch-last, with Eq. 9)
 Eq. 8  residual Log(X⁻¹X_meas)  :func:`solver.kinematics.pose_residuals`
 Eq. 9  stacked Jacobian        :func:`solver.kinematics.stacked_jacobian`
-Eq. 10 Gauss–Newton            :func:`solver.calibration.gauss_newton_iteration` (one iteration,
-                               in memory and streamed), :func:`solver.calibration.fit_deterministic`
+Eq. 10 damped (Lev.–Marquardt) :func:`solver.calibration.levenberg_marquardt_iteration` (one
+                               iteration, in memory and streamed),
+                               :func:`solver.calibration.fit_deterministic`
 §V-A   2σ outlier rule         :func:`solver.calibration.within_spread`
 Eq. 12 Σ_E(q)                  :func:`solver.covariance.likelihood.ee_covariance_batch` (the one
                                kernel: likelihoods, predictions, rankings' reference)

@@ -8,11 +8,11 @@ column-pivoted QR and reported by name; the same columns stay fixed through the 
 Every step reduces to sums over samples, so the same code serves in-memory arrays
 (:func:`fit_deterministic`) and data streamed in chunks (:mod:`solver.stream`):
 
-- the Gauss–Newton step (Eq. 10) is solved from the normal equations :class:`NormalEquations`
-  (``JᵀJ``, ``Jᵀr``, ``rᵀr``), which add over chunks; :func:`gauss_newton_iteration` is the one
-  iteration (step halving included), a generator that yields each point where it needs the
-  normal equations — :func:`gauss_newton` feeds it from a callable, the streamed fit from
-  passes over the data that several fits share;
+- the (damped) Gauss–Newton step (Eq. 10) is solved from the normal equations
+  :class:`NormalEquations` (``JᵀJ``, ``Jᵀr``, ``rᵀr``), which add over chunks;
+  :func:`levenberg_marquardt_iteration` is the one iteration, a generator that yields each
+  point where it needs the normal equations — :func:`levenberg_marquardt` feeds it from a
+  callable, the streamed fit from passes over the data that several fits share;
 - the pruning (:func:`identifiable_columns`) is a column-pivoted QR of an in-memory stacked
   Jacobian; the streamed fit runs it on its warm-start rows (see :mod:`solver.stream`);
 - the outlier rule (§V-A) is :func:`within_spread` of a per-component :class:`ResidualSpread`,
@@ -46,8 +46,8 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 Payload = TypeVar("Payload")
 StepRule = Callable[[ChainParameters, FloatArray, NDArray[np.intp]], ChainParameters]
-"""``apply(params, step, keep)``: how a Gauss–Newton step over the columns ``keep`` moves the
-parameters."""
+"""``apply(params, step, keep)``: how a (damped) Gauss–Newton step over the columns ``keep``
+moves the parameters."""
 
 
 @dataclass(frozen=True)
@@ -60,8 +60,9 @@ class FitOptions:
     ``free_links``: indices of the links ``L_i`` (0-based) to calibrate, None = all;
     ``(0, k)`` calibrates only the measurement frame and the tool offset.
     ``non_negative_compliance``: a compliance estimated negative (no spring bends against the
-    torque on it, DESIGN.md §2: c ≥ 0) or not identified in any physical range is fixed at 0
-    and the fit repeated (see :func:`implausible_compliance_columns`).
+    torque on it, DESIGN.md §2: c ≥ 0) or not identified in any physical range is fixed at 0,
+    an inner link's twist component not identified in any physical range at its nominal value,
+    and the fit repeated (see :func:`implausible_columns`).
     """
 
     max_iterations: int = 50
@@ -214,45 +215,88 @@ def implausible_compliance_columns(
     )
 
 
-def without_compliance(
+PLAUSIBLE_LINK_ROTATION_RAD = 0.1
+"""A rotation component of an inner link's correction whose standard error exceeds this (5.7°;
+a URDF's joint frames are off by milliradians) is not identified in any physical range."""
+
+PLAUSIBLE_LINK_TRANSLATION_M = 0.05
+"""Likewise a translation component whose standard error exceeds 5 cm."""
+
+
+def implausible_columns(
     chain: KinematicChain,
     params: ChainParameters,
     keep: NDArray[np.intp],
-    normal: NormalEquations,
+    standard_errors: FloatArray,
+) -> NDArray[np.intp]:
+    """The columns among ``keep`` (``standard_errors`` aligned with ``keep``) that the data do
+    not determine in any physical range: the compliances of
+    :func:`implausible_compliance_columns`, and the twist components of the inner links
+    ``L_2 … L_k`` (not ``L_1``, which carries the measurement frame, nor ``L_{k+1}``, the
+    tool: both may be anywhere) whose standard error exceeds
+    :data:`PLAUSIBLE_LINK_TRANSLATION_M` (tx, ty, tz) or :data:`PLAUSIBLE_LINK_ROTATION_RAD`
+    (rx, ry, rz). Such a component only follows a direction of the cost the data barely see
+    (e.g. a wrist whose joints hardly move: the link frame drifts by radians along a flat,
+    curved valley and no iteration limit is enough)."""
+    links = [
+        c
+        for c, stderr in zip(keep, standard_errors, strict=True)
+        if 6 <= c < 6 * (chain.n_links - 1)
+        and stderr > (PLAUSIBLE_LINK_TRANSLATION_M if c % 6 < 3 else PLAUSIBLE_LINK_ROTATION_RAD)
+    ]
+    compliance = implausible_compliance_columns(chain, params, keep, standard_errors)
+    return np.array(sorted([*links, *compliance.tolist()]), dtype=np.intp)
+
+
+def without_columns(
+    chain: KinematicChain,
+    params: ChainParameters,
     columns: NDArray[np.intp],
     *,
-    converged: bool,
+    at_optimum: tuple[NDArray[np.intp], NormalEquations] | None = None,
     apply: StepRule | None = None,
 ) -> ChainParameters:
-    """Where a fit at ``params`` goes with the compliance of ``columns`` (among ``keep``) set
-    to 0. From a converged fit: the Gauss–Newton step of Eq. (10) from the linearisation at
-    ``params`` (``normal``: the normal equations there, over ``keep``) with those components
-    of the step fixed at minus their value, the other kept columns solved given that change,
-    ``x_f = A_fᵀA_f⁻¹ (A_fᵀy − A_fᵀA_c x_c)``; the refit without ``columns`` then starts next
-    to its optimum (its first evaluation usually confirms it) rather than a step away. From
-    a fit its iteration limit stopped: ``params`` with only those compliances set to 0 (the
-    refit gets the same iteration limit, and says so if it is not enough). ``apply``: how a
+    """Where a fit at ``params`` restarts with the parameters of ``columns`` fixed at their
+    nominal value (a compliance at 0; a link twist component at 0 in the link's total
+    correction ``ξ = Log(L_nominal⁻¹ L)``, ``L = L_nominal Exp(ξ)``, ξ (6,) [v; w] in m and
+    rad), the other parameters kept as they are.
+
+    When only compliances are fixed and ``params`` is a converged fit, ``at_optimum`` (its
+    kept columns and the normal equations there) gives a better restart: the Gauss–Newton
+    step of Eq. (10) from the linearisation at ``params`` with the fixed components of the
+    step at minus their value and the other kept columns solved given that change,
+    ``x_f = (A_fᵀA_f)⁻¹ (A_fᵀy − A_fᵀA_c x_c)`` — the refit then starts next to its optimum
+    (its first evaluation usually confirms it) rather than a step away. ``apply``: how a
     step moves the parameters (default: the chain's; a measurement model's carries its own
-    unknowns, columns after the chain's)."""
-    if not converged:
-        compliance = params.compliance_rad_per_nm.copy()
-        compliance[np.asarray(columns) - 6 * chain.n_links] = 0.0
-        return dataclasses.replace(params, compliance_rad_per_nm=compliance)
-    fixed = np.isin(keep, columns)
-    change = -params.compliance_rad_per_nm[keep[fixed] - 6 * chain.n_links]
-    free = ~fixed
-    reduced = NormalEquations(
-        normal.gram[np.ix_(free, free)],
-        normal.cross[free] - normal.gram[np.ix_(free, fixed)] @ change,
-        normal.cost,
-        normal.n_rows,
-    )
-    step = np.zeros(keep.size)
-    step[fixed] = change  # the compliance lands on exactly 0: c + (−c)
-    step[free] = gauss_newton_step(reduced)
-    if apply is not None:
-        return apply(params, step, keep)
-    return _apply_step(params, step, keep, chain)
+    unknowns in the columns after the chain's)."""
+    columns = np.asarray(columns, dtype=np.intp)
+    offset = 6 * chain.n_links
+    link_columns = columns[columns < offset]
+    if at_optimum is not None and link_columns.size == 0:
+        keep, normal = at_optimum
+        fixed = np.isin(keep, columns)
+        change = -params.compliance_rad_per_nm[keep[fixed] - offset]
+        free = ~fixed
+        reduced = NormalEquations(
+            normal.gram[np.ix_(free, free)],
+            normal.cross[free] - normal.gram[np.ix_(free, fixed)] @ change,
+            normal.cost,
+            normal.n_rows,
+        )
+        step = np.zeros(keep.size)
+        step[fixed] = change  # the compliance lands on exactly 0: c + (−c)
+        step[free] = damped_step(reduced, 0.0)
+        return (
+            _apply_step(params, step, keep, chain) if apply is None else apply(params, step, keep)
+        )
+    compliance = params.compliance_rad_per_nm.copy()
+    compliance[columns[columns >= offset] - offset] = 0.0
+    links = params.links.copy()
+    for link in np.unique(link_columns // 6):
+        correction = lie.se3_log(lie.inverse(chain.nominal_links[link]) @ links[link])
+        correction[link_columns[link_columns // 6 == link] % 6] = 0.0
+        links[link] = chain.nominal_links[link] @ lie.se3_exp(correction)
+    return dataclasses.replace(params, links=links, compliance_rad_per_nm=compliance)
 
 
 def check_sample_count(
@@ -338,19 +382,32 @@ def _gram(design: FloatArray) -> FloatArray:
     return np.asarray(np.triu(upper) + np.triu(upper, 1).T, dtype=float)
 
 
-def gauss_newton_step(normal: NormalEquations) -> FloatArray:
-    """``x = (AᵀA)⁻¹ Aᵀy`` (p,) with the columns scaled to unit norm first (Jacobi), so the
-    solve sees the condition number of the scaled columns, squared; falls back to the
-    minimum-norm least-squares solution if the scaled Gram is not positive definite."""
+def damped_step(normal: NormalEquations, damping: float) -> FloatArray:
+    """The Levenberg–Marquardt step of Eq. (10) (Marquardt 1963), (p,):
+
+        (AᵀA + λ diag(AᵀA)) x = Aᵀy,
+
+    solved with the columns scaled to unit norm (Jacobi, ``D = diag(AᵀA)``): ``(S + λ I) z =
+    D^{-1/2} Aᵀy``, ``x = D^{-1/2} z`` with ``S = D^{-1/2} AᵀA D^{-1/2}``, so λ (``damping``,
+    dimensionless) is relative to each column's own scale. ``damping`` 0 is the Gauss–Newton
+    step ``x = (AᵀA)⁻¹ Aᵀy``; a larger λ shortens the step and turns it towards the gradient
+    ``Aᵀy``. Falls back to the minimum-norm least-squares solution if ``S + λ I`` is not
+    positive definite."""
     norms = np.sqrt(np.clip(np.diag(normal.gram), 0.0, None))
     norms = np.where(norms > 0.0, norms, 1.0)
-    scaled = normal.gram / np.outer(norms, norms)
+    scaled = normal.gram / np.outer(norms, norms) + damping * np.eye(norms.size)
     rhs = normal.cross / norms
     try:
         solution = scipy.linalg.solve(scaled, rhs, assume_a="pos", check_finite=False)
     except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
         solution = np.linalg.lstsq(scaled, rhs, rcond=None)[0]
     return np.asarray(solution / norms, dtype=float)
+
+
+def predicted_decrease(normal: NormalEquations, step: FloatArray) -> float:
+    """Decrease of the linearised cost ``‖y − A x‖²`` by the step x: ``2 xᵀAᵀy − xᵀAᵀA x``
+    (m², with the rows weighted like the fit)."""
+    return float(2.0 * step @ normal.cross - step @ normal.gram @ step)
 
 
 def parameter_standard_errors(normal: NormalEquations) -> FloatArray:
@@ -363,9 +420,11 @@ def parameter_standard_errors(normal: NormalEquations) -> FloatArray:
 
 
 @dataclass(frozen=True)
-class GaussNewtonRun(Generic[Payload]):
-    """Result of :func:`gauss_newton`: final parameters, the normal equations there (kept
-    columns) and whatever the evaluation returned with them (``payload``)."""
+class LeastSquaresRun(Generic[Payload]):
+    """Result of :func:`levenberg_marquardt`: final parameters, the normal equations there (kept
+    columns) and whatever the evaluation returned with them (``payload``); ``iterations``:
+    accepted steps; ``trials``: points evaluated after the start (each a pass over the data
+    when streaming)."""
 
     params: ChainParameters
     normal: NormalEquations
@@ -373,9 +432,10 @@ class GaussNewtonRun(Generic[Payload]):
     iterations: int
     converged: bool
     cost_history: list[float]
+    trials: int = 0
 
 
-def gauss_newton(
+def levenberg_marquardt(
     chain: KinematicChain,
     start: ChainParameters,
     keep: NDArray[np.intp],
@@ -383,103 +443,121 @@ def gauss_newton(
     evaluate: Callable[[ChainParameters], tuple[NormalEquations, Payload]],
     options: FitOptions,
     apply: StepRule | None = None,
-) -> GaussNewtonRun[Payload]:
-    """The iteration of Eq. (10) over the columns ``keep`` (:func:`gauss_newton_iteration`)
-    with the normal equations (and payload) at ``start`` given as ``first`` and
-    ``evaluate(params)`` giving them at any other point — from arrays in memory or summed
-    over streamed chunks. ``apply``: how a step moves the parameters (default: the chain's
-    local link corrections and compliances); a measurement model with unknowns of its own
-    (:mod:`solver.measurement`) passes its own."""
+) -> LeastSquaresRun[Payload]:
+    """The damped iteration of Eq. (10) over the columns ``keep``
+    (:func:`levenberg_marquardt_iteration`) with the normal equations (and payload) at
+    ``start`` given as ``first`` and ``evaluate(params)`` giving them at any other point —
+    from arrays in memory or summed over streamed chunks. ``apply``: how a step moves the
+    parameters (default: the chain's local link corrections and compliances); a measurement
+    model with unknowns of its own (:mod:`solver.measurement`) passes its own."""
     iteration: Generator[
-        ChainParameters, tuple[NormalEquations, Payload], GaussNewtonRun[Payload]
-    ] = gauss_newton_iteration(chain, start, keep, options, apply)
+        ChainParameters, tuple[NormalEquations, Payload], LeastSquaresRun[Payload]
+    ] = levenberg_marquardt_iteration(chain, start, keep, options, apply)
     params = next(iteration)
     answer = first
     while True:
         try:
             params = iteration.send(answer)
         except StopIteration as done:
-            run: GaussNewtonRun[Payload] = done.value
+            run: LeastSquaresRun[Payload] = done.value
             return run
         answer = evaluate(params)
 
 
-def gauss_newton_iteration(
+FIRST_DAMPING = 1e-3
+"""λ of :func:`damped_step` after the first step that raised the cost (relative to the unit
+diagonal of the scaled normal matrix); before that the steps are Gauss–Newton's (λ = 0)."""
+
+MAX_TRIALS = 30
+"""Trial points per iteration at most; if none lowers the cost the iterate stays (and the
+iteration stops)."""
+
+
+def levenberg_marquardt_iteration(
     chain: KinematicChain,
     start: ChainParameters,
     keep: NDArray[np.intp],
     options: FitOptions,
     apply: StepRule | None = None,
-) -> Generator[ChainParameters, tuple[NormalEquations, Payload], GaussNewtonRun[Payload]]:
-    """The iteration of Eq. (10) over the columns ``keep``, as a generator: it yields each
-    point where it needs the normal equations (``start`` first) and is sent them (with any
-    payload) back; it returns the :class:`GaussNewtonRun`.
+) -> Generator[ChainParameters, tuple[NormalEquations, Payload], LeastSquaresRun[Payload]]:
+    """Levenberg–Marquardt on Eq. (10) over the columns ``keep``, as a generator: it yields
+    each point where it needs the normal equations (``start`` first) and is sent them (with
+    any payload) back; it returns the :class:`LeastSquaresRun`. As a generator, several fits
+    can share each pass over streamed data.
 
-    Step from the normal equations, halve it while the cost rises (at most 20 halvings),
-    stop when the relative cost change — achieved, or predicted by the linearisation before
-    the step is tried — is below ``options.tolerance``, or after ``options.max_iterations``
-    steps. As a generator, several fits can share each pass over streamed data.
+    Each iteration tries ``θ ⊕ x(λ)`` with ``x(λ)`` :func:`damped_step`; the gain ratio
+    ``ρ = (cost − cost_new) / (2xᵀAᵀy − xᵀAᵀAx)`` (achieved over predicted decrease) sets λ
+    (Nielsen 1999): a trial that lowers the cost is accepted and λ ← λ·max(1/3, 1 − (2ρ − 1)³);
+    one that raises it is rejected and λ ← max(ν λ, :data:`FIRST_DAMPING`), ν doubling per
+    rejection (ν = 2 after an acceptance). λ starts at 0: where Gauss–Newton's full steps lower
+    the cost the iterates are exactly Gauss–Newton's. Near-singular directions (a long, flat
+    valley) no longer force ever shorter steps along the Gauss–Newton direction: the damped
+    step turns towards the gradient there.
+
+    Stops when the relative cost change — achieved, or predicted for the undamped step
+    (``xᵀAᵀy`` of the Gauss–Newton step, zero only at a stationary point) before it is tried —
+    is below ``options.tolerance``, or after ``options.max_iterations`` accepted steps.
     """
     params = start
     normal, payload = yield start
     costs = [normal.cost]
     converged = False
-    iterations = 0
+    iterations = trials = 0
+    damping = 0.0
     while iterations < options.max_iterations:
-        step = gauss_newton_step(normal)
         # The full step lowers the linearised cost by xᵀAᵀy; below the tolerance the iterate
-        # has settled and trying the step (a pass over the data when streaming) is pointless.
-        if float(step @ normal.cross) <= options.tolerance * max(costs[-1], 1e-300):
+        # has settled and trying a step (a pass over the data when streaming) is pointless.
+        if float(damped_step(normal, 0.0) @ normal.cross) <= options.tolerance * max(
+            costs[-1], 1e-300
+        ):
             converged = True
             break
         iterations += 1
-        params, normal, payload = yield from _accept_step(
-            params, step, keep, (normal, payload), chain, apply
+        params, normal, payload, damping, tried = yield from _damped_trials(
+            params, (normal, payload), damping, keep, chain, apply
         )
+        trials += tried
         costs.append(normal.cost)
         if abs(costs[-2] - normal.cost) <= options.tolerance * max(costs[-2], 1e-300):
             converged = True
             break
-    return GaussNewtonRun(params, normal, payload, iterations, converged, costs)
+    return LeastSquaresRun(params, normal, payload, iterations, converged, costs, trials)
 
 
-def _accept_step(
+def _damped_trials(
     params: ChainParameters,
-    step: FloatArray,
-    keep: NDArray[np.intp],
     current: tuple[NormalEquations, Payload],
+    damping: float,
+    keep: NDArray[np.intp],
     chain: KinematicChain,
     apply: StepRule | None = None,
 ) -> Generator[
     ChainParameters,
     tuple[NormalEquations, Payload],
-    tuple[ChainParameters, NormalEquations, Payload],
+    tuple[ChainParameters, NormalEquations, Payload, float, int],
 ]:
-    """Apply a Gauss–Newton step, shortened while the cost rises (at most 20 tries); if none
-    lowers the cost, stay (the caller then sees no change and stops). Yields each trial point
-    for its normal equations.
-
-    Each shorter trial goes to the minimum of the parabola through the current cost, its
-    slope along the step (``−2 xᵀAᵀy``) and the failed trial, kept within [0.1, 0.5] of the
-    failed length (safeguarded backtracking): with large residuals the Gauss–Newton step can
-    overshoot by orders of magnitude, and each trial is a pass over the data when streaming.
-    """
-    cost = current[0].cost
-    slope = -2.0 * float(step @ current[0].cross)
-    scale = 1.0
-    for _ in range(20):
+    """One Levenberg–Marquardt iteration: damped steps (:func:`damped_step`) from ``params``
+    until one lowers the cost, λ updated by the gain ratio as
+    :func:`levenberg_marquardt_iteration` says. Yields each trial point for its normal
+    equations; returns the accepted point, its normal equations and payload, the next λ and
+    the number of trials (the current point and its λ if none of :data:`MAX_TRIALS` lowered
+    the cost)."""
+    normal = current[0]
+    growth = 2.0
+    for trial in range(1, MAX_TRIALS + 1):
+        step = damped_step(normal, damping)
         candidate = (
-            _apply_step(params, scale * step, keep, chain)
-            if apply is None
-            else apply(params, scale * step, keep)
+            _apply_step(params, step, keep, chain) if apply is None else apply(params, step, keep)
         )
-        normal, payload = yield candidate
-        if normal.cost <= cost:
-            return candidate, normal, payload
-        curvature = (normal.cost - cost - slope * scale) / scale**2
-        best = -slope / (2.0 * curvature) if curvature > 0.0 else 0.5 * scale
-        scale = float(np.clip(best, 0.1 * scale, 0.5 * scale))
-    return params, *current
+        new_normal, new_payload = yield candidate
+        if new_normal.cost <= normal.cost:
+            predicted = predicted_decrease(normal, step)
+            ratio = (normal.cost - new_normal.cost) / predicted if predicted > 0.0 else 0.0
+            damping *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
+            return candidate, new_normal, new_payload, damping, trial
+        damping = max(growth * damping, FIRST_DAMPING)
+        growth *= 2.0
+    return params, *current, damping, MAX_TRIALS
 
 
 def _apply_step(

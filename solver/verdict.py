@@ -125,7 +125,7 @@ def check_fit(evidence: FitEvidence) -> list[Reason]:
             Reason(
                 "not_converged",
                 "failed",
-                f"Gauss–Newton stopped after {e.iterations} of at most {e.max_iterations} "
+                f"Levenberg–Marquardt stopped after {e.iterations} of at most {e.max_iterations} "
                 "iterations without converging",
                 "raise --max-iterations; if it still does not converge, the data or the model "
                 "are inconsistent (see the other reasons)",

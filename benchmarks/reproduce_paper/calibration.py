@@ -71,7 +71,8 @@ def table_ii(result: CalibrationResult, recording: Recording, *, with_gp: bool =
 
 
 def covariance_std(result: CalibrationResult) -> FloatArray:
-    """Calibrated σ (k + 1, 6): joint frames in chain order, then the noise; m and rad."""
+    """Calibrated σ (k + 1, 6): joint frames in chain order, then the noise; m and rad (NaN
+    where the data cannot see the axis: ``std`` null, ``not_identifiable`` says why)."""
     if result.covariance is None:
         raise ValueError("the calibration result has no covariances")
     by_name = {frame.name: frame.std for frame in result.covariance.frames}

@@ -16,7 +16,7 @@ from schemas.api import (
     CalibrationPublic,
     CalibrationsPublic,
 )
-from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.calibration import CalibrationOptions, CalibrationResult, Verdict
 from schemas.discovery import FindingsResult
 from service import discovery, pipeline
 from service.api import jobs_common
@@ -56,6 +56,7 @@ def public(job: Job) -> CalibrationPublic:
         dataset_id=job.dataset_id,
         discovery_id=None if carried is None else carried["id"],
         status=jobs_common.job_status(job),
+        verdict=summary_verdict(job),
         options=CalibrationOptions.model_validate(job.params["options"]),
         links=CalibrationLinks(
             self=base,
@@ -197,16 +198,35 @@ def create_calibration(
     )
 
 
+def summary_verdict(job: Job) -> Verdict | None:
+    """The verdict a succeeded calibration left in its job summary (None before)."""
+    found = (job.summary or {}).get("verdict")
+    return None if found is None else Verdict.model_validate(found)
+
+
+def job_verdict(state: ServiceState, job: Job) -> Verdict | None:
+    """The verdict of a succeeded calibration: from its job summary (from the result file for
+    a job recorded before summaries existed)."""
+    found = summary_verdict(job)
+    return found if found is not None else result_of(state, job.tenant_id, job.id).verdict
+
+
+def urdf_withheld(state: ServiceState, job: Job) -> str | None:
+    """Why the URDF of a succeeded calibration is not served unless forced: its verdict is
+    failed (the causes named)."""
+    verdict = job_verdict(state, job)
+    if verdict is None or verdict.status != "failed":
+        return None
+    causes = "; ".join(r.message for r in verdict.reasons if r.severity == "failed")
+    return (
+        f"the calibration's verdict is failed ({causes}); see verdict in its status or result, "
+        "or get the URDF anyway with ?force=true"
+    )
+
+
 def urdf_absent(state: ServiceState, job: Job) -> str | None:
-    """Why a succeeded calibration has no URDF: its verdict is failed (the result says why),
-    or it corrects the joint readings."""
+    """Why a succeeded calibration has no URDF: it corrects the joint readings."""
     result = result_of(state, job.tenant_id, job.id)
-    if result.verdict is not None and result.verdict.status == "failed":
-        causes = "; ".join(r.message for r in result.verdict.reasons if r.severity == "failed")
-        return (
-            f"the calibration's verdict is failed ({causes}); see verdict in the result, or "
-            "export it anyway with kincal calibrate --export-urdf --force-urdf"
-        )
     return urdf_refusal(result.model_corrections, HTTP_URDF_FIX)
 
 
@@ -225,9 +245,12 @@ jobs_common.add_job_routes(
             "urdf",
             "application/xml",
             "The calibrated robot as a plain URDF (409 for a calibration carrying joint "
-            "corrections of a discovery, which a URDF cannot express).",
+            "corrections of a discovery, which a URDF cannot express, and for a calibration "
+            "whose verdict is failed unless ?force=true).",
             download_suffix=".urdf",
             absent=urdf_absent,
+            refusal=urdf_withheld,
+            force_description="Serve the URDF of a calibration whose verdict is failed.",
         ),
     ],
 )

@@ -147,9 +147,11 @@ def artifact(
     name: str,
     noun: str,
     absent: Callable[[ServiceState, Job], str | None] | None = None,
+    refusal: Callable[[ServiceState, Job], str | None] | None = None,
 ) -> bytes:
-    """A succeeded job's artifact; 409 (with the state and what to do) otherwise, or when
-    ``absent`` says why a succeeded job has none."""
+    """A succeeded job's artifact; 409 (with the state and what to do) otherwise, when
+    ``absent`` says why a succeeded job has none, or when ``refusal`` says why it is not
+    served (unless the caller forced it: ``refusal`` None)."""
     if job.state != repository.SUCCEEDED:
         if job.state in repository.ACTIVE_STATES:
             detail = (
@@ -161,6 +163,9 @@ def artifact(
         else:
             detail = f"{noun} {job.id} was cancelled; start a new one"
         raise ProblemException(409, detail, slug="not-ready", headers=poll_headers(job) or None)
+    refused = None if refusal is None else refusal(state, job)
+    if refused is not None:
+        raise ProblemException(409, f"{noun} {job.id}: {refused}", slug="refused-" + name)
     if name not in job.artifacts:
         reason = None if absent is None else absent(state, job)
         if reason is not None:
@@ -214,6 +219,9 @@ class Artifact:
     download_suffix: str | None = None  # set: served as an attachment "<id><suffix>"
     # Why a succeeded job has none (answered as 409), or None (404): a job may skip an artifact.
     absent: Callable[[ServiceState, Job], str | None] | None = None
+    # Why a succeeded job's artifact is withheld (409) unless asked for with ?force=true.
+    refusal: Callable[[ServiceState, Job], str | None] | None = None
+    force_description: str = "Serve it even though the job's result says it should not be used."
 
 
 @dataclass(frozen=True)
@@ -247,9 +255,10 @@ class JobResource:
         job_id: str,
         name: str,
         absent: Callable[[ServiceState, Job], str | None] | None = None,
+        refusal: Callable[[ServiceState, Job], str | None] | None = None,
     ) -> bytes:
         job = self.lookup(state, tenant_id, job_id)
-        return artifact(state, job, name, self.noun, absent)
+        return artifact(state, job, name, self.noun, absent, refusal)
 
 
 def add_job_routes(router: APIRouter, resource: JobResource, artifacts: Sequence[Artifact]) -> None:
@@ -347,11 +356,10 @@ def add_job_routes(router: APIRouter, resource: JobResource, artifacts: Sequence
 def _artifact_endpoint(resource: JobResource, item: Artifact) -> Callable[..., Awaitable[Response]]:
     id_path: Any = Path(alias=f"{resource.noun}_id", description=f"The {resource.noun} id.")
 
-    async def get_artifact(
-        principal: PrincipalDep, state: StateDep, job_id: str = id_path
-    ) -> Response:
+    async def serve(tenant_id: str, state: ServiceState, job_id: str, force: bool) -> Response:
+        refusal = None if force else item.refusal
         body = await run_in_threadpool(
-            resource.artifact, state, principal.tenant_id, job_id, item.name, item.absent
+            resource.artifact, state, tenant_id, job_id, item.name, item.absent, refusal
         )
         headers = dict(item.headers)
         if item.download_suffix:
@@ -359,4 +367,19 @@ def _artifact_endpoint(resource: JobResource, item: Artifact) -> Callable[..., A
             headers["Content-Disposition"] = f'attachment; filename="{filename}"'
         return Response(body, media_type=item.media_type, headers=headers)
 
-    return get_artifact
+    if item.refusal is None:
+
+        async def get_artifact(
+            principal: PrincipalDep, state: StateDep, job_id: str = id_path
+        ) -> Response:
+            return await serve(principal.tenant_id, state, job_id, False)
+
+        return get_artifact
+    force_query: Any = Query(False, description=item.force_description)
+
+    async def get_forcible_artifact(
+        principal: PrincipalDep, state: StateDep, job_id: str = id_path, force: bool = force_query
+    ) -> Response:
+        return await serve(principal.tenant_id, state, job_id, force)
+
+    return get_forcible_artifact

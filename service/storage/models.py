@@ -133,7 +133,8 @@ class Job(Base):
     """One unit of background work (calibration, discovery, ...) and its progress.
 
     ``params`` is everything the job function needs (resolved at submission, so the worker
-    reads files only); ``artifacts`` maps artifact names to files once it succeeded.
+    reads files only); ``artifacts`` maps artifact names to files once it succeeded, and
+    ``summary`` holds what its status shows of the result (a calibration's verdict).
     """
 
     __tablename__ = "jobs"
@@ -155,6 +156,8 @@ class Job(Base):
     cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     artifacts: Mapped[dict[str, str]] = mapped_column(JSON, default=dict)
+    # What a succeeded job says about its result in its status (a calibration's verdict).
+    summary: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
     runner_id: Mapped[str | None] = mapped_column(String(200), nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
     started_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)

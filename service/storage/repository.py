@@ -8,6 +8,7 @@ from __future__ import annotations
 import datetime as dt
 import uuid
 from collections.abc import Sequence
+from typing import Any
 
 from sqlalchemy import case, delete, func, select, update
 from sqlalchemy.orm import Session
@@ -297,6 +298,7 @@ def finish_job(
     *,
     error: str | None = None,
     artifacts: dict[str, str] | None = None,
+    summary: dict[str, Any] | None = None,
 ) -> Job | None:
     """running -> a terminal state, only if this runner still owns the job."""
     assert state in TERMINAL_STATES
@@ -307,7 +309,12 @@ def finish_job(
         "heartbeat_at": None,
     }
     if state == SUCCEEDED:
-        values |= {"fraction": 1.0, "stage": "done", "artifacts": artifacts or {}}
+        values |= {
+            "fraction": 1.0,
+            "stage": "done",
+            "artifacts": artifacts or {},
+            "summary": summary,
+        }
     result = session.execute(
         update(Job)
         .where(Job.id == job_id, Job.state == RUNNING, Job.runner_id == runner_id)

@@ -22,6 +22,7 @@ from solver.covariance.identifiability import (
     IdentifiabilityReport,
     analyse_identifiability,
     resolve_null_space,
+    unseen_axes,
 )
 from solver.covariance.layout import CovarianceLayout, Structure, make_layout
 from solver.covariance.likelihood import (
@@ -82,6 +83,9 @@ class FrameCovariance:
     identifiable: BoolArray
     estimated: BoolArray
     fixed: bool = False
+    unseen: tuple[str | None, ...] = (None,) * 6
+    """Per axis: why the data cannot see its variance (:func:`.identifiability.unseen_axes`),
+    None where they can; such an axis is not ``identifiable`` either."""
 
 
 @dataclass(frozen=True)
@@ -357,7 +361,9 @@ def estimate_from_samples(
             )
         except CalibrationError as exc:
             notes.append(f"no standard errors: {exc}")
-    frames, noise = frame_results(layout, theta, unc, known, noise_name)
+    seen_on = sub if sub is not None else subsample(samples, SE_SAMPLES)
+    unseen = unseen_axes(seen_on.frame_jacobians, layout)
+    frames, noise = frame_results(layout, theta, unc, known, noise_name, unseen)
     return CovarianceEstimate(
         estimator,
         layout.structure,
@@ -437,11 +443,13 @@ def frame_results(
     unc: ThetaUncertainty | None,
     known_noise: FloatArray | None,
     noise_name: str,
+    unseen: Sequence[tuple[str | None, ...]] = (),
 ) -> tuple[tuple[FrameCovariance, ...], FrameCovariance | None]:
     """The estimated θ as per-frame covariances (6×6, [v; w], m² and rad², each frame's own
     axes) with their uncertainties, and the noise frame: estimated (the layout's last frame),
-    the known (d, d) Σ_n padded to 6×6, or None."""
-    frames = _frames(layout, theta, unc)
+    the known (d, d) Σ_n padded to 6×6, or None. ``unseen``: per chain frame, why the data
+    cannot see each axis (:func:`.identifiability.unseen_axes`)."""
+    frames = _frames(layout, theta, unc, unseen)
     if layout.noise_frame is not None:
         return tuple(frames[:-1]), frames[-1]
     if known_noise is None:
@@ -453,7 +461,10 @@ def frame_results(
 
 
 def _frames(
-    layout: CovarianceLayout, theta: FloatArray, unc: ThetaUncertainty | None
+    layout: CovarianceLayout,
+    theta: FloatArray,
+    unc: ThetaUncertainty | None,
+    unseen: Sequence[tuple[str | None, ...]],
 ) -> list[FrameCovariance]:
     covs = layout.frame_covariances(theta)
     out = []
@@ -468,6 +479,8 @@ def _frames(
                 arrays["high"][axis] = unc.std_ci_high[p]
                 boundary[axis] = unc.at_boundary[p]
             identifiable[axis] = _identifiable(layout, f, axis, unc)
+        reasons = unseen[f] if f < len(unseen) else (None,) * 6
+        identifiable &= np.array([r is None for r in reasons])
         out.append(
             FrameCovariance(
                 name,
@@ -479,6 +492,7 @@ def _frames(
                 boundary,
                 identifiable,
                 np.array(layout.free_axes[f], dtype=bool),
+                unseen=tuple(reasons),
             )
         )
     return out

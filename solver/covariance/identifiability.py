@@ -604,3 +604,65 @@ def _cone_constraints(x, layout: CovarianceLayout) -> list:
         select = sp.csr_matrix((np.ones(flat.size), (flat, params)), shape=(36, layout.n_params))
         constraints.append(cp.reshape(select @ x, (6, 6), order="F") >> 0)
     return constraints
+
+
+UNSEEN_RTOL = 1e-3
+"""An axis's variance is not identifiable when the RMS variation of its effect on Σ_E over the
+recording's configurations is below this fraction of the effect's RMS size (the threshold of
+:func:`_constant_jacobian_warnings` for a "nearly constant" Jacobian)."""
+
+SILENT_RTOL = 1e-6
+"""... or when the RMS size of its effect is below this fraction of the largest axis's."""
+
+
+def unseen_axes(
+    frame_jacobians: FloatArray, layout: CovarianceLayout
+) -> list[tuple[str | None, ...]]:
+    """Per chain frame, per axis (6): why the data cannot see the variance of that axis, or
+    None where they can.
+
+    The sensitivity of Eq. (12) ``Σ_E(q) = Σ_f J_f(q) Σ_f J_f(q)ᵀ`` to the variance θ of
+    axis a of frame f at configuration n is ``S_n = u_n u_nᵀ`` (d × d), ``u_n = J_f(q_n) e_a``
+    (m per m or rad, the Jacobian's column; ``frame_jacobians`` (N, F_chain, d, 6)). Over the
+    recording its size is ``T = Σ_n ‖S_n‖_F² = Σ_n ‖u_n‖⁴`` and its variation around the
+    mean ``S̄ = (1/N) Σ_n S_n`` is ``V = Σ_n ‖S_n − S̄‖_F² = T − N ‖S̄‖_F²``. Not seen:
+
+    - ``sqrt(T)`` below :data:`SILENT_RTOL` of the largest axis's: no effect on the
+      end-effector;
+    - ``sqrt(V / T)`` below :data:`UNSEEN_RTOL` while the measurement noise is estimated too
+      (``layout.noise_frame``): the effect is the same end-effector covariance at every
+      configuration, which the unknown constant end-effector error Σ_n produces as well, so its
+      σ is set by the assumed noise structure, not by the data (e.g. the rotation about the
+      last joint's own axis). With a known Σ_n the level of a constant effect is seen.
+
+    Axes the layout does not estimate are None (they are fixed at 0, not estimated).
+    """
+    constant_is_noise = layout.noise_frame is not None
+    n = frame_jacobians.shape[0]
+    columns = np.moveaxis(frame_jacobians, 3, 2)  # (N, F, 6, d): u_n per frame and axis
+    size = np.einsum("nfad,nfad->nfa", columns, columns)  # ‖u_n‖²
+    total = np.sum(size**2, axis=0)  # (F, 6): T
+    mean = np.einsum("nfad,nfae->fade", columns, columns) / max(n, 1)  # S̄
+    variation = np.clip(total - n * np.einsum("fade,fade->fa", mean, mean), 0.0, None)
+    largest = float(np.sqrt(total.max())) if total.size else 0.0
+    out: list[tuple[str | None, ...]] = []
+    for f in range(layout.n_chain_frames):
+        reasons: list[str | None] = []
+        for a in range(6):
+            if not layout.free_axes[f][a]:
+                reasons.append(None)
+            elif np.sqrt(total[f, a]) <= SILENT_RTOL * largest:
+                reasons.append("no effect on the end-effector in this recording")
+            elif constant_is_noise and variation[f, a] <= UNSEEN_RTOL**2 * total[f, a]:
+                reasons.append(
+                    "its effect on the end-effector covariance is the same at every "
+                    "configuration of the recording (RMS variation "
+                    f"{np.sqrt(variation[f, a] / total[f, a]):.1e} of its size, below "
+                    f"{UNSEEN_RTOL:g}): the estimated measurement noise, a constant "
+                    "end-effector error, looks the same; a separately measured noise "
+                    "(--noise-std) would let it be seen"
+                )
+            else:
+                reasons.append(None)
+        out.append(tuple(reasons))
+    return out

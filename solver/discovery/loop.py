@@ -22,7 +22,7 @@ Deterministic for a given ``seed`` (folds, bootstrap and pose pool draw from one
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -52,6 +52,7 @@ from solver.discovery.fitting import (
 from solver.discovery.health import health_report
 from solver.discovery.library import (
     EFFECTS,
+    SIGNED,
     Term,
     candidate_library,
     declared_terms,
@@ -199,7 +200,61 @@ class _Search:
                 break
             step += 1
             self._step(step, candidates)
+        self._without_negative_terms()
         return self._result()
+
+    def _without_negative_terms(self) -> None:
+        """No compliance, flex or backlash below 0 in the final model (no spring bends, no
+        gear lags, against what drives it; :data:`~solver.discovery.library.SIGNED`): such a
+        term — declared or found — is removed (a compliance is then fixed at 0) and the model
+        refit, until none is left; each removal is a step ``"pruned"`` and a declared one is
+        also said in ``unexplained``."""
+        while True:
+            values = self.fit.values()
+            negative = [
+                t for t in self.terms if t.effect in SIGNED and bool(np.any(values[t.key] < 0.0))
+            ]
+            if not negative:
+                return
+            terms = tuple(t for t in self.terms if t not in negative)
+            start = self.fit.params.with_terms(terms, values)
+            try:
+                fit = fit_with_noise(self.ctx, terms, start, self.fit.rows, self.fit.weights)
+            except CalibrationError:
+                return
+            for term in negative:
+                coefficients = zip(term.parameters, values[term.key], strict=True)
+                shown = ", ".join(f"{name} = {v:.3g}" for name, v in coefficients)
+                number = max((s.step for s in self.steps), default=0) + 1
+                self.steps.append(Step(number, term.key, "pruned", float("nan")))
+                label = describe(term, self.names)
+                said = [i for i, u in enumerate(self.declared_notes) if u.partial == [label]]
+                if said:  # already said it fit with the wrong sign: add what became of it
+                    note = self.declared_notes[said[0]]
+                    self.declared_notes[said[0]] = replace(
+                        note,
+                        explanation=note.explanation.rstrip(".")
+                        + f"; in the final model ({shown}) it is fixed at 0 (removed).",
+                    )
+                elif term.declared:
+                    self.declared_notes.append(
+                        Unexplained(
+                            joint_index=term.joint_index,
+                            variable="declared",
+                            p_value=float("nan"),
+                            explained_fraction=float("nan"),
+                            distance_correlation=None,
+                            partial=[label],
+                            explanation=(
+                                f"the declared {label} fit below zero "
+                                f"({shown}), which no spring does: fixed at 0 (removed from the "
+                                "model)"
+                            ),
+                        )
+                    )
+            removed = {t.key for t in negative}
+            self.accepted = [a for a in self.accepted if a.term.key not in removed]
+            self.terms, self.fit = terms, fit
 
     # --- one step -------------------------------------------------------------------------
 

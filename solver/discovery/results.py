@@ -124,7 +124,7 @@ class Step:
 
     step: int
     candidate: str
-    action: str  # accepted, ambiguous, rejected_heldout, unexplained
+    action: str  # accepted, ambiguous, rejected_heldout, unexplained, pruned (NaN p-value)
     p_value: float
     heldout_before_mm: float | None = None
     heldout_after_mm: float | None = None

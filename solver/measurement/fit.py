@@ -1,7 +1,7 @@
 """Gauss–Newton (paper Eq. 8–10), outlier rule (§V-A) and held-out evaluation (DESIGN.md §4)
 for any :class:`~solver.measurement.models.MeasurementModel`, rows in memory.
 
-The same core as the pose fit (:func:`solver.calibration.gauss_newton`, pivoted-QR pruning
+The same core as the pose fit (:func:`solver.calibration.levenberg_marquardt`, pivoted-QR pruning
 :func:`solver.calibration.pivoted_columns`, standard errors, the compliance rule), over the
 chain's columns and the model's own unknowns together.
 """
@@ -20,14 +20,14 @@ from solver.calibration import (
     FitOptions,
     NormalEquations,
     free_columns,
-    gauss_newton,
-    implausible_compliance_columns,
+    implausible_columns,
+    levenberg_marquardt,
     normal_equations,
     outlier_mask,
     parameter_standard_errors,
     pivoted_columns,
     removed_names,
-    without_compliance,
+    without_columns,
 )
 from solver.errors import CalibrationError
 from solver.evaluation import split_indices
@@ -153,23 +153,25 @@ def fit_measurement(
         if target.size == kept.size
         else normal_equations(design[:, keep], target)
     )
-    run = gauss_newton(chain, params, keep, (first, kept), evaluate, options, apply)
+    run = levenberg_marquardt(chain, params, keep, (first, kept), evaluate, options, apply)
     pruned: list[int] = []
     n_chain = chain_column_count(chain)
     while options.non_negative_compliance:
         errors = parameter_standard_errors(run.normal)
         in_chain = keep < n_chain
-        negative = implausible_compliance_columns(
-            chain, run.params, keep[in_chain], errors[in_chain]
-        )
+        negative = implausible_columns(chain, run.params, keep[in_chain], errors[in_chain])
         if negative.size == 0:
             break
         pruned += negative.tolist()
-        restart = without_compliance(
-            chain, run.params, keep, run.normal, negative, converged=run.converged, apply=apply
+        restart = without_columns(
+            chain,
+            run.params,
+            negative,
+            at_optimum=(keep, run.normal) if run.converged else None,
+            apply=apply,
         )
         keep = np.setdiff1d(keep, negative)
-        run = gauss_newton(chain, restart, keep, evaluate(restart), evaluate, options, apply)
+        run = levenberg_marquardt(chain, restart, keep, evaluate(restart), evaluate, options, apply)
     final = run.params
     assert isinstance(final, ModelParameters)
     residual, _ = model.linearise(chain, final, rows, jacobian=False)

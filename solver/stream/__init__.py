@@ -9,7 +9,7 @@ chunk ran. A worker holds one chunk at a time (plus an optional, bounded cache o
 chunks), so memory does not grow with the number of samples.
 
 The maths is the in-memory code's: the iteration is
-:func:`solver.calibration.gauss_newton_iteration`, the outlier rule
+:func:`solver.calibration.levenberg_marquardt_iteration`, the outlier rule
 :func:`solver.calibration.within_spread` of a merged :class:`~solver.calibration.ResidualSpread`,
 the covariance statistics those of :mod:`solver.covariance.statistics` per chunk, merged by
 ``+``. Per chunk, FK, Jacobians and residuals come from :mod:`solver.batch_chain` (the

@@ -16,8 +16,9 @@ from solver.calibration import (
     FitOptions,
     check_sample_count,
     fit_deterministic,
+    implausible_columns,
     implausible_compliance_columns,
-    without_compliance,
+    without_columns,
 )
 from solver.covariance.estimate import (
     FULL_LIKELIHOOD_SAMPLES,
@@ -174,7 +175,7 @@ def calibrate_streamed_fits(
                 problem, executor, [FitRequest(start, keep, options, keep_residuals=True)], count
             )
             rule = sigma_rule(first, settings)
-            expect_pruning = implausible_columns(problem, first).size > 0
+            expect_pruning = _implausible(problem, first).size > 0
         else:
             # the robust first step needs no streamed fit: the head rows' fit, whose parameters
             # start the streamed fits, judges every row (median and MAD resist the outliers
@@ -279,12 +280,12 @@ def fits_under_rule(
     ), baseline
 
 
-def implausible_columns(problem: StreamProblem, fit: StreamedFit) -> IntArray:
-    """The compliance columns of ``fit`` no physical joint could have
-    (:func:`~solver.calibration.implausible_compliance_columns`)."""
+def _implausible(problem: StreamProblem, fit: StreamedFit) -> IntArray:
+    """The columns of ``fit`` the data do not place in a physical range
+    (:func:`~solver.calibration.implausible_columns`)."""
     names = parameter_names(problem.chain)
     keep = np.array([names.index(n) for n in fit.estimated], dtype=np.intp)
-    return implausible_compliance_columns(problem.chain, fit.params, keep, fit.standard_errors)
+    return implausible_columns(problem.chain, fit.params, keep, fit.standard_errors)
 
 
 def non_negative_fit(
@@ -294,25 +295,31 @@ def non_negative_fit(
     request: FitRequest,
     count: PassCount,
 ) -> StreamedFit:
-    """``fit`` with every compliance no physical joint could have (negative, or not
-    identified in any physical range) fixed at 0 and the fit repeated from there, as
-    :func:`solver.calibration.fit_deterministic` does in memory; the fixed ones are listed in
-    ``pruned``."""
+    """``fit`` with every parameter the data do not place in a physical range fixed
+    (:func:`solver.calibration.implausible_columns`: a compliance negative or unidentified at
+    0, an inner link's twist component unidentified at its nominal value) and the fit repeated
+    from there, as :func:`solver.calibration.fit_deterministic` does in memory; the fixed ones
+    are listed in ``pruned``."""
     if not request.options.non_negative_compliance:
         return fit
     names = parameter_names(problem.chain)
     keep = np.array([names.index(n) for n in fit.estimated], dtype=np.intp)
     pruned: list[str] = []
-    while (negative := implausible_columns(problem, fit)).size:
+    while (negative := _implausible(problem, fit)).size:
         pruned += [names[c] for c in negative]
-        start = without_compliance(
-            problem.chain, fit.params, keep, fit.sums.normal, negative, converged=fit.converged
+        only_compliance = bool(np.all(negative >= 6 * problem.chain.n_links))
+        close = fit.converged and only_compliance
+        start = without_columns(
+            problem.chain,
+            fit.params,
+            negative,
+            at_optimum=(keep, fit.sums.normal) if fit.converged else None,
         )
         keep = np.setdiff1d(keep, negative)
         (fit,) = fit_streamed_together(
             problem,
             executor,
-            [replace(request, start=start, keep=keep, start_is_close=fit.converged)],
+            [replace(request, start=start, keep=keep, start_is_close=close)],
             count,
         )
     if not pruned:

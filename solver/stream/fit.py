@@ -1,5 +1,5 @@
-"""Streamed Gauss–Newton (paper Eq. 8–10): one pass per iterate, several fits in lockstep,
-and the in-memory warm start on the head rows.
+"""Streamed damped Gauss–Newton (Levenberg–Marquardt, paper Eq. 8–10): one pass per iterate,
+several fits in lockstep, and the in-memory warm start on the head rows.
 """
 
 from __future__ import annotations
@@ -26,11 +26,11 @@ from solver.batch_chain import (
 )
 from solver.calibration import (
     FitOptions,
-    GaussNewtonRun,
+    LeastSquaresRun,
     NormalEquations,
     ResidualSpread,
     fit_deterministic,
-    gauss_newton_iteration,
+    levenberg_marquardt_iteration,
     parameter_standard_errors,
     removed_names,
 )
@@ -327,7 +327,7 @@ class FitRequest:
     covariance: CovarianceSpec | None = None
     start_is_close: bool = False
     """The start is expected to be the optimum (e.g. from
-    :func:`~solver.calibration.without_compliance`): the first pass takes the covariance
+    :func:`~solver.calibration.without_columns`): the first pass takes the covariance
     statistics along as well."""
 
 
@@ -344,18 +344,18 @@ def fit_streamed_together(
     requests: Sequence[FitRequest],
     count: PassCount | None = None,
 ) -> list[StreamedFit]:
-    """Gauss–Newton (Eq. 10, :func:`solver.calibration.gauss_newton_iteration`) for each
-    request, in lockstep: every pass over the data evaluates the next point of every fit
+    """Levenberg–Marquardt (Eq. 10, :func:`solver.calibration.levenberg_marquardt_iteration`)
+    for each request, in lockstep: every pass over the data evaluates the next point of every fit
     still running, so fits that do not depend on each other (the refit and the "before" fit)
     share their passes. Each fit's iterates are exactly those it would take alone."""
     count = count if count is not None else PassCount()
     started = time.perf_counter()
     chain = problem.chain
     iterations: list[
-        Generator[ChainParameters, tuple[NormalEquations, FitSums], GaussNewtonRun[FitSums]]
-    ] = [gauss_newton_iteration(chain, r.start, r.keep, r.options) for r in requests]
+        Generator[ChainParameters, tuple[NormalEquations, FitSums], LeastSquaresRun[FitSums]]
+    ] = [levenberg_marquardt_iteration(chain, r.start, r.keep, r.options) for r in requests]
     pending: list[ChainParameters | None] = [next(it) for it in iterations]
-    runs: list[GaussNewtonRun[FitSums] | None] = [None] * len(requests)
+    runs: list[LeastSquaresRun[FitSums] | None] = [None] * len(requests)
     first_sums: list[FitSums | None] = [None] * len(requests)
     passes = [0] * len(requests)
     while any(p is not None for p in pending):

@@ -94,7 +94,7 @@ def test_calibrate_then_predict_round_trip(
         monkeypatch,
     )
     assert code == 0, err
-    assert "Gauss-Newton: optimal" in out and urdf_path.exists()
+    assert "Levenberg-Marquardt: optimal" in out and urdf_path.exists()
     result = CalibrationResult.model_validate_json(result_path.read_text())
     assert result.format == "kincal.calibration/1"
     code, _, err = run(

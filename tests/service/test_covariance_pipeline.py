@@ -78,7 +78,12 @@ def test_every_returned_covariance_is_symmetric_psd_and_named() -> None:
         matrix = np.array(frame.matrix)
         np.testing.assert_allclose(matrix, matrix.T, atol=1e-15)
         assert np.linalg.eigvalsh(matrix).min() > -1e-12
-        np.testing.assert_allclose(frame.std, np.sqrt(np.diag(matrix)))
+        reasons = frame.not_identifiable or (None,) * 6
+        for std, reason, variance in zip(frame.std, reasons, np.diag(matrix), strict=True):
+            # a number where the data see the axis, else null with the reason
+            assert (std is None) == (reason is not None)
+            if std is not None:
+                assert std == pytest.approx(np.sqrt(variance), rel=1e-12, abs=1e-15)
     statements = " ".join(result.covariance.identifiability.null_directions)
     assert "isotropic translational variance" in statements
 
@@ -123,7 +128,12 @@ def test_position_only_recording_gets_covariances() -> None:
     _, _, dataset = _simulated(300, position_only=True)
     result = pipeline.calibrate(dataset, robot("kinova"), CalibrationOptions(heldout=False))
     assert result.covariance is not None
-    assert np.all(np.isfinite([f.std for f in result.covariance.frames]))
+    for frame in result.covariance.frames:
+        reasons = frame.not_identifiable or (None,) * 6
+        assert all(
+            np.isfinite(s) if r is None else s is None
+            for s, r in zip(frame.std, reasons, strict=True)
+        )
 
 
 def test_unknown_covariance_frame_is_a_clear_error() -> None:

@@ -202,6 +202,15 @@ def test_fr3_negative_compliance_is_reported_not_named() -> None:
     assert {"panda_joint2", "panda_joint3"} <= declared
     assert all(f.effect != "joint_compliance" for f in result.findings)
     assert result.heldout.after.trans_mm <= result.heldout.before.trans_mm
+    # Issue 13: no compliance, flex or backlash below 0 is reported anywhere: the negative
+    # springs are removed from the final model (fixed at 0) and the removal is a step.
+    signed = ("joint_compliance", "base_flex", "link_bending", "backlash")
+    reported = [(t.effect, t.parameters) for t in result.model.terms] + [
+        (f.effect, f.parameters) for f in result.findings
+    ]
+    assert all(v >= 0.0 for effect, p in reported if effect in signed for v in p.values())
+    pruned = [s.candidate for s in result.steps if s.action == "pruned"]
+    assert any(c.startswith("joint_compliance:") for c in pruned), result.steps
 
 
 # `kincal simulate --effect` name(s) that conceal each library effect, the joints the user's

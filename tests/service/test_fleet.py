@@ -9,9 +9,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from schemas.calibration import CalibrationOptions
 from schemas.dataset import write_dataset
 from service import cli, scenarios
-from service.fleet import fleet_datasets, robust_z
+from service.fleet import (
+    calibrate_fleet,
+    family_wise_z,
+    fleet_datasets,
+    robot_parameters,
+    robust_z,
+)
+from service.robots import load_robot
 from solver.errors import KincalError
 from solver.simulate import SimulationSpec, look_at, simulate_recording
 from tests.conftest import chain
@@ -21,11 +29,11 @@ WORN = "R03"
 WORN_JOINT = "j2s6s200_joint_3"
 
 
-def _fleet(folder: Path, n_robots: int = 6, n_poses: int = 300) -> None:
+def _fleet(folder: Path, n_robots: int = 6, n_poses: int = 300, seed: int = 11) -> None:
     """One robot model; every robot its own geometry errors, mounting and compliance
     (±3 %); robot R03's joint 3 is worn: 2.5 times as compliant."""
     c = chain(ROBOT)
-    rng = np.random.default_rng(11)
+    rng = np.random.default_rng(seed)
     for r in range(n_robots):
         serial = f"R{r:02d}"
         stiffness = {
@@ -91,6 +99,50 @@ def test_fleet_flags_the_robot_and_joint_that_is_worn(
     assert joint3["max"] > 1.8e-3  # the worn one
     assert len(list((tmp_path / "results").glob("R*.json"))) == 6
     assert WORN in table and WORN_JOINT in table and "population spread" in table
+
+
+def test_a_dozen_units_flag_the_worn_joint_and_no_healthy_unit(tmp_path: Path) -> None:
+    """Issue 13: 12 Jaco2 units, R03's joint 3 worn, ``kincal fleet`` defaults (covariances
+    on). Healthy units differ by ±3 % in compliance; with 3.5 as the only threshold one of
+    them used to be flagged (R05, joint-2 compliance, z = −4.7 on this fleet). Only the worn
+    joint is flagged, no compliance compared is negative, and pruned compliances and σ the
+    data cannot see are not compared."""
+    folder = tmp_path / "fleet"
+    folder.mkdir()
+    _fleet(folder, n_robots=12, n_poses=150, seed=1)
+    report, outcomes = calibrate_fleet(
+        fleet_datasets(folder), load_robot(ROBOT), CalibrationOptions(heldout=False)
+    )
+    assert [(o.serial, o.parameter) for o in report.outliers] == [
+        (WORN, f"compliance.{WORN_JOINT}")
+    ]
+    assert report.outliers[0].robust_z > report.outliers[0].z_threshold
+    spread = {p.parameter: p for p in report.population}
+    assert all(p.min >= 0.0 for name, p in spread.items() if name.startswith("compliance."))
+    for outcome in outcomes:
+        assert outcome.result is not None
+        values = robot_parameters(outcome.result)
+        names = {v.name for v in values}
+        for c in outcome.result.compliance:
+            assert c.value_rad_per_nm >= 0.0
+            assert (f"compliance.{c.axis}" in names) == (c.estimated and not c.pruned)
+        assert outcome.result.covariance is not None
+        for frame in outcome.result.covariance.frames:
+            for axis, std in zip(("vx", "vy", "vz", "wx", "wy", "wz"), frame.std, strict=True):
+                assert (f"sigma.{frame.name}.{axis}" in names) == (std is not None)
+
+
+def test_family_wise_threshold_holds_its_false_alarm_rate() -> None:
+    """The threshold for n robots at tail t is exceeded by the largest |robust z| of n
+    Gaussian robots with probability t (checked on fresh draws), and grows as the fleet
+    shrinks."""
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal((10_000, 12))
+    largest = np.array([np.abs(robust_z(row)[2]).max() for row in x])
+    for tail in (0.1, 0.02):
+        share = float(np.mean(largest > family_wise_z(12, tail)))
+        assert abs(share - tail) < 4 * np.sqrt(tail / x.shape[0]) + 0.002, (tail, share)
+    assert family_wise_z(6, 1e-3) > family_wise_z(12, 1e-3) > family_wise_z(50, 1e-3) > 3.5
 
 
 def test_robust_z_ignores_the_outlier_it_measures() -> None:
