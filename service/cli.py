@@ -53,6 +53,14 @@ RobotOpt = Annotated[
 UrdfOpt = Annotated[Path | None, typer.Option("--urdf", help="A URDF file instead of --robot.")]
 BaseOpt = Annotated[str | None, typer.Option("--base", help="Base frame (with --urdf).")]
 TipOpt = Annotated[str | None, typer.Option("--tip", help="Tip frame (with --urdf).")]
+DhOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--dh",
+        help="A DH or modified-DH table (YAML, docs/dh.md) instead of --robot/--urdf, for "
+        "devices without a URDF.",
+    ),
+]
 OutputOpt = Annotated[Path, typer.Option("-o", "--output", help="Output file.")]
 ExecutorOpt = Annotated[
     str | None,
@@ -79,9 +87,13 @@ WorkersOpt = Annotated[
 
 
 def _robot(
-    robot: str | None, urdf: Path | None, base: str | None, tip: str | None
+    robot: str | None,
+    urdf: Path | None,
+    base: str | None,
+    tip: str | None,
+    dh: Path | None = None,
 ) -> RobotDescription:
-    return load_robot(robot, urdf_path=urdf, base_frame=base, tip_frame=tip)
+    return load_robot(robot, urdf_path=urdf, base_frame=base, tip_frame=tip, dh_path=dh)
 
 
 def _names(text: str | None) -> list[str] | None:
@@ -185,12 +197,16 @@ def simulate(
 
 @app.command()
 def calibrate(
-    data: Annotated[Path, typer.Argument(help="Dataset: CSV, Parquet or JSON.")],
+    data: Annotated[
+        Path,
+        typer.Argument(help="Dataset: CSV, Parquet, JSON or industrial_calibration YAML."),
+    ],
     output: OutputOpt,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
     tip: TipOpt = None,
+    dh: DhOpt = None,
     config: Annotated[
         Path | None,
         typer.Option(
@@ -286,7 +302,7 @@ def calibrate(
 ) -> None:
     """Calibrate geometry, joint compliance (paper Eq. 8–10) and the covariances of the random
     perturbations (Eq. 13–17) from recorded poses."""
-    description = _robot(robot, urdf, base, tip)
+    description = _robot(robot, urdf, base, tip, dh)
     if rigid and compliant_joints is not None:
         raise KincalError("give --rigid or --compliant-joints, not both")
     options = calibration_options(
