@@ -220,6 +220,12 @@ def calibrate(
     rigid: Annotated[
         bool, typer.Option(help="No joint compliance at all (compliant_joints = []).")
     ] = False,
+    free: Annotated[
+        str | None, typer.Option(help=option_help("free_parameters", "; comma-separated"))
+    ] = None,
+    fix: Annotated[
+        str | None, typer.Option(help=option_help("fixed_parameters", "; comma-separated"))
+    ] = None,
     virtual_axes: Annotated[
         str | None, typer.Option(help=option_help("virtual_axes_at", "; comma-separated"))
     ] = None,
@@ -334,6 +340,8 @@ def calibrate(
             "noise_covariance": None
             if noise_covariance is None
             else read_noise_covariance(noise_covariance),
+            "free_parameters": _names(free),
+            "fixed_parameters": _names(fix),
         },
     )
     findings = None

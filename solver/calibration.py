@@ -59,6 +59,8 @@ class FitOptions:
     diagonal, relative to the largest, falls below this (columns scaled to unit norm first).
     ``free_links``: indices of the links ``L_i`` (0-based) to calibrate, None = all;
     ``(0, k)`` calibrates only the measurement frame and the tool offset.
+    ``free_columns``: stacked-Jacobian columns the fit may move (:mod:`solver.selection`),
+    None = all; the others keep their starting value.
     ``non_negative_compliance``: a compliance estimated negative (no spring bends against the
     torque on it, DESIGN.md §2: c ≥ 0) or not identified in any physical range is fixed at 0
     and the fit repeated (see :func:`implausible_compliance_columns`).
@@ -70,6 +72,7 @@ class FitOptions:
     rank_tolerance: float = 1e-7
     free_links: tuple[int, ...] | None = None
     fit_compliance: bool = True
+    free_columns: tuple[int, ...] | None = None
     non_negative_compliance: bool = True
 
 
@@ -493,6 +496,8 @@ def identifiable_columns(
     for i in links:
         free[6 * i : 6 * i + 6] = True
     free[n_link_cols:] = options.fit_compliance
+    if options.free_columns is not None:
+        free &= np.isin(np.arange(free.size), options.free_columns)
     candidates = np.flatnonzero(free)
     a = jacobian[:, :, candidates].reshape(-1, candidates.size)
     norms = np.linalg.norm(a, axis=0)
