@@ -76,11 +76,9 @@ def test_joint_offsets_only_recovers_the_offsets_within_three_standard_errors(
     fixed = set(result["identifiability"]["fixed"])
     links = {link["link"]: link for link in result["links"]}
     # the first joint's offset is the camera's, the last one's the marker's: not separable
-    last = chain.joint_names[-1]
-    assert (
-        f"{last}.{('tx', 'ty', 'tz', 'rx', 'ry', 'rz')[int(np.argmax(np.abs(chain.joint_screws[-1])))]}"
-        in result["identifiability"]["removed"]
-    )
+    components = ("tx", "ty", "tz", "rx", "ry", "rz")
+    last_axis = components[int(np.argmax(np.abs(chain.joint_screws[-1])))]
+    assert f"{chain.joint_names[-1]}.{last_axis}" in result["identifiability"]["removed"]
     for j in range(1, chain.n_joints - 1):
         name = chain.joint_names[j]
         link = links[name]
@@ -95,7 +93,6 @@ def test_joint_offsets_only_recovers_the_offsets_within_three_standard_errors(
         # every other component is fixed: exactly nominal, no standard error
         others = [c for c in range(6) if c != axis]
         assert np.abs(twist[others]).max() < 1e-12
-        components = ("tx", "ty", "tz", "rx", "ry", "rz")
         assert {f"{name}.{components[c]}" for c in others} <= fixed
         assert all(
             (link["stderr_translation_m"] + link["stderr_rotation_rad"])[c] is None for c in others
