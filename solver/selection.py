@@ -72,9 +72,7 @@ def selector_columns(chain: KinematicChain, selector: str, option: str) -> set[i
         return _class_columns(chain, selector)
     names = parameter_names(chain)
     links = list(chain.link_names)
-    by_link = {
-        link: set(range(6 * i, 6 * i + 6)) for i, link in enumerate(links)
-    }
+    by_link = {link: set(range(6 * i, 6 * i + 6)) for i, link in enumerate(links)}
     columns: set[int] = set()
     for link, link_columns in by_link.items():
         if fnmatch.fnmatchcase(link, selector):
