@@ -427,6 +427,52 @@ def _prediction_note(result: CalibrationResult) -> None:
         typer.echo(note, err=True)
 
 
+@app.command("export")
+def export_command(
+    result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result JSON.")],
+    output: OutputOpt,
+    format: Annotated[
+        str,
+        typer.Option(
+            "--format",
+            help="urdf (the robot's URDF, calibrated joint origins), offsets-yaml / "
+            "offsets-csv (joint-offset table), dh / mdh (DH or modified-DH table, the YAML of "
+            "calibrate --dh), pal-master (PAL's master_calibration.yaml).",
+        ),
+    ] = "urdf",
+    measurement_frame: Annotated[
+        bool,
+        typer.Option(
+            help="urdf, dh, mdh: also write the measurement frame (root) and the marker (tip) "
+            "as extra links / base and tool transforms."
+        ),
+    ] = False,
+    force: Annotated[
+        bool, typer.Option(help="Export even when the calibration's verdict is failed.")
+    ] = False,
+) -> None:
+    """Write a calibration in a format a robot controller uses (docs/exports.md). Each
+    reproduces kincal's calibrated forward kinematics where the format can express it; what it
+    cannot (gravity-dependent compliance; link geometry in an offsets table) is printed."""
+    from service import exports
+
+    if format not in exports.FORMATS:
+        raise KincalError(f"--format {format!r}: choose one of {', '.join(exports.FORMATS)}")
+    result = read_result(result_path)
+    verdict = result.verdict
+    if verdict is not None and verdict.status == "failed" and not force:
+        causes = "; ".join(r.message for r in verdict.reasons if r.severity == "failed")
+        raise KincalError(
+            f"{result_path}: the calibration's verdict is failed ({causes}); nothing written "
+            "(--force exports it anyway)"
+        )
+    chosen: exports.ExportFormat = format  # type: ignore[assignment]
+    _write_text(output, exports.export(result, chosen, measurement_frame=measurement_frame))
+    for line in exports.not_expressed(result) + exports.offsets_not_exact(result, chosen):
+        typer.echo(f"not expressed: {line}", err=True)
+    typer.echo(f"wrote {format} to {output}")
+
+
 @app.command()
 def predict(
     result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result JSON.")],
