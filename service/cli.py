@@ -427,6 +427,20 @@ def _prediction_note(result: CalibrationResult) -> None:
         typer.echo(note, err=True)
 
 
+@app.command("dh-urdf")
+def dh_urdf_command(
+    table: Annotated[Path, typer.Argument(help="DH or modified-DH table (YAML, docs/dh.md).")],
+    output: OutputOpt,
+) -> None:
+    """Write the URDF kincal builds from a DH table (e.g. to upload the robot to the HTTP
+    service, POST /api/v1/robots, with the table's base and tip frames)."""
+    description = load_robot(dh_path=table)
+    _write_text(output, description.urdf_xml)
+    typer.echo(
+        f"wrote {output} (base frame {description.base_frame}, tip frame {description.tip_frame})"
+    )
+
+
 @app.command("export")
 def export_command(
     result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result JSON.")],

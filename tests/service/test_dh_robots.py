@@ -73,3 +73,51 @@ def test_dh_table_errors_name_the_field(tmp_path: Path) -> None:
     table.write_text("convention: dh\njoints:\n  - {name: j1, type: prismatic}\n")
     with pytest.raises(ModelError, match="needs lower and upper limits"):
         load_robot(dh_path=table)
+
+
+def test_http_takes_the_dh_robots_urdf_and_the_yaml_recording(tmp_path: Path) -> None:
+    from fastapi.testclient import TestClient
+
+    from service.api.app import create_app
+    from tests.service.api.conftest import fresh_database_url, make_settings
+
+    robot = load_robot(dh_path=POSITIONER / "positioner_dh.yaml")
+    with (
+        fresh_database_url(tmp_path) as url,
+        TestClient(create_app(make_settings(tmp_path, url))) as client,
+    ):
+        created = client.post(
+            "/api/v1/robots",
+            json={
+                "name": "positioner",
+                "base_frame": robot.base_frame,
+                "tip_frame": robot.tip_frame,
+                "urdf": robot.urdf_xml,
+            },
+        )
+        assert created.status_code == 201, created.text
+        uploaded = client.post(
+            "/api/v1/datasets",
+            files={
+                "file": (
+                    "measurements.yaml",
+                    (POSITIONER / "measurements.yaml").read_bytes(),
+                    "application/yaml",
+                )
+            },
+            data={"robot": created.json()["id"]},
+        )
+    assert uploaded.status_code == 201, uploaded.text
+    assert uploaded.json()["n_samples"] == 205
+
+
+def test_dh_urdf_command_writes_the_generated_urdf(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "positioner.urdf"
+    code, text, err = run(
+        ["dh-urdf", POSITIONER / "positioner_dh.yaml", "-o", out], capsys, monkeypatch
+    )
+    assert code == 0, err
+    assert "base frame base_link, tip frame tool0" in text
+    assert out.read_text() == load_robot(dh_path=POSITIONER / "positioner_dh.yaml").urdf_xml
