@@ -134,3 +134,31 @@ def test_unknown_names_are_refused_listing_the_valid_ones(
     assert "joint_offsets" in err and "elbow_joint" in err
     code, _, err = run([*base, "--free", "base", "--fix", "base,tool"], capsys, monkeypatch)
     assert code == 2 and "leave nothing to calibrate" in err
+
+
+def test_http_refuses_unknown_names_with_a_problem(tmp_path: Path) -> None:
+    from fastapi.testclient import TestClient
+
+    from service.api.app import create_app
+    from tests.service.api.conftest import (
+        assert_problem,
+        fresh_database_url,
+        make_settings,
+        upload_csv,
+    )
+
+    with (
+        fresh_database_url(tmp_path) as url,
+        TestClient(create_app(make_settings(tmp_path, url))) as client,
+    ):
+        dataset = upload_csv(client).json()
+        response = client.post(
+            "/api/v1/calibrations",
+            json={"dataset_id": dataset["id"], "options": {"fixed_parameters": ["torso"]}},
+        )
+        assert_problem(response, 422, "fixed_parameters: 'torso' names no parameter", "elbow")
+        accepted = client.post(
+            "/api/v1/calibrations",
+            json={"dataset_id": dataset["id"], "options": {"free_parameters": ["joint_offsets"]}},
+        )
+    assert accepted.status_code == 202, accepted.text
