@@ -84,7 +84,11 @@ def export(
         "use kincal predict/rank with the result JSON, or calibrate without --model",
     )
     if reason is not None:
-        raise KincalError(reason.replace("a URDF", f"the {format} export"))
+        raise KincalError(
+            reason.replace("cannot export a URDF", f"cannot export {format}").replace(
+                "a URDF cannot express", "no export format can express"
+            )
+        )
     writers: dict[ExportFormat, Callable[[], str]] = {
         "urdf": lambda: export_urdf(result, measurement_frame=measurement_frame),
         "offsets-yaml": lambda: offsets_yaml(result),

@@ -160,3 +160,30 @@ def test_export_cli_writes_each_format_and_refuses_unknown_ones(
         ["export", result_path, "--format", "sdf", "-o", tmp_path / "x"], capsys, monkeypatch
     )
     assert code == 2 and "--format 'sdf': choose one of urdf, offsets-yaml" in err
+
+
+def test_a_result_correcting_joint_readings_is_refused_in_every_format() -> None:
+    from schemas.calibration import ModelCorrection, ModelCorrections
+    from solver.errors import KincalError
+
+    correction = ModelCorrection(
+        effect="joint_scale",
+        joint="elbow_joint",
+        variant="linear",
+        description="a joint scale error of elbow_joint",
+        parameters={"scale": 1e-3},
+        applied_in_prediction=True,
+    )
+    result = _calibrated("ur10").model_copy(
+        update={
+            "model_corrections": ModelCorrections(
+                gravity_base_m_s2=(0.0, 0.0, -9.81),
+                payload_kg=0.0,
+                corrections=[correction],
+                not_carried=[],
+            )
+        }
+    )
+    for format in exports.FORMATS:
+        with pytest.raises(KincalError, match=f"cannot export {format}: the calibration corrects"):
+            exports.export(result, format)
