@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pydantic
-from matplotlib.figure import Figure
 
 from schemas.calibration import (
     CalibrationOptions,
@@ -656,6 +655,8 @@ def finding_figure(panels: list[PlotPanel], title: str, path: Path) -> Path:
 
     Angles are shown in mrad; the fitted term is the line the "before" points should follow.
     """
+    from matplotlib.figure import Figure  # plotting only: kept out of a calibration's start-up
+
     figure = Figure(figsize=(5.2 * len(panels), 3.6), layout="constrained")
     axes = figure.subplots(1, len(panels), squeeze=False)[0]
     for ax, panel in zip(axes, panels, strict=True):

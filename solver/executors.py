@@ -177,12 +177,33 @@ class ProcessExecutor:
         return self.map_async(fn, shared, items).result()
 
     def map_async(self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]) -> Pending[R]:
-        futures: list[Future[list[R]]] = [
+        if not self._starting.is_alive():
+            futures = self._submit(fn, shared, items)
+            return Pending(lambda: [result for future in futures for result in future.result()])
+        # While the workers start, submitting blocks until the fork server has imported its
+        # modules (a second or more): submit beside the caller, who gets on with its own work.
+        submitted: list[list[Future[list[R]]]] = []
+        submitting = threading.Thread(
+            target=lambda: submitted.append(self._submit(fn, shared, items)), daemon=True
+        )
+        submitting.start()
+
+        def collect() -> list[R]:
+            submitting.join()
+            if not submitted:
+                raise KincalError("the worker processes could not be started")
+            return [result for future in submitted[0] for result in future.result()]
+
+        return Pending(collect)
+
+    def _submit(
+        self, fn: Callable[[S, T], R], shared: S, items: Sequence[T]
+    ) -> list[Future[list[R]]]:
+        return [
             pool.submit(_run_block, fn, shared, [items[i] for i in block])
             for pool, block in zip(self._pools, blocks(len(items), self.n_workers), strict=True)
             if len(block)
         ]
-        return Pending(lambda: [result for future in futures for result in future.result()])
 
     def run_on_workers(self, fn: Callable[[], R]) -> list[R]:
         return [pool.submit(_call, fn).result() for pool in self._pools]

@@ -5,17 +5,45 @@ Public API: :func:`discover` with :class:`DiscoveryOptions` on a chain and
 :data:`EFFECTS` (:mod:`solver.discovery.library`).
 """
 
-from solver.discovery.features import DiscoveryData
-from solver.discovery.library import EFFECTS, Term
-from solver.discovery.loop import DiscoveryOptions, discover
-from solver.discovery.results import (
-    Ambiguity,
-    DiscoveryResult,
-    Finding,
-    HeldoutError,
-    RandomEffect,
-    Unexplained,
-)
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from solver.discovery.features import DiscoveryData
+    from solver.discovery.library import EFFECTS, Term
+    from solver.discovery.loop import DiscoveryOptions, discover
+    from solver.discovery.results import (
+        Ambiguity,
+        DiscoveryResult,
+        Finding,
+        HeldoutError,
+        RandomEffect,
+        Unexplained,
+    )
+
+_HOME = {
+    "DiscoveryData": "features",
+    "EFFECTS": "library",
+    "Term": "library",
+    "DiscoveryOptions": "loop",
+    "discover": "loop",
+    **dict.fromkeys(
+        ["Ambiguity", "DiscoveryResult", "Finding", "HeldoutError", "RandomEffect", "Unexplained"],
+        "results",
+    ),
+}
+"""Where each public name lives. They are imported on first use (PEP 562), so a calibration
+that only carries a discovery's model (:mod:`solver.discovery.carry`) does not pay for the
+discovery loop's imports at start-up."""
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _HOME:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_HOME[name]}"), name)
+
 
 __all__ = [
     "EFFECTS",

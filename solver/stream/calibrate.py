@@ -287,10 +287,11 @@ spaced over the recording (every row below that): each split fits the geometry a
 coverage, four sets of covariances on its training rows; a held-out error and a coverage
 share need a thousand poses (the 95 % share to ±0.7 %), not millions."""
 
-IN_MEMORY_SAMPLES = 50_000
+IN_MEMORY_SAMPLES = FULL_LIKELIHOOD_SAMPLES
 """Up to this many used samples the covariance stage gathers them into memory once (each
 likelihood evaluation then costs no sweep of the chain); beyond, every evaluation is a pass
-over the recording. The numbers are the same either way."""
+over the recording and the likelihood takes one scoring step. The numbers are the same either
+way."""
 
 
 @dataclass(frozen=True)
