@@ -5,8 +5,10 @@ and fit time (issue 15).
 Rows: those kincal's default calibration keeps (its outlier rule), so both see the same data;
 splits: kincal's own (:func:`solver.evaluation.split_indices` of those rows, seeds 1..S, 90 %
 train). kincal's held-out errors are its default calibration's (``kincal calibrate`` with no
-flags); FIGAROH's come from ``benchmarks/figaroh_calibration_driver.py`` under FIGAROH's own
-interpreter (``--figaroh-python``, a separate venv; never a kincal dependency): its
+flags: geometry and joint compliance) and, on the same splits, those of the model FIGAROH fits
+(geometry and frames: ``--fix compliance``); FIGAROH's come from
+``benchmarks/figaroh_calibration_driver.py`` under FIGAROH's own interpreter
+(``--figaroh-python``, a separate venv; never a kincal dependency): its
 ``full_params`` model, one Levenberg–Marquardt fit per split. Fit times: FIGAROH's
 ``initialize`` + ``solve`` per split; kincal's deterministic fit of the same training rows
 (geometry and compliance, no covariance, no held-out), and its whole default run.
@@ -97,6 +99,7 @@ class SideBySide:
     n_rows: int
     n_used: int
     kincal_mm: list[float]
+    same_model_mm: list[float]
     figaroh_mm: list[float]
     kincal_fit_s: float
     kincal_run_s: float
@@ -124,6 +127,28 @@ def kincal_fit_seconds(recording: Recording, rows: np.ndarray) -> float:
     return float(np.median(times))
 
 
+def same_model_heldout(recording: Recording, kept: np.ndarray, seeds: list[int]) -> list[float]:
+    """kincal's held-out errors with FIGAROH's model (geometry and frames, no compliance:
+    ``--fix compliance``) on the rows the default run kept, with no screening of its own: its
+    splits of those rows are the default run's (and FIGAROH's)."""
+    from schemas.dataset import read_dataset
+
+    options = CalibrationOptions(
+        seeds=seeds, outlier_rule="none", covariance="none", fixed_parameters=["compliance"]
+    )
+    setup = pipeline.check_calibration(robot_of(recording), options)
+    chain = setup.chain
+    dataset = read_dataset(
+        DATA / recording.csv, chain.joint_names, other_joint_names=chain.other_joint_names
+    ).subset(kept.tolist())
+    result = pipeline.calibrate_source(dataset, setup).result
+    assert result.evaluation is not None and result.outliers.n_used == kept.size
+    by_seed = {
+        s.seed: s.translation_mm for s in result.evaluation.splits if s.method == "calibrated"
+    }
+    return [by_seed[seed] for seed in seeds]
+
+
 def compare(recording: Recording, seeds: int, figaroh_python: str) -> SideBySide:
     robot = robot_of(recording)
     options = CalibrationOptions(seeds=list(range(1, seeds + 1)))
@@ -137,6 +162,7 @@ def compare(recording: Recording, seeds: int, figaroh_python: str) -> SideBySide
     kincal_mm = {
         s.seed: s.translation_mm for s in result.evaluation.splits if s.method == "calibrated"
     }
+    same_model_mm = same_model_heldout(recording, kept, options.seeds)
     splits = []
     for seed in options.seeds:
         train, test = split_indices(kept.size, seed, options.train_fraction)
@@ -165,6 +191,7 @@ def compare(recording: Recording, seeds: int, figaroh_python: str) -> SideBySide
         result.outliers.n_input,
         result.outliers.n_used,
         [kincal_mm[seed] for seed in options.seeds],
+        same_model_mm,
         [a["translation_mm"] for a in answer],
         kincal_fit_seconds(recording, first_train),
         kincal_run_s,
@@ -182,9 +209,10 @@ def table(rows: list[SideBySide]) -> str:
     header = [
         "Robot",
         "Rows (used)",
-        "kincal held-out mm",
-        "FIGAROH held-out mm",
-        "kincal ≤ FIGAROH + 1 SE",
+        "kincal default: held-out mm",
+        "kincal, FIGAROH's model (--fix compliance)",
+        "FIGAROH full_params",
+        "≤ FIGAROH + 1 SE (default / same model)",
         "kincal fit s",
         "FIGAROH fit s",
         "Speed-up",
@@ -193,11 +221,14 @@ def table(rows: list[SideBySide]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for row in rows:
         k_mean, k_se = mean_se(row.kincal_mm)
+        s_mean, s_se = mean_se(row.same_model_mm)
         f_mean, f_se = mean_se(row.figaroh_mm)
         f_fit = float(np.median(row.figaroh_fit_s))
+        holds = "yes" if k_mean <= f_mean + f_se else "no"
+        holds += " / " + ("yes" if s_mean <= f_mean + f_se else "no")
         lines.append(
             f"| {row.name} | {row.n_rows} ({row.n_used}) | {k_mean:.2f} ± {k_se:.2f} "
-            f"| {f_mean:.2f} ± {f_se:.2f} | {'yes' if k_mean <= f_mean + f_se else 'no'} "
+            f"| {s_mean:.2f} ± {s_se:.2f} | {f_mean:.2f} ± {f_se:.2f} | {holds} "
             f"| {row.kincal_fit_s:.3f} | {f_fit:.2f} | {f_fit / row.kincal_fit_s:.0f}× "
             f"| {row.kincal_run_s:.1f} |"
         )
@@ -212,7 +243,8 @@ def main(figaroh_python: str, seeds: int = 10, only: list[str] | None = None) ->
         row = compare(recording, seeds, figaroh_python)
         print(
             f"{row.name}: kincal {np.round(row.kincal_mm, 2).tolist()}\n"
-            f"{' ' * len(row.name)}  FIGAROH {np.round(row.figaroh_mm, 2).tolist()} "
+            f"  kincal --fix compliance {np.round(row.same_model_mm, 2).tolist()}\n"
+            f"  FIGAROH {np.round(row.figaroh_mm, 2).tolist()} "
             f"({row.figaroh_parameters} parameters)",
             flush=True,
         )
