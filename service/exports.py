@@ -137,9 +137,9 @@ def joint_offsets(result: CalibrationResult) -> tuple[list[dict[str, Any]], list
 
     Joint i's offset is the component of its link's correction ``Log(L_nominal⁻¹ L_calibrated)``
     along the joint screw s_i (``L_i Exp(δ s_i) Exp(s_i q) = L_i Exp(s_i (q + δ))``). The first
-    joint's offset is part of the measurement frame and the last one's part of the marker, so
-    both are 0 here. Any other component of a correction (link geometry) is not an offset and
-    is listed as not expressed, with its size.
+    joint's offset is part of the measurement frame (0 here); the last one's cannot be told
+    from the marker, so a calibration leaves it at 0 (unidentifiable). Any other component of a
+    correction (link geometry) is not an offset and is listed as not expressed, with its size.
     """
     chain, links = robot_links(result)
     rows, leftover = [], []
@@ -167,7 +167,7 @@ def joint_offsets(result: CalibrationResult) -> tuple[list[dict[str, Any]], list
     missing = (
         [f"link geometry not along the joint axes ({'; '.join(leftover)})"] if leftover else []
     )
-    return rows, (missing if leftover else []) + not_expressed(result)
+    return rows, missing + not_expressed(result)
 
 
 def offsets_yaml(result: CalibrationResult) -> str:
