@@ -13,8 +13,8 @@ flags: geometry and joint compliance) and, on the same splits, those of the mode
 ``initialize`` + ``solve`` per split; kincal's deterministic fit of the same training rows
 (geometry and compliance, no covariance, no held-out), and its whole default run.
 
-Usage (from the repository root): ``python -m benchmarks.figaroh_side_by_side --figaroh-python …/figaroh-venv/bin/python
-[--seeds 10] [--only TALOS]``.
+Usage (from the repository root): ``python -m benchmarks.figaroh_side_by_side
+--figaroh-python …/figaroh-venv/bin/python [--seeds 10] [--only TALOS]``.
 """
 
 from __future__ import annotations
