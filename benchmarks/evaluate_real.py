@@ -16,7 +16,7 @@ from schemas.dataset import PoseDataset, read_dataset
 from service import pipeline, result_json
 from service.plots import residual_histograms
 from service.report import table_ii
-from service.robots import RobotDescription, load_robot
+from service.robots import RobotDescription, example_robot_data_dir, load_robot
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "real"
 RECORDINGS = {
@@ -25,8 +25,21 @@ RECORDINGS = {
         "figaroh_ur10_experiment/ur10e_robot.urdf:base_link:wrist_3_link",
         "figaroh_ur10_experiment/calibration.csv",
     ),
+    "TIAGo arm, Vicon gripper3/base1 (FIGAROH)": (
+        "erd:robots/tiago_description/robots/tiago.urdf:base_footprint:arm_tool_link",
+        "figaroh_tiago_mocap/vicon/vicon_calibration_fc10_gripper3_base1.csv",
+    ),
+    "TALOS torso + left arm (FIGAROH)": (
+        "erd:robots/talos_data/robots/talos_full_v2.urdf:base_link:gripper_left_base_link",
+        "figaroh_talos_left_arm_contact/talos_left_arm_02_10_contact.csv",
+    ),
+    "2-axis positioner, DH table (industrial_calibration)": (
+        "dh:industrial_calibration_2axis_positioner/positioner_dh.yaml",
+        "industrial_calibration_2axis_positioner/measurements.yaml",
+    ),
 }
-"""Recording name -> (built-in robot, or ``URDF:base:tip`` shipped beside the data; file).
+"""Recording name -> (built-in robot, ``URDF:base:tip`` shipped beside the data, ``erd:URDF:base:
+tip`` in example-robot-data, or ``dh:TABLE`` shipped beside the data; file).
 The UR10 experiment's arm is a UR10e (its PROVENANCE.md): calibrating it against the
 CB-series ``ur10`` measured the wrong model (11.6 mm before, against ~3.9 mm with the UR10e
 URDF)."""
@@ -35,6 +48,12 @@ URDF)."""
 def robot_of(spec: str) -> RobotDescription:
     if ":" not in spec:
         return load_robot(spec)
+    if spec.startswith("dh:"):
+        return load_robot(dh_path=DATA / spec.removeprefix("dh:"))
+    if spec.startswith("erd:"):
+        urdf, base, tip = spec.removeprefix("erd:").split(":")
+        path = example_robot_data_dir() / urdf
+        return load_robot(path.stem, urdf_path=path, base_frame=base, tip_frame=tip)
     urdf, base, tip = spec.split(":")
     return load_robot("ur10e", urdf_path=DATA / urdf, base_frame=base, tip_frame=tip)
 
@@ -62,6 +81,11 @@ def figure(result: CalibrationResult, dataset: PoseDataset, name: str, path: Pat
         title=f"{name}: end-effector-frame residuals, nominal robot vs calibrated "
         f"({kept.n_samples} samples, all used for training)",
     )
+
+
+def _errors(translation_mm: float, rotation_deg: float | None) -> str:
+    rotation = "–" if rotation_deg is None else f"{rotation_deg:.3f}"
+    return f"{translation_mm:.2f} / {rotation}"
 
 
 def _verdict(result: CalibrationResult) -> str:
@@ -93,8 +117,8 @@ def main(seeds: int = 10, figures: Path | None = None) -> str:
         rows.append(
             f"| {name} | {result.robot.name} "
             f"| {result.outliers.n_input} ({result.outliers.n_used}) "
-            f"| {before.translation_mean_mm:.2f} / {before.rotation_mean_deg:.3f} "
-            f"| {after.translation_mean_mm:.2f} / {after.rotation_mean_deg:.3f} "
+            f"| {_errors(before.translation_mean_mm, before.rotation_mean_deg)} "
+            f"| {_errors(after.translation_mean_mm, after.rotation_mean_deg)} "
             f"| {improved} of {len(seeds_run)} | {_verdict(result)} | {elapsed:.1f} s |"
         )
     table = "\n".join(rows)

@@ -45,6 +45,20 @@ class CalibrationOptions(_Model):
         description="Joints that get two virtual compliant axes orthogonal to their axis "
         "(flex of the structure carrying them, paper §V-A).",
     )
+    free_parameters: list[str] = Field(
+        default_factory=lambda: ["all"],
+        min_length=1,
+        description="What to calibrate: classes (all, geometry, joint_offsets, base, tool, "
+        "compliance), links by joint or tip name, parameters <link>.<tx|ty|tz|rx|ry|rz> or "
+        "compliance.<axis>, shell patterns of those; the base and tool (measurement frame and "
+        "marker) are always free unless fixed (docs/calibration-options.md).",
+    )
+    fixed_parameters: list[str] = Field(
+        default_factory=list,
+        description="Parameters held at their starting value (nominal geometry, compliance 0; "
+        "base and tool at the closed-form alignment), same names as free_parameters, e.g. a "
+        "whole link such as torso_2_joint, or compliance.",
+    )
     gravity_base_m_s2: Vector3 = Field(
         (0.0, 0.0, -9.81), description="Gravity in the robot's base frame, m/s²."
     )
@@ -307,6 +321,11 @@ class Identifiability(_Model):
     rank: int
     condition_number: float
     removed: list[str] = Field(description="Parameters the data cannot identify (not fitted).")
+    fixed: list[str] = Field(
+        default_factory=list,
+        description="Parameters held fixed by free_parameters / fixed_parameters (not fitted, "
+        "no standard error).",
+    )
     pruned: list[str] = Field(
         default_factory=list,
         description="Parameters fixed and the fit repeated: compliances at 0 (negative, or "
@@ -488,6 +507,20 @@ class ModelCorrection(_Model):
 class ModelCorrections(_Model):
     """What ``calibrate --model findings.json`` undid on the recording, and what it could not."""
 
+    free_parameters: list[str] = Field(
+        default_factory=lambda: ["all"],
+        min_length=1,
+        description="What to calibrate: classes (all, geometry, joint_offsets, base, tool, "
+        "compliance), links by joint or tip name, parameters <link>.<tx|ty|tz|rx|ry|rz> or "
+        "compliance.<axis>, shell patterns of those; the base and tool (measurement frame and "
+        "marker) are always free unless fixed (docs/calibration-options.md).",
+    )
+    fixed_parameters: list[str] = Field(
+        default_factory=list,
+        description="Parameters held at their starting value (nominal geometry, compliance 0; "
+        "base and tool at the closed-form alignment), same names as free_parameters, e.g. a "
+        "whole link such as torso_2_joint, or compliance.",
+    )
     gravity_base_m_s2: Vector3 = Field(
         description="Gravity (base frame) of the load-sign backlash features (the discovery's)."
     )

@@ -53,6 +53,14 @@ RobotOpt = Annotated[
 UrdfOpt = Annotated[Path | None, typer.Option("--urdf", help="A URDF file instead of --robot.")]
 BaseOpt = Annotated[str | None, typer.Option("--base", help="Base frame (with --urdf).")]
 TipOpt = Annotated[str | None, typer.Option("--tip", help="Tip frame (with --urdf).")]
+DhOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--dh",
+        help="A DH or modified-DH table (YAML, docs/dh.md) instead of --robot/--urdf, for "
+        "devices without a URDF.",
+    ),
+]
 OutputOpt = Annotated[Path, typer.Option("-o", "--output", help="Output file.")]
 ExecutorOpt = Annotated[
     str | None,
@@ -79,9 +87,13 @@ WorkersOpt = Annotated[
 
 
 def _robot(
-    robot: str | None, urdf: Path | None, base: str | None, tip: str | None
+    robot: str | None,
+    urdf: Path | None,
+    base: str | None,
+    tip: str | None,
+    dh: Path | None = None,
 ) -> RobotDescription:
-    return load_robot(robot, urdf_path=urdf, base_frame=base, tip_frame=tip)
+    return load_robot(robot, urdf_path=urdf, base_frame=base, tip_frame=tip, dh_path=dh)
 
 
 def _names(text: str | None) -> list[str] | None:
@@ -188,7 +200,8 @@ def calibrate(
     data: Annotated[
         Path,
         typer.Argument(
-            help="Dataset: CSV, Parquet or JSON; or a folder of ball-in-socket hole_<k>.csv files."
+            help="Dataset: CSV, Parquet, JSON or industrial_calibration YAML; or a folder of "
+            "ball-in-socket hole_<k>.csv files."
         ),
     ],
     output: OutputOpt,
@@ -196,6 +209,7 @@ def calibrate(
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
     tip: TipOpt = None,
+    dh: DhOpt = None,
     config: Annotated[
         Path | None,
         typer.Option(
@@ -209,6 +223,12 @@ def calibrate(
     rigid: Annotated[
         bool, typer.Option(help="No joint compliance at all (compliant_joints = []).")
     ] = False,
+    free: Annotated[
+        str | None, typer.Option(help=option_help("free_parameters", "; comma-separated"))
+    ] = None,
+    fix: Annotated[
+        str | None, typer.Option(help=option_help("fixed_parameters", "; comma-separated"))
+    ] = None,
     virtual_axes: Annotated[
         str | None, typer.Option(help=option_help("virtual_axes_at", "; comma-separated"))
     ] = None,
@@ -295,7 +315,7 @@ def calibrate(
 ) -> None:
     """Calibrate geometry, joint compliance (paper Eq. 8–10) and the covariances of the random
     perturbations (Eq. 13–17) from recorded poses."""
-    description = _robot(robot, urdf, base, tip)
+    description = _robot(robot, urdf, base, tip, dh)
     if rigid and compliant_joints is not None:
         raise KincalError("give --rigid or --compliant-joints, not both")
     options = calibration_options(
@@ -329,6 +349,8 @@ def calibrate(
             else read_noise_covariance(noise_covariance),
             "measurement": measurement,
             "point_distance_m": point_distance,
+            "free_parameters": _names(free),
+            "fixed_parameters": _names(fix),
         },
     )
     findings = None
@@ -412,6 +434,66 @@ def _prediction_note(result: CalibrationResult) -> None:
     note = prediction_note(result)
     if note is not None:
         typer.echo(note, err=True)
+
+
+@app.command("dh-urdf")
+def dh_urdf_command(
+    table: Annotated[Path, typer.Argument(help="DH or modified-DH table (YAML, docs/dh.md).")],
+    output: OutputOpt,
+) -> None:
+    """Write the URDF kincal builds from a DH table (e.g. to upload the robot to the HTTP
+    service, POST /api/v1/robots, with the table's base and tip frames)."""
+    description = load_robot(dh_path=table)
+    _write_text(output, description.urdf_xml)
+    typer.echo(
+        f"wrote {output} (base frame {description.base_frame}, tip frame {description.tip_frame})"
+    )
+
+
+@app.command("export")
+def export_command(
+    result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result JSON.")],
+    output: OutputOpt,
+    format: Annotated[
+        str,
+        typer.Option(
+            "--format",
+            help="urdf (the robot's URDF, calibrated joint origins), offsets-yaml / "
+            "offsets-csv (joint-offset table), dh / mdh (DH or modified-DH table, the YAML of "
+            "calibrate --dh), pal-master (PAL's master_calibration.yaml).",
+        ),
+    ] = "urdf",
+    measurement_frame: Annotated[
+        bool,
+        typer.Option(
+            help="urdf, dh, mdh: also write the measurement frame (root) and the marker (tip) "
+            "as extra links / base and tool transforms."
+        ),
+    ] = False,
+    force: Annotated[
+        bool, typer.Option(help="Export even when the calibration's verdict is failed.")
+    ] = False,
+) -> None:
+    """Write a calibration in a format a robot controller uses (docs/exports.md). Each
+    reproduces kincal's calibrated forward kinematics where the format can express it; what it
+    cannot (gravity-dependent compliance; link geometry in an offsets table) is printed."""
+    from service import exports
+
+    if format not in exports.FORMATS:
+        raise KincalError(f"--format {format!r}: choose one of {', '.join(exports.FORMATS)}")
+    result = read_result(result_path)
+    verdict = result.verdict
+    if verdict is not None and verdict.status == "failed" and not force:
+        causes = "; ".join(r.message for r in verdict.reasons if r.severity == "failed")
+        raise KincalError(
+            f"{result_path}: the calibration's verdict is failed ({causes}); nothing written "
+            "(--force exports it anyway)"
+        )
+    chosen: exports.ExportFormat = format  # type: ignore[assignment]
+    _write_text(output, exports.export(result, chosen, measurement_frame=measurement_frame))
+    for line in exports.not_expressed(result) + exports.offsets_not_exact(result, chosen):
+        typer.echo(f"not expressed: {line}", err=True)
+    typer.echo(f"wrote {format} to {output}")
 
 
 @app.command()

@@ -35,6 +35,8 @@ def numbers(text: str, option: str, count: int | None = None) -> list[float]:
 # --- the calibration options as CLI flags and a TOML file -------------------------------------
 
 CALIBRATION_FLAGS: dict[str, str] = {
+    "free_parameters": "--free",
+    "fixed_parameters": "--fix",
     "compliant_joints": "--compliant-joints",
     "virtual_axes_at": "--virtual-axes",
     "gravity_base_m_s2": "--gravity",

@@ -42,6 +42,7 @@ from solver.errors import KincalError, ModelError
 from solver.executors import Executor, InProcessExecutor, ProcessExecutor, preload_in_workers
 from solver.measurement import MeasurementModel
 from solver.model import KinematicChain
+from solver.selection import free_columns
 from solver.stream.calibrate import (
     CovarianceSettings,
     HeldoutSettings,
@@ -95,6 +96,8 @@ class CalibrationSetup:
     covariance_frames: tuple[str, ...]
     covariance_index: tuple[int, ...]
     findings: FindingsResult | None = None
+    free_columns: tuple[int, ...] | None = None
+    """Columns the fit may move (:func:`solver.selection.free_columns`); None = all."""
 
 
 def check_calibration(
@@ -135,13 +138,27 @@ def check_calibration(
         tuple(chosen),
         tuple(names.index(name) for name in chosen),
         findings,
+        chosen_columns(chain, options),
     )
 
 
+def chosen_columns(chain: KinematicChain, options: CalibrationOptions) -> tuple[int, ...] | None:
+    """The columns ``free_parameters`` / ``fixed_parameters`` leave free (None: all, the
+    default); :class:`ModelError` listing the valid names for an unknown one."""
+    if options.free_parameters == ["all"] and not options.fixed_parameters:
+        return None
+    return free_columns(chain, options.free_parameters, options.fixed_parameters)
+
+
 def fit_options(
-    options: CalibrationOptions, *, baseline: bool = False, n_links: int = 0
+    options: CalibrationOptions,
+    *,
+    baseline: bool = False,
+    n_links: int = 0,
+    free_columns: tuple[int, ...] | None = None,
 ) -> FitOptions:
-    """Solver settings; ``baseline`` fits only the measurement frame and tool (nominal robot)."""
+    """Solver settings; ``baseline`` fits only the measurement frame and tool (nominal robot);
+    ``free_columns`` the columns the (not baseline) fit may move."""
     return FitOptions(
         max_iterations=options.max_iterations,
         tolerance=options.tolerance,
@@ -149,6 +166,7 @@ def fit_options(
         rank_tolerance=options.rank_tolerance,
         free_links=(0, n_links - 1) if baseline else None,
         fit_compliance=not baseline,
+        free_columns=None if baseline else free_columns,
     )
 
 
@@ -368,7 +386,7 @@ def calibrate_source(
         calibrated = calibrate_recording(
             recording.problem,
             runner,
-            fit_options(setup.options),
+            fit_options(setup.options, free_columns=setup.free_columns),
             fit_options(setup.options, baseline=True, n_links=setup.chain.n_links),
             StreamSettings(
                 stream.warm_start_rows,
@@ -402,6 +420,7 @@ def calibrate_source(
         calibrated=calibrated,
         frame_index=list(setup.covariance_index),
         position_only=recording.problem.position_only,
+        free_columns=setup.free_columns,
     )
     if recording.corrections is not None:
         result = result.model_copy(update={"model_corrections": recording.corrections})

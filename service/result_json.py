@@ -55,6 +55,7 @@ from solver.kinematics import (
 )
 from solver.model import KinematicChain, build_chain, gravity_loads
 from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS
+from solver.selection import fixed_names
 from solver.stream.calibrate import BEFORE, CALIBRATED, RecordingCalibration
 from solver.stream.coverage import INNER_CV_ROWS, INNER_FOLDS, PredictiveCalibration
 from solver.stream.sums import ErrorSums
@@ -433,10 +434,12 @@ def assemble_result(
     calibrated: RecordingCalibration,
     frame_index: list[int],
     position_only: bool,
+    free_columns: tuple[int, ...] | None = None,
 ) -> CalibrationResult:
     """The result JSON of a recording calibrated by
     :func:`solver.stream.calibrate.calibrate_recording`; ``frame_index``: the chain joint of
-    each covariance frame."""
+    each covariance frame; ``free_columns``: the columns the fit could move (None: all)."""
+    fixed = fixed_names(chain, free_columns)
     fits = calibrated.fits
     fit, baseline = fits.fit, fits.baseline
     splits = calibrated.splits
@@ -458,7 +461,8 @@ def assemble_result(
             n_parameters=len(parameter_names(chain)),
             rank=fit.rank,
             condition_number=fit.condition_number,
-            removed=fit.removed,
+            removed=[name for name in fit.removed if name not in fixed],
+            fixed=fixed,
             pruned=fit.pruned,
         ),
         fit=FitStatistics(

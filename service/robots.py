@@ -54,8 +54,14 @@ def load_robot(
     urdf_path: str | Path | None = None,
     base_frame: str | None = None,
     tip_frame: str | None = None,
+    dh_path: str | Path | None = None,
 ) -> RobotDescription:
-    """A built-in robot by name, or a URDF file with explicit base and tip frames."""
+    """A built-in robot by name, a URDF file with explicit base and tip frames, or a DH /
+    modified-DH table (YAML, :class:`schemas.dh.DhRobot`; its URDF is generated)."""
+    if dh_path is not None:
+        if urdf_path is not None:
+            raise ModelError("give --urdf or --dh, not both")
+        return load_dh_robot(Path(dh_path))
     if urdf_path is not None:
         if base_frame is None or tip_frame is None:
             raise ModelError("--urdf needs --base FRAME and --tip FRAME")
@@ -77,3 +83,17 @@ def load_robot(
     relative, default_base, default_tip = BUILTIN_ROBOTS[name]
     xml = (example_robot_data_dir() / relative).read_text(encoding="utf-8")
     return RobotDescription(name, xml, base_frame or default_base, tip_frame or default_tip)
+
+
+def load_dh_robot(path: Path) -> RobotDescription:
+    """The robot of a DH table file (YAML): its generated URDF and its base and tip frames."""
+    from schemas.dh import parse_dh_robot
+
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ModelError(
+            f"cannot read DH table {path}: {getattr(exc, 'strerror', None) or exc}"
+        ) from exc
+    table = parse_dh_robot(text, path.name)
+    return RobotDescription(table.name, table.urdf(), table.base_frame, table.tip_frame)

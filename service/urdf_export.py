@@ -1,18 +1,23 @@
 """Write a calibrated robot as a plain URDF that any URDF tool (Pinocchio, ROS) loads.
 
 * joints 2..k get their origins replaced by ``origin_nominal · L_nominal^-1 · L_calibrated``
-  (so fixed joints in between are left untouched);
-* a new root link ``kincal_measurement_frame`` carries the measurement frame (camera, tracker)
-  through a fixed joint to the old root, absorbing the first link's correction;
-* a new link ``kincal_marker`` is fixed to the tip link at the calibrated marker/tool offset.
+  (so fixed joints in between are left untouched); the robot keeps its own root, so the file
+  drops into an existing robot description;
+* the first link's correction cannot be told from the measurement frame, nor the tip's from
+  the marker: they stay in those two transforms (``measurement_frame`` and ``tool`` of the
+  result). With ``measurement_frame=True`` they are written as extra links: a new root link
+  ``kincal_measurement_frame`` carries the measurement frame (camera, tracker) through a fixed
+  joint to the old root, and a new link ``kincal_marker`` is fixed to the tip link.
 
-Forward kinematics from ``kincal_measurement_frame`` to ``kincal_marker`` then equals kincal's
-calibrated prediction with zero gravity load. Gravity-dependent joint compliance cannot be
-expressed in URDF; its calibrated values are written in an XML comment and stay in the result JSON
-(``kincal predict`` applies them). Joint corrections carried from a discovered model
-(``calibrate --model``: gear_periodic, joint_scale, load-sign backlash) are functions of the joint
-angle that a URDF cannot express either, and without them its forward kinematics would be wrong
-for raw readings: such results are refused (:func:`refusal`).
+Forward kinematics from the base frame to the tip frame then equal kincal's calibrated
+prediction with zero gravity load, without the measurement frame and marker; with the extra
+links, from ``kincal_measurement_frame`` to ``kincal_marker`` they equal it as measured.
+Gravity-dependent joint compliance cannot be expressed in URDF; its calibrated values are
+written in an XML comment and stay in the result JSON (``kincal predict`` applies them). Joint
+corrections carried from a discovered model (``calibrate --model``: gear_periodic, joint_scale,
+load-sign backlash) are functions of the joint angle that a URDF cannot express either, and
+without them its forward kinematics would be wrong for raw readings: such results are refused
+(:func:`refusal`).
 """
 
 from __future__ import annotations
@@ -52,9 +57,10 @@ def refusal(corrections: ModelCorrections | None, fix: str = CLI_FIX) -> str | N
     )
 
 
-def export_urdf(result: CalibrationResult) -> str:
-    """The calibrated URDF as text (see module docstring for what changes); raises
-    :class:`ModelError` for a result carrying joint corrections (:func:`refusal`)."""
+def export_urdf(result: CalibrationResult, *, measurement_frame: bool = False) -> str:
+    """The calibrated URDF as text (see module docstring for what changes; ``measurement_frame``
+    adds the measurement frame and marker links); raises :class:`ModelError` for a result
+    carrying joint corrections (:func:`refusal`)."""
     reason = refusal(result.model_corrections)
     if reason is not None:
         raise ModelError(reason)
@@ -65,17 +71,21 @@ def export_urdf(result: CalibrationResult) -> str:
         delta = lie.inverse(chain.nominal_links[i]) @ params.links[i]
         _set_origin(joints[name], _origin(joints[name]) @ delta)
 
-    old_root = _root_link(root)
-    base_in_root = _frame_in_root(result.robot.urdf, chain.base_frame)
-    measurement = params.links[0] @ lie.inverse(chain.nominal_links[0]) @ lie.inverse(base_in_root)
-    marker = lie.inverse(chain.nominal_links[-1]) @ params.links[-1]
-    tip_link = _link_of_frame(result.robot.urdf, chain.tip_frame)
-
-    root.insert(0, ET.Element("link", name=MEASUREMENT_LINK))
-    root.append(_fixed_joint("kincal_measurement_joint", MEASUREMENT_LINK, old_root, measurement))
-    root.append(ET.Element("link", name=MARKER_LINK))
-    root.append(_fixed_joint("kincal_marker_joint", tip_link, MARKER_LINK, marker))
-    root.insert(0, ET.Comment(_compliance_note(result)))
+    if measurement_frame:
+        old_root = _root_link(root)
+        base_in_root = _frame_in_root(result.robot.urdf, chain.base_frame)
+        measurement = (
+            params.links[0] @ lie.inverse(chain.nominal_links[0]) @ lie.inverse(base_in_root)
+        )
+        marker = lie.inverse(chain.nominal_links[-1]) @ params.links[-1]
+        tip_link = _link_of_frame(result.robot.urdf, chain.tip_frame)
+        root.insert(0, ET.Element("link", name=MEASUREMENT_LINK))
+        root.append(
+            _fixed_joint("kincal_measurement_joint", MEASUREMENT_LINK, old_root, measurement)
+        )
+        root.append(ET.Element("link", name=MARKER_LINK))
+        root.append(_fixed_joint("kincal_marker_joint", tip_link, MARKER_LINK, marker))
+    root.insert(0, ET.Comment(_compliance_note(result, measurement_frame)))
     ET.indent(root)
     return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
@@ -133,10 +143,12 @@ def _link_of_frame(urdf: str, frame: str) -> str:
     return str(current.name)
 
 
-def _compliance_note(result: CalibrationResult) -> str:
+def _compliance_note(result: CalibrationResult, measurement_frame: bool) -> str:
     lines = [
         f" Calibrated by kincal {result.kincal_version} on {result.created_utc}.",
-        f" Measurement frame: link {MEASUREMENT_LINK}; measured marker: link {MARKER_LINK}.",
+        f" Measurement frame: link {MEASUREMENT_LINK}; measured marker: link {MARKER_LINK}."
+        if measurement_frame
+        else " Measurement frame and marker: in the result JSON (measurement_frame, tool).",
         " Joint compliance (deflection = c * gravity torque; not expressible in URDF):",
     ]
     lines += [f"   {c.axis}: {c.value_rad_per_nm!r} rad/Nm" for c in result.compliance]

@@ -59,6 +59,8 @@ class FitOptions:
     diagonal, relative to the largest, falls below this (columns scaled to unit norm first).
     ``free_links``: indices of the links ``L_i`` (0-based) to calibrate, None = all;
     ``(0, k)`` calibrates only the measurement frame and the tool offset.
+    ``free_columns``: stacked-Jacobian columns the fit may move (:mod:`solver.selection`),
+    None = all; the others keep their starting value.
     ``non_negative_compliance``: a compliance estimated negative (no spring bends against the
     torque on it, DESIGN.md §2: c ≥ 0) or not identified in any physical range is fixed at 0,
     an inner link's twist component not identified in any physical range at its nominal value,
@@ -71,6 +73,7 @@ class FitOptions:
     rank_tolerance: float = 1e-7
     free_links: tuple[int, ...] | None = None
     fit_compliance: bool = True
+    free_columns: tuple[int, ...] | None = None
     non_negative_compliance: bool = True
 
 
@@ -592,6 +595,9 @@ def free_columns(chain: KinematicChain, options: FitOptions, n_columns: int) -> 
     for i in links:
         free[6 * i : 6 * i + 6] = True
     free[n_link_cols : n_link_cols + len(chain.compliance_axes)] = options.fit_compliance
+    if options.free_columns is not None:  # a selection names chain columns only
+        n_chain = n_link_cols + len(chain.compliance_axes)
+        free[:n_chain] &= np.isin(np.arange(n_chain), options.free_columns)
     free[n_link_cols + len(chain.compliance_axes) :] = True
     return free
 

@@ -55,6 +55,11 @@ def test_every_shell_example_of_using_it_runs_as_written(tmp_path: Path) -> None
         "poses.csv",
         "ranking.json",
         "target_ranking.json",
+        "positioner.json",
+        "fr3_offsets.json",
+        "fr3.urdf",
+        "offsets.yaml",
+        "master_calibration.yaml",
     ):
         assert (tmp_path / produced).stat().st_size > 0, produced
     assert "<html" in (tmp_path / "fr3_report.html").read_text().lower()

@@ -13,7 +13,8 @@ from typing import IO, Any
 import pandas as pd
 
 from schemas.dataset.columns import check_duplicates, duplicates, one_line
-from schemas.dataset.records import SUFFIXES, ConfigurationSet, PoseDataset
+from schemas.dataset.industrial import read_industrial_yaml
+from schemas.dataset.records import READ_SUFFIXES, ConfigurationSet, PoseDataset
 from schemas.dataset.validate import configurations_from_frame, dataset_from_frame
 from solver.errors import DatasetError
 
@@ -79,10 +80,10 @@ def read_configurations(
 def check_dataset_path(path: Path, source: str) -> str:
     """The lower-case suffix of a dataset file that exists; a one-line error otherwise."""
     suffix = path.suffix.lower()
-    if suffix not in SUFFIXES:
+    if suffix not in READ_SUFFIXES:
         raise DatasetError(
             f"{source}: unsupported file type {path.suffix or '(no suffix)'!r}; "
-            f"save it as one of {', '.join(SUFFIXES)}"
+            f"save it as one of {', '.join(READ_SUFFIXES)}"
         )
     if not path.is_file():
         problem = "is a directory" if path.is_dir() else "file not found"
@@ -108,8 +109,10 @@ def read_dataset_bytes(
     """Like :func:`read_dataset` for a file's content held in memory (an upload; messages never
     show a server path). With ``max_rows``, a larger file raises :class:`TooManyRowsError`
     before its rows are decoded (Parquet: from its metadata; CSV: from its line count)."""
-    if suffix not in SUFFIXES:
-        raise DatasetError(f"{source}: unsupported file type {suffix!r}; use one of {SUFFIXES}")
+    if suffix not in READ_SUFFIXES:
+        raise DatasetError(
+            f"{source}: unsupported file type {suffix!r}; use one of {READ_SUFFIXES}"
+        )
     frame = _frame(lambda: io.BytesIO(data), suffix, source, max_rows)
     return dataset_from_frame(
         frame, joint_names, source=source, other_joint_names=other_joint_names
@@ -117,7 +120,13 @@ def read_dataset_bytes(
 
 
 def _frame(open_binary: Opener, suffix: str, source: str, max_rows: int | None) -> pd.DataFrame:
-    reader = {".csv": _read_csv, ".parquet": _read_parquet, ".json": _read_json}[suffix]
+    reader = {
+        ".csv": _read_csv,
+        ".parquet": _read_parquet,
+        ".json": _read_json,
+        ".yaml": _read_yaml,
+        ".yml": _read_yaml,
+    }[suffix]
     try:
         return reader(open_binary, source, max_rows)
     except DatasetError:
@@ -247,3 +256,11 @@ def _read_json(open_binary: Opener, source: str, max_rows: int | None) -> pd.Dat
     if max_rows is not None and len(rows) > max_rows:
         raise TooManyRowsError(source, len(rows), max_rows)
     return pd.DataFrame.from_records(rows)
+
+
+def _read_yaml(open_binary: Opener, source: str, max_rows: int | None) -> pd.DataFrame:
+    with _text(open_binary) as handle:
+        frame = read_industrial_yaml(handle, source)
+    if max_rows is not None and len(frame) > max_rows:
+        raise TooManyRowsError(source, len(frame), max_rows)
+    return frame

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Response
+from fastapi import APIRouter, Header, Query, Response
+from fastapi.concurrency import run_in_threadpool
 
 from schemas.api import (
     CalibrationCreate,
@@ -18,7 +19,7 @@ from schemas.api import (
 )
 from schemas.calibration import CalibrationOptions, CalibrationResult, Verdict
 from schemas.discovery import FindingsResult
-from service import discovery, pipeline
+from service import discovery, exports, pipeline
 from service.api import jobs_common
 from service.api.deps import API_PREFIX, PrincipalDep, ServiceState, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS
@@ -31,7 +32,7 @@ from service.storage import repository
 from service.storage.models import Job
 from service.tasks import CalibrationJobParams, DiscoveryRef
 from service.urdf_export import refusal as urdf_refusal
-from solver.errors import ModelError
+from solver.errors import KincalError, ModelError
 
 PREFIX = f"{API_PREFIX}/calibrations"
 DISCOVERIES = f"{API_PREFIX}/discoveries"
@@ -254,3 +255,69 @@ jobs_common.add_job_routes(
         ),
     ],
 )
+
+
+@router.get(
+    "/{calibration_id}/export",
+    responses={
+        200: {
+            "content": {media: {} for media in sorted(set(exports.MEDIA_TYPES.values()))},
+            "description": "The calibration in the chosen format.",
+        },
+        **STANDARD_PROBLEMS,
+        **problem_responses(404, 409),
+    },
+    response_class=Response,
+)
+async def export_calibration(
+    calibration_id: str,
+    principal: PrincipalDep,
+    state: StateDep,
+    format: Annotated[
+        exports.ExportFormat,
+        Query(
+            description="urdf (the robot's URDF, calibrated joint origins), offsets-yaml / "
+            "offsets-csv (joint-offset table), dh / mdh (DH or modified-DH table), pal-master "
+            "(PAL's master_calibration.yaml); docs/exports.md."
+        ),
+    ] = "urdf",
+    measurement_frame: Annotated[
+        bool,
+        Query(description="urdf, dh, mdh: add the measurement frame and marker."),
+    ] = False,
+    force: Annotated[
+        bool, Query(description="Export even when the calibration's verdict is failed.")
+    ] = False,
+) -> Response:
+    """A succeeded calibration in a format a robot controller uses; each reproduces kincal's
+    calibrated forward kinematics where the format can express it (the X-Kincal-Not-Expressed
+    header and the file say what it cannot). 409 for a failed verdict (unless ``force``) or a
+    calibration carrying a discovery's joint corrections."""
+
+    def render() -> tuple[str, list[str]]:
+        result = result_of(state, principal.tenant_id, calibration_id)
+        verdict = result.verdict
+        if verdict is not None and verdict.status == "failed" and not force:
+            causes = "; ".join(r.message for r in verdict.reasons if r.severity == "failed")
+            raise ProblemException(
+                409,
+                f"calibration {calibration_id}: its verdict is failed ({causes}); pass "
+                "force=true to export it anyway",
+                slug="no-export",
+            )
+        try:
+            text = exports.export(result, format, measurement_frame=measurement_frame)
+        except KincalError as exc:
+            detail = f"calibration {calibration_id}: {exc}"
+            raise ProblemException(409, detail, slug="no-export") from exc
+        missing = exports.not_expressed(result) + exports.offsets_not_exact(result, format)
+        return text, missing
+
+    text, missing = await run_in_threadpool(render)
+    headers = {
+        "Content-Disposition": f'attachment; filename="{calibration_id}-{format}'
+        f'{exports.SUFFIX[format]}"'
+    }
+    if missing:
+        headers["X-Kincal-Not-Expressed"] = " | ".join(missing).encode("ascii", "replace").decode()
+    return Response(text, media_type=exports.MEDIA_TYPES[format], headers=headers)

@@ -28,7 +28,7 @@ from starlette.exceptions import HTTPException
 
 from schemas.api import DatasetCreate, DatasetPublic, DatasetsPublic
 from schemas.dataset import (
-    SUFFIXES,
+    READ_SUFFIXES,
     PoseDataset,
     TooManyRowsError,
     dataset_from_frame,
@@ -59,6 +59,7 @@ MEDIA_SUFFIX = {
     "application/json": ".json",
     "application/vnd.apache.parquet": ".parquet",
     "application/x-parquet": ".parquet",
+    "application/yaml": ".yaml",
 }
 _MULTIPART_SCHEMA = {
     "type": "object",
@@ -167,7 +168,7 @@ def _form_text(form: Any, field: str, *, required: bool = False) -> str | None:
 
 def _suffix(upload: UploadFile) -> str:
     suffix = Path(upload.filename or "").suffix.lower()
-    if suffix in SUFFIXES:
+    if suffix in READ_SUFFIXES:
         return suffix
     media = (upload.content_type or "").split(";")[0].strip().lower()
     if media in MEDIA_SUFFIX:
@@ -175,8 +176,9 @@ def _suffix(upload: UploadFile) -> str:
     raise ProblemException(
         415,
         f"file: cannot tell the format of {upload.filename or 'the upload'!r} (content type "
-        f"{media or 'none'}); send a .csv, .parquet or .json file, or set the part's content "
-        "type to text/csv, application/vnd.apache.parquet or application/json",
+        f"{media or 'none'}); send a .csv, .parquet, .json or industrial_calibration .yaml "
+        "file, or set the part's content type to text/csv, application/vnd.apache.parquet, "
+        "application/json or application/yaml",
         slug="unsupported-file-type",
     )
 

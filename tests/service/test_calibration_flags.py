@@ -20,6 +20,8 @@ from tests.service.cli_support import run
 NOISE = [[1e-6 if i == j else 0.0 for j in range(6)] for i in range(6)]
 
 VALUES: dict[str, tuple[list[str], Any]] = {
+    "free_parameters": (["--free", "joint_offsets,compliance"], ["joint_offsets", "compliance"]),
+    "fixed_parameters": (["--fix", "elbow_joint"], ["elbow_joint"]),
     "compliant_joints": (
         ["--compliant-joints", "shoulder_lift_joint,elbow_joint"],
         ["shoulder_lift_joint", "elbow_joint"],

@@ -232,7 +232,8 @@ def test_export_urdf_refuses_a_result_with_joint_corrections(
     third = result.robot.joint_names[2]
     with pytest.raises(ModelError, match=rf"gear_periodic \(h2\) on {third}.*without --model"):
         export_urdf(result)
-    assert "kincal_marker" in export_urdf(result.model_copy(update={"model_corrections": None}))
+    plain = result.model_copy(update={"model_corrections": None})
+    assert "kincal_marker" in export_urdf(plain, measurement_frame=True)
     args = ["calibrate", folder / "gear.csv", "--robot", "kinova"]
     args += ["--model", folder / "findings.json", "--export-urdf", folder / "robot.urdf"]
     code, _, err = run([*args, "-o", folder / "refused.json"], capsys, monkeypatch)

@@ -32,7 +32,7 @@ def test_exported_urdf_reproduces_calibrated_fk(name: str) -> None:
     result = _calibrated(name)
     chain, params = result_json.result_chain(result)
     assert np.any(params.compliance_rad_per_nm != 0.0)  # the test covers a compliant calibration
-    model = pin.buildModelFromXML(export_urdf(result))
+    model = pin.buildModelFromXML(export_urdf(result, measurement_frame=True))
     data = model.createData()
     q = sample_configurations(chain, 100, np.random.default_rng(1))
     rigid = ChainParameters(params.links, np.zeros_like(params.compliance_rad_per_nm))
@@ -55,7 +55,7 @@ def test_exported_urdf_reproduces_calibrated_fk(name: str) -> None:
 
 def test_exported_urdf_records_compliance_and_keeps_everything_else() -> None:
     result = _calibrated("panda")
-    text = export_urdf(result)
+    text = export_urdf(result, measurement_frame=True)
     for entry in result.compliance:
         assert f"{entry.axis}: {entry.value_rad_per_nm!r} rad/Nm" in text
     original = pin.buildModelFromXML(result.robot.urdf)

@@ -19,6 +19,8 @@ ASYMMETRIC = [[1e-6 if i == j else 0.0 for j in range(6)] for i in range(6)]
 ASYMMETRIC[0][1] = 1e-7
 
 INVALID: dict[str, list[Any]] = {
+    "free_parameters": [["torso"], [], "joint_offsets", ["elbow_joint.qx"]],
+    "fixed_parameters": [["elbow"], "compliance", [3]],
     "compliant_joints": [["no_such_joint"], "shoulder_pan_joint", [3]],
     "virtual_axes_at": [["knee"], "elbow_joint"],
     "gravity_base_m_s2": [[0.0, -9.81], [0, 0, "down"], [0, 0, float("nan")]],
@@ -49,6 +51,7 @@ INVALID: dict[str, list[Any]] = {
 COMBINATIONS = [
     ({"covariance": "full", "covariance_solver": "nnls"}, "covariance_solver"),
     ({"noise_std": [1e-4] * 6, "noise_covariance": ASYMMETRIC}, "not both"),
+    ({"free_parameters": ["base"], "fixed_parameters": ["base", "tool"]}, "nothing to calibrate"),
 ]
 
 

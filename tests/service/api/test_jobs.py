@@ -102,7 +102,23 @@ def test_upload_calibrate_poll_result_report_urdf_round_trip(
 
     urdf = api.urdf(calibration["id"])
     model = pin.buildModelFromXML(urdf)
-    assert model.existFrame(MARKER_LINK)
+    assert not model.existFrame(MARKER_LINK)  # the robot's own root and tip (issue 15)
+    exported = worker_client.get(
+        f"/api/v1/calibrations/{calibration['id']}/export",
+        params={"format": "urdf", "measurement_frame": True, "force": True},
+    )
+    assert exported.status_code == 200, exported.text
+    assert pin.buildModelFromXML(exported.text).existFrame(MARKER_LINK)
+    pal = worker_client.get(
+        f"/api/v1/calibrations/{calibration['id']}/export",
+        params={"format": "pal-master", "force": True},
+    )
+    assert pal.status_code == 200 and "geometric_calibration" in pal.text
+    bad = worker_client.get(
+        f"/api/v1/calibrations/{calibration['id']}/export", params={"format": "sdf"}
+    )
+    assert bad.status_code == 422
+    assert bad.headers["content-type"].startswith("application/problem+json")
 
     metrics = worker_client.get("/metrics").text
     succeeded = 'kincal_jobs{kind="calibration",state="succeeded"}'

@@ -1,0 +1,263 @@
+"""kincal next to FIGAROH 1.0.2 on the real recordings FIGAROH runs on (UR10e, TIAGo, TALOS):
+the same rows and the same held-out splits, held-out error ± one standard error across splits,
+and fit time (issue 15).
+
+Rows: those kincal's default calibration keeps (its outlier rule), so both see the same data;
+splits: kincal's own (:func:`solver.evaluation.split_indices` of those rows, seeds 1..S, 90 %
+train). kincal's held-out errors are its default calibration's (``kincal calibrate`` with no
+flags: geometry and joint compliance) and, on the same splits, those of the model FIGAROH fits
+(geometry and frames: ``--fix compliance``); FIGAROH's come from
+``benchmarks/figaroh_calibration_driver.py`` under FIGAROH's own interpreter
+(``--figaroh-python``, a separate venv; never a kincal dependency): its
+``full_params`` model, one Levenberg–Marquardt fit per split. Fit times: FIGAROH's
+``initialize`` + ``solve`` per split; kincal's deterministic fit of the same training rows
+(geometry and compliance, no covariance, no held-out), and its whole default run.
+
+Usage (from the repository root): ``python -m benchmarks.figaroh_side_by_side
+--figaroh-python …/figaroh-venv/bin/python [--seeds 10] [--only TALOS]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+import solver  # noqa: F401  (BLAS defaults)
+from benchmarks.design import figaroh_urdf
+from schemas.calibration import CalibrationOptions
+from service import pipeline
+from service.robots import RobotDescription, example_robot_data_dir, load_robot
+from solver.evaluation import split_indices
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO / "data" / "real"
+DRIVER = Path(__file__).resolve().parent / "figaroh_calibration_driver.py"
+
+
+@dataclass(frozen=True)
+class Recording:
+    name: str
+    urdf: str  # "data:<path under data/real>" or "erd:<path under example-robot-data>"
+    base_frame: str
+    tip_frame: str
+    csv: str  # under data/real, FIGAROH's own layout
+    full_pose: bool
+
+
+RECORDINGS = (
+    Recording(
+        "UR10e",
+        "data:figaroh_ur10_experiment/ur10e_robot.urdf",
+        "base_link",
+        "wrist_3_link",
+        "figaroh_ur10_experiment/calibration.csv",
+        True,
+    ),
+    Recording(
+        "TIAGo",
+        "erd:robots/tiago_description/robots/tiago.urdf",
+        "base_footprint",
+        "arm_tool_link",
+        "figaroh_tiago_mocap/vicon/vicon_calibration_fc10_gripper3_base1.csv",
+        False,
+    ),
+    Recording(
+        "TALOS",
+        "erd:robots/talos_data/robots/talos_full_v2.urdf",
+        "base_link",
+        "gripper_left_base_link",
+        "figaroh_talos_left_arm_contact/talos_left_arm_02_10_contact.csv",
+        False,
+    ),
+)
+
+
+def urdf_path(recording: Recording) -> Path:
+    kind, relative = recording.urdf.split(":", 1)
+    return (DATA if kind == "data" else example_robot_data_dir()) / relative
+
+
+def robot_of(recording: Recording) -> RobotDescription:
+    return load_robot(
+        recording.name.lower(),
+        urdf_path=urdf_path(recording),
+        base_frame=recording.base_frame,
+        tip_frame=recording.tip_frame,
+    )
+
+
+@dataclass(frozen=True)
+class SideBySide:
+    name: str
+    n_rows: int
+    n_used: int
+    kincal_mm: list[float]
+    same_model_mm: list[float]
+    figaroh_mm: list[float]
+    kincal_fit_s: float
+    kincal_run_s: float
+    figaroh_fit_s: list[float]
+    figaroh_parameters: int
+
+
+def kincal_fit_seconds(recording: Recording, rows: np.ndarray) -> float:
+    """Median wall time of kincal's deterministic fit (geometry + compliance) of ``rows``."""
+    from schemas.dataset import read_dataset
+
+    robot = robot_of(recording)
+    options = CalibrationOptions(heldout=False, covariance="none", outlier_rule="none")
+    setup = pipeline.check_calibration(robot, options)
+    dataset = read_dataset(
+        DATA / recording.csv,
+        setup.chain.joint_names,
+        other_joint_names=setup.chain.other_joint_names,
+    ).subset(rows.tolist())
+    times = []
+    for _ in range(3):
+        started = time.perf_counter()
+        pipeline.calibrate_source(dataset, setup)
+        times.append(time.perf_counter() - started)
+    return float(np.median(times))
+
+
+def same_model_heldout(recording: Recording, kept: np.ndarray, seeds: list[int]) -> list[float]:
+    """kincal's held-out errors with FIGAROH's model (geometry and frames, no compliance:
+    ``--fix compliance``) on the rows the default run kept, with no screening of its own: its
+    splits of those rows are the default run's (and FIGAROH's)."""
+    from schemas.dataset import read_dataset
+
+    options = CalibrationOptions(
+        seeds=seeds, outlier_rule="none", covariance="none", fixed_parameters=["compliance"]
+    )
+    setup = pipeline.check_calibration(robot_of(recording), options)
+    chain = setup.chain
+    dataset = read_dataset(
+        DATA / recording.csv, chain.joint_names, other_joint_names=chain.other_joint_names
+    ).subset(kept.tolist())
+    result = pipeline.calibrate_source(dataset, setup).result
+    assert result.evaluation is not None and result.outliers.n_used == kept.size
+    by_seed = {
+        s.seed: s.translation_mm for s in result.evaluation.splits if s.method == "calibrated"
+    }
+    return [by_seed[seed] for seed in seeds]
+
+
+def compare(recording: Recording, seeds: int, figaroh_python: str) -> SideBySide:
+    robot = robot_of(recording)
+    options = CalibrationOptions(seeds=list(range(1, seeds + 1)))
+    setup = pipeline.check_calibration(robot, options)
+    started = time.perf_counter()
+    run = pipeline.calibrate_source(DATA / recording.csv, setup)
+    kincal_run_s = time.perf_counter() - started
+    result = run.result
+    assert result.evaluation is not None
+    kept = np.array(result.outliers.kept_indices())
+    kincal_mm = {
+        s.seed: s.translation_mm for s in result.evaluation.splits if s.method == "calibrated"
+    }
+    same_model_mm = same_model_heldout(recording, kept, options.seeds)
+    splits = []
+    for seed in options.seeds:
+        train, test = split_indices(kept.size, seed, options.train_fraction)
+        splits.append({"seed": seed, "train": kept[train].tolist(), "test": kept[test].tolist()})
+    with tempfile.TemporaryDirectory() as folder:
+        work = Path(folder)
+        (work / "robot.urdf").write_bytes(figaroh_urdf(robot, setup.chain))
+        request = {
+            "urdf": str(work / "robot.urdf"),
+            "base_frame": recording.base_frame,
+            "tool_frame": recording.tip_frame,
+            "measurable_dof": [True] * 6 if recording.full_pose else [True] * 3 + [False] * 3,
+            "csv": str(DATA / recording.csv),
+            "splits": splits,
+            "work_dir": str(work),
+        }
+        (work / "request.json").write_text(json.dumps(request))
+        subprocess.run(
+            [figaroh_python, str(DRIVER), str(work / "request.json"), str(work / "answer.json")],
+            check=True,
+        )
+        answer = json.loads((work / "answer.json").read_text())["splits"]
+    first_train = np.array(splits[0]["train"])
+    return SideBySide(
+        recording.name,
+        result.outliers.n_input,
+        result.outliers.n_used,
+        [kincal_mm[seed] for seed in options.seeds],
+        same_model_mm,
+        [a["translation_mm"] for a in answer],
+        kincal_fit_seconds(recording, first_train),
+        kincal_run_s,
+        [a["fit_s"] for a in answer],
+        int(answer[0]["parameters"]),
+    )
+
+
+def mean_se(values: list[float]) -> tuple[float, float]:
+    array = np.asarray(values, dtype=float)
+    return float(array.mean()), float(array.std(ddof=1) / np.sqrt(array.size))
+
+
+def table(rows: list[SideBySide]) -> str:
+    header = [
+        "Robot",
+        "Rows (used)",
+        "kincal default: held-out mm",
+        "kincal, FIGAROH's model (--fix compliance)",
+        "FIGAROH full_params",
+        "≤ FIGAROH + 1 SE (default / same model)",
+        "kincal fit s",
+        "FIGAROH fit s",
+        "Speed-up",
+        "kincal default run s",
+    ]
+    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    for row in rows:
+        k_mean, k_se = mean_se(row.kincal_mm)
+        s_mean, s_se = mean_se(row.same_model_mm)
+        f_mean, f_se = mean_se(row.figaroh_mm)
+        f_fit = float(np.median(row.figaroh_fit_s))
+        holds = "yes" if k_mean <= f_mean + f_se else "no"
+        holds += " / " + ("yes" if s_mean <= f_mean + f_se else "no")
+        lines.append(
+            f"| {row.name} | {row.n_rows} ({row.n_used}) | {k_mean:.2f} ± {k_se:.2f} "
+            f"| {s_mean:.2f} ± {s_se:.2f} | {f_mean:.2f} ± {f_se:.2f} | {holds} "
+            f"| {row.kincal_fit_s:.3f} | {f_fit:.2f} | {f_fit / row.kincal_fit_s:.0f}× "
+            f"| {row.kincal_run_s:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(figaroh_python: str, seeds: int = 10, only: list[str] | None = None) -> str:
+    rows = []
+    for recording in RECORDINGS:
+        if only and recording.name not in only:
+            continue
+        row = compare(recording, seeds, figaroh_python)
+        print(
+            f"{row.name}: kincal {np.round(row.kincal_mm, 2).tolist()}\n"
+            f"  kincal --fix compliance {np.round(row.same_model_mm, 2).tolist()}\n"
+            f"  FIGAROH {np.round(row.figaroh_mm, 2).tolist()} "
+            f"({row.figaroh_parameters} parameters)",
+            flush=True,
+        )
+        rows.append(row)
+    text = table(rows)
+    print("\n" + text)
+    return text
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--figaroh-python", required=True, help="python of a venv with figaroh")
+    parser.add_argument("--seeds", type=int, default=10, help="number of held-out splits")
+    parser.add_argument("--only", action="append", help="robot name (repeatable)")
+    arguments = parser.parse_args()
+    main(arguments.figaroh_python, arguments.seeds, arguments.only)
