@@ -154,6 +154,7 @@ def fit_measurement(
         else normal_equations(design[:, keep], target)
     )
     run = levenberg_marquardt(chain, params, keep, (first, kept), evaluate, options, apply)
+    iterations, costs = run.iterations, list(run.cost_history)  # of every fit, refits included
     pruned: list[int] = []
     n_chain = chain_column_count(chain)
     while options.non_negative_compliance:
@@ -172,6 +173,7 @@ def fit_measurement(
         )
         keep = np.setdiff1d(keep, negative)
         run = levenberg_marquardt(chain, restart, keep, evaluate(restart), evaluate, options, apply)
+        iterations, costs = iterations + run.iterations, costs + run.cost_history
     final = run.params
     assert isinstance(final, ModelParameters)
     residual, _ = model.linearise(chain, final, rows, jacobian=False)
@@ -183,9 +185,9 @@ def fit_measurement(
         standard_errors=parameter_standard_errors(run.normal),
         rank=rank,
         condition_number=condition,
-        iterations=run.iterations,
+        iterations=iterations,
         converged=run.converged,
-        cost_history=run.cost_history,
+        cost_history=costs,
         residuals=residual,
         constraint_residuals=model.constraints(chain, final)[0],
         jacobian=run.payload,

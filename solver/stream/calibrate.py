@@ -305,6 +305,7 @@ def non_negative_fit(
     names = parameter_names(problem.chain)
     keep = np.array([names.index(n) for n in fit.estimated], dtype=np.intp)
     pruned: list[str] = []
+    before = fit  # the iterations, costs, passes and time of every fit so far are reported
     while (negative := _implausible(problem, fit)).size:
         pruned += [names[c] for c in negative]
         only_compliance = bool(np.all(negative >= 6 * problem.chain.n_links))
@@ -322,6 +323,14 @@ def non_negative_fit(
             [replace(request, start=start, keep=keep, start_is_close=close)],
             count,
         )
+        fit = replace(
+            fit,
+            iterations=before.iterations + fit.iterations,
+            cost_history=before.cost_history + fit.cost_history,
+            passes=before.passes + fit.passes,
+            elapsed_s=before.elapsed_s + fit.elapsed_s,
+        )
+        before = fit
     if not pruned:
         return fit
     return replace(fit, removed=[n for n in fit.removed if n not in pruned], pruned=pruned)

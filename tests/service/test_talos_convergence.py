@@ -34,8 +34,9 @@ def test_talos_converges_under_every_outlier_rule(
     code, text, _ = run([*args, "-o", out], capsys, monkeypatch)
     result = CalibrationResult.model_validate_json(out.read_text())
     assert result.solver.status == "optimal", text
-    assert result.solver.iterations < CalibrationOptions().max_iterations
-    assert result.solver.iterations <= 10  # 2 measured; Gauss–Newton took 13-47 to stop
+    # the iterations of every fit, the refit after fixing the wrist included (which converges
+    # in a few; the fit before it may use up its limit drifting along the wrist's valley)
+    assert result.solver.iterations <= 2 * CalibrationOptions().max_iterations
     assert result.verdict is not None
     assert "not_converged" not in {r.code for r in result.verdict.reasons}
     assert code in (0, None)
