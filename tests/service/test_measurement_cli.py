@@ -286,3 +286,24 @@ def test_tiago_vicon_relative_base_joint_offsets_calibrate(
     before = result["fit"]["before"]["heldout"]["translation_mean_mm"]
     after = result["fit"]["after"]["heldout"]["translation_mean_mm"]
     assert after < 0.5 * before, (before, after)
+
+
+def test_fleet_of_ball_in_socket_pandas(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``kincal fleet`` over platonics Panda folders (the known 50 mm socket distance in the
+    TOML config) calibrates each folder as one robot and reports each one's parameters."""
+    fleet = tmp_path / "fleet"
+    fleet.mkdir()
+    for name in ("panda_left", "panda_right"):
+        (fleet / name).symlink_to(SOCKETS / name, target_is_directory=True)
+    config = tmp_path / "fleet.toml"
+    config.write_text('measurement = "point"\npoint_distance_m = 0.05\n')
+    out = tmp_path / "fleet.json"
+    args = ["fleet", fleet, "--robot", "panda", "--config", config, "-o", out]
+    code, stdout, stderr = run(args, capsys, monkeypatch)
+    assert code == 0, stderr
+    assert "2 calibrated, 0 failed" in stdout
+    report = json.loads(out.read_text())
+    assert [r["serial"] for r in report["robots"]] == ["panda_left", "panda_right"]
+    assert all(r["rms_after_mm"] < 1.0 for r in report["robots"])
