@@ -472,6 +472,7 @@ def _calibrate_measured(
         ),
         chain=setup.chain,
         options=setup.options,
+        free_columns=setup.free_columns,
     )
     return CalibrationRun(
         result,

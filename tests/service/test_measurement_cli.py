@@ -281,8 +281,11 @@ def test_tiago_vicon_relative_base_joint_offsets_calibrate(
     code, _, stderr = run([*args, "--free", "joint_offsets", "-o", out], capsys, monkeypatch)
     assert code == 0, stderr
     result = json.loads(out.read_text())
-    rank = result["identifiability"]["rank"]
-    assert rank <= 6 + 3 + 8, rank  # base marker, gripper marker offset, 8 joint offsets
+    identifiability = result["identifiability"]
+    assert identifiability["rank"] <= 6 + 3 + 8, identifiability  # 2 frames, 8 offsets
+    assert "arm_3_joint.tx" in identifiability["fixed"]
+    assert "arm_3_joint.tx" not in identifiability["removed"]
+    assert not any(name.endswith(".rz") for name in identifiability["fixed"])
     before = result["fit"]["before"]["heldout"]["translation_mean_mm"]
     after = result["fit"]["after"]["heldout"]["translation_mean_mm"]
     assert after < 0.5 * before, (before, after)
