@@ -818,7 +818,11 @@ def _executor(kind: str | None, dask: str | None, workers: int | None) -> Execut
 @app.command()
 def fleet(
     directory: Annotated[
-        Path, typer.Argument(help="Folder with one dataset per robot; file name = serial.")
+        Path,
+        typer.Argument(
+            help="Folder with one dataset per robot: files (file name = serial) or "
+            "ball-in-socket sub-folders (folder name = serial)."
+        ),
     ],
     output: OutputOpt,
     robot: RobotOpt = None,

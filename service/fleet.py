@@ -48,6 +48,7 @@ import numpy as np
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import SUFFIXES
+from schemas.dataset.constraints import is_socket_folder
 from service import pipeline
 from service.robots import RobotDescription
 from solver.errors import KincalError
@@ -98,14 +99,20 @@ def calibrate_one(job: FleetJob, item: tuple[str, str]) -> RobotOutcome:
 
 
 def fleet_datasets(directory: str | Path) -> dict[str, str]:
-    """Dataset files of a fleet folder, by serial (the file name without suffix), sorted."""
+    """Datasets of a fleet folder, by serial, sorted: its files (serial = the file name without
+    suffix) and its ball-in-socket sub-folders (serial = the folder name)."""
     folder = Path(directory)
     if not folder.is_dir():
         raise KincalError(f"{folder}: not a folder; pass a folder with one dataset per robot")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in SUFFIXES and p.is_file())
+    files = sorted(
+        p
+        for p in folder.iterdir()
+        if (p.suffix.lower() in SUFFIXES and p.is_file()) or is_socket_folder(p)
+    )
     if not files:
         raise KincalError(
-            f"{folder}: no datasets ({', '.join(SUFFIXES)}); put one file per robot serial there"
+            f"{folder}: no datasets ({', '.join(SUFFIXES)}, or ball-in-socket folders); put one "
+            "file (or socket folder) per robot serial there"
         )
     twice = [serial for serial, n in Counter(p.stem for p in files).items() if n > 1]
     if twice:

@@ -51,6 +51,7 @@ from service.result_json import (
     ResidualSample,
     _error_stats,
     chain_fields,
+    fixed_names,
     kincal_version,
 )
 from solver import lie
@@ -314,9 +315,12 @@ def measurement_result(
     robot: RobotInfo,
     chain: KinematicChain,
     options: CalibrationOptions,
+    free_columns: tuple[int, ...] | None = None,
 ) -> CalibrationResult:
     """The result JSON of a measurement-model calibration (same schema as a pose one; the
-    measurement's own unknowns in ``measurement``; ``covariance`` None)."""
+    measurement's own unknowns in ``measurement``; ``covariance`` None); ``free_columns``: the
+    chain columns the selection left free (None: all), the others listed as fixed."""
+    fixed = fixed_names(chain, free_columns)
     recording, fit, baseline = calibrated.recording, calibrated.fit, calibrated.baseline
     model = recording.model
     lookup = dict(zip(fit.estimated, fit.standard_errors.tolist(), strict=True))
@@ -367,7 +371,8 @@ def measurement_result(
             n_parameters=len(parameter_names(chain)) + len(model.extra_names()),
             rank=fit.rank,
             condition_number=fit.condition_number,
-            removed=fit.removed,
+            removed=[name for name in fit.removed if name not in fixed],
+            fixed=fixed,
             pruned=fit.pruned,
         ),
         fit=FitStatistics(

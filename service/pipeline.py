@@ -455,7 +455,7 @@ def _calibrate_measured(
         recording,
         setup.chain,
         setup.options,
-        fit_options(setup.options),
+        fit_options(setup.options, free_columns=setup.free_columns),
         fit_options(setup.options, baseline=True, n_links=setup.chain.n_links),
     )
     timings["calibration"] = calibrated.elapsed_s
@@ -472,6 +472,7 @@ def _calibrate_measured(
         ),
         chain=setup.chain,
         options=setup.options,
+        free_columns=setup.free_columns,
     )
     return CalibrationRun(
         result,

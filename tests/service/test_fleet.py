@@ -161,3 +161,16 @@ def test_fleet_folder_needs_one_dataset_per_serial(tmp_path: Path) -> None:
     (tmp_path / "A1.parquet").write_text("x\n")
     with pytest.raises(KincalError, match="A1 have more than one file"):
         fleet_datasets(tmp_path)
+
+
+def test_fleet_folder_takes_ball_in_socket_folders(tmp_path: Path) -> None:
+    """A sub-folder holding hole_<k>.csv files (a platonics robot) is one robot of the fleet,
+    its serial the folder name; other sub-folders are not."""
+    (tmp_path / "R1.csv").write_text("x\n")
+    placement = tmp_path / "panda_a" / "front"
+    placement.mkdir(parents=True)
+    (placement / "hole_0.csv").write_text("0,0,0,0,0,0,0\n")
+    (tmp_path / "notes").mkdir()
+    datasets = fleet_datasets(tmp_path)
+    assert list(datasets) == ["R1", "panda_a"]
+    assert datasets["panda_a"] == str(tmp_path / "panda_a")

@@ -260,3 +260,53 @@ def test_pose_like_measurements_calibrate_through_the_cli_to_the_noise_floor(
     expected_mm = 1e3 * NOISE * {1: np.sqrt(2 / np.pi), 3: np.sqrt(8 / np.pi)}[translation_rows]
     assert after["translation_mean_mm"] <= 1.2 * expected_mm, (after, expected_mm)
     assert after["translation_mean_mm"] < before["translation_mean_mm"]
+
+
+TIAGO_VICON = (
+    REAL_DATA
+    / "figaroh_tiago_mocap/vicon/relative_encoder/vicon_calibration_fc10_gripper3_base1.csv"
+)
+
+
+def test_tiago_vicon_relative_base_joint_offsets_calibrate(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The Vicon gripper3/base1 file (21 rows, gripper marker in the frame of a base marker)
+    calibrates through ``kincal calibrate --measurement relative-base --free joint_offsets``
+    with exit 0 and a held-out improvement: the selection reaches the measurement-model fit
+    (it used to be ignored there, leaving 33 parameters for 63 equations: few_equations)."""
+    out = tmp_path / "result.json"
+    args = ["calibrate", TIAGO_VICON, "--urdf", _tiago_urdf(), "--base", "base_footprint"]
+    args += ["--tip", "arm_tool_link", "--measurement", "relative-base"]
+    code, _, stderr = run([*args, "--free", "joint_offsets", "-o", out], capsys, monkeypatch)
+    assert code == 0, stderr
+    result = json.loads(out.read_text())
+    identifiability = result["identifiability"]
+    assert identifiability["rank"] <= 6 + 3 + 8, identifiability  # 2 frames, 8 offsets
+    assert "arm_3_joint.tx" in identifiability["fixed"]
+    assert "arm_3_joint.tx" not in identifiability["removed"]
+    assert not any(name.endswith(".rz") for name in identifiability["fixed"])
+    before = result["fit"]["before"]["heldout"]["translation_mean_mm"]
+    after = result["fit"]["after"]["heldout"]["translation_mean_mm"]
+    assert after < 0.5 * before, (before, after)
+
+
+def test_fleet_of_ball_in_socket_pandas(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``kincal fleet`` over platonics Panda folders (the known 50 mm socket distance in the
+    TOML config) calibrates each folder as one robot and reports each one's parameters."""
+    fleet = tmp_path / "fleet"
+    fleet.mkdir()
+    for name in ("panda_left", "panda_right"):
+        (fleet / name).symlink_to(SOCKETS / name, target_is_directory=True)
+    config = tmp_path / "fleet.toml"
+    config.write_text('measurement = "point"\npoint_distance_m = 0.05\n')
+    out = tmp_path / "fleet.json"
+    args = ["fleet", fleet, "--robot", "panda", "--config", config, "-o", out]
+    code, stdout, stderr = run(args, capsys, monkeypatch)
+    assert code == 0, stderr
+    assert "2 calibrated, 0 failed" in stdout
+    report = json.loads(out.read_text())
+    assert [r["serial"] for r in report["robots"]] == ["panda_left", "panda_right"]
+    assert all(r["rms_after_mm"] < 1.0 for r in report["robots"])
