@@ -16,6 +16,7 @@ from solver.calibration import (
     FitOptions,
     check_sample_count,
     fit_deterministic,
+    identifiable_parameter_count,
     implausible_columns,
     implausible_compliance_columns,
     without_columns,
@@ -69,6 +70,7 @@ from solver.stream.screening import (
     Rule,
     family_wise_t2,
     family_wise_z,
+    model_rule_refusal,
     robust_spread,
 )
 from solver.stream.sums import CovarianceSpec, CovarianceSums
@@ -116,6 +118,8 @@ class StreamedCalibration:
     passes: int
     head: RowSample
     covariance: CovarianceSums | None = None
+    screening_refused: Literal["not_converged", "model_misfit"] | None = None
+    screening_refused_rows: int = 0
 
 
 def calibrate_streamed_fits(
@@ -514,7 +518,10 @@ def screen_by_model(
     the quantile at which one clean sample of the whole recording would fall with probability
     ``outlier_level`` (Bonferroni; Hotelling's T², as Σ_E is itself estimated:
     :func:`family_wise_t2`); then the fits and covariances again on the
-    samples kept, until the removed rows no longer change.
+    samples kept, until the removed rows no longer change. A round that would leave too few
+    rows to fit, or remove more than half of them (:func:`model_rule_refusal`), removes
+    nothing: the fit it judged by is kept and :attr:`StreamedCalibration.screening_refused`
+    names why (that fit did not converge, or the model does not explain the data).
 
     A clean sample is removed with probability at most ``outlier_level / N``, so the kept
     residuals are not truncated in any way that biases the covariance (the lost tail mass is
@@ -523,6 +530,10 @@ def screen_by_model(
     """
     d = problem.residual_dim
     frames = covariance.spec.frames
+    required = identifiable_parameter_count(
+        problem.chain, position_only=problem.position_only, options=options
+    )
+    min_rows = required // d + 1
     for _ in range(MODEL_RULE_ROUNDS):
         # Σ_E(q) comes from the used samples' residuals, which lost p/d degrees of freedom
         # per component to the deterministic fit
@@ -540,6 +551,12 @@ def screen_by_model(
             count,
         )
         if np.array_equal(removed, run.removed_rows):
+            break
+        refused = model_rule_refusal(
+            run.n_rows, removed.size, min_rows, converged=run.fit.converged
+        )
+        if refused is not None:
+            run = replace(run, screening_refused=refused, screening_refused_rows=removed.size)
             break
         rule = RowRule(removed)
         fit, baseline = fits_under_rule(
