@@ -153,9 +153,9 @@ def calibrate_streamed_fits(
     clock = time.perf_counter()
     scanning = executor.map_async(count_chunk_rows, problem, problem.refs)
     head = read_head(problem, settings.warm_start_rows)
-    start, keep = warm_start(problem, head, options)
+    start, keep, pruned = warm_start(problem, head, options)
     if settings.outlier_rule == "none":
-        baseline_start, baseline_keep = warm_start(problem, head, baseline_options)
+        baseline_start, baseline_keep, _ = warm_start(problem, head, baseline_options)
     n_rows = int(sum(scanning.result()))
     count.passes += 1
     check_sample_count(problem.chain, n_rows, position_only=problem.position_only, options=options)
@@ -164,7 +164,7 @@ def calibrate_streamed_fits(
     clock = time.perf_counter()
     rule: Rule | None = None
     if settings.outlier_rule == "none":
-        request = FitRequest(start, keep, options, covariance=covariance)
+        request = FitRequest(start, keep, options, covariance=covariance, pruned=pruned)
         first, baseline = fit_streamed_together(
             problem,
             executor,
@@ -176,7 +176,10 @@ def calibrate_streamed_fits(
     else:
         if settings.outlier_rule == "sigma":
             (first,) = fit_streamed_together(
-                problem, executor, [FitRequest(start, keep, options, keep_residuals=True)], count
+                problem,
+                executor,
+                [FitRequest(start, keep, options, keep_residuals=True, pruned=pruned)],
+                count,
             )
             rule = sigma_rule(first, settings)
             expect_pruning = _implausible(problem, first).size > 0
@@ -266,12 +269,17 @@ def fits_under_rule(
     repeated: only the repeat's passes take the covariance statistics along (when the guess
     is wrong the covariance stage takes them in a pass of its own; the numbers are the same)."""
     used_head = head.kept_by(problem, rule)
-    (refit_start, refit_keep), (baseline_start, baseline_keep) = warm_starts(
+    (refit_start, refit_keep, refit_pruned), (baseline_start, baseline_keep, _) = warm_starts(
         problem, executor, used_head, [options, baseline_options]
     )
     deferred = expect_pruning and options.non_negative_compliance
     refit = FitRequest(
-        refit_start, refit_keep, options, rule, covariance=None if deferred else covariance
+        refit_start,
+        refit_keep,
+        options,
+        rule,
+        covariance=None if deferred else covariance,
+        pruned=refit_pruned,
     )
     fit, baseline = fit_streamed_together(
         problem,
@@ -308,7 +316,7 @@ def non_negative_fit(
         return fit
     names = parameter_names(problem.chain)
     keep = np.array([names.index(n) for n in fit.estimated], dtype=np.intp)
-    pruned: list[str] = []
+    pruned: list[str] = list(fit.pruned)
     while (negative := _implausible(problem, fit)).size:
         pruned += [names[c] for c in negative]
         only_compliance = bool(np.all(negative >= 6 * problem.chain.n_links))
