@@ -395,6 +395,9 @@ def _verdict(
         heldout_before_translation_m=None if before is None else 1e-3 * before.translation_mean_mm,
         position_spread_m=position_spread_m(calibrated.sample.measured_pose[:, :3, 3]),
         reach_m=reach_m(chain.nominal_links[:, :3, 3]),
+        screening_refused=calibrated.fits.screening_refused,
+        screening_refused_rows=calibrated.fits.screening_refused_rows,
+        n_rows=calibrated.fits.n_rows,
     )
     reasons = check_fit(evidence)
     return Verdict(

@@ -251,6 +251,18 @@ def implausible_columns(
     return np.array(sorted([*links, *compliance.tolist()]), dtype=np.intp)
 
 
+def implausible_link_columns(
+    chain: KinematicChain,
+    params: ChainParameters,
+    keep: NDArray[np.intp],
+    standard_errors: FloatArray,
+) -> NDArray[np.intp]:
+    """The inner-link twist columns of :func:`implausible_columns` (no compliance: whether a
+    compliance is physical is decided on the whole recording, not on a subset of it)."""
+    columns = implausible_columns(chain, params, keep, standard_errors)
+    return columns[columns < 6 * chain.n_links]
+
+
 def without_columns(
     chain: KinematicChain,
     params: ChainParameters,

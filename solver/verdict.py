@@ -53,7 +53,10 @@ class FitEvidence:
     the nominal robot with fitted frames ("before"), None without a held-out evaluation;
     ``train_rms_*``: the calibrated fit on its own samples (rotation None when position-only);
     ``position_spread_m``: largest distance of a measured position from their centroid;
-    ``reach_m``: sum of the nominal link lengths from the first joint to the tip."""
+    ``reach_m``: sum of the nominal link lengths from the first joint to the tip;
+    ``screening_refused``: why the model-based outlier rule refused to remove
+    ``screening_refused_rows`` of the ``n_rows`` rows ("not_converged", "model_misfit"), None
+    when it did not refuse."""
 
     converged: bool
     iterations: int
@@ -66,6 +69,9 @@ class FitEvidence:
     heldout_before_translation_m: float | None
     position_spread_m: float
     reach_m: float
+    screening_refused: str | None = None
+    screening_refused_rows: int = 0
+    n_rows: int = 0
 
 
 def reach_m(link_translations_m: NDArray[np.float64]) -> float:
@@ -129,6 +135,25 @@ def check_fit(evidence: FitEvidence) -> list[Reason]:
                 "iterations without converging",
                 "raise --max-iterations; if it still does not converge, the data or the model "
                 "are inconsistent (see the other reasons)",
+            )
+        )
+    if e.screening_refused is not None:
+        cause = (
+            "the fit they were judged by did not converge"
+            if e.screening_refused == "not_converged"
+            else "the model does not explain the data"
+        )
+        reasons.append(
+            Reason(
+                "outliers_refused",
+                "failed",
+                f"the model-based outlier rule would have removed {e.screening_refused_rows} of "
+                f"{e.n_rows} rows and was refused (every row is kept): {cause}, so the rows "
+                "look like outliers because the model is wrong, not the measurements",
+                "raise --max-iterations"
+                if e.screening_refused == "not_converged"
+                else "check --robot/--urdf, --base/--tip and the joint columns; to see the fit "
+                "on every row use --outlier-rule none",
             )
         )
     per_parameter = e.n_equations / max(e.n_parameters, 1)

@@ -16,6 +16,7 @@ from solver.calibration import (
     FitOptions,
     check_sample_count,
     fit_deterministic,
+    identifiable_parameter_count,
     implausible_columns,
     implausible_compliance_columns,
     without_columns,
@@ -69,6 +70,7 @@ from solver.stream.screening import (
     Rule,
     family_wise_t2,
     family_wise_z,
+    model_rule_refusal,
     robust_spread,
 )
 from solver.stream.sums import CovarianceSpec, CovarianceSums
@@ -116,6 +118,8 @@ class StreamedCalibration:
     passes: int
     head: RowSample
     covariance: CovarianceSums | None = None
+    screening_refused: Literal["not_converged", "model_misfit"] | None = None
+    screening_refused_rows: int = 0
 
 
 def calibrate_streamed_fits(
@@ -149,9 +153,9 @@ def calibrate_streamed_fits(
     clock = time.perf_counter()
     scanning = executor.map_async(count_chunk_rows, problem, problem.refs)
     head = read_head(problem, settings.warm_start_rows)
-    start, keep = warm_start(problem, head, options)
+    start, keep, pruned = warm_start(problem, head, options)
     if settings.outlier_rule == "none":
-        baseline_start, baseline_keep = warm_start(problem, head, baseline_options)
+        baseline_start, baseline_keep, _ = warm_start(problem, head, baseline_options)
     n_rows = int(sum(scanning.result()))
     count.passes += 1
     check_sample_count(problem.chain, n_rows, position_only=problem.position_only, options=options)
@@ -160,7 +164,7 @@ def calibrate_streamed_fits(
     clock = time.perf_counter()
     rule: Rule | None = None
     if settings.outlier_rule == "none":
-        request = FitRequest(start, keep, options, covariance=covariance)
+        request = FitRequest(start, keep, options, covariance=covariance, pruned=pruned)
         first, baseline = fit_streamed_together(
             problem,
             executor,
@@ -172,7 +176,10 @@ def calibrate_streamed_fits(
     else:
         if settings.outlier_rule == "sigma":
             (first,) = fit_streamed_together(
-                problem, executor, [FitRequest(start, keep, options, keep_residuals=True)], count
+                problem,
+                executor,
+                [FitRequest(start, keep, options, keep_residuals=True, pruned=pruned)],
+                count,
             )
             rule = sigma_rule(first, settings)
             expect_pruning = _implausible(problem, first).size > 0
@@ -262,12 +269,17 @@ def fits_under_rule(
     repeated: only the repeat's passes take the covariance statistics along (when the guess
     is wrong the covariance stage takes them in a pass of its own; the numbers are the same)."""
     used_head = head.kept_by(problem, rule)
-    (refit_start, refit_keep), (baseline_start, baseline_keep) = warm_starts(
+    (refit_start, refit_keep, refit_pruned), (baseline_start, baseline_keep, _) = warm_starts(
         problem, executor, used_head, [options, baseline_options]
     )
     deferred = expect_pruning and options.non_negative_compliance
     refit = FitRequest(
-        refit_start, refit_keep, options, rule, covariance=None if deferred else covariance
+        refit_start,
+        refit_keep,
+        options,
+        rule,
+        covariance=None if deferred else covariance,
+        pruned=refit_pruned,
     )
     fit, baseline = fit_streamed_together(
         problem,
@@ -304,7 +316,7 @@ def non_negative_fit(
         return fit
     names = parameter_names(problem.chain)
     keep = np.array([names.index(n) for n in fit.estimated], dtype=np.intp)
-    pruned: list[str] = []
+    pruned: list[str] = list(fit.pruned)
     before = fit  # the iterations, costs, passes and time of every fit so far are reported
     while (negative := _implausible(problem, fit)).size:
         pruned += [names[c] for c in negative]
@@ -523,7 +535,10 @@ def screen_by_model(
     the quantile at which one clean sample of the whole recording would fall with probability
     ``outlier_level`` (Bonferroni; Hotelling's T², as Σ_E is itself estimated:
     :func:`family_wise_t2`); then the fits and covariances again on the
-    samples kept, until the removed rows no longer change.
+    samples kept, until the removed rows no longer change. A round that would leave too few
+    rows to fit, or remove more than half of them (:func:`model_rule_refusal`), removes
+    nothing: the fit it judged by is kept and :attr:`StreamedCalibration.screening_refused`
+    names why (that fit did not converge, or the model does not explain the data).
 
     A clean sample is removed with probability at most ``outlier_level / N``, so the kept
     residuals are not truncated in any way that biases the covariance (the lost tail mass is
@@ -532,6 +547,10 @@ def screen_by_model(
     """
     d = problem.residual_dim
     frames = covariance.spec.frames
+    required = identifiable_parameter_count(
+        problem.chain, position_only=problem.position_only, options=options
+    )
+    min_rows = required // d + 1
     for _ in range(MODEL_RULE_ROUNDS):
         # Σ_E(q) comes from the used samples' residuals, which lost p/d degrees of freedom
         # per component to the deterministic fit
@@ -549,6 +568,12 @@ def screen_by_model(
             count,
         )
         if np.array_equal(removed, run.removed_rows):
+            break
+        refused = model_rule_refusal(
+            run.n_rows, removed.size, min_rows, converged=run.fit.converged
+        )
+        if refused is not None:
+            run = replace(run, screening_refused=refused, screening_refused_rows=removed.size)
             break
         rule = RowRule(removed)
         fit, baseline = fits_under_rule(

@@ -25,14 +25,17 @@ from solver.batch_chain import (
     sweep_chain,
 )
 from solver.calibration import (
+    DeterministicFit,
     FitOptions,
     LeastSquaresRun,
     NormalEquations,
     ResidualSpread,
     fit_deterministic,
+    implausible_link_columns,
     levenberg_marquardt_iteration,
     parameter_standard_errors,
     removed_names,
+    without_columns,
 )
 from solver.executors import Executor
 from solver.gravity import static_gravity_loads
@@ -329,6 +332,9 @@ class FitRequest:
     """The start is expected to be the optimum (e.g. from
     :func:`~solver.calibration.without_columns`): the first pass takes the covariance
     statistics along as well."""
+    pruned: tuple[str, ...] = ()
+    """Parameters outside ``keep`` fixed by the physical-range rule (:func:`warm_start`):
+    listed as pruned, not as unidentifiable."""
 
 
 @dataclass
@@ -396,7 +402,7 @@ def fit_streamed_together(
             StreamedFit(
                 params=run.params,
                 estimated=[names[i] for i in request.keep],
-                removed=removed_names(names, request.keep),
+                removed=[n for n in removed_names(names, request.keep) if n not in request.pruned],
                 standard_errors=parameter_standard_errors(run.normal),
                 rank=int(request.keep.size),
                 condition_number=scaled_condition_number(run.normal.gram),
@@ -406,6 +412,7 @@ def fit_streamed_together(
                 sums=sums,
                 passes=n_passes,
                 elapsed_s=time.perf_counter() - started,
+                pruned=list(request.pruned),
             )
         )
     return fits
@@ -549,29 +556,64 @@ def gather_rows(
     return join_rows(executor.map(gather_chunk, _GatherPass(problem, rule, stride), problem.refs))
 
 
+WARM_START_PROBE_ITERATIONS = 10
+"""The head fit's first iterations before the physical-range rule judges its inner links: a
+link frame the data cannot place drifts along a flat valley to the iteration limit, and its
+standard error already says so after a few iterations (TALOS: > 0.1 rad)."""
+
+
 def warm_start(
     problem: StreamProblem, head: RowSample, options: FitOptions
-) -> tuple[ChainParameters, IntArray]:
+) -> tuple[ChainParameters, IntArray, tuple[str, ...]]:
     """In-memory fit of the head rows (closed-form alignment, pivoted-QR pruning, Eq. 10):
-    its parameters start the streamed fit and its kept columns are the streamed fit's. Which
-    compliances are physical is decided on the whole recording, after the streamed fit
+    its parameters start the streamed fit and its kept columns are the streamed fit's (with
+    the names of the columns it pruned, for :attr:`FitRequest.pruned`). An
+    inner link's twist component the head rows do not place in any physical range
+    (:func:`~solver.calibration.implausible_link_columns`) is fixed at nominal and the head
+    fit repeated without it (:func:`~solver.calibration.without_columns`), so that neither
+    the head fit nor the streamed fits it starts (the refit, the 2σ rule's first fit) follow
+    it along a flat valley to the iteration limit. Which compliances are physical is decided
+    on the whole recording, after the streamed fit
     (:func:`solver.stream.calibrate.non_negative_fit`), not on the head rows."""
-    fit = fit_deterministic(
-        problem.chain,
-        head.joint_positions,
-        head.measured_pose,
-        head.loads_nm,
-        position_only=problem.position_only,
-        options=dataclasses.replace(options, non_negative_compliance=False),
-    )
-    names = parameter_names(problem.chain)
+    chain = problem.chain
+    head_options = dataclasses.replace(options, non_negative_compliance=False)
+
+    def fit_head(start: ChainParameters | None, max_iterations: int) -> DeterministicFit:
+        return fit_deterministic(
+            chain,
+            head.joint_positions,
+            head.measured_pose,
+            head.loads_nm,
+            position_only=problem.position_only,
+            options=dataclasses.replace(head_options, max_iterations=max_iterations),
+            start=start,
+        )
+
+    probe = min(WARM_START_PROBE_ITERATIONS, options.max_iterations)
+    fit = fit_head(None, probe)
+    names = parameter_names(chain)
     keep = np.array([names.index(name) for name in fit.estimated], dtype=np.intp)
-    return fit.params, keep
+    pruned: list[int] = []
+    while (
+        options.non_negative_compliance
+        and (links := implausible_link_columns(chain, fit.params, keep, fit.standard_errors)).size
+    ):
+        pruned += links.tolist()
+        free = np.setdiff1d(keep, links)
+        n_chain = 6 * chain.n_links + len(chain.compliance_axes)
+        head_options = dataclasses.replace(
+            head_options, free_columns=tuple(int(c) for c in free[free < n_chain])
+        )
+        fit = fit_head(without_columns(chain, fit.params, links), options.max_iterations)
+        keep = np.array([names.index(name) for name in fit.estimated], dtype=np.intp)
+    if not fit.converged and fit.iterations == probe < options.max_iterations:
+        fit = fit_head(fit.params, options.max_iterations - probe)
+    return fit.params, keep, tuple(names[c] for c in sorted(pruned))
 
 
 def _warm_start_task(
     shared: tuple[StreamProblem, RowSample], options: FitOptions
-) -> tuple[ChainParameters, IntArray]:
+) -> tuple[ChainParameters, IntArray, tuple[str, ...]]:
     return warm_start(*shared, options)
 
 
@@ -580,7 +622,7 @@ def warm_starts(
     executor: Executor,
     head: RowSample,
     options: Sequence[FitOptions],
-) -> list[tuple[ChainParameters, IntArray]]:
+) -> list[tuple[ChainParameters, IntArray, tuple[str, ...]]]:
     """:func:`warm_start` for each of ``options`` on the executor's workers, side by side
     (the same numbers as one after the other on the driver)."""
     return executor.map(_warm_start_task, (problem, head), list(options))

@@ -13,7 +13,7 @@ from __future__ import annotations
 import hashlib
 import uuid
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -76,6 +76,27 @@ def family_wise_t2(level: float, n_rows: int, dim: int, dof: float) -> float:
     alpha = level / n_rows
     dof = max(dof, dim + 1.0)
     return float(dof * dim / (dof - dim + 1) * stats.f.isf(alpha, dim, dof - dim + 1))
+
+
+MODEL_RULE_MAX_SHARE = 0.5
+"""The model-based rule may remove at most this share of a recording's rows: beyond it the
+"gross errors" are the majority, and a model fitted to them cannot tell which rows are wrong
+(the breakdown point of any estimator is one half)."""
+
+
+def model_rule_refusal(
+    n_rows: int, n_removed: int, min_rows: int, converged: bool
+) -> Literal["not_converged", "model_misfit"] | None:
+    """Why the model-based rule must not remove ``n_removed`` of ``n_rows`` rows, None when it
+    may: it would leave fewer than ``min_rows`` (the fit then has fewer equations than
+    identifiable parameters) or remove more than :data:`MODEL_RULE_MAX_SHARE` of the rows. The
+    cause is the fit the rows were judged by: "not_converged" when it had not converged, else
+    "model_misfit" (the model does not explain the data, so every row looks like an outlier)."""
+    if n_removed == 0:
+        return None
+    if n_rows - n_removed >= min_rows and n_removed <= MODEL_RULE_MAX_SHARE * n_rows:
+        return None
+    return "model_misfit" if converged else "not_converged"
 
 
 def robust_spread(residuals: FloatArray) -> tuple[FloatArray, FloatArray]:

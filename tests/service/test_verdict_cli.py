@@ -253,3 +253,47 @@ def test_the_html_report_leads_with_a_failed_verdict(
     text = report.read_text()
     assert code == 3 and "Verdict: failed" in text and "--max-iterations" in text
     assert text.index("Verdict: failed") < text.index("Fit (mean and RMS error)")
+
+
+@pytest.mark.parametrize(
+    ("extra", "cause"),
+    [
+        (["--max-iterations", "1"], "did not converge"),
+        ([], "the model does not explain the data"),
+    ],
+)
+def test_an_outlier_rule_that_would_remove_every_row_is_refused(
+    extra: list[str],
+    cause: str,
+    simulated: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A badly wrong fit (the 55-row TALOS fold under Gauss–Newton, stopped at 3.1 mm RMS)
+    judged every row an outlier against its own Σ_E and calibrate failed with "0 samples give
+    0 equations". Here the model rule's judgement is made that of such a fit (every row
+    beyond the threshold): the rows stay, the verdict names the cause, exit 3, no URDF."""
+    import solver.stream.calibrate as stream_calibrate
+
+    def every_row(*args: object) -> np.ndarray:
+        return np.arange(int(args[7]), dtype=np.int64)  # n_rows
+
+    monkeypatch.setattr(stream_calibrate, "model_rule_removed", every_row)
+    code, result, text, urdf = _calibrate(
+        [simulated, "--robot", "kinova", "--no-heldout", *extra], tmp_path, capsys, monkeypatch
+    )
+    assert code == 3 and "outliers_refused" in _codes(result)
+    assert result.outliers.n_used == result.outliers.n_input == 200
+    assert "would have removed 200 of 200 rows" in text and cause in text
+    assert not urdf.exists()
+
+
+def test_model_rule_refusal() -> None:
+    from solver.stream.screening import model_rule_refusal
+
+    assert model_rule_refusal(100, 0, 10, converged=False) is None
+    assert model_rule_refusal(100, 50, 10, converged=True) is None
+    assert model_rule_refusal(100, 51, 10, converged=True) == "model_misfit"
+    assert model_rule_refusal(100, 100, 10, converged=False) == "not_converged"
+    assert model_rule_refusal(20, 10, 11, converged=True) == "model_misfit"
