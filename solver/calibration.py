@@ -171,21 +171,9 @@ def fit_deterministic(
         if start is None
         else measurement_models.ModelParameters(start.links, start.compliance_rad_per_nm),
     )
-    return DeterministicFit(
-        params=ChainParameters(fit.params.links, fit.params.compliance_rad_per_nm),
-        estimated=fit.estimated,
-        removed=fit.removed,
-        standard_errors=fit.standard_errors,
-        rank=fit.rank,
-        condition_number=fit.condition_number,
-        iterations=fit.iterations,
-        converged=fit.converged,
-        cost_history=fit.cost_history,
-        residuals=fit.residuals,
-        jacobian=fit.jacobian,
-        elapsed_s=fit.elapsed_s,
-        pruned=fit.pruned,
-    )
+    shared = {f.name: getattr(fit, f.name) for f in dataclasses.fields(DeterministicFit)}
+    params = ChainParameters(fit.params.links, fit.params.compliance_rad_per_nm)
+    return DeterministicFit(**{**shared, "params": params})
 
 
 PLAUSIBLE_COMPLIANCE_RAD_PER_NM = 0.01

@@ -8,7 +8,6 @@ chain's columns and the model's own unknowns together.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -17,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver.calibration import (
+    DeterministicFit,
     FitOptions,
     NormalEquations,
     free_columns,
@@ -45,29 +45,18 @@ IntArray = NDArray[np.intp]
 BoolArray = NDArray[np.bool_]
 
 
-@dataclass(frozen=True)
-class MeasurementFit:
-    """Result of :func:`fit_measurement`; fields as :class:`solver.calibration.DeterministicFit`
-    (``estimated``/``removed`` over the chain's and the model's parameter names,
-    ``standard_errors`` aligned with ``estimated``), ``residuals`` (N, d) unweighted in the
-    model's frame, ``constraint_residuals`` (c,) of its known distances, ``jacobian``
-    (N, d, p) of the rows over the estimated columns, weighted like the fit."""
+@dataclass(frozen=True, kw_only=True)
+class MeasurementFit(DeterministicFit):
+    """Result of :func:`fit_measurement`: a :class:`solver.calibration.DeterministicFit`
+    whose ``estimated``/``removed`` run over the chain's and the model's parameter names
+    (``standard_errors`` aligned with ``estimated``), ``params`` carry the model's own
+    unknowns, ``residuals`` (N, d) are unweighted in the model's frame and ``jacobian``
+    (N, d, p) of the rows over the estimated columns, weighted like the fit; with the
+    ``model`` and ``constraint_residuals`` (c,) of its known distances."""
 
-    model: MeasurementModel
     params: ModelParameters
-    estimated: list[str]
-    removed: list[str]
-    standard_errors: FloatArray
-    rank: int
-    condition_number: float
-    iterations: int
-    converged: bool
-    cost_history: list[float]
-    residuals: FloatArray
+    model: MeasurementModel
     constraint_residuals: FloatArray
-    jacobian: FloatArray
-    elapsed_s: float
-    pruned: list[str] = dataclasses.field(default_factory=list)
 
     def standard_error(self, name: str) -> float:
         return float(self.standard_errors[self.estimated.index(name)])

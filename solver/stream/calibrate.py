@@ -18,7 +18,6 @@ from solver.calibration import (
     fit_deterministic,
     identifiable_parameter_count,
     implausible_columns,
-    implausible_compliance_columns,
     without_columns,
 )
 from solver.covariance.estimate import (
@@ -189,10 +188,7 @@ def calibrate_streamed_fits(
             # that fit has seen); the model-based second step judges every row again
             first = None
             rule = robust_first_step(problem, head, start, n_rows, settings)
-            negative = implausible_compliance_columns(
-                problem.chain, start, keep, np.zeros(keep.size)
-            )
-            expect_pruning = negative.size > 0
+            expect_pruning = bool(np.any(start.compliance_rad_per_nm < 0.0))
         report("fit")
         warm = time.perf_counter()
         fit, baseline = fits_under_rule(
