@@ -31,7 +31,7 @@ from schemas.calibration import (
 )
 from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_chunks, read_dataset
 from schemas.discovery import FindingsResult
-from service import discovery, measurement_run
+from service import measurement_run
 from service.result_json import ResidualSample, assemble_result, chain_for, sample_residuals
 from service.robots import RobotDescription
 from service.urdf_export import export_urdf
@@ -111,6 +111,8 @@ def check_calibration(
     discovery must be of this robot's joints and the options it sets must be left at their
     defaults."""
     if findings is not None:
+        from service import discovery  # only with a carried discovery: it imports scipy.stats
+
         discovery.findings_chain(findings, robot)
         options = discovery.carried_options(options, findings)
     chain = chain_for(robot, options)
@@ -271,6 +273,8 @@ def open_recording(
     corrections: ModelCorrections | None = None
     notes: tuple[str, ...] = ()
     if setup.findings is not None:
+        from service import discovery
+
         carried = discovery.carry_model(setup.findings, dataset, setup.robot)
         dataset, corrections, notes = carried.dataset, carried.record, tuple(carried.notes)
     position_only = measured_position_only(options, dataset.is_position_only, dataset.source)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import norm
+from scipy.special import ndtri
 
 from solver.covariance.identifiability import IdentifiabilityReport
 
@@ -79,8 +79,8 @@ def theta_uncertainty(
     se = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     identifiable = report.identifiable.copy()
     se = np.where(identifiable, se, np.nan)
-    z_two = float(norm.ppf(0.5 + 0.5 * confidence))
-    z_one = float(norm.ppf(confidence))
+    z_two = float(ndtri(0.5 + 0.5 * confidence))
+    z_one = float(ndtri(confidence))
     var = np.where(is_variance, np.clip(theta, 0.0, None), np.nan)
     std = np.sqrt(var)
     boundary = is_variance & identifiable & (var - z_two * se <= 0.0)

@@ -17,7 +17,7 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+from scipy import special
 
 from solver import lie
 from solver.batch_chain import (
@@ -63,7 +63,7 @@ Rule = OutlierRule | RowRule
 def family_wise_z(level: float, n_rows: int, dim: int) -> float:
     """Per-component |z| beyond which a Gaussian component of one of ``n_rows`` samples falls
     with probability ``level`` over the whole recording (Bonferroni over n·d two-sided tests)."""
-    return float(stats.norm.isf(level / (2.0 * n_rows * dim)))
+    return float(-special.ndtri(level / (2.0 * n_rows * dim)))  # scipy.stats.norm.isf
 
 
 def family_wise_t2(level: float, n_rows: int, dim: int, dof: float) -> float:
@@ -75,7 +75,8 @@ def family_wise_t2(level: float, n_rows: int, dim: int, dof: float) -> float:
     inflated only by the covariance estimate's own error; T² (33.2) does not."""
     alpha = level / n_rows
     dof = max(dof, dim + 1.0)
-    return float(dof * dim / (dof - dim + 1) * stats.f.isf(alpha, dim, dof - dim + 1))
+    f_isf = special.fdtri(dim, dof - dim + 1, 1.0 - alpha)  # scipy.stats.f.isf's formula
+    return float(dof * dim / (dof - dim + 1) * f_isf)
 
 
 MODEL_RULE_MAX_SHARE = 0.5
