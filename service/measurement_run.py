@@ -51,11 +51,13 @@ from service.result_json import (
     ResidualSample,
     _error_stats,
     chain_fields,
+    covariance_result,
     fixed_names,
     kincal_version,
 )
 from solver import lie
 from solver.calibration import FitOptions, outlier_mask
+from solver.covariance.estimate import CovarianceEstimate, estimate_from_samples
 from solver.errors import KincalError
 from solver.kinematics import parameter_names
 from solver.measurement import (
@@ -72,9 +74,9 @@ from solver.measurement import (
     heldout_errors,
     row_errors,
 )
-from solver.measurement.fit import HeldoutError
+from solver.measurement.fit import HeldoutError, covariance_samples
 from solver.model import KinematicChain, gravity_loads
-from solver.stream.calibrate import BEFORE, CALIBRATED
+from solver.stream.calibrate import BEFORE, CALIBRATED, CovarianceSettings
 from solver.stream.screening import family_wise_z, robust_spread
 from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, verdict_status
 
@@ -231,8 +233,8 @@ def screen(
 ) -> tuple[BoolArray, str]:
     """Rows kept by the outlier rule at the first fit and a note on the rule applied. 'sigma':
     the paper's §V-A rule; 'model': its robust first step (median and 1.4826·MAD per
-    component, family-wise threshold at outlier_level; the Σ_E-based second step needs the
-    covariances, which this measurement does not have yet)."""
+    component, family-wise threshold at outlier_level; its Σ_E step is not run for these
+    measurements)."""
     rule = options.screening
     n = fit.residuals.shape[0]
     if rule == "none":
@@ -245,7 +247,25 @@ def screen(
     kept = np.all(np.abs(fit.residuals - centre) <= z * np.where(scale > 0, scale, np.inf), axis=1)
     return kept, (
         f"model rule, robust first step only (|z| <= {z:.2f} per component); its Σ_E step "
-        f"needs covariances, not available for measurement '{model.name}'"
+        f"is not run for measurement '{model.name}'"
+    )
+
+
+def estimate_covariances(
+    chain: KinematicChain,
+    fit: MeasurementFit,
+    rows: MeasurementRows,
+    settings: CovarianceSettings,
+) -> CovarianceEstimate:
+    """The covariance calibration (paper §IV-C) of the rows ``fit`` used, at the fit."""
+    spec = settings.spec
+    return estimate_from_samples(
+        covariance_samples(chain, fit, rows, spec.frames),
+        spec.layout,
+        known=spec.known,
+        estimator=settings.estimator,
+        solver=settings.solver,
+        noise_name=spec.noise_name,
     )
 
 
@@ -260,6 +280,7 @@ class MeasurementCalibration:
     splits: list[HeldoutError]
     notes: tuple[str, ...]
     elapsed_s: float
+    covariance: CovarianceEstimate | None = None
 
 
 def calibrate_measurement(
@@ -268,8 +289,12 @@ def calibrate_measurement(
     options: CalibrationOptions,
     fit_options: FitOptions,
     baseline_options: FitOptions,
+    covariance: CovarianceSettings | None = None,
 ) -> MeasurementCalibration:
-    """Fit, outlier rule, refit and "before" fit on the kept rows, held-out splits."""
+    """Fit, outlier rule, refit and "before" fit on the kept rows, covariances (Eq. 12–17 at
+    the refit, with ``covariance``), held-out splits. The model rule takes its robust first
+    step only: its Σ_E step (every row against its own predicted Σ_E, as for a streamed pose
+    recording) is not run for these measurements yet."""
     started = time.perf_counter()
     model, rows = recording.model, recording.rows
     notes = [n for n in [check_covariance_request(options, model)] if n]
@@ -278,6 +303,7 @@ def calibrate_measurement(
     notes.append(rule_note)
     used = rows.take(np.flatnonzero(kept))
     fit = fit_measurement(chain, model, used, fit_options) if not kept.all() else first
+    estimate = None if covariance is None else estimate_covariances(chain, fit, used, covariance)
     baseline = fit_measurement(chain, model, used, baseline_options)
     splits: list[HeldoutError] = []
     if options.heldout:
@@ -290,7 +316,14 @@ def calibrate_measurement(
             options.train_fraction,
         )
     return MeasurementCalibration(
-        recording, fit, baseline, kept, splits, tuple(notes), time.perf_counter() - started
+        recording,
+        fit,
+        baseline,
+        kept,
+        splits,
+        tuple(notes),
+        time.perf_counter() - started,
+        estimate,
     )
 
 
@@ -316,10 +349,12 @@ def measurement_result(
     chain: KinematicChain,
     options: CalibrationOptions,
     free_columns: tuple[int, ...] | None = None,
+    covariance_index: list[int] | None = None,
 ) -> CalibrationResult:
     """The result JSON of a measurement-model calibration (same schema as a pose one; the
-    measurement's own unknowns in ``measurement``; ``covariance`` None); ``free_columns``: the
-    chain columns the selection left free (None: all), the others listed as fixed."""
+    measurement's own unknowns in ``measurement``; ``covariance`` when estimated, of the chain
+    joints ``covariance_index``); ``free_columns``: the chain columns the selection left free
+    (None: all), the others listed as fixed."""
     fixed = fixed_names(chain, free_columns)
     recording, fit, baseline = calibrated.recording, calibrated.fit, calibrated.baseline
     model = recording.model
@@ -367,6 +402,9 @@ def measurement_result(
         robot=robot,
         options=options,
         **chain_fields(chain, fit, baseline),
+        covariance=None
+        if calibrated.covariance is None
+        else covariance_result(calibrated.covariance, covariance_index or []),
         identifiability=Identifiability(
             n_parameters=len(parameter_names(chain)) + len(model.extra_names()),
             rank=fit.rank,

@@ -398,7 +398,7 @@ def calibrate_source(
                 setup.options.outlier_sigma or 2.0,
                 setup.options.outlier_level,
             ),
-            covariance=_covariance_settings(recording.problem, setup),
+            covariance=covariance_settings(recording.problem.residual_dim, setup),
             heldout=HeldoutSettings(tuple(setup.options.seeds), setup.options.train_fraction)
             if setup.options.heldout
             else None,
@@ -461,6 +461,7 @@ def _calibrate_measured(
         setup.options,
         fit_options(setup.options, free_columns=setup.free_columns),
         fit_options(setup.options, baseline=True, n_links=setup.chain.n_links),
+        covariance_settings(model.dim, setup) if model.supports_covariance else None,
     )
     timings["calibration"] = calibrated.elapsed_s
     robot = setup.robot
@@ -477,6 +478,7 @@ def _calibrate_measured(
         chain=setup.chain,
         options=setup.options,
         free_columns=setup.free_columns,
+        covariance_index=list(setup.covariance_index),
     )
     return CalibrationRun(
         result,
@@ -498,10 +500,9 @@ def calibrate(
     return calibrate_source(dataset, setup, progress=progress).result
 
 
-def _covariance_settings(
-    problem: StreamProblem, setup: CalibrationSetup
-) -> CovarianceSettings | None:
-    """The covariance stage of ``setup`` (None: ``covariance`` "none")."""
+def covariance_settings(residual_dim: int, setup: CalibrationSetup) -> CovarianceSettings | None:
+    """The covariance stage of ``setup`` for residuals of ``residual_dim`` rows (None:
+    ``covariance`` "none")."""
     options = setup.options
     if options.covariance == "none":
         return None
@@ -514,7 +515,7 @@ def _covariance_settings(
     elif options.noise_std is not None:
         noise = np.diag(np.square(np.asarray(options.noise_std, dtype=float)))
     spec = covariance_spec(
-        problem,
+        residual_dim,
         setup.covariance_frames,
         setup.covariance_index,
         structure=options.covariance,

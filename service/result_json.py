@@ -249,7 +249,7 @@ def _compliance(chain: KinematicChain, fit: FittedChain) -> list[ComplianceCalib
     return out
 
 
-def _covariance_result(estimate: CovarianceEstimate, joint_index: list[int]) -> CovarianceResult:
+def covariance_result(estimate: CovarianceEstimate, joint_index: list[int]) -> CovarianceResult:
     solution, moment = estimate.solution, estimate.moment_solution
     extra_time = moment.wall_time_s if solution is not moment else 0.0
     report = estimate.identifiability
@@ -480,7 +480,7 @@ def assemble_result(
         ),
         covariance=None
         if calibrated.covariance is None
-        else _covariance_result(calibrated.covariance, frame_index),
+        else covariance_result(calibrated.covariance, frame_index),
         predictive=None
         if calibrated.predictive is None
         else _predictive_result(calibrated.predictive, options),

@@ -9,7 +9,7 @@ chain's columns and the model's own unknowns together.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +29,7 @@ from solver.calibration import (
     removed_names,
     without_columns,
 )
+from solver.covariance.samples import ArraySamples
 from solver.errors import CalibrationError
 from solver.evaluation import split_indices
 from solver.kinematics import ChainParameters, parameter_names
@@ -182,6 +183,33 @@ def fit_measurement(
         jacobian=run.payload,
         elapsed_s=time.perf_counter() - started,
         pruned=[names[i] for i in sorted(pruned)],
+    )
+
+
+def covariance_samples(
+    chain: KinematicChain, fit: MeasurementFit, rows: MeasurementRows, frames: Sequence[int]
+) -> ArraySamples:
+    """The samples of the covariance calibration (paper Eq. 12–17) for a measurement model:
+    at the fit, ``r_n ≈ Σ_f A_f(q_n) ξ_{n,f} + e_n`` with ``ξ_{n,f} ~ N(0, Σ_f)`` the random
+    local twist right after link ``L_f`` (Eq. 7) and ``e_n`` the measurement noise, so
+    ``Cov(r_n) = Σ_f A_f Σ_f A_fᵀ + Σ_e`` (Eq. 12). ``A_f`` (N, d, 6) are the model's own
+    Jacobian columns of link f's twist ``<link>.tx..rz`` (the same derivative as a geometric
+    correction ``L_f ← L_f·Exp(δ)``), in the model's residual frame (e.g. the robot base frame
+    for a ball in a socket), unweighted; ``frames``: the chain joints whose frames are perturbed.
+    The fit Jacobian (N, d, p) over the fitted columns, the model's own unknowns included, is
+    the REML restriction (the rows' equations only: a known socket distance takes one more
+    degree of freedom, negligible beside N·d)."""
+    names = parameter_names(chain) + fit.model.extra_names()
+    residual, jacobian = fit.model.linearise(chain, fit.params, rows)
+    assert jacobian is not None
+    n, d, _ = jacobian.shape
+    columns = [6 * f + i for f in frames for i in range(6)]
+    frame_jacobians = jacobian[:, :, columns].reshape(n, d, len(frames), 6).transpose(0, 2, 1, 3)
+    fitted = [names.index(name) for name in fit.estimated]
+    return ArraySamples(
+        residual,
+        np.ascontiguousarray(frame_jacobians),
+        np.ascontiguousarray(jacobian[:, :, fitted]),
     )
 
 

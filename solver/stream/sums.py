@@ -25,7 +25,6 @@ from solver.covariance.statistics import (
     diag_statistics_batch_last,
     empty_statistics,
 )
-from solver.stream.chunks import StreamProblem
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -217,7 +216,7 @@ def covariance_sums(
 
 
 def covariance_spec(
-    problem: StreamProblem,
+    residual_dim: int,
     frame_names: Sequence[str],
     frame_index: Sequence[int],
     *,
@@ -226,10 +225,11 @@ def covariance_spec(
     noise_name: str = "noise",
     free_axes: Mapping[str, Sequence[str]] | None = None,
 ) -> CovarianceSpec:
-    """The covariance statistics to take of ``problem``: frames ``frame_names`` perturbing
-    the chain joints ``frame_index``, the noise frame (or a known noise covariance, 6×6 or
-    d×d), diagonal or full Σ; ``free_axes`` as in :func:`make_layout`."""
-    d = problem.residual_dim
+    """The covariance statistics to take of residuals of ``residual_dim`` d rows: frames
+    ``frame_names`` perturbing the chain joints ``frame_index``, the noise frame (or a known
+    noise covariance, 6×6 or d×d), diagonal or full Σ; ``free_axes`` as in
+    :func:`make_layout`."""
+    d = residual_dim
     known = known_noise_covariance(noise_covariance, d)
     layout = make_layout(
         frame_names,

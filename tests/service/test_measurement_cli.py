@@ -289,6 +289,12 @@ def test_tiago_vicon_relative_base_joint_offsets_calibrate(
     before = result["fit"]["before"]["heldout"]["translation_mean_mm"]
     after = result["fit"]["after"]["heldout"]["translation_mean_mm"]
     assert after < 0.5 * before, (before, after)
+    # the default covariance calibration runs for this measurement too (it used to be dropped
+    # without a word): every chain joint's frame and the noise, 3-D position residuals
+    covariance = result["covariance"]
+    assert covariance is not None and covariance["estimator"] == "reml"
+    assert [f["name"] for f in covariance["frames"]] == result["robot"]["joint_names"]
+    assert covariance["n_samples"] == result["outliers"]["n_used"]
 
 
 def test_fleet_of_ball_in_socket_pandas(

@@ -90,7 +90,8 @@ def _fit_vector(cal: StreamedCalibration) -> np.ndarray:
 
 
 def _spec(problem: StreamProblem) -> CovarianceSpec:
-    return covariance_spec(problem, chain(ROBOT).joint_names, range(chain(ROBOT).n_joints))
+    c = chain(ROBOT)
+    return covariance_spec(problem.residual_dim, c.joint_names, range(c.n_joints))
 
 
 def _run(problem: StreamProblem, executor, warm_rows: int):  # type: ignore[no-untyped-def]
@@ -326,7 +327,7 @@ def test_streamed_fit_equals_in_memory_for_position_only_and_weighted_rotation(
     in-memory fits; the covariance statistics are the in-memory ones."""
     c = chain(ROBOT)
     problem = _problem_of(recording, position_only=position_only)
-    spec = covariance_spec(problem, c.joint_names, range(c.n_joints))
+    spec = covariance_spec(problem.residual_dim, c.joint_names, range(c.n_joints))
     executor = InProcessExecutor()
     cal = calibrate_streamed_fits(
         problem,
@@ -383,7 +384,11 @@ def test_statistics_taken_along_the_fit_equal_a_pass_of_their_own(
     problem = _problem_of(recording, position_only=position_only)
     noise = np.diag([4e-9] * 3 + [1e-8] * 3) if known else None
     spec = covariance_spec(
-        problem, c.joint_names, range(c.n_joints), structure=structure, noise_covariance=noise
+        problem.residual_dim,
+        c.joint_names,
+        range(c.n_joints),
+        structure=structure,
+        noise_covariance=noise,
     )
     executor = InProcessExecutor()
     cal = calibrate_streamed_fits(
