@@ -13,6 +13,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 from numpy.typing import NDArray
 
 from solver.calibration import (
@@ -196,9 +197,11 @@ def covariance_samples(
     Jacobian columns of link f's twist ``<link>.tx..rz`` (the same derivative as a geometric
     correction ``L_f ← L_f·Exp(δ)``), in the model's residual frame (e.g. the robot base frame
     for a ball in a socket), unweighted; ``frames``: the chain joints whose frames are perturbed.
-    The fit Jacobian (N, d, p) over the fitted columns, the model's own unknowns included, is
-    the REML restriction (the rows' equations only: a known socket distance takes one more
-    degree of freedom, negligible beside N·d)."""
+    The REML restriction is the fit Jacobian over the fitted columns (the model's own unknowns
+    included), ``X`` (N, d, p), times a basis ``N`` (p, p − c) of the directions the model's
+    ``c`` extra equations leave free (e.g. a known socket distance, which pins the scale that
+    the rows alone hardly see): those directions absorb residual, the pinned ones do not, and
+    with them in ``X`` REML's ``log det XᵀΣ⁻¹X`` runs off to −∞ along with Σ."""
     names = parameter_names(chain) + fit.model.extra_names()
     residual, jacobian = fit.model.linearise(chain, fit.params, rows)
     assert jacobian is not None
@@ -206,10 +209,12 @@ def covariance_samples(
     columns = [6 * f + i for f in frames for i in range(6)]
     frame_jacobians = jacobian[:, :, columns].reshape(n, d, len(frames), 6).transpose(0, 2, 1, 3)
     fitted = [names.index(name) for name in fit.estimated]
+    restriction = jacobian[:, :, fitted]
+    _, pinned = fit.model.constraints(chain, fit.params)
+    if pinned.shape[0]:
+        restriction = restriction @ scipy.linalg.null_space(pinned[:, fitted])
     return ArraySamples(
-        residual,
-        np.ascontiguousarray(frame_jacobians),
-        np.ascontiguousarray(jacobian[:, :, fitted]),
+        residual, np.ascontiguousarray(frame_jacobians), np.ascontiguousarray(restriction)
     )
 
 

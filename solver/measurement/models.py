@@ -458,6 +458,10 @@ class FixedPoints(MeasurementModel):
     def components(self) -> tuple[str, ...]:
         return ("x", "y", "z")
 
+    @property
+    def supports_covariance(self) -> bool:
+        return True  # Eq. 12 in the robot base frame; the noise is the ball's play in a socket
+
     def extra_names(self) -> list[str]:
         return [f"point_{g}.{a}" for g in range(self.n_points) for a in ("x", "y", "z")]
 

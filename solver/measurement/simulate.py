@@ -25,15 +25,18 @@ def configurations_at_points(
     *,
     iterations: int = 60,
     step_rad: float = 1e-6,
+    perturbations: FloatArray | None = None,
 ) -> FloatArray:
     """Joint positions (N, k) near ``start`` (N, k) whose tool point (translation of the rigid
-    forward kinematics at ``params``) reaches ``targets_m`` (N, 3), m, robot base frame."""
+    forward kinematics at ``params``) reaches ``targets_m`` (N, 3), m, robot base frame;
+    ``perturbations`` (N, k, 6): each row's random local twists of the joint frames (Eq. 7),
+    so that the perturbed robot's ball sits in the socket."""
     q = start.astype(float).copy()
     n, k = q.shape
     loads = np.zeros((n, len(chain.compliance_axes)))
 
     def point(x: FloatArray) -> FloatArray:
-        return forward_kinematics(chain, params, x, loads)[:, :3, 3]
+        return forward_kinematics(chain, params, x, loads, perturbations=perturbations)[:, :3, 3]
 
     for _ in range(iterations):
         error = targets_m - point(q)

@@ -47,8 +47,12 @@ def test_panda_ball_in_socket_calibrates_with_defaults(
         "point_0.y",
         "point_0.z",
     ]
-    assert any("not estimated" in note for note in measurement["notes"])
-    assert result["covariance"] is None
+    # the random perturbations' covariances (Eq. 12 on the socket residuals, base frame)
+    covariance = result["covariance"]
+    assert covariance is not None and covariance["estimator"] == "reml"
+    assert [f["name"] for f in covariance["frames"]] == result["robot"]["joint_names"]
+    assert covariance["solver"]["status"] == "optimal", covariance["solver"]
+    assert not any("not estimated" in note for note in measurement["notes"])
     before = result["fit"]["before"]["heldout"]["translation_mean_mm"]
     after = result["fit"]["after"]["heldout"]["translation_mean_mm"]
     assert after < before / 5, (before, after)
@@ -90,13 +94,14 @@ def test_tiago_qualisys_file_calibrates_all_four_markers_at_once(
     assert after < before
 
 
-def test_covariance_asked_for_a_point_constraint_is_refused(
+def test_covariance_asked_for_several_markers_is_refused(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    args = ["calibrate", SOCKETS / "panda_right", "--robot", "panda", "-o", tmp_path / "r.json"]
+    args = ["calibrate", TIAGO_QUALISYS, "--urdf", _tiago_urdf(), "--base", "base_footprint"]
+    args += ["--tip", "arm_7_link", "-o", tmp_path / "r.json"]
     code, _, stderr = run([*args, "--covariance", "diag"], capsys, monkeypatch)
     assert code == 2
-    assert "measurement 'point'" in stderr and "--covariance none" in stderr
+    assert "measurement 'markers'" in stderr and "--covariance none" in stderr
 
 
 @pytest.mark.parametrize(
