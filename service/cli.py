@@ -543,8 +543,8 @@ def predict(
             )
         if result.predictive is None and chosen in ("total", "parameters", "model_error"):
             typer.echo(
-                f"note: {result_path} {ranking.NO_PREDICTIVE}; its parameter and model-error "
-                "parts are left out (zero)",
+                f"note: {result_path} {ranking.no_predictive(result)}; its parameter and "
+                "model-error parts are left out (zero)",
                 err=True,
             )
         covariance = ranking.predicted_covariance(

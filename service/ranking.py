@@ -50,6 +50,19 @@ NO_PREDICTIVE = (
     "has no predictive covariance (Cov(θ̂) and the model-error part, issue 13): re-run "
     "calibrate with this version of kincal"
 )
+
+
+def no_predictive(result: CalibrationResult) -> str:
+    """Why ``result`` has no predictive covariance, in words that follow "the result"."""
+    measurement = result.measurement
+    if measurement is not None and measurement.type not in ("pose", "position"):
+        return (
+            f"has no predictive covariance: Cov(θ̂) and the model-error part are not computed "
+            f"for measurement '{measurement.type}' yet (its random-effects part is)"
+        )
+    return NO_PREDICTIVE
+
+
 NO_IK_SOLUTION = (
     "no configuration within the joint limits reaches the target; give it in the measurement "
     "frame (as kincal predict reports poses) or allow a free axis (--free-axis)"
@@ -121,7 +134,7 @@ def predictive_model(
     model-error part (zero when the calibration ran without held-out splits);
     :class:`KincalError` when the result has none."""
     if result.predictive is None:
-        raise KincalError(f"calibration result {NO_PREDICTIVE}")
+        raise KincalError(f"calibration result {no_predictive(result)}")
     if model is not None and model in _PREDICTIVE:
         return _PREDICTIVE[model]
     chain, params = (model.chain, model.params) if model else result_json.result_chain(result)
@@ -350,7 +363,7 @@ def _scored_uncertainty(
         return scores, None
     extra = predictive_parts(result, model, q, payload)
     if extra is None:
-        raise KincalError(f"uncertainty 'total': the calibration result {NO_PREDICTIVE}")
+        raise KincalError(f"uncertainty 'total': the calibration result {no_predictive(result)}")
     form = metric.quadratic_form
     parameters = np.einsum("ab,nab->n", form, extra.parameters)
     model_error = np.einsum("ab,nab->n", form, extra.model_error)

@@ -195,8 +195,10 @@ def covariance_samples(
     local twist right after link ``L_f`` (Eq. 7) and ``e_n`` the measurement noise, so
     ``Cov(r_n) = Σ_f A_f Σ_f A_fᵀ + Σ_e`` (Eq. 12). ``A_f`` (N, d, 6) are the model's own
     Jacobian columns of link f's twist ``<link>.tx..rz`` (the same derivative as a geometric
-    correction ``L_f ← L_f·Exp(δ)``), in the model's residual frame (e.g. the robot base frame
-    for a ball in a socket), unweighted; ``frames``: the chain joints whose frames are perturbed.
+    correction ``L_f ← L_f·Exp(δ)``), unweighted, rotated with the residual into the tip frame
+    where the model's residual is elsewhere (a ball in a socket: the robot base frame), so that
+    the noise Σ_e is a tip-frame covariance as for a pose recording (DESIGN.md §2);
+    ``frames``: the chain joints whose frames are perturbed.
     The REML restriction is the fit Jacobian over the fitted columns (the model's own unknowns
     included), ``X`` (N, d, p), times a basis ``N`` (p, p − c) of the directions the model's
     ``c`` extra equations leave free (e.g. a known socket distance, which pins the scale that
@@ -213,6 +215,11 @@ def covariance_samples(
     _, pinned = fit.model.constraints(chain, fit.params)
     if pinned.shape[0]:
         restriction = restriction @ scipy.linalg.null_space(pinned[:, fitted])
+    rotation = fit.model.tip_frame_rotation(chain, fit.params, rows)
+    if rotation is not None:  # residual, A_f and X alike: the same model, noise in the tip frame
+        residual = np.einsum("nij,nj->ni", rotation, residual)
+        frame_jacobians = np.einsum("nij,nfjk->nfik", rotation, frame_jacobians)
+        restriction = rotation @ restriction
     return ArraySamples(
         residual, np.ascontiguousarray(frame_jacobians), np.ascontiguousarray(restriction)
     )

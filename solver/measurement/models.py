@@ -154,6 +154,14 @@ class MeasurementModel(ABC):
         """Names of the model's own unknowns (E)."""
         return []
 
+    def tip_frame_rotation(
+        self, chain: KinematicChain, params: ModelParameters, rows: MeasurementRows
+    ) -> FloatArray | None:
+        """Per row (N, d, d): the rotation taking this model's residual into the tip frame,
+        where the measurement noise of Eq. (12) acts (DESIGN.md §2), for the covariance
+        calibration; None when the residual is in the tip frame already."""
+        return None
+
     def visible_columns(self, chain: KinematicChain) -> BoolArray:
         """Chain columns (P,) the measurement depends on at all (others stay at the start)."""
         return np.ones(chain_column_count(chain), dtype=bool)
@@ -460,7 +468,15 @@ class FixedPoints(MeasurementModel):
 
     @property
     def supports_covariance(self) -> bool:
-        return True  # Eq. 12 in the robot base frame; the noise is the ball's play in a socket
+        return True  # the noise: the ball's play in its socket
+
+    def tip_frame_rotation(
+        self, chain: KinematicChain, params: ModelParameters, rows: MeasurementRows
+    ) -> FloatArray:
+        """``Rᵀ`` (N, 3, 3): the socket residual ``P_g − p`` (robot base frame) in the tip
+        frame."""
+        pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+        return np.ascontiguousarray(pose[:, :3, :3].transpose(0, 2, 1))
 
     def extra_names(self) -> list[str]:
         return [f"point_{g}.{a}" for g in range(self.n_points) for a in ("x", "y", "z")]

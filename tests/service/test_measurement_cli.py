@@ -53,6 +53,17 @@ def test_panda_ball_in_socket_calibrates_with_defaults(
     assert [f["name"] for f in covariance["frames"]] == result["robot"]["joint_names"]
     assert covariance["solver"]["status"] == "optimal", covariance["solver"]
     assert not any("not estimated" in note for note in measurement["notes"])
+    # kincal predict takes it: the random-effects part (noise in the tip frame, as for poses),
+    # and says why the parameter and model-error parts are missing
+    configs = tmp_path / "configs.csv"
+    joints = np.loadtxt(SOCKETS / "panda_right/world_frame/hole_0.csv", delimiter=",")[:2]
+    header = ",".join(result["robot"]["joint_names"])
+    np.savetxt(configs, joints, delimiter=",", header=header, comments="")
+    predicted = tmp_path / "predicted.csv"
+    code, _, stderr = run(["predict", out, configs, "-o", predicted], capsys, monkeypatch)
+    assert code == 0, stderr
+    assert "not computed for measurement 'point' yet" in stderr
+    assert "cov_55" in predicted.read_text().splitlines()[0]
     before = result["fit"]["before"]["heldout"]["translation_mean_mm"]
     after = result["fit"]["after"]["heldout"]["translation_mean_mm"]
     assert after < before / 5, (before, after)
