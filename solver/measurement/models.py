@@ -704,6 +704,10 @@ class EyeOnHead(MeasurementModel):
         return Position() if self.measure_position_only else FullPose()
 
     @property
+    def supports_covariance(self) -> bool:
+        return True  # as the inner pose/position; frames up to the sensor's body cancel (A = 0)
+
+    @property
     def dim(self) -> int:
         return self.inner.dim
 

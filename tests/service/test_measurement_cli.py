@@ -276,6 +276,17 @@ def test_pose_like_measurements_calibrate_through_the_cli_to_the_noise_floor(
     expected_mm = 1e3 * NOISE * {1: np.sqrt(2 / np.pi), 3: np.sqrt(8 / np.pi)}[translation_rows]
     assert after["translation_mean_mm"] <= 1.2 * expected_mm, (after, expected_mm)
     assert after["translation_mean_mm"] < before["translation_mean_mm"]
+    covariance = result["covariance"]
+    if model_name == "eye-on-head":  # Eq. 12 as for poses; the frames up to the sensor cancel
+        assert covariance is not None
+        frames = {f["name"]: f for f in covariance["frames"]}
+        for hidden in ("panda_joint1", "panda_joint2"):  # not seen at all: std null, why
+            assert frames[hidden]["std"] == [None] * 6, frames[hidden]
+            assert all("no effect" in why for why in frames[hidden]["not_identifiable"])
+        assert any(s is not None for s in frames["panda_joint4"]["std"])
+    else:  # not yet for chosen components: skipped with a note
+        assert covariance is None
+        assert any("not estimated" in note for note in result["measurement"]["notes"])
 
 
 TIAGO_VICON = (
