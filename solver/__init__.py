@@ -17,7 +17,11 @@ Eq. 10 damped (Lev.–Marquardt) :func:`solver.calibration.levenberg_marquardt_i
                                :func:`solver.calibration.fit_deterministic`
 §V-A   2σ outlier rule         :func:`solver.calibration.within_spread`
 Eq. 12 Σ_E(q)                  :func:`solver.covariance.likelihood.ee_covariance_batch` (the one
-                               kernel: likelihoods, predictions, rankings' reference)
+                               kernel: likelihoods, predictions, rankings' reference); its
+                               inverse, log det and Mahalanobis distances for a whole recording:
+                               :func:`solver.small_spd.spd_factors`
+Eq. 12 other measurements      :func:`solver.measurement.fit.covariance_samples` (sockets,
+                               relative base, eye-on-head)
 Eq. 13 moment matching         :func:`solver.covariance.statistics.build_moment_statistics`
 Eq. 14 its sufficient stats    :class:`solver.covariance.statistics.MomentStatistics`,
                                :func:`solver.covariance.objective.moment_objective`
