@@ -136,15 +136,26 @@ def block_samples(
     assert sweep.columns is not None
     residual = pose_residuals(sweep, block.rotation, block.translation).residual
     keep = np.arange(block.n) if used is None else np.flatnonzero(used)
-    index = slice(None) if used is None else keep  # no copy when every sample is used
+
+    def samples_first(columns: FloatArray) -> FloatArray:
+        """``columns`` (..., n) as a C-ordered (n_used, ...) array: the samples moved to the
+        front in one transposing copy, then the used rows gathered (contiguous rows: ~1.5x
+        faster than gathering along the last axis first; these are a pass's largest arrays)."""
+        moved = np.ascontiguousarray(np.moveaxis(columns, -1, 0))
+        return moved[keep] if used is not None else moved
+
     frame_index = [position[c] for c in frame_columns]
-    jacobians = sweep.columns[frame_index][:, :, index]  # (F·6, d, n)
+    first = frame_index[0]
+    if frame_index == list(range(first, first + len(frame_index))):  # a view, no copy
+        jacobians = sweep.columns[first : first + len(frame_index)]  # (F·6, d, n)
+    else:
+        jacobians = sweep.columns[frame_index]
     fit = None
     if fit_columns is not None:
-        fit = np.ascontiguousarray(sweep.columns[: len(fitted), :, index].transpose(2, 1, 0))
+        fit = samples_first(sweep.columns[: len(fitted)].transpose(1, 0, 2))  # (n, d, p)
     return SampleChunk(
-        np.ascontiguousarray(residual[:, index].T),
-        np.ascontiguousarray(jacobians.reshape(len(frames), 6, d, -1).transpose(3, 0, 2, 1)),
+        samples_first(residual),
+        samples_first(jacobians.reshape(len(frames), 6, d, -1).transpose(0, 2, 1, 3)),
         fit,
         (block.first_row + keep).astype(np.intp),
     )
