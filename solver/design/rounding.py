@@ -68,10 +68,12 @@ def round_design(
 
 
 def improvement_tolerance(problem: DesignProblem, value: float) -> float:
-    """The least gain a swap must bring: 1e-9 absolute for D (a log: relative in the
-    geometric-mean eigenvalue), 1e-9 relative for A, I and E (variances and eigenvalues of any
-    units: an I criterion in m² is ~1e-9 itself)."""
-    return 1e-9 if problem.criterion == "D" else 1e-9 * abs(value)
+    """The least gain a swap must bring: for D (a log: a gain is relative in the
+    geometric-mean eigenvalue) 1e-9 · max(1, |φ|); for A, I and E (variances and eigenvalues
+    of any units: an I criterion in m² is ~1e-9 itself) 1e-9 · |φ|."""
+    if problem.criterion == "D":
+        return 1e-9 * max(1.0, abs(value))
+    return 1e-9 * abs(value)
 
 
 def exchange(
