@@ -245,3 +245,16 @@ def test_sequential_design_of_an_unfinished_calibration_is_409(client: TestClien
     body = {"calibration_id": job["id"], "options": SEQUENTIAL}
     problem = assert_problem(client.post("/api/v1/designs", json=body), 409, "queued", "poll")
     assert problem["type"].endswith("not-ready")
+
+
+def test_sequential_design_after_its_dataset_was_deleted_is_409(calibrated: Calibrated) -> None:
+    """The recording is part of a sequential design: once deleted, the problem says so."""
+    client = calibrated.client
+    api = client_api(client)
+    dataset = upload_csv(client, recording_bytes(seed=3)).json()
+    job = api.start_calibration(dataset["id"], {"heldout": False, "covariance": "none"})
+    api.wait(job["id"], poll_s=0.05)
+    assert client.delete(f"/api/v1/datasets/{dataset['id']}").status_code == 204
+    body = {"calibration_id": job["id"], "options": SEQUENTIAL}
+    problem = assert_problem(client.post("/api/v1/designs", json=body), 409, "dataset", "upload")
+    assert problem["type"].endswith("no-dataset")
