@@ -16,6 +16,11 @@ FIGAROH runs only if a separate interpreter with figaroh is given (``--figaroh-p
 never a kincal dependency (``benchmarks/figaroh_posture_driver.py`` runs under it). Usage::
 
     python benchmarks/design.py [--seeds 10] [--poses 15,25,50] [--figaroh-python PATH]
+    python benchmarks/design.py --volumes [--seeds 10] [--candidates 600]
+
+``--volumes``: issue 16's bar (25 designed poses ≤ 50 random) in small sensor volumes at the
+edge of the reach (:func:`sensor_volumes`: a 25 cm tracker box, a camera's view cone), full pose
+and position-only, the calibration's default parameters.
 """
 
 from __future__ import annotations
@@ -37,7 +42,7 @@ from schemas.calibration import CalibrationOptions
 from schemas.dataset import PoseDataset
 from schemas.design import DesignOptions
 from service import pipeline
-from service.design import run_design
+from service.design import run_design, volume_of
 from service.result_json import predict_poses
 from service.robots import RobotDescription, load_robot
 from solver import lie
@@ -172,7 +177,8 @@ class Settings:
 def compare_robot(
     name: str, robot: RobotDescription, settings: Settings
 ) -> dict[tuple[int, str], list[tuple[float, ...]]]:
-    """Per (K, method): per seed (variance ratio, worst σ ratio, held-out mm) to 50 random."""
+    """Per (K, method): per seed (variance ratio, worst σ ratio to 50 random, held-out mm, the
+    design's efficiency against its relaxation bound for kincal's designs)."""
     chain = robot_chain(robot)
     params = ChainParameters.nominal(chain)
     low, high = working_box(chain)
@@ -199,6 +205,7 @@ def compare_robot(
         )
         for k in settings.poses:
             designs: dict[str, FloatArray] = {"random": random_q[:k]}
+            efficiency: dict[str, float] = {}
             for criterion in ("D", "I"):
                 options = DesignOptions(
                     n_poses=k, seed=seed, box=box, criterion=criterion,
@@ -206,29 +213,39 @@ def compare_robot(
                 )  # fmt: skip
                 document = run_design(robot, options, candidates=candidates)
                 designs[f"kincal-{criterion}"] = candidates[[p.candidate for p in document.poses]]
+                efficiency[f"kincal-{criterion}"] = document.criterion.efficiency
             if figaroh is not None:
                 designs["figaroh-socp"] = candidates[figaroh["ranking"][:k]]
                 designs["figaroh-detmax"] = candidates[figaroh["detmax"][str(k)]]
             for method, q in designs.items():
                 variance, worst = yardstick.score(q, gravity_loads(chain, q))
                 error = heldout_error_mm(robot, q, heldout, seed) if settings.calibrate else np.nan
-                rows[(k, method)].append((variance / reference[0], worst / reference[1], error))
+                rows[(k, method)].append(
+                    (
+                        variance / reference[0],
+                        worst / reference[1],
+                        error,
+                        efficiency.get(method, np.nan),
+                    )
+                )
             relaxation = solve_first_order(
                 DesignProblem(
                     (block,), "I", k, task_root=task_root(yardstick.task), distinct=False
                 ),
                 gap_tolerance=1e-6,
             )
-            rows[(k, "bound")].append((-relaxation.upper_bound / reference[0], np.nan, np.nan))
+            rows[(k, "bound")].append(
+                (-relaxation.upper_bound / reference[0], np.nan, np.nan, np.nan)
+            )
         if settings.calibrate:
             q50 = random_q[:REFERENCE_POSES]
             rows[(REFERENCE_POSES, "random")].append(
-                (1.0, 1.0, heldout_error_mm(robot, q50, heldout, seed))
+                (1.0, 1.0, heldout_error_mm(robot, q50, heldout, seed), np.nan)
             )
         if figaroh is not None:
             rows[(len(figaroh["threshold_selection"]), "figaroh-threshold")].append(
                 (*_ratios(yardstick, chain, candidates[figaroh["threshold_selection"]], reference),
-                 np.nan)
+                 np.nan, np.nan)
             )  # fmt: skip
     return rows
 
@@ -242,22 +259,133 @@ def _ratios(
 
 def compare(settings: Settings, names: list[str] | None = None) -> list[str]:
     lines = [
-        "robot    K  method             variance/50rnd  worst-σ/50rnd  held-out mm  (median, "
-        f"{settings.seeds} seeds, {settings.candidates} candidates)"
+        "robot    K  method             variance/50rnd  worst-σ/50rnd  held-out mm  efficiency  "
+        f"(median, {settings.seeds} seeds, {settings.candidates} candidates)"
     ]
     for name, robot in robots().items():
         if names is not None and name not in names:
             continue
         rows = compare_robot(name, robot, settings)
         for (k, method), values in sorted(rows.items(), key=lambda item: item[0]):
-            v, s, e = (_median(column) for column in np.array(values).T)
-            lines.append(f"{name:7} {k:3d}  {method:17}  {v:13.3f}  {s:13.3f}  {e:11.4f}")
+            v, s, e, f = (_median(column) for column in np.array(values).T)
+            lines.append(
+                f"{name:7} {k:3d}  {method:17}  {v:13.3f}  {s:13.3f}  {e:11.4f}  {f:10.4f}"
+            )
     return lines
 
 
 def _median(values: FloatArray) -> float:
     finite = values[np.isfinite(values)]
     return float(np.median(finite)) if finite.size else float("nan")
+
+
+TRACKER_SIDE_M = 0.25
+"""Side of the tracker's measurement box (a cube)."""
+
+
+def sensor_volumes(chain: KinematicChain) -> dict[str, dict[str, object]]:
+    """Small sensor volumes at the edge of the reach, fixed before measuring anything in them:
+    centre c = (0.8 R, 0, z_m), R the 95th percentile of the tip's horizontal distance from
+    the base z axis and z_m the median tip height over 4000 random configurations;
+
+    - ``tracker box``: a 25 cm cube centred at c;
+    - ``camera cone``: a camera 1 m beyond c on +x looking along −x, half-angle 7°, depth
+      0.85–1.15 m (about 25 cm across at c).
+
+    Returned as :class:`DesignOptions` fields (``box`` / ``cone``)."""
+    tips = tip_poses(chain, sample_candidates(chain, 4000, np.random.default_rng(0)))[:, :3, 3]
+    reach = float(np.percentile(np.hypot(tips[:, 0], tips[:, 1]), 95))
+    centre = np.array([0.8 * reach, 0.0, float(np.median(tips[:, 2]))])
+    half = TRACKER_SIDE_M / 2
+    return {
+        "tracker box": {"box": {"low_m": tuple(centre - half), "high_m": tuple(centre + half)}},
+        "camera cone": {
+            "cone": {
+                "apex_m": tuple(centre + np.array([1.0, 0.0, 0.0])),
+                "axis": (-1.0, 0.0, 0.0),
+                "half_angle_deg": 7.0,
+                "near_m": 0.85,
+                "far_m": 1.15,
+            }
+        },
+    }
+
+
+VOLUME_COLUMNS = (
+    "bound", "random25", "random25-σ", "D", "D-σ", "D-eff", "I", "I-σ", "I-eff", "p",
+)  # fmt: skip
+
+
+def compare_volume(
+    robot: RobotDescription,
+    volume_fields: dict[str, object],
+    measurement: str,
+    settings: Settings,
+    k: int = 25,
+) -> list[dict[str, float]]:
+    """Per seed, in one sensor volume with full-pose or position-only measurements and the
+    calibration's default parameters (geometry + compliance): the I relaxation bound (repeats
+    allowed), 25 random poses and kincal's D and I designs of 25 poses, as ratios to 50 random
+    poses from the volume (variance; worst σ), scored on held-out configurations in it."""
+    chain = robot_chain(robot)
+    params = ChainParameters.nominal(chain)
+    noise = NOISE if measurement == "pose" else NOISE[:3]
+    runs = []
+    for seed in range(settings.seeds):
+        options = DesignOptions(
+            n_poses=k,
+            seed=seed,
+            measurement=measurement,
+            **volume_fields,  # type: ignore[arg-type]
+        )
+        volume = volume_of(options)
+        rng = np.random.default_rng([seed, 7])
+        heldout = sample_candidates(chain, settings.heldout, rng, volume)
+        random_q = sample_candidates(chain, REFERENCE_POSES, rng, volume)
+        candidates = sample_candidates(chain, settings.candidates, rng, volume)
+        yardstick = Yardstick.on(chain, params, heldout, gravity_loads(chain, heldout), noise)
+        reference = yardstick.score(random_q, gravity_loads(chain, random_q))
+        problem = DesignProblem(
+            (yardstick.block(candidates, gravity_loads(chain, candidates)),),
+            "I",
+            k,
+            task_root=task_root(yardstick.task),
+            distinct=False,
+        )
+        bound = -solve_first_order(problem, gap_tolerance=1e-6).upper_bound
+        run = {"bound": bound / reference[0], "p": float(yardstick.reference.dimension)}
+        run["random25"], run["random25-σ"] = _ratios(yardstick, chain, random_q[:k], reference)
+        for criterion in ("D", "I"):
+            document = run_design(
+                robot, options.model_copy(update={"criterion": criterion}), candidates=candidates
+            )
+            q = candidates[[p.candidate for p in document.poses]]
+            run[criterion], run[f"{criterion}-σ"] = _ratios(yardstick, chain, q, reference)
+            run[f"{criterion}-eff"] = document.criterion.efficiency
+        runs.append(run)
+    return runs
+
+
+def compare_volumes(settings: Settings, names: list[str] | None = None) -> list[str]:
+    """The table of :func:`compare_volume` (medians over seeds) for every robot, volume of
+    :func:`sensor_volumes` and measurement."""
+    lines = [
+        f"robot    volume       measured  {'  '.join(f'{c:>10}' for c in VOLUME_COLUMNS)}  "
+        f"(median, {settings.seeds} seeds, {settings.candidates} candidates, K = 25, ratios "
+        "to 50 random poses)"
+    ]
+    for name, robot in robots().items():
+        if names is not None and name not in names:
+            continue
+        for volume, fields in sensor_volumes(robot_chain(robot)).items():
+            for measurement in ("pose", "position"):
+                runs = compare_volume(robot, fields, measurement, settings)
+                medians = [float(np.median([r[c] for r in runs])) for c in VOLUME_COLUMNS]
+                lines.append(
+                    f"{name:7}  {volume:11}  {measurement:8}  "
+                    + "  ".join(f"{m:10.3f}" for m in medians)
+                )
+    return lines
 
 
 def timing(n_candidates: int = 10_000, n_poses: int = 30) -> str:
@@ -281,6 +409,11 @@ def main() -> None:
     parser.add_argument("--figaroh-python", default=None)
     parser.add_argument("--no-calibrate", action="store_true", help="skip held-out errors")
     parser.add_argument("--skip-timing", action="store_true")
+    parser.add_argument(
+        "--volumes",
+        action="store_true",
+        help="instead: issue 16's bar in small sensor volumes at the reach's edge",
+    )
     args = parser.parse_args()
     settings = Settings(
         seeds=args.seeds,
@@ -290,6 +423,10 @@ def main() -> None:
         calibrate=not args.no_calibrate,
     )
     names = None if args.robots is None else args.robots.split(",")
+    if args.volumes:
+        for line in compare_volumes(settings, names):
+            print(line, flush=True)
+        return
     for line in compare(settings, names):
         print(line, flush=True)
     if not args.skip_timing:

@@ -208,9 +208,22 @@ class DesignResult(_Model):
 
 class DesignCreate(_Model):
     """``POST /api/v1/designs``: a robot, the options, and optionally the candidates and the
-    task configurations (each a list of joint vectors in chain order, rad)."""
+    task configurations (each a list of joint vectors in chain order, rad). With
+    ``calibration_id`` a sequential design: the next poses given a succeeded calibration and
+    its dataset (``kincal design --result --recording``), whose robot and options it uses."""
 
-    robot: str = Field(description="Built-in robot name or uploaded robot id.")
+    robot: str | None = Field(
+        None,
+        description="Built-in robot name or uploaded robot id (required unless calibration_id "
+        "is given; left out with calibration_id).",
+    )
+    calibration_id: str | None = Field(
+        None,
+        max_length=40,
+        description="Sequential design: a succeeded calibration; its dataset is the recording "
+        "already made, its result the calibrated chain, noise and covariances; the chosen poses "
+        "add to the recording's information.",
+    )
     base_frame: str | None = Field(None, max_length=200)
     tip_frame: str | None = Field(None, max_length=200)
     options: DesignOptions = Field(default_factory=DesignOptions)

@@ -1046,18 +1046,7 @@ def design(
     if result is not None and recording is not None:
         if config is not None:
             raise KincalError("--result carries its calibration options; drop --config")
-        calibration = read_result(result)
-        chain, _ = result_json.result_chain(calibration)
-        configurations = read_configurations(
-            recording, chain.joint_names, other_joint_names=chain.other_joint_names
-        )
-        recorded = designs.Recorded(configurations.joint_positions, calibration)
-        description = RobotDescription(
-            calibration.robot.name,
-            calibration.robot.urdf,
-            calibration.robot.base_frame,
-            calibration.robot.tip_frame,
-        )
+        description, recorded = designs.recorded_design(read_result(result), recording)
     else:
         description = _robot(robot, urdf, base, tip)
     options = _design_options(

@@ -11,12 +11,14 @@ from the result JSON (:func:`service.result_json.result_chain`). The maths is
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.dataset import read_configurations
 from schemas.design import (
     ConeVolume,
     CovarianceDesignReport,
@@ -31,7 +33,7 @@ from schemas.design import (
 from service import pipeline, result_json
 from service.robots import RobotDescription
 from service.storage.files import FileStore
-from service.tasks import RobotRef
+from service.tasks import DatasetRef, RobotRef
 from service.worker import JobContext
 from solver.covariance.identifiability import IdentifiabilityReport, analyse_identifiability
 from solver.covariance.layout import CovarianceLayout
@@ -74,13 +76,26 @@ ROUNDING_RULE = (
 )
 
 
-class DesignJobParams(BaseModel):
-    """``jobs.params`` of a design: the robot resolved when the job was accepted and the
-    request as sent."""
+class RecordedRef(BaseModel):
+    """A sequential design's prior in the service: a succeeded calibration's result file and
+    the dataset it calibrated."""
 
     model_config = ConfigDict(extra="forbid")
 
-    robot: RobotRef
+    calibration_id: str
+    result_path: str
+    dataset: DatasetRef
+
+
+class DesignJobParams(BaseModel):
+    """``jobs.params`` of a design: the robot resolved when the job was accepted (none for a
+    sequential design: the calibration's), the recording and its calibration for a
+    sequential design, and the request as sent."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    robot: RobotRef | None = None
+    recorded: RecordedRef | None = None
     request: DesignCreate
 
 
@@ -108,6 +123,23 @@ class Recorded:
 
     joint_positions: FloatArray
     result: CalibrationResult
+
+
+def recorded_design(
+    result: CalibrationResult, recording: Path, source: str | None = None
+) -> tuple[RobotDescription, Recorded]:
+    """The robot (the result's URDF and chain) and the prior of a sequential design from a
+    calibration result and the recording it was calibrated from (joint columns read; any
+    measured columns ignored). The CLI's ``--result --recording`` and the service's
+    ``calibration_id`` both come here."""
+    chain, _ = result_json.result_chain(result)
+    configurations = read_configurations(
+        recording, chain.joint_names, other_joint_names=chain.other_joint_names, source=source
+    )
+    robot = RobotDescription(
+        result.robot.name, result.robot.urdf, result.robot.base_frame, result.robot.tip_frame
+    )
+    return robot, Recorded(configurations.joint_positions, result)
 
 
 @dataclass(frozen=True)

@@ -18,14 +18,35 @@ def test_design_benchmark_table_on_a_tiny_input() -> None:
     robot = design.robots()["jaco2"]
     rows = design.compare_robot("jaco2", robot, TINY)
     assert {method for _, method in rows} >= {"random", "kincal-D", "kincal-I", "bound"}
-    ((bound, _, _),) = rows[(8, "bound")]
+    ((bound, _, _, _),) = rows[(8, "bound")]
     for method in ("random", "kincal-D", "kincal-I"):
-        ((variance, sigma, error_mm),) = rows[(8, method)]
+        ((variance, sigma, error_mm, efficiency),) = rows[(8, method)]
         assert np.isfinite([variance, sigma, error_mm]).all() and error_mm > 0
         assert variance >= bound * (1 - 1e-9)  # no 8 poses go below the relaxation
+        assert np.isnan(efficiency) if method == "random" else 0.0 < efficiency <= 1.0
     lines = design.compare(TINY, ["jaco2"])
     assert lines[0].startswith("robot") and any("kincal-D" in line for line in lines)
     assert "60 candidates" in design.timing(n_candidates=60, n_poses=8)
+
+
+def test_sensor_volume_table_on_a_tiny_input() -> None:
+    """The --volumes study: volumes at the reach's edge that the sampler fills, every design
+    at or above the bound (repeats allowed, so below every 25-pose set), efficiencies ≤ 1."""
+    robot = design.robots()["jaco2"]
+    chain = design.robot_chain(robot)
+    volumes = design.sensor_volumes(chain)
+    assert set(volumes) == {"tracker box", "camera cone"}
+    box = volumes["tracker box"]["box"]
+    assert np.allclose(np.subtract(box["high_m"], box["low_m"]), 0.25)  # type: ignore[index]
+    settings = design.Settings(seeds=1, candidates=60, heldout=40)
+    for name, fields in volumes.items():
+        (run,) = design.compare_volume(robot, fields, "position", settings)
+        assert set(run) == set(design.VOLUME_COLUMNS), name
+        for method in ("random25", "D", "I"):
+            assert run[method] >= run["bound"] * (1 - 1e-9)
+        assert 0.0 < run["D-eff"] <= 1.0 and 0.0 < run["I-eff"] <= 1.0
+    lines = design.compare_volumes(design.Settings(seeds=1, candidates=60, heldout=40), ["x"])
+    assert lines[0].startswith("robot") and len(lines) == 1
 
 
 def test_figaroh_gets_the_same_kinematics_without_continuous_joints() -> None:

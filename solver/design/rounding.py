@@ -67,6 +67,15 @@ def round_design(
     )
 
 
+def improvement_tolerance(problem: DesignProblem, value: float) -> float:
+    """The least gain a swap must bring: for D (a log: a gain is relative in the
+    geometric-mean eigenvalue) 1e-9 · max(1, |φ|); for A, I and E (variances and eigenvalues
+    of any units: an I criterion in m² is ~1e-9 itself) 1e-9 · |φ|."""
+    if problem.criterion == "D":
+        return 1e-9 * max(1.0, abs(value))
+    return 1e-9 * abs(value)
+
+
 def exchange(
     problem: DesignProblem,
     chosen: IntArray,
@@ -84,7 +93,7 @@ def exchange(
         _, gradient = problem.value_and_gradient(weights)
         gradient[current] = -np.inf
         pool = np.argsort(-gradient, kind="stable")[:pool_size]
-        best = (value + 1e-9 * max(1.0, abs(value)), -1, -1)
+        best = (value + improvement_tolerance(problem, value), -1, -1)
         pool = pool[np.isfinite(gradient[pool])]
         for i in range(current.size):
             others = [int(c) for j, c in enumerate(current) if j != i]

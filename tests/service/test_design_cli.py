@@ -201,6 +201,25 @@ def test_cone_spacing_and_position_only(
     assert (tmp_path / "poses.csv").read_text().startswith("j2s6s200_joint_1")
 
 
+def test_small_tracker_box_at_the_edge_of_the_reach(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A 25 cm tracker box at the reach's edge keeps ~0.3 % of random configurations: the
+    CLI's defaults still fill it (candidates and task), every chosen tip inside it."""
+    from benchmarks.design import sensor_volumes
+
+    box = sensor_volumes(robot_chain("kinova"))["tracker box"]["box"]
+    low, high = np.array(box["low_m"]), np.array(box["high_m"])  # type: ignore[index]
+    document = design_cli(
+        tmp_path, capsys, monkeypatch,
+        "--robot", "kinova", "--poses", "25", "--n-candidates", "600",
+        "--box", ",".join(map(str, [*low, *high])), "--measurement", "position",
+    )  # fmt: skip
+    tips = np.array([p["tip_position_m"] for p in document["poses"]])
+    assert len(tips) == 25 and np.all((tips >= low) & (tips <= high))
+    assert document["task_configurations"] == 500
+
+
 def test_covariance_and_combined_designs(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
