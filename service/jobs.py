@@ -42,7 +42,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.context import ForkServerContext, SpawnContext
 from multiprocessing.process import BaseProcess
-from typing import Any
+from typing import Any, Protocol
 
 from service import logs
 from service.settings import Settings
@@ -52,7 +52,14 @@ from service.storage.files import FileStore
 from service.storage.models import Job
 from service.worker import JobContext, worker_main
 
-__all__ = ["JobContext", "JobKind", "JobRegistry", "JobRunner", "default_registry"]
+__all__ = [
+    "JobContext",
+    "JobKind",
+    "JobRegistry",
+    "JobRunner",
+    "RunnerHandle",
+    "default_registry",
+]
 
 log = logging.getLogger("kincal.jobs")
 
@@ -152,6 +159,25 @@ class _Slot:
 FinishedHook = Callable[[Job], None]
 
 
+class RunnerHandle(Protocol):
+    """What the request side needs of the job runner, whether it runs in the same process
+    (:class:`JobRunner`) or in its own (:class:`service.runner_link.RemoteRunner`)."""
+
+    def start(self) -> None: ...
+
+    def stop(self, grace_s: float | None = None) -> None: ...
+
+    def notify(self) -> None:
+        """A job was queued: look for work now."""
+
+    def cancel(self, job_id: str) -> bool:
+        """Cancellation of ``job_id`` was recorded in the database: stop it if running here."""
+
+    def healthy(self) -> bool: ...
+
+    def workers_alive(self) -> int: ...
+
+
 class JobRunner:
     """Runs queued jobs of registered kinds in ``settings.workers`` worker processes."""
 
@@ -237,6 +263,13 @@ class JobRunner:
     def cancel(self, job_id: str) -> bool:
         """Kill the worker running ``job_id`` here, if any; the slot marks the job cancelled."""
         return any(slot.kill("cancel", job_id) for slot in self._slots)
+
+    def check_cancellations(self) -> int:
+        """Kill the workers of this runner's jobs whose cancellation another process recorded
+        in the database; how many were running here."""
+        with self.database.session() as session:
+            job_ids = repository.cancel_requested_jobs(session, self.runner_id)
+        return sum(self.cancel(job_id) for job_id in job_ids)
 
     def healthy(self) -> bool:
         """All slot threads running and every worker process alive (or being replaced)."""

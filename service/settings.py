@@ -27,6 +27,19 @@ def default_data_dir() -> Path:
     return Path(base) / "kincal"
 
 
+MAX_DEFAULT_WEB_PROCESSES = 4
+
+
+def default_web_processes() -> int:
+    """One request process per CPU this process may run on, at most 4 (each holds ~250 MB of
+    imports; four saturate the job runner's database long before they saturate the CPUs)."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(cpus, MAX_DEFAULT_WEB_PROCESSES))
+
+
 class Settings(BaseSettings):
     """Everything the HTTP service, its job runner and ``kincal keys`` are configured with."""
 
@@ -47,6 +60,13 @@ class Settings(BaseSettings):
         True,
         description="When bound to a loopback address, requests without X-API-Key act as "
         "tenant 'local'. Never applies on any other address.",
+    )
+    web_processes: int = Field(
+        default_factory=default_web_processes,
+        ge=1,
+        le=64,
+        description="Request processes of kincal serve, sharing the port (default: one per "
+        "CPU, at most 4); jobs run in one more process, whatever this is.",
     )
     workers: int = Field(
         1, ge=0, le=64, description="Job worker processes (0: accept jobs but run none here)."
