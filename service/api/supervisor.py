@@ -214,8 +214,8 @@ class Supervisor:
         """Serve until SIGTERM/SIGINT (exit status 0) or a child keeps dying (1)."""
         settings = self.settings
         backend = prepare_database(settings)
-        self.run_dir = run_dir_for(settings.data_dir)
         self.sock = listen(settings.host, settings.port)
+        self.run_dir = run_dir_for(settings.data_dir)
         read_end, write_end = os.pipe()
         os.set_blocking(write_end, False)  # request processes never wait for the runner
         self._wake = (read_end, write_end)

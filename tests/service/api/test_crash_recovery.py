@@ -23,7 +23,7 @@ from tests.service.api.conftest import (
     recording,
     recording_bytes,
 )
-from tests.service.api.live import Server, gone
+from tests.service.api.live import Server, descendants, gone, port_free
 
 # A job long enough (several seconds, most of it in the held-out stage) that the test sees it
 # running on any machine, however fast: 2000 samples, 10 held-out splits (each also estimating
@@ -64,19 +64,27 @@ def test_kill_9_during_a_job_then_restart_completes_it_with_the_same_result(
             assert status["state"] in ("queued", "running") and time.monotonic() < deadline
             time.sleep(0.02)
         workers = first.worker_pids()
+        # request processes, the runner, its fork server and workers
+        everyone = descendants(first.process.pid)
     finally:
         first.stop(signal.SIGKILL)
     assert workers and all(pid != first.process.pid for pid in workers)
+    assert len(everyone) >= 5 and set(workers) <= set(everyone)
+    deadline = time.monotonic() + 10
+    while not all(gone(pid) for pid in everyone):  # children die with the supervisor
+        assert time.monotonic() < deadline, "a process outlived the killed service"
+        time.sleep(0.1)
+    assert port_free(first.port)
 
     database = Database(env["KINCAL_DATABASE_URL"])
     with database.sessions() as session:
         job = session.get(Job, calibration["id"])
         assert job is not None and job.state == "running" and job.attempts == 1
+    time.sleep(1.5)  # 3 heartbeat intervals: nobody relays the job's progress any more
+    with database.sessions() as session:
+        again = session.get(Job, calibration["id"])
+        assert again is not None and again.heartbeat_at == job.heartbeat_at
     database.dispose()
-    deadline = time.monotonic() + 10
-    while not all(gone(pid) for pid in workers):  # orphaned workers notice and exit
-        assert time.monotonic() < deadline, "worker outlived the killed service"
-        time.sleep(0.1)
 
     second = Server(env, tmp_path / "second.log")
     try:
