@@ -31,8 +31,8 @@ MAX_DEFAULT_WEB_PROCESSES = 4
 
 
 def default_web_processes() -> int:
-    """One request process per CPU this process may run on, at most 4 (each holds ~250 MB of
-    imports; four saturate the job runner's database long before they saturate the CPUs)."""
+    """One request process per CPU this process may run on, at most 4 (each takes ~370 MB
+    resident, most of it the imports: numpy, Pinocchio, pandas)."""
     try:
         cpus = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux

@@ -139,6 +139,27 @@ def test_two_request_processes_one_port_one_runner_metrics_summed_jobs_run_once(
             after = _healthz_counted(httpx.get(scrape, headers={"X-API-Key": key}).text)
             assert after - before == sent
 
+        # Several writers at once (both processes; SQLite in WAL mode with a busy timeout):
+        # distinct recordings and one recording four times (one dataset, however it races).
+        def upload(content: bytes) -> httpx.Response:
+            return httpx.post(
+                f"{server.url}/api/v1/datasets",
+                headers={"X-API-Key": key},
+                data={"robot": "ur10"},
+                files={"file": ("recording.csv", content, "text/csv")},
+                timeout=60,
+            )
+
+        same = recording_bytes(n=40, seed=3)
+        contents = [recording_bytes(n=40, seed=seed) for seed in range(4, 10)] + [same] * 4
+        with ThreadPoolExecutor(10) as pool:
+            uploads = list(pool.map(upload, contents))
+        assert all(response.status_code in (200, 201) for response in uploads), [
+            response.text for response in uploads
+        ]
+        ids = [response.json()["id"] for response in uploads]
+        assert len(set(ids[:6])) == 6 and len(set(ids[6:])) == 1 and ids[6] not in ids[:6]
+
         # Jobs accepted concurrently (by both processes) run exactly once each.
         api = KincalClient(server.url, api_key=key)
         csv = tmp_path / "small.csv"
