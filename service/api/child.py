@@ -26,12 +26,13 @@ def main(argv: list[str] | None = None) -> None:
     die_with_parent(args.parent_pid)  # first: before the imports, which take seconds
 
     from service import logs
-    from service.api import server
     from service.settings import Settings
 
     settings = Settings()
     logs.process_name = "runner" if args.role == "runner" else f"web-{args.index}"
-    logs.configure_logging(settings.log_level, settings.log_format)
+    logs.configure_logging(settings.log_level, settings.log_format)  # before the big imports
+    from service.api import server
+
     if args.role == "runner":
         server.run_job_runner(settings, args.run_dir, args.wake_fd)
     else:
