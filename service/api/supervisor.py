@@ -19,7 +19,9 @@
   ``RESTART_WINDOW_S``: the supervisor logs why, stops everything and exits with status 1.
 * SIGTERM or SIGINT: every child gets SIGTERM (request processes finish the requests they have,
   the runner lets running jobs finish for ``shutdown_grace_s`` and re-queues the rest); after
-  ``shutdown_grace_s`` + ``STOP_MARGIN_S`` what is left is killed. Exit status 0.
+  ``shutdown_grace_s`` + ``STOP_MARGIN_S`` what is left is killed. Exit status 0. A second
+  signal kills them at once (the next start re-queues the jobs they ran). Children are in
+  process groups of their own, so Ctrl-C in a terminal reaches the supervisor only.
 """
 
 from __future__ import annotations
@@ -130,11 +132,17 @@ class Supervisor:
         self.settings = settings
         self.children: list[Child] = []
         self._signal: int | None = None
+        self._stopping = False
         self._restarts = _Restarts()
 
     # signals
 
     def _on_signal(self, signum: int, _frame: FrameType | None) -> None:
+        if self._stopping:  # a second Ctrl-C: stop now (running jobs are re-queued at start)
+            log.warning("second signal: killing the service's processes")
+            for child in self.children:
+                with contextlib.suppress(ProcessLookupError):
+                    child.process.kill()
         self._signal = signum
 
     # children
@@ -155,6 +163,7 @@ class Supervisor:
         process = subprocess.Popen(
             [sys.executable, "-m", "service.api.child", role, *args],
             env=env,
+            stdin=subprocess.DEVNULL,
             pass_fds=fds,
             process_group=0,  # Ctrl-C reaches the supervisor only; it decides what stops
         )
@@ -195,6 +204,7 @@ class Supervisor:
         return None
 
     def _stop_children(self) -> None:
+        self._stopping = True
         for child in self.children:
             if child.process.poll() is None:
                 with contextlib.suppress(ProcessLookupError):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -141,3 +142,19 @@ def test_a_child_dies_with_its_parent_even_after_kill_9(tmp_path: Path) -> None:
     while not gone(child):
         assert time.monotonic() < deadline, "the child outlived its parent"
         time.sleep(0.05)
+
+
+def test_a_second_signal_while_stopping_kills_the_children(tmp_path: Path) -> None:
+    boss = Supervisor(Settings(data_dir=tmp_path, web_processes=1))
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    boss.children = [Child(supervisor.WEB, 0, sleeper)]
+    try:
+        boss._on_signal(signal.SIGINT, None)  # the first asks for a graceful stop
+        time.sleep(0.2)
+        assert sleeper.poll() is None and boss._signal == signal.SIGINT
+        boss._stopping = True  # what _stop_children sets
+        boss._on_signal(signal.SIGINT, None)
+        assert sleeper.wait(5) == -signal.SIGKILL
+    finally:
+        sleeper.kill()
+        sleeper.wait()
