@@ -11,6 +11,10 @@ Design
   or replacing a worker takes milliseconds; code in :mod:`service.worker`) and one thread in
   the service that feeds it jobs over a pipe and writes its progress to the database. Workers
   only read input files and write artifact files; they never open the database.
+* **One runner per service.** Under ``kincal serve`` the :class:`JobRunner` lives in a process
+  of its own beside the request processes (:mod:`service.api.supervisor`); they hold a
+  :class:`RunnerHandle` (:class:`service.runner_link.RemoteRunner`) that wakes it and reads its
+  status. An app built by ``create_app()`` alone (tests, the demo) runs its runner inside.
 * **Claiming** is a conditional UPDATE (queued -> running, owner = ``settings.instance_name``),
   exclusive across threads, processes and service instances sharing a database.
 * **Crash recovery.** At start-up, jobs this instance left running are re-queued; running jobs
