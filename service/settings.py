@@ -13,10 +13,11 @@ import socket
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.urdf_outline import DEFAULT_MAX_URDF_JOINTS
+from solver.errors import KincalError
 
 MiB = 1024 * 1024
 
@@ -166,3 +167,19 @@ class Settings(BaseSettings):
     def keyless(self) -> bool:
         """Requests without a key are accepted (as tenant 'local')."""
         return self.allow_keyless_localhost and self.bound_to_loopback
+
+
+def load_settings(**overrides: object) -> Settings:
+    """``Settings(**overrides)`` from the environment; an invalid ``KINCAL_*`` value is a
+    :class:`KincalError` naming the variable, its value and what it must be (not a traceback)."""
+    try:
+        return Settings(**overrides)  # type: ignore[arg-type]
+    except ValidationError as exc:
+        problems = []
+        for error in exc.errors():
+            name = "KINCAL_" + "_".join(str(part) for part in error["loc"]).upper()
+            problems.append(f"{name}={error.get('input')!r}: {error['msg']}")
+        raise KincalError(
+            "invalid setting " + "; ".join(problems) + " (kincal serve --help lists the settings "
+            "with their defaults)"
+        ) from exc

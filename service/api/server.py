@@ -19,7 +19,7 @@ from service.api.metrics import Metrics
 from service.jobs import JobRunner, default_registry
 from service.runner_link import STATUS_INTERVAL_S, RemoteRunner, listen_for_wakes, write_status
 from service.security import create_api_key, revoke_api_key
-from service.settings import Settings
+from service.settings import Settings, load_settings
 from service.storage.db import Database
 from service.storage.files import FileStore
 
@@ -31,7 +31,7 @@ def run_server(host: str | None = None, port: int | None = None) -> int:
     from service.api.supervisor import Supervisor
 
     overrides = {name: value for name, value in (("host", host), ("port", port)) if value}
-    settings = Settings(**overrides)  # type: ignore[arg-type]
+    settings = load_settings(**overrides)
     logs.process_name = "supervisor"
     logs.configure_logging(settings.log_level, settings.log_format)
     return Supervisor(settings).run()
@@ -109,7 +109,7 @@ def freeze_startup_heap() -> None:
 
 def create_key(tenant: str) -> tuple[str, str]:
     """Migrate the configured database if needed, then create a key: (key id, full key)."""
-    database = Database(Settings().resolved_database_url)
+    database = Database(load_settings().resolved_database_url)
     try:
         database.migrate()
         return create_api_key(database, tenant)
@@ -118,7 +118,7 @@ def create_key(tenant: str) -> tuple[str, str]:
 
 
 def revoke_key(key_id: str) -> bool:
-    database = Database(Settings().resolved_database_url)
+    database = Database(load_settings().resolved_database_url)
     try:
         database.migrate()
         return revoke_api_key(database, key_id)

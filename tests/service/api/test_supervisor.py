@@ -158,3 +158,17 @@ def test_a_second_signal_while_stopping_kills_the_children(tmp_path: Path) -> No
     finally:
         sleeper.kill()
         sleeper.wait()
+
+
+def test_an_invalid_setting_is_a_clear_error_and_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("KINCAL_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("KINCAL_WEB_PROCESSES", "0")
+    code, _, err = cli_support.run(["serve"], capsys, monkeypatch)
+    assert code == 2
+    assert (
+        "invalid setting KINCAL_WEB_PROCESSES='0': Input should be greater than or equal to 1"
+        in err
+    )
+    assert "Traceback" not in err and not list(tmp_path.iterdir())  # refused before anything
