@@ -1,7 +1,7 @@
 """``kincal serve`` with two request processes and its job runner in a process of its own
 (issue 18 item 8), as real processes on 127.0.0.1: both request processes answer on the one
 port, /metrics sums them, each job runs once, cancellation and readiness work whichever process
-is asked, a crashed request process is replaced, SIGTERM drains. (kill -9 of the supervisor:
+is asked, a crashed request process or runner is replaced, SIGTERM drains. (kill -9 of the supervisor:
 test_crash_recovery.py.)"""
 
 from __future__ import annotations
@@ -193,7 +193,7 @@ def test_two_request_processes_one_port_one_runner_metrics_summed_jobs_run_once(
     assert code == 0, server.log_path.read_text()[-3000:]
 
 
-def test_a_crashed_request_process_is_replaced_and_sigterm_drains(
+def test_crashed_request_and_runner_processes_are_replaced_and_sigterm_drains(
     env: dict[str, str], tmp_path: Path
 ) -> None:
     server = Server(env, tmp_path / "serve.log")
@@ -220,6 +220,16 @@ def test_a_crashed_request_process_is_replaced_and_sigterm_drains(
         csv.write_bytes(recording_bytes(n=2000))
         dataset = api.upload_dataset(csv, robot="ur10")
         running = _long_job_running(api, dataset["id"])
+        # A crashed runner is replaced too; its workers die with it and its job runs again.
+        runner, workers = _children(server)["runner"], server.worker_pids()
+        os.kill(runner, signal.SIGKILL)
+        _until(lambda: _children(server)["runner"] != runner, 30, "a new runner")
+        _until(lambda: all(gone(pid) for pid in workers), 10, "the old workers to die")
+        _until(
+            lambda: (job := _job(env, running)).state == "running" and job.attempts == 2,
+            60,
+            "the job to run again",
+        )
         queued = str(api.start_calibration(dataset["id"], QUICK)["id"])
         pids = [*_children(server).values(), *server.worker_pids()]
     finally:
@@ -234,6 +244,6 @@ def test_a_crashed_request_process_is_replaced_and_sigterm_drains(
     assert "job handed back to the queue at shutdown" in log
     assert log.rstrip().endswith('"msg": "kincal service stopped", "process": "supervisor"}')
     back = _job(env, running)
-    assert back.state == "queued" and back.attempts == 0
+    assert back.state == "queued" and back.attempts == 1  # the crash counts, the shutdown not
     assert _job(env, queued).state == "queued"
     assert list((tmp_path / "data" / "run").iterdir()) == []
