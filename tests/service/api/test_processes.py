@@ -1,8 +1,8 @@
 """``kincal serve`` with two request processes and its job runner in a process of its own
 (issue 18 item 8), as real processes on 127.0.0.1: both request processes answer on the one
 port, /metrics sums them, each job runs once, cancellation and readiness work whichever process
-is asked, a crashed request process or runner is replaced, SIGTERM drains. (kill -9 of the supervisor:
-test_crash_recovery.py.)"""
+is asked, a crashed request process or runner is replaced, SIGTERM drains. (kill -9 of the
+supervisor: test_crash_recovery.py.)"""
 
 from __future__ import annotations
 
