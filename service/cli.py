@@ -765,7 +765,7 @@ def serve(
     """Run the HTTP service (other settings: the KINCAL_* environment variables below)."""
     from service.api.server import run_server
 
-    run_server(host=host, port=port)
+    raise typer.Exit(run_server(host=host, port=port))
 
 
 keys_app = typer.Typer(no_args_is_help=True, help="API keys of the HTTP service.")

@@ -11,6 +11,10 @@ Design
   or replacing a worker takes milliseconds; code in :mod:`service.worker`) and one thread in
   the service that feeds it jobs over a pipe and writes its progress to the database. Workers
   only read input files and write artifact files; they never open the database.
+* **One runner per service.** Under ``kincal serve`` the :class:`JobRunner` lives in a process
+  of its own beside the request processes (:mod:`service.api.supervisor`); they hold a
+  :class:`RunnerHandle` (:class:`service.runner_link.RemoteRunner`) that wakes it and reads its
+  status. An app built by ``create_app()`` alone (tests, the demo) runs its runner inside.
 * **Claiming** is a conditional UPDATE (queued -> running, owner = ``settings.instance_name``),
   exclusive across threads, processes and service instances sharing a database.
 * **Crash recovery.** At start-up, jobs this instance left running are re-queued; running jobs
@@ -42,7 +46,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.context import ForkServerContext, SpawnContext
 from multiprocessing.process import BaseProcess
-from typing import Any
+from typing import Any, Protocol
 
 from service import logs
 from service.settings import Settings
@@ -52,7 +56,14 @@ from service.storage.files import FileStore
 from service.storage.models import Job
 from service.worker import JobContext, worker_main
 
-__all__ = ["JobContext", "JobKind", "JobRegistry", "JobRunner", "default_registry"]
+__all__ = [
+    "JobContext",
+    "JobKind",
+    "JobRegistry",
+    "JobRunner",
+    "RunnerHandle",
+    "default_registry",
+]
 
 log = logging.getLogger("kincal.jobs")
 
@@ -152,6 +163,25 @@ class _Slot:
 FinishedHook = Callable[[Job], None]
 
 
+class RunnerHandle(Protocol):
+    """What the request side needs of the job runner, whether it runs in the same process
+    (:class:`JobRunner`) or in its own (:class:`service.runner_link.RemoteRunner`)."""
+
+    def start(self) -> None: ...
+
+    def stop(self, grace_s: float | None = None) -> None: ...
+
+    def notify(self) -> None:
+        """A job was queued: look for work now."""
+
+    def cancel(self, job_id: str) -> bool:
+        """Cancellation of ``job_id`` was recorded in the database: stop it if running here."""
+
+    def healthy(self) -> bool: ...
+
+    def workers_alive(self) -> int: ...
+
+
 class JobRunner:
     """Runs queued jobs of registered kinds in ``settings.workers`` worker processes."""
 
@@ -237,6 +267,13 @@ class JobRunner:
     def cancel(self, job_id: str) -> bool:
         """Kill the worker running ``job_id`` here, if any; the slot marks the job cancelled."""
         return any(slot.kill("cancel", job_id) for slot in self._slots)
+
+    def check_cancellations(self) -> int:
+        """Kill the workers of this runner's jobs whose cancellation another process recorded
+        in the database; how many were running here."""
+        with self.database.session() as session:
+            job_ids = repository.cancel_requested_jobs(session, self.runner_id)
+        return sum(self.cancel(job_id) for job_id in job_ids)
 
     def healthy(self) -> bool:
         """All slot threads running and every worker process alive (or being replaced)."""

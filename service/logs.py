@@ -18,6 +18,9 @@ from typing import Any
 
 request_id: contextvars.ContextVar[str | None] = contextvars.ContextVar("request_id", default=None)
 job_id: contextvars.ContextVar[str | None] = contextvars.ContextVar("job_id", default=None)
+process_name: str | None = None
+"""Which process of ``kincal serve`` writes (``supervisor``, ``web-0``, ``runner``): several
+write to the same log. Set once at the process's start; None elsewhere (CLI, tests)."""
 
 # LogRecord attributes that are not "extra" fields.
 _STANDARD = set(logging.makeLogRecord({}).__dict__) | {
@@ -38,6 +41,8 @@ class JsonFormatter(logging.Formatter):
             "logger": record.name,
             "msg": record.getMessage(),
         }
+        if process_name is not None:
+            entry["process"] = process_name
         for name, var in (("request_id", request_id), ("job_id", job_id)):
             value = getattr(record, name, None) or var.get()
             if value:
@@ -52,6 +57,8 @@ class ContextTextFormatter(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
         line = super().format(record)
         ids = [f"{n}={v.get()}" for n, v in (("request", request_id), ("job", job_id)) if v.get()]
+        if process_name is not None:
+            ids.insert(0, f"process={process_name}")
         return f"{line} [{' '.join(ids)}]" if ids else line
 
 

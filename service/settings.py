@@ -13,10 +13,11 @@ import socket
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.urdf_outline import DEFAULT_MAX_URDF_JOINTS
+from solver.errors import KincalError
 
 MiB = 1024 * 1024
 
@@ -25,6 +26,19 @@ def default_data_dir() -> Path:
     """``$XDG_DATA_HOME/kincal`` (``~/.local/share/kincal``)."""
     base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
     return Path(base) / "kincal"
+
+
+MAX_DEFAULT_WEB_PROCESSES = 4
+
+
+def default_web_processes() -> int:
+    """One request process per CPU this process may run on, at most 4 (each takes ~370 MB
+    resident, most of it the imports: numpy, Pinocchio, pandas)."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(cpus, MAX_DEFAULT_WEB_PROCESSES))
 
 
 class Settings(BaseSettings):
@@ -47,6 +61,13 @@ class Settings(BaseSettings):
         True,
         description="When bound to a loopback address, requests without X-API-Key act as "
         "tenant 'local'. Never applies on any other address.",
+    )
+    web_processes: int = Field(
+        default_factory=default_web_processes,
+        ge=1,
+        le=64,
+        description="Request processes of kincal serve, sharing the port (default: one per "
+        "CPU, at most 4); jobs run in one more process, whatever this is.",
     )
     workers: int = Field(
         1, ge=0, le=64, description="Job worker processes (0: accept jobs but run none here)."
@@ -146,3 +167,19 @@ class Settings(BaseSettings):
     def keyless(self) -> bool:
         """Requests without a key are accepted (as tenant 'local')."""
         return self.allow_keyless_localhost and self.bound_to_loopback
+
+
+def load_settings(**overrides: object) -> Settings:
+    """``Settings(**overrides)`` from the environment; an invalid ``KINCAL_*`` value is a
+    :class:`KincalError` naming the variable, its value and what it must be (not a traceback)."""
+    try:
+        return Settings(**overrides)  # type: ignore[arg-type]
+    except ValidationError as exc:
+        problems = []
+        for error in exc.errors():
+            name = "KINCAL_" + "_".join(str(part) for part in error["loc"]).upper()
+            problems.append(f"{name}={error.get('input')!r}: {error['msg']}")
+        raise KincalError(
+            "invalid setting " + "; ".join(problems) + " (kincal serve --help lists the settings "
+            "with their defaults)"
+        ) from exc

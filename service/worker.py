@@ -14,7 +14,6 @@ import logging
 import multiprocessing.connection
 import os
 import signal
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from service import logs
+from service.lifeline import die_with_parent
 from service.storage.files import FileStore, tenant_path
 from solver.errors import KincalError
 
@@ -62,26 +62,6 @@ def _resolve(target: str) -> Callable[[JobContext], None]:
     return getattr(importlib.import_module(module), function)  # type: ignore[no-any-return]
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def _watch_parent(service_pid: int) -> None:
-    """Exit when the service is gone (kill -9 leaves it no chance to tell us): our parent (the
-    service, or its fork server) changes, or the service's process disappears."""
-    parent = os.getppid()
-    while True:
-        if os.getppid() != parent or not _alive(service_pid):
-            os._exit(3)
-        time.sleep(0.5)
-
-
 def worker_main(
     conn: multiprocessing.connection.Connection,
     service_pid: int,
@@ -95,7 +75,9 @@ def worker_main(
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the service decides what stops
     with contextlib.suppress(OSError):  # lowering one's own priority is always allowed
         os.nice(WORKER_NICENESS)
-    threading.Thread(target=_watch_parent, args=(service_pid,), daemon=True).start()
+    # kill -9 of the service leaves it no chance to tell us: exit when our parent (the
+    # service, or its fork server) changes or the service's process disappears.
+    die_with_parent(also_alive=service_pid)
     for module in preload:
         importlib.import_module(module)
     files = FileStore(Path(data_dir))

@@ -3,7 +3,8 @@
 ``create_app(settings)`` builds the app (it only creates the data folder); starting it (the
 ASGI lifespan) migrates the database, creates tenant 'local' in keyless mode and starts the
 job runner; stopping it lets running jobs finish for ``shutdown_grace_s`` and re-queues the
-rest.
+rest. Under ``kincal serve`` (:mod:`service.api.supervisor`) the runner is a process of its
+own: each request process gets ``runner=RemoteRunner(...)``, which starts and stops nothing.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from service.api.metrics import Metrics
 from service.api.middleware import BodyLimits, RequestContextMiddleware
 from service.api.problems import install_problem_handlers
 from service.api.results import ResultCache
-from service.jobs import JobRegistry, JobRunner, default_registry
+from service.jobs import JobRegistry, JobRunner, RunnerHandle, default_registry
 from service.result_json import kincal_version
 from service.security import LOCAL_TENANT, KeyVerifier, Principal
 from service.settings import Settings
@@ -47,17 +48,23 @@ service is bound to 127.0.0.1).
 """
 
 
-def build_state(settings: Settings, registry: JobRegistry) -> ServiceState:
+def build_state(
+    settings: Settings, registry: JobRegistry, runner: RunnerHandle | None = None
+) -> ServiceState:
+    """The shared state of the routes; the job runner runs in this process unless ``runner``
+    is given (a handle on a runner elsewhere)."""
     database = Database(settings.resolved_database_url)
     files = FileStore(settings.data_dir)
-    metrics = Metrics(database, registry.names, lambda: runner.workers_alive())
-    runner = JobRunner(settings, database, files, registry, on_finished=metrics.observe_job)
+    metrics = Metrics(database, registry.names, lambda: handle.workers_alive())
+    handle = runner or JobRunner(
+        settings, database, files, registry, on_finished=metrics.observe_job
+    )
     return ServiceState(
         settings=settings,
         database=database,
         files=files,
         registry=registry,
-        runner=runner,
+        runner=handle,
         verifier=KeyVerifier(database, settings.api_key_cache_s),
         metrics=metrics,
         results=ResultCache(files, settings.result_cache_size),
@@ -66,11 +73,15 @@ def build_state(settings: Settings, registry: JobRegistry) -> ServiceState:
 
 def _start(state: ServiceState) -> None:
     settings = state.settings
-    state.database.migrate()
+    state.database.migrate()  # a no-op under kincal serve: its supervisor migrated already
     if settings.keyless:
         with state.database.session() as session:
             tenant = repository.ensure_tenant(session, LOCAL_TENANT)
             state.local_tenant = Principal(tenant.id, tenant.name, None)
+    state.runner.start()
+    if not isinstance(state.runner, JobRunner):
+        return  # a request process of kincal serve: its supervisor tells the story
+    if settings.keyless:
         log.warning(
             "keyless mode: bound to loopback address %s, requests without X-API-Key act as "
             "tenant '%s' (set KINCAL_ALLOW_KEYLESS_LOCALHOST=false to require keys)",
@@ -79,7 +90,6 @@ def _start(state: ServiceState) -> None:
         )
     else:
         log.info("API keys required (bound to %s)", settings.host)
-    state.runner.start()
     log.info(
         "kincal service started",
         extra={
@@ -92,12 +102,16 @@ def _start(state: ServiceState) -> None:
 
 
 def _stop(state: ServiceState) -> None:
-    log.info(
-        "shutting down: waiting up to %.0f s for running jobs", state.settings.shutdown_grace_s
-    )
+    embedded = isinstance(state.runner, JobRunner)
+    if embedded:
+        log.info(
+            "shutting down: waiting up to %.0f s for running jobs",
+            state.settings.shutdown_grace_s,
+        )
     state.runner.stop()
     state.database.dispose()
-    log.info("kincal service stopped")
+    if embedded:
+        log.info("kincal service stopped")
 
 
 DOCS_ASSETS = "/docs-assets"
@@ -132,10 +146,16 @@ def install_docs(app: FastAPI) -> None:
         )
 
 
-def create_app(settings: Settings | None = None, *, registry: JobRegistry | None = None) -> FastAPI:
-    """The kincal HTTP service for ``settings`` (default: from the environment)."""
+def create_app(
+    settings: Settings | None = None,
+    *,
+    registry: JobRegistry | None = None,
+    runner: RunnerHandle | None = None,
+) -> FastAPI:
+    """The kincal HTTP service for ``settings`` (default: from the environment); jobs run in
+    this process unless ``runner`` is a handle on a runner elsewhere."""
     settings = settings or Settings()
-    state = build_state(settings, registry or default_registry())
+    state = build_state(settings, registry or default_registry(), runner)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

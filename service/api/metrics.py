@@ -1,4 +1,12 @@
-"""Prometheus metrics of one app instance (own registry, so several apps can coexist in tests).
+"""Prometheus metrics of the service (own registry per app, so several apps coexist in tests).
+
+Under ``kincal serve`` several request processes and the job runner each count their own
+requests and jobs: ``prometheus_client``'s multiprocess mode (``PROMETHEUS_MULTIPROC_DIR``, a
+directory per run of the supervisor, emptied at its start) keeps the counters and histograms in
+per-process files, and every scrape, whichever process answers it, sums them over all
+processes (a restarted process's counts are kept, so totals never go down). The gauges
+(``kincal_jobs``, ``kincal_workers_alive``) are not per process: they are read at scrape time
+from the database and the runner's status, so they are neither summed nor duplicated.
 
 * ``kincal_http_requests_total{method,route,status}`` and
   ``kincal_http_request_duration_seconds{method,route}``: route is the path template
@@ -10,6 +18,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterator
 
 from prometheus_client import (
@@ -18,6 +27,8 @@ from prometheus_client import (
     Histogram,
     disable_created_metrics,
     generate_latest,
+    multiprocess,
+    values,
 )
 from prometheus_client.core import GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
@@ -55,11 +66,23 @@ class _JobCollector(Collector):
         yield workers
 
 
+def multiprocess_dir() -> str | None:
+    """The directory of per-process metric files if this process records in multiprocess mode
+    (decided by ``prometheus_client`` when it is imported: ``PROMETHEUS_MULTIPROC_DIR``)."""
+    if values.ValueClass is values.MutexValue:
+        return None
+    return os.environ.get("PROMETHEUS_MULTIPROC_DIR")
+
+
 class Metrics:
     def __init__(
         self, database: Database, kinds: Callable[[], list[str]], alive: Callable[[], int]
     ) -> None:
-        self.registry = CollectorRegistry()
+        self._jobs = _JobCollector(database, kinds, alive)
+        self._multiprocess_dir = multiprocess_dir()
+        # In multiprocess mode the values live in files; registering them too would count this
+        # process twice in a scrape.
+        self.registry = CollectorRegistry() if self._multiprocess_dir is None else None
         self.requests = Counter(
             "kincal_http_requests",
             "HTTP requests by route template and status.",
@@ -80,7 +103,8 @@ class Metrics:
             buckets=JOB_BUCKETS_S,
             registry=self.registry,
         )
-        self.registry.register(_JobCollector(database, kinds, alive))
+        if self.registry is not None:
+            self.registry.register(self._jobs)
 
     def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
         self.requests.labels(method, route, str(status)).inc()
@@ -92,4 +116,9 @@ class Metrics:
             self.job_duration.labels(job.kind, job.state).observe(max(seconds, 0.0))
 
     def render(self) -> bytes:
-        return generate_latest(self.registry)
+        if self.registry is not None:
+            return generate_latest(self.registry)
+        registry = CollectorRegistry()
+        multiprocess.MultiProcessCollector(registry, self._multiprocess_dir)
+        registry.register(self._jobs)
+        return generate_latest(registry)

@@ -1,34 +1,100 @@
-"""Running the service: ``kincal serve`` (uvicorn) and ``kincal keys`` (API key admin)."""
+"""Running the service: ``kincal serve`` (a supervisor, request processes and a job runner;
+:mod:`service.api.supervisor`) and ``kincal keys`` (API key admin)."""
 
 from __future__ import annotations
 
 import gc
+import logging
+import signal
+import socket
+import time
+from pathlib import Path
+from types import FrameType
 
 import uvicorn
 
+from service import logs
 from service.api.app import create_app
-from service.logs import configure_logging
+from service.api.metrics import Metrics
+from service.jobs import JobRunner, default_registry
+from service.runner_link import STATUS_INTERVAL_S, RemoteRunner, listen_for_wakes, write_status
 from service.security import create_api_key, revoke_api_key
-from service.settings import Settings
+from service.settings import Settings, load_settings
 from service.storage.db import Database
+from service.storage.files import FileStore
+
+log = logging.getLogger("kincal.jobs")
 
 
-def run_server(host: str | None = None, port: int | None = None) -> None:
-    """Serve until SIGINT/SIGTERM; then finish or re-queue running jobs and exit."""
+def run_server(host: str | None = None, port: int | None = None) -> int:
+    """Serve until SIGINT/SIGTERM; then finish or re-queue running jobs. The exit status."""
+    from service.api.supervisor import Supervisor
+
     overrides = {name: value for name, value in (("host", host), ("port", port)) if value}
-    settings = Settings(**overrides)  # type: ignore[arg-type]
-    configure_logging(settings.log_level, settings.log_format)
-    app = create_app(settings)
+    settings = load_settings(**overrides)
+    logs.process_name = "supervisor"
+    logs.configure_logging(settings.log_level, settings.log_format)
+    return Supervisor(settings).run()
+
+
+def serve_requests(settings: Settings, listen_fd: int, run_dir: Path, wake_fd: int) -> None:
+    """A request process: the app on the inherited listening socket, jobs left to the runner
+    process (reached through ``run_dir`` and the wake pipe). Returns after SIGTERM/SIGINT once
+    the requests in flight are answered."""
+    sock = socket.socket(fileno=listen_fd)
+    app = create_app(settings, runner=RemoteRunner(run_dir, wake_fd, workers=settings.workers))
     freeze_startup_heap()
-    uvicorn.run(
+    config = uvicorn.Config(
         app,
-        host=settings.host,
-        port=settings.port,
         log_config=None,
         access_log=False,  # the request middleware writes one structured line per request
         timeout_graceful_shutdown=int(settings.shutdown_grace_s) + 5,
         server_header=False,
     )
+    uvicorn.Server(config).run(sockets=[sock])
+
+
+def run_job_runner(settings: Settings, run_dir: Path, wake_fd: int) -> None:
+    """The job-runner process: claims jobs and runs them in ``settings.workers`` worker
+    processes; woken by the request processes, writes its status for their readiness. On
+    SIGTERM/SIGINT running jobs get ``shutdown_grace_s`` to finish, the rest are re-queued."""
+    stop: list[int] = []
+
+    def on_signal(signum: int, _frame: FrameType | None) -> None:
+        stop.append(signum)
+
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, on_signal)
+    database = Database(settings.resolved_database_url)
+    registry = default_registry()
+    metrics = Metrics(database, registry.names, lambda: runner.workers_alive())
+    runner = JobRunner(
+        settings, database, FileStore(settings.data_dir), registry, on_finished=metrics.observe_job
+    )
+    runner.start()
+
+    def wake() -> None:
+        runner.notify()
+        runner.check_cancellations()
+
+    listen_for_wakes(wake_fd, wake)
+    next_check = 0.0
+    while not stop:
+        if time.monotonic() >= next_check:
+            write_status(run_dir, runner.healthy(), runner.workers_alive())
+            try:  # in case a wake-up was missed (e.g. sent while this process restarted)
+                runner.check_cancellations()
+            except Exception as exc:
+                log.warning("could not check for cancelled jobs: %s", exc)
+            next_check = time.monotonic() + STATUS_INTERVAL_S
+        time.sleep(0.1)
+    write_status(run_dir, False, runner.workers_alive())
+    log.info(
+        "job runner stopping: waiting up to %.0f s for running jobs", settings.shutdown_grace_s
+    )
+    runner.stop()
+    database.dispose()
+    log.info("job runner stopped")
 
 
 def freeze_startup_heap() -> None:
@@ -43,7 +109,7 @@ def freeze_startup_heap() -> None:
 
 def create_key(tenant: str) -> tuple[str, str]:
     """Migrate the configured database if needed, then create a key: (key id, full key)."""
-    database = Database(Settings().resolved_database_url)
+    database = Database(load_settings().resolved_database_url)
     try:
         database.migrate()
         return create_api_key(database, tenant)
@@ -52,7 +118,7 @@ def create_key(tenant: str) -> tuple[str, str]:
 
 
 def revoke_key(key_id: str) -> bool:
-    database = Database(Settings().resolved_database_url)
+    database = Database(load_settings().resolved_database_url)
     try:
         database.migrate()
         return revoke_api_key(database, key_id)

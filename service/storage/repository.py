@@ -173,6 +173,16 @@ def request_cancel(session: Session, job_id: str) -> None:
     )
 
 
+def cancel_requested_jobs(session: Session, runner_id: str) -> list[str]:
+    """Running jobs of ``runner_id`` whose cancellation was requested (by any process)."""
+    ids = session.scalars(
+        select(Job.id).where(
+            Job.state == RUNNING, Job.runner_id == runner_id, Job.cancel_requested.is_(True)
+        )
+    )
+    return list(ids)
+
+
 def count_jobs_by_state(session: Session) -> dict[tuple[str, str], int]:
     rows = session.execute(select(Job.kind, Job.state, func.count()).group_by(Job.kind, Job.state))
     return {(kind, state): int(n) for kind, state, n in rows}

@@ -4,12 +4,8 @@
 
 from __future__ import annotations
 
-import json
 import os
 import signal
-import socket
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,72 +23,13 @@ from tests.service.api.conftest import (
     recording,
     recording_bytes,
 )
+from tests.service.api.live import Server, descendants, gone, port_free
 
 # A job long enough (several seconds, most of it in the held-out stage) that the test sees it
 # running on any machine, however fast: 2000 samples, 10 held-out splits (each also estimating
 # the covariances of its predictive coverage, 4 times, since issue 13).
 N_SAMPLES = 2000
 OPTIONS = CalibrationOptions(seeds=list(range(1, 11)))
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
-
-
-class Server:
-    """``kincal serve`` in its own process group, logging JSON lines to a file."""
-
-    def __init__(self, env: dict[str, str], log_path: Path) -> None:
-        self.port = _free_port()
-        self.log_path = log_path
-        self._log = log_path.open("ab")
-        command = [sys.executable, "-c", "from service.cli import main; main()", "serve"]
-        self.process = subprocess.Popen(
-            [*command, "--port", str(self.port)],
-            env=env,
-            stdout=self._log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
-        self.url = f"http://127.0.0.1:{self.port}"
-
-    def wait_live(self, timeout_s: float = 60.0) -> None:
-        import httpx
-
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            assert self.process.poll() is None, self.log_path.read_text()
-            try:
-                if httpx.get(f"{self.url}/healthz", timeout=1.0).status_code == 200:
-                    return
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
-        raise AssertionError(f"server not ready:\n{self.log_path.read_text()}")
-
-    def worker_pids(self) -> list[int]:
-        pids = []
-        for line in self.log_path.read_text().splitlines():
-            if line.startswith("{") and '"worker process started"' in line:
-                pids.append(int(json.loads(line)["pid"]))
-        return pids
-
-    def stop(self, sig: int = signal.SIGTERM) -> int:
-        if self.process.poll() is None:
-            self.process.send_signal(sig)
-        code = self.process.wait(timeout=30)
-        self._log.close()
-        return code
-
-
-def _gone(pid: int) -> bool:
-    try:
-        status = Path(f"/proc/{pid}/status").read_text()
-    except FileNotFoundError:
-        return True
-    return "\nState:\tZ" in status
 
 
 @pytest.fixture
@@ -127,19 +64,27 @@ def test_kill_9_during_a_job_then_restart_completes_it_with_the_same_result(
             assert status["state"] in ("queued", "running") and time.monotonic() < deadline
             time.sleep(0.02)
         workers = first.worker_pids()
+        # request processes, the runner, its fork server and workers
+        everyone = descendants(first.process.pid)
     finally:
         first.stop(signal.SIGKILL)
     assert workers and all(pid != first.process.pid for pid in workers)
+    assert len(everyone) >= 5 and set(workers) <= set(everyone)
+    deadline = time.monotonic() + 10
+    while not all(gone(pid) for pid in everyone):  # children die with the supervisor
+        assert time.monotonic() < deadline, "a process outlived the killed service"
+        time.sleep(0.1)
+    assert port_free(first.port)
 
     database = Database(env["KINCAL_DATABASE_URL"])
     with database.sessions() as session:
         job = session.get(Job, calibration["id"])
         assert job is not None and job.state == "running" and job.attempts == 1
+    time.sleep(1.5)  # 3 heartbeat intervals: nobody relays the job's progress any more
+    with database.sessions() as session:
+        again = session.get(Job, calibration["id"])
+        assert again is not None and again.heartbeat_at == job.heartbeat_at
     database.dispose()
-    deadline = time.monotonic() + 10
-    while not all(_gone(pid) for pid in workers):  # orphaned workers notice and exit
-        assert time.monotonic() < deadline, "worker outlived the killed service"
-        time.sleep(0.1)
 
     second = Server(env, tmp_path / "second.log")
     try:
