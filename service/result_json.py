@@ -5,9 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
-import functools
 from dataclasses import dataclass
-from importlib import metadata
 from typing import Any, Protocol
 
 import numpy as np
@@ -44,6 +42,7 @@ from schemas.calibration import (
 from schemas.dataset import PoseDataset
 from service import corrections
 from service.robots import RobotDescription
+from service.version import kincal_version
 from solver import lie
 from solver.covariance.estimate import CovarianceEstimate, FrameCovariance
 from solver.evaluation import SplitError
@@ -73,14 +72,6 @@ class PreparedData:
     measured_pose: FloatArray
     loads_nm: FloatArray
     position_only: bool
-
-
-@functools.cache  # reading package metadata costs milliseconds; rankings stamp every answer
-def kincal_version() -> str:
-    try:
-        return metadata.version("kincal")
-    except metadata.PackageNotFoundError:
-        return "0+unknown"
 
 
 def chain_for(robot: RobotDescription, options: CalibrationOptions) -> KinematicChain:

@@ -41,11 +41,11 @@ from pathlib import Path
 from types import FrameType
 
 from service.lifeline import pid_alive
-from service.result_json import kincal_version
 from service.security import LOCAL_TENANT
 from service.settings import Settings
 from service.storage import repository
 from service.storage.db import Database
+from service.version import kincal_version
 from solver.errors import KincalError
 
 log = logging.getLogger("kincal.service")

@@ -172,3 +172,18 @@ def test_an_invalid_setting_is_a_clear_error_and_exit_2(
         in err
     )
     assert "Traceback" not in err and not list(tmp_path.iterdir())  # refused before anything
+
+
+def test_the_supervisor_imports_no_web_or_solver_code() -> None:
+    """It only starts and watches its children: importing it must not pull in the web app,
+    numpy or Pinocchio (each child would otherwise be forked from a 350 MB parent and the
+    start take seconds longer)."""
+    heavy = ("fastapi", "numpy", "pinocchio", "service.api.app", "solver.stream")
+    code = (
+        "import sys; import service.api.supervisor; "
+        f"print([m for m in {heavy!r} if m in sys.modules])"
+    )
+    loaded = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    assert loaded == "[]", loaded
