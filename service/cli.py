@@ -801,7 +801,7 @@ def _executor(kind: str | None, dask: str | None, workers: int | None) -> Execut
     """The executor asked for (None: the calibration chooses): ``--dask ADDRESS`` (or
     KINCAL_DASK_ADDRESS with ``--executor dask``) reaches a running cluster; ``dask`` alone
     starts a local one; ``--workers`` alone means local processes."""
-    from service.settings import Settings
+    from service.settings import dask_address, load_settings
     from solver.executors import EXECUTOR_KINDS, make_executor
 
     if kind is None and dask is None and workers is None:
@@ -811,7 +811,12 @@ def _executor(kind: str | None, dask: str | None, workers: int | None) -> Execut
         raise KincalError(f"--executor {name!r}: choose one of {', '.join(EXECUTOR_KINDS)}")
     if dask is not None and name != "dask":
         raise KincalError(f"--dask needs --executor dask (got --executor {name})")
-    address = dask or (Settings().dask_address if name == "dask" else None)
+    if dask is not None:
+        try:
+            dask = dask_address(dask)
+        except ValueError as exc:
+            raise KincalError(f"--dask: {exc}") from None
+    address = dask or (load_settings().dask_address if name == "dask" else None)
     return make_executor(name, n_workers=workers, dask_address=address)  # type: ignore[arg-type]
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ipaddress
 import os
+import re
 import socket
 from pathlib import Path
 from typing import Literal
@@ -145,6 +146,11 @@ class Settings(BaseSettings):
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     log_format: Literal["json", "text"] = "json"
 
+    @field_validator("dask_address")
+    @classmethod
+    def _dask_address(cls, value: str | None) -> str | None:
+        return dask_address(value) if value else None  # empty: not set
+
     @field_validator("data_dir")
     @classmethod
     def _absolute(cls, value: Path) -> Path:
@@ -167,6 +173,21 @@ class Settings(BaseSettings):
     def keyless(self) -> bool:
         """Requests without a key are accepted (as tenant 'local')."""
         return self.allow_keyless_localhost and self.bound_to_loopback
+
+
+DASK_ADDRESS = re.compile(r"^(?:[a-z][a-z0-9+.-]*://)?(?:\[[0-9a-fA-F:.]+\]|[^\s/:\[\]]+):\d{1,5}$")
+"""A Dask scheduler address: optional scheme (tcp://, tls://, ucx://), host or [IPv6], port."""
+
+
+def dask_address(value: str) -> str:
+    """``value`` if it is a scheduler address (``tcp://host:8786``), else a ValueError naming
+    the form (Dask's own message for a missing port is a traceback-only ValueError)."""
+    if not DASK_ADDRESS.match(value.strip()):
+        raise ValueError(
+            f"{value!r} is not a Dask scheduler address; give scheme://host:port, e.g. "
+            "tcp://127.0.0.1:8786"
+        )
+    return value.strip()
 
 
 def load_settings(**overrides: object) -> Settings:

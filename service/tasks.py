@@ -24,7 +24,7 @@ from schemas.discovery import DiscoveryOptions, FindingsResult
 from service import discovery, pipeline
 from service.discovery_html import render_discovery_report
 from service.robots import RobotDescription, load_robot
-from service.settings import Settings
+from service.settings import load_settings
 from service.storage.files import FileStore
 from service.worker import JobContext
 from solver.executors import DaskExecutor, Executor, InProcessExecutor
@@ -138,7 +138,7 @@ def calibration_job(ctx: JobContext) -> None:
             ctx.files.read(params.discovery.findings_path)
         )
     setup = pipeline.check_calibration(robot, params.options, findings)
-    address = Settings().dask_address
+    address = load_settings().dask_address
     if address:
         ctx.progress("connecting", 0.02)
     executor: Executor = DaskExecutor(address) if address else InProcessExecutor()

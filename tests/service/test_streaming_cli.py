@@ -123,6 +123,36 @@ def test_dask_address_with_another_executor_is_one_clear_error(
     assert code == 2 and err.count("\n") == 1 and "--dask needs --executor dask" in err
 
 
+@pytest.mark.parametrize(
+    ("flags", "environment", "message"),
+    [
+        (["--dask", "nohost"], {}, "--dask: 'nohost' is not a Dask scheduler address"),
+        (
+            ["--executor", "dask"],
+            {"KINCAL_DASK_ADDRESS": "localhost"},
+            "KINCAL_DASK_ADDRESS='localhost'",
+        ),
+        (["--executor", "dask"], {"KINCAL_WORKERS": "many"}, "KINCAL_WORKERS='many'"),
+    ],
+)
+def test_bad_dask_address_or_setting_is_one_clear_error(
+    flags: list[str],
+    environment: dict[str, str],
+    message: str,
+    recording: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A scheduler address without a port was Dask's ValueError ("internal error", exit 1);
+    an invalid KINCAL_* setting read for --executor dask too."""
+    for name, value in environment.items():
+        monkeypatch.setenv(name, value)
+    args = ["calibrate", str(recording), "--robot", ROBOT, *flags, "-o", str(tmp_path / "x.json")]
+    code, _, err = run(args, capsys, monkeypatch)
+    assert code == 2 and err.count("\n") == 1 and message in err, err
+
+
 def test_executor_flags_pick_the_backend() -> None:
     from solver.errors import KincalError
 
