@@ -204,7 +204,8 @@ class Run:
     named: list[tuple[str, int | None, str]]
     estimate: float | None  # the named term's size
     concealed_estimate: float | None  # its size less the recording's own (see estimate_of)
-    ambiguous: bool
+    ambiguous: bool  # the concealed effect is among the candidates of an ambiguity
+    ambiguous_any: bool  # the report lists any ambiguity (the recording's own included)
     heldout_before_mm: float
     heldout_after_mm: float
     seconds: float
@@ -278,15 +279,24 @@ def estimate_of(
     """
     for f in result.findings:
         term = f.estimate.term
-        if term.effect != effect.effect or term.joint_index != joint:
-            continue
-        if not term.variant.startswith(effect.variant.split(":")[0]):
+        if not is_concealed(term.effect, term.joint_index, term.variant, effect, joint):
             continue
         values = np.array([f.estimate.parameters.get(p, np.nan) for p in term.parameters])
         plain = f"{term.effect}:{'-' if joint is None else joint}:{effect.variant}"
         own = background.get(plain, np.zeros_like(values))
         return _size_of(values, effect), _size_of(values - own, effect)
     return None
+
+
+def is_concealed(
+    name: str, joint_index: int | None, variant: str, effect: Effect, joint: int | None
+) -> bool:
+    """Is a term (effect name, joint, variant) the concealed ``effect`` on ``joint``?"""
+    return (
+        name == effect.effect
+        and joint_index == joint
+        and variant.startswith(effect.variant.split(":")[0])
+    )
 
 
 def _size_of(values: np.ndarray, effect: Effect) -> float:
@@ -335,7 +345,12 @@ def run_one(job: tuple[str, str, float, int]) -> Run:
         ],
         estimate=None if sizes is None else sizes[0],
         concealed_estimate=None if sizes is None else sizes[1],
-        ambiguous=bool(result.ambiguous),
+        ambiguous=any(
+            is_concealed(c.term.effect, c.term.joint_index, c.term.variant, effect, joint)
+            for a in result.ambiguous
+            for c in a.candidates
+        ),
+        ambiguous_any=bool(result.ambiguous),
         heldout_before_mm=result.heldout_before.translation_mm,
         heldout_after_mm=result.heldout_after.translation_mm,
         seconds=time.perf_counter() - started,
@@ -348,13 +363,7 @@ def judged(run: Run) -> dict[str, Any]:
     detected = run.estimate is not None
     raw = _relative(run.estimate, run.truth)
     concealed = _relative(run.concealed_estimate, run.truth)
-    wrong = sum(
-        1
-        for e, j, v in run.named
-        if not (
-            e == effect.effect and j == run.joint and v.startswith(effect.variant.split(":")[0])
-        )
-    )
+    wrong = sum(1 for e, j, v in run.named if not is_concealed(e, j, v, effect, run.joint))
     return {
         "detected": detected,
         "error": raw,
@@ -379,6 +388,7 @@ def summarise(runs: list[Run]) -> dict[str, float]:
         "within_25": float(np.mean([m["within"] for m in marks])),
         "median_error": float(np.median(errors)) if errors else math.nan,
         "ambiguous": float(np.mean([r.ambiguous for r in runs])),
+        "ambiguous_any": float(np.mean([r.ambiguous_any for r in runs])),
         "wrong_runs": float(np.mean([m["wrong"] > 0 for m in marks])),
         "heldout_before": float(np.mean([r.heldout_before_mm for r in runs])),
         "heldout_after": float(np.mean([r.heldout_after_mm for r in runs])),
@@ -437,9 +447,9 @@ def main(
     lines = [
         "| Recording | Concealed effect | Size (× stated detectability) | Stated detectability "
         "(median over joints) | Runs | Named, right joint | Concealed size within 25 % | "
-        "Median error: concealed size / as named | Ambiguous | Wrong name | Held-out mm: "
-        "unmodified model → discovered | s/run |",
-        "|---" * 12 + "|",
+        "Median error: concealed size / as named | Concealed effect ambiguous | Any ambiguity | "
+        "Wrong name | Held-out mm: unmodified model → discovered | s/run |",
+        "|---" * 13 + "|",
     ]
     for (name, e, m), r in rows.items():
         base = baseline(name)
@@ -452,7 +462,7 @@ def main(
             f"| {RECORDINGS[name].label} | {e} | {m:g}× | {shown} | {r['runs']:.0f} | "
             f"{_pct(r['detected'])} | {_pct(r['within_25'])} | "
             f"{_pct(r['median_concealed_error'])} / {_pct(r['median_error'])} | "
-            f"{_pct(r['ambiguous'])} | {_pct(r['wrong_runs'])} | "
+            f"{_pct(r['ambiguous'])} | {_pct(r['ambiguous_any'])} | {_pct(r['wrong_runs'])} | "
             f"{r['heldout_before']:.3f} → {r['heldout_after']:.3f} | {r['seconds']:.1f} |"
         )
     text = "\n".join(lines)

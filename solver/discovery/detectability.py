@@ -105,10 +105,13 @@ def smallest_detectable(
     power: float = DETECTION_POWER,
     seed: int = 0,
     absorbed_limit: float = 0.97,
+    unexplained: frozenset[tuple[str, int]] = frozenset(),
 ) -> list[DetectableSize]:
     """Smallest detectable size of each term of ``library`` (not in ``fit``'s model) on the
     recording, for the score test at ``level`` with ``power`` (module docstring); ``seed`` is
-    the discovery seed (the sign-flip bank and the replicates)."""
+    the discovery seed (the sign-flip bank and the replicates). ``unexplained``: (family,
+    joint) pairs whose structure the run reported beyond the library — discovery names no
+    term of that family there, so none gets a size."""
     if not library:
         return []
     design = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates=tuple(library))
@@ -116,6 +119,13 @@ def smallest_detectable(
     replicates = noise_replicates(null, DETECTION_REPLICATES, np.random.default_rng(seed))
     out = []
     for term in library:
+        if (term.family, term.joint_index) in unexplained:
+            reason = (
+                f"this joint's {term.family}-dependent structure is reported unexplained "
+                "(beyond the library): no term of that family is named there"
+            )
+            out += [DetectableSize(term, name, np.inf, reason) for name, _ in size_groups(term)]
+            continue
         columns = whitened(design.candidates[term.key], fit.weights).reshape(-1, term.size)
         out += term_sizes(null, term, columns, replicates, level, power, absorbed_limit)
     return out

@@ -613,6 +613,7 @@ class _Search:
                 level,
                 seed=options.seed,
                 absorbed_limit=options.absorbed_limit,
+                unexplained=frozenset(self.misfits),
             ),
             detection_level=level,
             detection_power=DETECTION_POWER,
