@@ -13,7 +13,7 @@ added at trial sizes to the recording's own residual and to
 (projected off the model again), with alternating signs of the effect, and both statistics are
 evaluated exactly as the test does (same bank of sign patterns); the size is the smallest of a
 geometric scan (steps of :data:`SIZE_STEP`, then bisection) at which the share of replicates
-rejecting reaches ``power``. The scan starts at half the classical noncentral-F size
+rejecting reaches ``power``. The scan starts at the classical noncentral-F size
 (:func:`noncentrality_needed`), which the classical half alone would need.
 
 The level is the first step's Holm threshold, α over the number of candidates tested, so
@@ -161,7 +161,7 @@ def term_sizes(
             continue
         needed = noncentrality_needed(basis.shape[1], dof, level, power)
         classical = float(np.sqrt(needed * scale2 / float(effect @ effect)))
-        size = calibrated_size(null, basis, effect, replicates, level, power, 0.5 * classical)
+        size = calibrated_size(null, basis, effect, replicates, level, power, classical)
         reason = "" if np.isfinite(size) else "not detectable on this recording"
         out.append(DetectableSize(term, parameter, size, reason))
     return out
@@ -202,10 +202,10 @@ def calibrated_size(
     power: float,
     start: float,
 ) -> float:
-    """Smallest size s (scan by :data:`SIZE_STEP` from ``start``, then bisection) at which
-    ``s · effect`` (R,) added to the replicates (alternating signs) is rejected by both halves
-    of the score test in at least ``power`` of them; inf when none up to
-    :data:`MAX_SIZE_FACTOR` · 2 · ``start``."""
+    """Smallest size s (scan by :data:`SIZE_STEP` down or up from ``start``, then bisection)
+    at which ``s · effect`` (R,) added to the replicates (alternating signs) is rejected by
+    both halves of the score test in at least ``power`` of them; inf when none up to
+    :data:`MAX_SIZE_FACTOR` · ``start``."""
     trials = _Trials(null, basis, effect, replicates)
     count = len(replicates)
     needed = int(np.ceil(power * count - 1e-9))
@@ -218,13 +218,20 @@ def calibrated_size(
                 break
         return hits >= needed
 
-    low, high = 0.0, start
-    while not detected(high):
-        low, high = high, high * SIZE_STEP
-        if high > 2.0 * MAX_SIZE_FACTOR * start:
-            return float("inf")
+    if detected(start):  # scan down from the classical size, else up
+        low, high = start / SIZE_STEP, start
+        while detected(low):
+            low, high = low / SIZE_STEP, low
+            if high < start / MAX_SIZE_FACTOR:
+                return float(high)
+    else:
+        low, high = start, start * SIZE_STEP
+        while not detected(high):
+            low, high = high, high * SIZE_STEP
+            if high > MAX_SIZE_FACTOR * start:
+                return float("inf")
     for _ in range(BISECTIONS):
-        middle = np.sqrt(low * high) if low > 0 else 0.5 * high
+        middle = float(np.sqrt(low * high))
         low, high = (low, middle) if detected(middle) else (middle, high)
     return float(high)
 
