@@ -139,8 +139,9 @@ def _discovery(chain: KinematicChain, data: DiscoveryData, seed: int) -> Discove
 
 
 @cache
-def baseline(name: str) -> Baseline:
-    """Discovery on the unmodified recording (seed 0) and its rigid measurement frame."""
+def recording(name: str) -> tuple[KinematicChain, DiscoveryData, np.ndarray]:
+    """The shipped recording ``name``: chain, data, measurement frame (base in the measurement
+    frame, from a rigid fit)."""
     recording = RECORDINGS[name]
     robot = recording.robot()
     options = SchemaOptions()
@@ -149,10 +150,17 @@ def baseline(name: str) -> Baseline:
         DATA / recording.relative, chain.joint_names, other_joint_names=chain.other_joint_names
     )
     data = service_discovery.solver_data(dataset, options)
-    result = _discovery(chain, data, 0)
     ctx = Context.build(probe_chain(chain), data)
     fit = fit_with_noise(ctx, (), start_parameters(ctx), ctx.all_rows)
     frame = fit.params.links[0] @ np.linalg.inv(chain.nominal_links[0])
+    return chain, data, frame
+
+
+@cache
+def baseline(name: str) -> Baseline:
+    """Discovery on the unmodified recording (seed 0) and its rigid measurement frame."""
+    chain, data, frame = recording(name)
+    result = _discovery(chain, data, 0)
     detectable = {
         (d.term.effect, d.term.variant, d.term.joint_index, d.parameter): d.smallest
         for d in result.detectable
@@ -216,8 +224,8 @@ def concealment(
 ) -> tuple[Concealment, float]:
     """The mechanism of ``effect_name`` at reported size ``size`` on ``joint``; returns the
     concealment and the true value of the judged parameter."""
-    base = baseline(name)
-    joint_name = "" if joint is None else base.chain.joint_names[joint]
+    chain, data, _ = recording(name)
+    joint_name = "" if joint is None else chain.joint_names[joint]
     sign = float(rng.choice([-1.0, 1.0]))
     if effect_name == "joint_compliance":
         return Concealment(joints=(ElasticJoint(joint_name, size),)), size
@@ -227,7 +235,7 @@ def concealment(
         return Concealment(joints=(DeadBand(joint_name, size, holding_nm=math.inf),)), size
     if effect_name == "floating_backlash":
         assert joint is not None
-        tau = np.abs(_torques(base, joint))
+        tau = np.abs(_torques(chain, data, joint))
         holding = float(np.quantile(tau, 0.15))
         return Concealment(joints=(DeadBand(joint_name, size, holding_nm=holding),)), size
     if effect_name.startswith("gear_h"):
@@ -257,12 +265,12 @@ def concealment(
     raise ValueError(f"unknown effect {effect_name!r}")
 
 
-def _torques(base: Baseline, joint: int) -> np.ndarray:
+def _torques(chain: KinematicChain, data: DiscoveryData, joint: int) -> np.ndarray:
     from solver.mechanisms import Robot
 
-    robot = Robot(base.chain)
+    robot = Robot(chain)
     out = []
-    for q in base.data.joint_positions:
+    for q in data.joint_positions:
         robot.update(q)
         out.append(robot.joint_torque(joint))
     return np.array(out)
