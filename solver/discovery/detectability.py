@@ -120,10 +120,7 @@ def smallest_detectable(
     out = []
     for term in library:
         if (term.family, term.joint_index) in unexplained:
-            reason = (
-                f"this joint's {term.family}-dependent structure is reported unexplained "
-                "(beyond the library): no term of that family is named there"
-            )
+            reason = f"its joint's {term.family}-dependent structure is reported unexplained"
             out += [DetectableSize(term, name, np.inf, reason) for name, _ in size_groups(term)]
             continue
         columns = whitened(design.candidates[term.key], fit.weights).reshape(-1, term.size)
@@ -156,13 +153,13 @@ def term_sizes(
         effect = projected @ direction
         absorbed = 1.0 - float(effect @ effect) / max(float(signature @ signature), 1e-300)
         if absorbed >= absorbed_limit:
-            reason = f"not separable from the model ({absorbed:.1%} of it absorbed)"
+            reason = f"not separable from the model: {absorbed:.1%} absorbed"
             out.append(DetectableSize(term, parameter, np.inf, reason))
             continue
         needed = noncentrality_needed(basis.shape[1], dof, level, power)
         classical = float(np.sqrt(needed * scale2 / float(effect @ effect)))
         size = calibrated_size(null, basis, effect, replicates, level, power, classical)
-        reason = "" if np.isfinite(size) else "not detectable on this recording"
+        reason = "" if np.isfinite(size) else "not detected at any size tried"
         out.append(DetectableSize(term, parameter, size, reason))
     return out
 
