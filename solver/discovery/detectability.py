@@ -35,8 +35,9 @@ import scipy.special
 import scipy.stats
 from numpy.typing import NDArray
 
+from solver.discovery.explain import describe
 from solver.discovery.fitting import Context, ModelFit, evaluate, whitened
-from solver.discovery.library import Term
+from solver.discovery.library import Term, same_mechanism
 from solver.discovery.scoring import (
     FLIP_BATCH,
     FLIP_DRAWS,
@@ -106,25 +107,67 @@ def smallest_detectable(
     seed: int = 0,
     absorbed_limit: float = 0.97,
     unexplained: frozenset[tuple[str, int]] = frozenset(),
+    collinear: float = 0.999,
 ) -> list[DetectableSize]:
     """Smallest detectable size of each term of ``library`` (not in ``fit``'s model) on the
     recording, for the score test at ``level`` with ``power`` (module docstring); ``seed`` is
     the discovery seed (the sign-flip bank and the replicates). ``unexplained``: (family,
     joint) pairs whose structure the run reported beyond the library — discovery names no
-    term of that family there, so none gets a size."""
+    term of that family there, so none gets a size; nor does a term whose columns, once the
+    model is fitted, are collinear with another term's (canonical correlation ≥
+    ``collinear``, :func:`collinear_twins`): discovery reports the pair ambiguous."""
     if not library:
         return []
     design = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates=tuple(library))
     null = NullModel.from_fit(fit, seed)
     replicates = noise_replicates(null, DETECTION_REPLICATES, np.random.default_rng(seed))
+    testable = [t for t in library if (t.family, t.joint_index) not in unexplained]
+    columns = {
+        t.key: whitened(design.candidates[t.key], fit.weights).reshape(-1, t.size) for t in testable
+    }
+    twins = collinear_twins(null, testable, columns, collinear)
     out = []
     for term in library:
+        reason = ""
         if (term.family, term.joint_index) in unexplained:
             reason = f"its joint's {term.family}-dependent structure is reported unexplained"
+        elif twins.get(term.key):
+            twin, correlation = twins[term.key]
+            label = describe(twin, ctx.chain.joint_names)
+            reason = f"not separable from {label} (correlation {correlation:.4f})"
+        if reason:
             out += [DetectableSize(term, name, np.inf, reason) for name, _ in size_groups(term)]
             continue
-        columns = whitened(design.candidates[term.key], fit.weights).reshape(-1, term.size)
-        out += term_sizes(null, term, columns, replicates, level, power, absorbed_limit)
+        out += term_sizes(null, term, columns[term.key], replicates, level, power, absorbed_limit)
+    return out
+
+
+def collinear_twins(
+    null: NullModel, library: list[Term], columns: dict[str, FloatArray], collinear: float
+) -> dict[str, tuple[Term, float]]:
+    """Terms whose stated size the data cannot tell from another library term (not a shape of
+    the same mechanism), once the model is fitted: a direction of the term's part the model
+    cannot absorb lies in the other's (a canonical correlation ≥ ``collinear``, as
+    :func:`~solver.discovery.scoring.canonical_correlation`). The stated size is the worst
+    direction's, so one such direction is enough — e.g. a base flex about the axis of the
+    shoulder joint is its compliance — except for a measurement-frame drift, whose sizes are
+    per part (all its directions must lie in the other's: a drift of the first joint about
+    the vertical is inside a frame drift, not the other way round). Maps the term's key to
+    the other term and that correlation."""
+    bases = {t.key: unexplained_basis(null, columns[t.key]) for t in library}
+    out: dict[str, tuple[Term, float]] = {}
+    for i, first in enumerate(library):
+        for second in library[i + 1 :]:
+            a, b = bases[first.key], bases[second.key]
+            if a.shape[1] == 0 or b.shape[1] == 0 or same_mechanism(first, second):
+                continue
+            values = np.linalg.svd(a.T @ b, compute_uv=False)
+            for one, other, width in ((first, second, a.shape[1]), (second, first, b.shape[1])):
+                needed = width if len(size_groups(one)) > 1 else 1
+                if needed > values.size or values[needed - 1] < collinear:
+                    continue
+                if values[needed - 1] > out.get(one.key, (other, 0.0))[1]:
+                    out[one.key] = (other, float(values[needed - 1]))
     return out
 
 

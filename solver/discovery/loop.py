@@ -614,6 +614,7 @@ class _Search:
                 seed=options.seed,
                 absorbed_limit=options.absorbed_limit,
                 unexplained=frozenset(self.misfits),
+                collinear=options.collinear_correlation,
             ),
             detection_level=level,
             detection_power=DETECTION_POWER,
