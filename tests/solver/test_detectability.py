@@ -69,7 +69,13 @@ def test_every_untested_library_term_gets_a_size_at_the_first_holm_level() -> No
     for j in range(1, 6):  # joint 1 is vertical: no load terms there
         for effect in ("joint_compliance", "backlash", "gear_periodic", "joint_scale"):
             assert (effect, j) in keys
-    assert all(np.isfinite(d.smallest) and d.smallest > 0 for d in result.detectable)
+    # A size for every term, except where the data cannot tell it from another term (a
+    # first-joint drift inside a frame drift; joint 4's spring and the bending of the link
+    # carrying joint 5 about the same axis): those say so instead.
+    unsized = [d for d in result.detectable if not np.isfinite(d.smallest)]
+    assert all(d.smallest > 0 for d in result.detectable)
+    assert all(d.reason.startswith("not separable from") for d in unsized), unsized
+    assert len(unsized) <= 5 and len(result.detectable) > 60
 
 
 def test_stated_size_scales_with_the_noise() -> None:
