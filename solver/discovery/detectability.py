@@ -42,7 +42,7 @@ from solver.discovery.scoring import (
     FLIP_BATCH,
     FLIP_DRAWS,
     NullModel,
-    flip_bank,
+    flip_batch,
     flip_whitened,
     tie_threshold,
     unexplained_basis,
@@ -280,7 +280,7 @@ def calibrated_size(
 # estimate of the same p-value at half the cost), in two chunks: most trial sizes are refused
 # within the first.
 DETECTION_DRAWS = FLIP_DRAWS // 2
-_CHUNKS = ((0, FLIP_BATCH), (FLIP_BATCH, DETECTION_DRAWS))
+_CHUNKS = ((0, 1), (1, DETECTION_DRAWS // FLIP_BATCH))  # batches of the bank
 
 
 class _Trials:
@@ -303,7 +303,7 @@ class _Trials:
             null.sample_scores(basis, effect),
         )
         self.stacked = np.hstack([self.scores[1], *self.scores[0]]).astype(np.float32)
-        self.bank = flip_bank(null.flip_seed, null.n_samples)
+        self.seed, self.n = null.flip_seed, null.n_samples
         # per chunk: the bank's products with the effect's and each replicate's scores
         self.projections: list[list[NDArray[np.float32]]] = []
 
@@ -328,7 +328,9 @@ class _Trials:
         count = 0
         for chunk, (start, stop) in enumerate(_CHUNKS):
             if chunk == len(self.projections):
-                block = self.bank[start:stop] @ self.stacked
+                block = np.concatenate(
+                    [flip_batch(self.seed, self.n, b) @ self.stacked for b in range(start, stop)]
+                )
                 parts = range(0, block.shape[1], m)
                 self.projections.append([np.ascontiguousarray(block[:, i : i + m]) for i in parts])
             effect, *noise = self.projections[chunk]

@@ -46,8 +46,9 @@ EXACT_FLIP_SAMPLES = 22
 FLIP_DRAWS = 1 << 16
 FLIP_BATCH = 1 << 12
 FLIP_EXCEEDANCES = 32
-# Sign patterns cached in memory up to this many entries (int8); beyond, regenerated.
-FLIP_CACHE_ENTRIES = 1 << 27
+# The bank is cached in memory (float32) up to this many entries (128 MB: N ≤ 512 samples);
+# beyond, each batch is regenerated from its seed when used.
+FLIP_CACHE_ENTRIES = 1 << 25
 
 # A candidate direction whose unexplained part is below this fraction of its norm is one the
 # model already contains (e.g. isotropic scale vs link lengths): not testable.
@@ -265,23 +266,13 @@ def flip_p_sequential(z: FloatArray, observed: float, seed: int = 0) -> float:
 def flip_batch(seed: int, n: int, batch: int) -> NDArray[np.float32]:
     """Batch ``batch`` (FLIP_BATCH, n) of the seeded bank of sign patterns (±1, float32)."""
     if FLIP_DRAWS * n <= FLIP_CACHE_ENTRIES:
-        return flip_bank(seed, n)[batch * FLIP_BATCH : (batch + 1) * FLIP_BATCH]
+        return _cached_bank(seed, n)[batch * FLIP_BATCH : (batch + 1) * FLIP_BATCH]
     return _generate_batch(seed, n, batch)
-
-
-def flip_bank(seed: int, n: int) -> NDArray[np.float32]:
-    """The whole seeded bank (FLIP_DRAWS, n) of sign patterns, cached while small enough."""
-    if FLIP_DRAWS * n <= FLIP_CACHE_ENTRIES:
-        return _cached_bank(seed, n)
-    return _bank(seed, n)
 
 
 @functools.lru_cache(maxsize=2)
 def _cached_bank(seed: int, n: int) -> NDArray[np.float32]:
-    return _bank(seed, n)
-
-
-def _bank(seed: int, n: int) -> NDArray[np.float32]:
+    """The whole bank (FLIP_DRAWS, n) of one seed and sample count."""
     return np.concatenate(
         [_generate_batch(seed, n, b) for b in range(FLIP_DRAWS // FLIP_BATCH)], axis=0
     )
