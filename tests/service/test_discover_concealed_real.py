@@ -71,7 +71,9 @@ def test_unmodified_real_recordings_name_nothing(unmodified: dict[str, FindingsR
     ("name", "effect_name", "effect", "variant", "joint", "seed"),
     [
         ("fr3", "backlash_direction", "backlash", "direction", "panda_joint4", 0),
+        ("fr3", "backlash_direction", "backlash", "direction", "panda_joint6", 2),
         ("ur10e", "backlash_load", "backlash", "load", "wrist_1_joint", 1),
+        ("ur10e", "backlash_direction", "backlash", "direction", "elbow_joint", 3),
     ],
 )
 def test_effect_concealed_at_twice_the_stated_detectability_is_named(
