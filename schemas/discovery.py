@@ -248,8 +248,15 @@ class DetectableSize(_Model):
         "translation_/rotation_… (a measurement-frame drift), else the term's parameter."
     )
     smallest: float | None = Field(
-        description="Smallest size this recording detects at `level` with `power`; null when "
-        "the model absorbs the term entirely (it can never be seen)."
+        description="Smallest size this recording detects at `level` with `power` (calibrated "
+        "on the recording: the effect added to it at trial sizes, both halves of the score "
+        "test as run); null when no size is (see `reason`)."
+    )
+    reason: str | None = Field(
+        None,
+        description="Why no size is stated: the model absorbs the term ('not separable from "
+        "the model', e.g. a depth scale along a flange camera's axis) or no trial size was "
+        "detected on this recording.",
     )
 
 

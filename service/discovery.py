@@ -423,10 +423,11 @@ DISPLAY_UNITS = (
 )
 
 
-def display_size(value: float | None, parameter: str) -> str:
-    """A detectable size in an engineer's unit, e.g. ``0.12 mrad``; ``–`` when none."""
+def display_size(value: float | None, parameter: str, reason: str | None = None) -> str:
+    """A detectable size in an engineer's unit, e.g. ``0.12 mrad``; ``–`` when none, with the
+    reason when one is given."""
     if value is None:
-        return "–"
+        return f"– ({reason})" if reason else "–"
     for suffix, scale, unit in DISPLAY_UNITS:
         if parameter.endswith(suffix):
             return f"{value * scale:.2g} {unit}"
@@ -459,7 +460,7 @@ def detectability_lines(detectability: Detectability) -> list[str]:
     ]
     for label, sizes in detectability_groups(detectability).items():
         shown = ", ".join(
-            f"{s.joint + ' ' if s.joint else ''}{display_size(s.smallest, s.parameter)}"
+            f"{s.joint + ' ' if s.joint else ''}{display_size(s.smallest, s.parameter, s.reason)}"
             for s in sizes
         )
         lines.append(f"  {label}: {shown}")
@@ -482,6 +483,7 @@ def _detectability(
                 variant=d.term.variant,
                 parameter=d.parameter,
                 smallest=d.smallest if math.isfinite(d.smallest) else None,
+                reason=d.reason or None,
             )
             for d in result.detectable
         ],

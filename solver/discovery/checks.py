@@ -79,7 +79,7 @@ def with_columns(null: NullModel, columns: FloatArray) -> NullModel:
     """The null model after also fitting ``columns`` (linearised)."""
     basis = orthonormal_basis(np.hstack([null.basis, columns]))
     residual = null.residual - basis @ (basis.T @ null.residual)
-    return NullModel(residual, basis, null.d)
+    return NullModel(residual, basis, null.d, null.flip_seed)
 
 
 def reweighted(fit: ModelFit, extra: list[FloatArray]) -> tuple[NullModel, FloatArray]:

@@ -269,7 +269,7 @@ class _Search:
         design = evaluate(
             self.ctx, self.fit.terms, self.fit.params, self.fit.rows, candidates=tuple(library)
         )
-        null = NullModel.from_fit(self.fit)
+        null = NullModel.from_fit(self.fit, self.options.seed)
         tests, columns = {}, {}
         for term in library:
             cols = whitened(design.candidates[term.key], self.fit.weights).reshape(-1, term.size)
@@ -562,7 +562,7 @@ class _Search:
                     panels=term_panels(ctx, a.term, a.previous, final),
                 )
             )
-        null = NullModel.from_fit(final)
+        null = NullModel.from_fit(final, options.seed)
         skip = {(m.family, m.joint_index) for m in self.misfits.values()}
         structure = residual_structure(
             ctx, final, null, unit_columns(ctx, final), options.alpha, skip
@@ -606,7 +606,16 @@ class _Search:
             n_candidates=self.n_candidates,
             clock_unit=ctx.bank.clock_unit,
             outlier_rows=np.setdiff1d(ctx.all_rows, final.rows),
-            detectable=smallest_detectable(ctx, final, self._untested_library(), level),
+            detectable=smallest_detectable(
+                ctx,
+                final,
+                self._untested_library(),
+                level,
+                seed=options.seed,
+                absorbed_limit=options.absorbed_limit,
+                unexplained=frozenset(self.misfits),
+                collinear=options.collinear_correlation,
+            ),
             detection_level=level,
             detection_power=DETECTION_POWER,
         )

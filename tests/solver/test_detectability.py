@@ -69,7 +69,13 @@ def test_every_untested_library_term_gets_a_size_at_the_first_holm_level() -> No
     for j in range(1, 6):  # joint 1 is vertical: no load terms there
         for effect in ("joint_compliance", "backlash", "gear_periodic", "joint_scale"):
             assert (effect, j) in keys
-    assert all(np.isfinite(d.smallest) and d.smallest > 0 for d in result.detectable)
+    # A size for every term, except where the data cannot tell it from another term (a
+    # first-joint drift inside a frame drift; joint 4's spring and the bending of the link
+    # carrying joint 5 about the same axis): those say so instead.
+    unsized = [d for d in result.detectable if not np.isfinite(d.smallest)]
+    assert all(d.smallest > 0 for d in result.detectable)
+    assert all(d.reason.startswith("not separable from") for d in unsized), unsized
+    assert len(unsized) <= 5 and len(result.detectable) > 60
 
 
 def test_stated_size_scales_with_the_noise() -> None:
@@ -95,18 +101,3 @@ def test_twice_the_stated_size_is_found_and_a_third_of_it_is_not(
         result = _discover(3, 5e-5, (hidden,))
         named = [(f.estimate.term.effect, f.estimate.term.joint_index) for f in result.findings]
         assert ((effect, joint) in named) is found, (factor, stated, named)
-
-
-def test_robust_statistic_bound_makes_small_recordings_state_no_detectable_size() -> None:
-    """The robust score statistic never exceeds N: with 23 samples against ~80 candidates at
-    α = 0.01 no 6-parameter term (a camera drift) can be found, which the statement must say
-    (the UR10e recording); a 1-parameter term only just can (critical value 21.6 of 23)."""
-    from solver.discovery.detectability import robust_can_reject
-
-    level = 0.01 / 80
-    assert not robust_can_reject(6, 23, level) and robust_can_reject(1, 23, level)
-    assert robust_can_reject(1, 114, level) and robust_can_reject(6, 200, level)
-    rng = np.random.default_rng(0)
-    for _ in range(200):  # the bound itself: (Σu)² ≤ N Σu²
-        u = rng.normal(rng.normal(), 1.0, size=23)
-        assert u.sum() ** 2 / (u @ u) <= 23 + 1e-9

@@ -1,0 +1,114 @@
+"""Issue 14 acceptance through the user's path: ``kincal discover`` on the shipped FR3 and
+UR10e recordings, unmodified (nothing named) and with one effect concealed by the mechanism
+simulator (:mod:`solver.mechanisms`, no library formula) at twice the detectability the
+unmodified recording's report states (named, right joint, size within 25 %)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from benchmarks import concealed_real
+from schemas.discovery import FindingsResult
+from solver.mechanisms import conceal
+from tests.service.cli_support import run_ok
+
+ROBOT_FLAGS: dict[str, list[object]] = {
+    "fr3": ["--robot", "panda"],
+    "ur10e": [
+        "--urdf",
+        concealed_real.DATA / "figaroh_ur10_experiment" / "ur10e_robot.urdf",
+        "--base",
+        "base_link",
+        "--tip",
+        "wrist_3_link",
+    ],
+}
+
+
+def _write(path: Path, joint_positions: np.ndarray, poses: np.ndarray) -> None:
+    """A recording as a kincal dataset CSV (q1…qk, x y z, qx qy qz qw), rows in order."""
+    quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
+    joints = [f"q{i + 1}" for i in range(joint_positions.shape[1])]
+    rows = [",".join(["sample_id", *joints, "x", "y", "z", "qx", "qy", "qz", "qw"])]
+    for i, (q, pose, quat) in enumerate(zip(joint_positions, poses, quaternions, strict=True)):
+        rows.append(",".join([str(i)] + [f"{v:.17g}" for v in [*q, *pose[:3, 3], *quat]]))
+    path.write_text("\n".join(rows) + "\n")
+
+
+def _discover(path: Path, name: str) -> FindingsResult:
+    output = path.with_suffix(".json")
+    with contextlib.redirect_stdout(io.StringIO()):
+        run_ok(["discover", path, *ROBOT_FLAGS[name], "-o", output])
+    return FindingsResult.model_validate_json(output.read_bytes())
+
+
+@pytest.fixture(scope="module")
+def unmodified(tmp_path_factory: pytest.TempPathFactory) -> dict[str, FindingsResult]:
+    """The shipped recordings as they are (rewritten in the CSV contract), discovered."""
+    folder = tmp_path_factory.mktemp("real")
+    out = {}
+    for name in ROBOT_FLAGS:
+        _, data, _ = concealed_real.recording(name)
+        path = folder / f"{name}.csv"
+        _write(path, data.joint_positions, data.measured_pose)
+        out[name] = _discover(path, name)
+    return out
+
+
+def test_unmodified_real_recordings_name_nothing(unmodified: dict[str, FindingsResult]) -> None:
+    for result in unmodified.values():
+        assert result.findings == []
+        assert result.detectability is not None
+
+
+@pytest.mark.parametrize(
+    ("name", "effect_name", "effect", "variant", "joint", "seed"),
+    [
+        ("fr3", "backlash_direction", "backlash", "direction", "panda_joint4", 0),
+        ("fr3", "backlash_direction", "backlash", "direction", "panda_joint6", 2),
+        ("ur10e", "backlash_load", "backlash", "load", "wrist_1_joint", 1),
+        ("ur10e", "backlash_direction", "backlash", "direction", "elbow_joint", 3),
+    ],
+)
+def test_effect_concealed_at_twice_the_stated_detectability_is_named(
+    unmodified: dict[str, FindingsResult],
+    tmp_path: Path,
+    name: str,
+    effect_name: str,
+    effect: str,
+    variant: str,
+    joint: str,
+    seed: int,
+) -> None:
+    detectability = unmodified[name].detectability
+    assert detectability is not None
+    (stated,) = [
+        s.smallest
+        for s in detectability.sizes
+        if (s.effect, s.variant, s.joint) == (effect, variant, joint)
+    ]
+    assert stated is not None and np.isfinite(stated)
+    chain, data, frame = concealed_real.recording(name)
+    index = chain.joint_names.index(joint)
+    rng = np.random.default_rng(seed)
+    mechanism, truth = concealed_real.concealment(name, effect_name, index, 2.0 * stated, rng)
+    readings, poses = conceal(
+        chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
+    )
+    path = tmp_path / f"{name}_{effect_name}.csv"
+    _write(path, readings, poses)
+    result = _discover(path, name)
+    named = [
+        f
+        for f in result.findings
+        if (f.effect, f.joint) == (effect, joint) and f.variant.startswith(variant)
+    ]
+    assert named, [(f.effect, f.joint, f.variant) for f in result.findings]
+    size = named[0].parameters["backlash_rad"]
+    assert size == pytest.approx(truth, rel=0.25)
