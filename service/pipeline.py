@@ -119,6 +119,11 @@ def check_calibration(
     names = list(chain.joint_names)
     chosen = options.covariance_frames if options.covariance_frames is not None else names
     unknown = [name for name in chosen if name not in names]
+    if options.covariance != "none" and not chosen:
+        raise ModelError(
+            "covariance_frames: empty; name at least one joint whose frame carries random "
+            f"perturbations (among {', '.join(names)}), or pass --covariance none"
+        )
     if unknown or len(set(chosen)) != len(chosen):
         raise ModelError(
             f"covariance_frames: {unknown or 'duplicates'} "

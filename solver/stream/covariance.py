@@ -145,7 +145,7 @@ def block_samples(
         return moved[keep] if used is not None else moved
 
     frame_index = [position[c] for c in frame_columns]
-    first = frame_index[0]
+    first = frame_index[0] if frame_index else 0
     if frame_index == list(range(first, first + len(frame_index))):  # a view, no copy
         jacobians = sweep.columns[first : first + len(frame_index)]  # (F·6, d, n)
     else:
@@ -155,7 +155,7 @@ def block_samples(
         fit = samples_first(sweep.columns[: len(fitted)].transpose(1, 0, 2))  # (n, d, p)
     return SampleChunk(
         samples_first(residual),
-        samples_first(jacobians.reshape(len(frames), 6, d, -1).transpose(0, 2, 1, 3)),
+        samples_first(jacobians.reshape(len(frames), 6, d, block.n).transpose(0, 2, 1, 3)),
         fit,
         (block.first_row + keep).astype(np.intp),
     )

@@ -39,7 +39,7 @@ INVALID: dict[str, list[Any]] = {
     "covariance": ["triangular", None],
     "covariance_solver": ["adam"],
     "covariance_estimator": ["bayes"],
-    "covariance_frames": [["elbow"], ["elbow_joint", "elbow_joint"], "elbow_joint"],
+    "covariance_frames": [["elbow"], ["elbow_joint", "elbow_joint"], "elbow_joint", []],
     "covariance_axes": ["twist"],
     "noise_std": [[1e-4, 1e-4], [0, 0, 0, -1e-3, 0, 0]],
     "noise_covariance": [[[1e-6]], ASYMMETRIC, [[0.0] * 6] * 5],
