@@ -265,7 +265,7 @@ def mahalanobis_squared(residuals: FloatArray, covariances: FloatArray) -> Float
     Eigenvalues below 1e-12 of a sample's largest count as zero.
 
     ``d² = ‖L_n⁻¹ r_n‖²`` with the Cholesky factor ``Σ_n = L_n L_nᵀ``
-    (:func:`~solver.small_spd.spd_factors`, ~9× faster than an eigendecomposition per sample:
+    (:func:`~solver.small_spd.spd_factors`, ~8× faster than an eigendecomposition per sample:
     the model outlier rule evaluates it for every row of a recording). A sample goes the
     eigendecomposition way (:func:`_mahalanobis_squared_eigh`) when its Σ_n is not positive
     definite or may be ill-conditioned (:meth:`~solver.small_spd.SpdFactors.condition_bound`
