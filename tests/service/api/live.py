@@ -4,6 +4,7 @@ request processes)."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import socket
 import subprocess
@@ -13,6 +14,22 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+
+
+def server_environment(
+    tmp_path: Path, database_url: str, instance: str, **settings: str
+) -> dict[str, str]:
+    """The environment of a live ``kincal serve`` in ``tmp_path``: its data folder and
+    database, a fast job heartbeat, JSON logs, and ``settings`` (KINCAL_<NAME> = value)."""
+    return {
+        **os.environ,
+        "KINCAL_DATA_DIR": str(tmp_path / "data"),
+        "KINCAL_DATABASE_URL": database_url,
+        "KINCAL_INSTANCE_NAME": instance,
+        "KINCAL_JOB_HEARTBEAT_S": "0.5",
+        "KINCAL_LOG_FORMAT": "json",
+        **{f"KINCAL_{name.upper()}": value for name, value in settings.items()},
+    }
 
 
 def _free_port() -> int:

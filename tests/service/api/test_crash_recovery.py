@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import time
 from collections.abc import Iterator
@@ -23,7 +22,7 @@ from tests.service.api.conftest import (
     recording,
     recording_bytes,
 )
-from tests.service.api.live import Server, descendants, gone, port_free
+from tests.service.api.live import Server, descendants, gone, port_free, server_environment
 
 # A job long enough (several seconds, most of it in the held-out stage) that the test sees it
 # running on any machine, however fast: 2000 samples, 10 held-out splits (each also estimating
@@ -35,14 +34,7 @@ OPTIONS = CalibrationOptions(seeds=list(range(1, 11)))
 @pytest.fixture
 def env(tmp_path: Path) -> Iterator[dict[str, str]]:
     with fresh_database_url(tmp_path) as url:
-        yield {
-            **os.environ,
-            "KINCAL_DATA_DIR": str(tmp_path / "data"),
-            "KINCAL_DATABASE_URL": url,
-            "KINCAL_INSTANCE_NAME": "kill9-test",
-            "KINCAL_JOB_HEARTBEAT_S": "0.5",
-            "KINCAL_LOG_FORMAT": "json",
-        }
+        yield server_environment(tmp_path, url, "kill9-test")
 
 
 def test_kill_9_during_a_job_then_restart_completes_it_with_the_same_result(

@@ -24,7 +24,7 @@ from service.security import create_api_key
 from service.storage.db import Database
 from service.storage.models import Job
 from tests.service.api.conftest import fresh_database_url, recording_bytes
-from tests.service.api.live import Server, gone
+from tests.service.api.live import Server, gone, server_environment
 
 pytestmark = pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
 
@@ -36,18 +36,15 @@ TERMINAL = ("succeeded", "failed", "cancelled")
 @pytest.fixture
 def env(tmp_path: Path) -> Iterator[dict[str, str]]:
     with fresh_database_url(tmp_path) as url:
-        yield {
-            **os.environ,
-            "KINCAL_DATA_DIR": str(tmp_path / "data"),
-            "KINCAL_DATABASE_URL": url,
-            "KINCAL_INSTANCE_NAME": "processes-test",
-            "KINCAL_WEB_PROCESSES": "2",
-            "KINCAL_WORKERS": "1",
-            "KINCAL_JOB_HEARTBEAT_S": "0.5",
-            "KINCAL_SHUTDOWN_GRACE_S": "1",
-            "KINCAL_ALLOW_KEYLESS_LOCALHOST": "false",
-            "KINCAL_LOG_FORMAT": "json",
-        }
+        yield server_environment(
+            tmp_path,
+            url,
+            "processes-test",
+            web_processes="2",
+            workers="1",
+            shutdown_grace_s="1",
+            allow_keyless_localhost="false",
+        )
 
 
 def _key(env: dict[str, str]) -> str:
