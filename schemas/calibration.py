@@ -504,23 +504,22 @@ class ModelCorrection(_Model):
     )
 
 
+LEGACY_CORRECTION_KEYS = ("free_parameters", "fixed_parameters")
+
+
 class ModelCorrections(_Model):
     """What ``calibrate --model findings.json`` undid on the recording, and what it could not."""
 
-    free_parameters: list[str] = Field(
-        default_factory=lambda: ["all"],
-        min_length=1,
-        description="What to calibrate: classes (all, geometry, joint_offsets, base, tool, "
-        "compliance), links by joint or tip name, parameters <link>.<tx|ty|tz|rx|ry|rz> or "
-        "compliance.<axis>, shell patterns of those; the base and tool (measurement frame and "
-        "marker) are always free unless fixed (docs/calibration-options.md).",
-    )
-    fixed_parameters: list[str] = Field(
-        default_factory=list,
-        description="Parameters held at their starting value (nominal geometry, compliance 0; "
-        "base and tool at the closed-form alignment), same names as free_parameters, e.g. a "
-        "whole link such as torso_2_joint, or compliance.",
-    )
+    @model_validator(mode="before")
+    @classmethod
+    def _drop_copied_options(cls, data: object) -> object:
+        """Results written between issue 15's parameter selection and this fix carry copies of
+        the options' free_parameters/fixed_parameters here (defaults, never read): accepted and
+        dropped, so those stored results still load."""
+        if isinstance(data, dict):
+            return {k: v for k, v in data.items() if k not in LEGACY_CORRECTION_KEYS}
+        return data
+
     gravity_base_m_s2: Vector3 = Field(
         description="Gravity (base frame) of the load-sign backlash features (the discovery's)."
     )

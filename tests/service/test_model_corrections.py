@@ -255,3 +255,15 @@ def test_findings_made_with_another_urdf_are_carried_with_a_note(folder: Path) -
     carried = discovery.carry_model(edited, dataset, description)
     assert any("another URDF" in note and "000000000000" in note for note in carried.notes)
     assert carried.corrections == same.corrections  # noted, still carried
+
+
+def test_corrections_no_longer_carry_copies_of_the_options_and_old_results_still_load() -> None:
+    """Issue 15's parameter selection had copied free_parameters/fixed_parameters into the
+    corrections record by mistake (defaults, never read); results written meanwhile load."""
+    from schemas.calibration import ModelCorrections
+
+    record = {"gravity_base_m_s2": [0, 0, -9.81], "payload_kg": 0.0}
+    record |= {"corrections": [], "not_carried": []}
+    old = ModelCorrections.model_validate({**record, "free_parameters": ["all"]})
+    assert "free_parameters" not in old.model_dump()
+    assert "fixed_parameters" not in ModelCorrections.model_json_schema()["properties"]
