@@ -97,7 +97,7 @@ def _ee_chunk(
     """Σ_E, its inverse and log det for one chunk; None if some Σ_E is not positive definite."""
     cov = ee_covariance_batch(_frame_view(chunk.columns), covariances, known)
     cov = 0.5 * (cov + cov.transpose(0, 2, 1))
-    factors = spd_factors(cov)  # many 6×6 at once: ~4× faster than numpy.linalg's per-matrix calls
+    factors = spd_factors(cov)  # all rows at once: ~2x faster than numpy.linalg (29 vs 64 ms)
     if not np.all(factors.positive_definite):
         return None
     return cov, factors.inverse(), factors.log_det
