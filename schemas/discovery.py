@@ -250,7 +250,15 @@ class DetectableSize(_Model):
     smallest: float | None = Field(
         description="Smallest size this recording detects at `level` with `power` (calibrated "
         "on the recording: the effect added to it at trial sizes, both halves of the score "
-        "test as run); null when no size is (see `reason`)."
+        "test as run) and tells from every other library term (the joint test at the "
+        "discovery's alpha with that term fitted too, see `separated_from`); null when no "
+        "size is (see `reason`)."
+    )
+    separated_from: str | None = Field(
+        None,
+        description="The other library term that sets `smallest`: detecting would take less, "
+        "but below `smallest` this term and that one cannot be told apart on this recording "
+        "(discovery would report them ambiguous). Null when detection sets it.",
     )
     reason: str | None = Field(
         None,

@@ -423,15 +423,22 @@ DISPLAY_UNITS = (
 )
 
 
-def display_size(value: float | None, parameter: str, reason: str | None = None) -> str:
+def display_size(
+    value: float | None,
+    parameter: str,
+    reason: str | None = None,
+    separated_from: str | None = None,
+) -> str:
     """A detectable size in an engineer's unit, e.g. ``0.12 mrad``; ``–`` when none, with the
-    reason when one is given."""
+    reason when one is given, and the term it must be told from when that set the size."""
     if value is None:
         return f"– ({reason})" if reason else "–"
+    shown = f"{value:.2g}"
     for suffix, scale, unit in DISPLAY_UNITS:
         if parameter.endswith(suffix):
-            return f"{value * scale:.2g} {unit}"
-    return f"{value:.2g}"
+            shown = f"{value * scale:.2g} {unit}"
+            break
+    return f"{shown} (to tell from {separated_from})" if separated_from else shown
 
 
 def detectability_groups(
@@ -456,11 +463,13 @@ def detectability_lines(detectability: Detectability) -> list[str]:
     """The CLI's statement of what this recording could have seen."""
     lines = [
         f"smallest detectable sizes (score test at {detectability.level:.2g} per term, "
-        f"{detectability.power:.0%} power) — nothing larger went unseen:"
+        f"{detectability.power:.0%} power; at least the size at which it is told from the "
+        "library term named) — nothing larger went unseen:"
     ]
     for label, sizes in detectability_groups(detectability).items():
         shown = ", ".join(
-            f"{s.joint + ' ' if s.joint else ''}{display_size(s.smallest, s.parameter, s.reason)}"
+            f"{s.joint + ' ' if s.joint else ''}"
+            f"{display_size(s.smallest, s.parameter, s.reason, s.separated_from)}"
             for s in sizes
         )
         lines.append(f"  {label}: {shown}")
@@ -484,6 +493,9 @@ def _detectability(
                 parameter=d.parameter,
                 smallest=d.smallest if math.isfinite(d.smallest) else None,
                 reason=d.reason or None,
+                separated_from=None
+                if d.separated_from is None
+                else describe(d.separated_from, names),
             )
             for d in result.detectable
         ],

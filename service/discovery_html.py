@@ -150,13 +150,18 @@ def _detectability(findings: FindingsResult) -> str:
     header += "<th>whole robot / sensor</th></tr>"
     rows = []
     for label, sizes in groups.items():
-        by_joint = {s.joint: display_size(s.smallest, s.parameter, s.reason) for s in sizes}
+        by_joint = {
+            s.joint: display_size(s.smallest, s.parameter, s.reason, s.separated_from)
+            for s in sizes
+        }
         cells = "".join(f"<td>{e(by_joint.get(j, ''))}</td>" for j in [*joints, None])
         rows.append(f"<tr><th>{e(label)}</th>{cells}</tr>")
     intro = (
         f"An effect of the size shown would have been found with probability "
         f"{detectability.power:.0%} (score test at {detectability.level:.2g} per term: the "
-        "first Holm step; calibrated by adding the effect to this recording's own residuals). "
+        "first Holm step; calibrated by adding the effect to this recording's own residuals), "
+        "and told apart from the library term named after it (the joint test with that term "
+        "fitted too; below that size discovery would report the two ambiguous). "
         "Where nothing is named, nothing larger than this is missing; a blank cell is a term "
         "the recording cannot test (or one already in the model), '–' one it cannot detect "
         "at any size, with the reason."

@@ -17,7 +17,18 @@ rejecting reaches ``power``. The scan starts at the classical noncentral-F size
 (:func:`noncentrality_needed`), which the classical half alone would need.
 
 The level is the first step's Holm threshold, α over the number of candidates tested, so
-"nothing found" reads "nothing larger than this". A measurement-frame drift mixes metres and
+"nothing found" reads "nothing larger than this".
+
+Detecting is not yet naming. Discovery names a term only if it keeps its evidence with its
+strongest rival in the model too (the joint test of :class:`~solver.discovery.loop.
+DiscoveryOptions`, at α); below that, a held-out comparison between two models whose columns
+correlate 0.97–0.999 decides, and the data rarely prefer either (the pair is reported
+ambiguous). So the stated size is also at least the *separation size*
+(:func:`separation_size`): the smallest at which the joint test with the hardest other library
+term in the model rejects with ``power`` — calibrated the same way, on the recording's residual
+and its replicates projected off that term too. The hardest term is the one that leaves the
+largest variance of the term's estimate in its weakest direction once both are fitted; the
+report names it (``separated_from``). A measurement-frame drift mixes metres and
 radians: its translation and rotation parts get one size each (its test keeps 6 dof). No size
 is stated (infinite, with the reason) when the model absorbs the weakest direction to
 ``absorbed_limit`` (the step would be ambiguous with the geometry: e.g. a depth scale along a
@@ -27,7 +38,8 @@ size is found (few samples: the sign-flip test's smallest p-value is ~2^{−(N�
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.optimize
@@ -43,6 +55,7 @@ from solver.discovery.scoring import (
     FLIP_DRAWS,
     NullModel,
     flip_batch,
+    flip_p_value,
     flip_whitened,
     tie_threshold,
     unexplained_basis,
@@ -66,6 +79,7 @@ class DetectableSize:
     parameter: str
     smallest: float
     reason: str = ""  # why no size is stated (smallest infinite)
+    separated_from: Term | None = None  # the rival that set the size (separation, not test)
 
 
 def noncentrality_needed(m: int, dof: int, level: float, power: float) -> float:
@@ -108,6 +122,7 @@ def smallest_detectable(
     absorbed_limit: float = 0.97,
     unexplained: frozenset[tuple[str, int]] = frozenset(),
     collinear: float = 0.999,
+    joint_level: float | None = None,
 ) -> list[DetectableSize]:
     """Smallest detectable size of each term of ``library`` (not in ``fit``'s model) on the
     recording, for the score test at ``level`` with ``power`` (module docstring); ``seed`` is
@@ -115,7 +130,9 @@ def smallest_detectable(
     joint) pairs whose structure the run reported beyond the library — discovery names no
     term of that family there, so none gets a size; nor does a term whose columns, once the
     model is fitted, are collinear with another term's (canonical correlation ≥
-    ``collinear``, :func:`collinear_twins`): discovery reports the pair ambiguous."""
+    ``collinear``, :func:`collinear_twins`): discovery reports the pair ambiguous.
+    ``joint_level``: the joint test's level (discovery's α); the stated size is then at least
+    the separation size from the hardest other term (module docstring); None: detection only."""
     if not library:
         return []
     design = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates=tuple(library))
@@ -125,7 +142,8 @@ def smallest_detectable(
     columns = {
         t.key: whitened(design.candidates[t.key], fit.weights).reshape(-1, t.size) for t in testable
     }
-    twins = collinear_twins(null, testable, columns, collinear)
+    bases = {t.key: unexplained_basis(null, columns[t.key]) for t in testable}
+    twins = collinear_twins(testable, bases, collinear)
     out = []
     for term in library:
         reason = ""
@@ -138,12 +156,24 @@ def smallest_detectable(
         if reason:
             out += [DetectableSize(term, name, np.inf, reason) for name, _ in size_groups(term)]
             continue
-        out += term_sizes(null, term, columns[term.key], replicates, level, power, absorbed_limit)
+        sizes = term_sizes(null, term, columns[term.key], replicates, level, power, absorbed_limit)
+        if joint_level is not None:
+            rivals = [
+                (t, bases[t.key])
+                for t in testable
+                if t.key != term.key and not same_mechanism(t, term) and bases[t.key].shape[1]
+            ]
+            names = ctx.chain.joint_names
+            sizes = [
+                separated(null, s, columns[term.key], rivals, replicates, joint_level, power, names)
+                for s in sizes
+            ]
+        out += sizes
     return out
 
 
 def collinear_twins(
-    null: NullModel, library: list[Term], columns: dict[str, FloatArray], collinear: float
+    library: list[Term], bases: dict[str, FloatArray], collinear: float
 ) -> dict[str, tuple[Term, float]]:
     """Terms whose stated size the data cannot tell from another library term (not a shape of
     the same mechanism), once the model is fitted: a direction of the term's part the model
@@ -152,9 +182,9 @@ def collinear_twins(
     direction's, so one such direction is enough — e.g. a base flex about the axis of the
     shoulder joint is its compliance — except for a measurement-frame drift, whose sizes are
     per part (all its directions must lie in the other's: a drift of the first joint about
-    the vertical is inside a frame drift, not the other way round). Maps the term's key to
-    the other term and that correlation."""
-    bases = {t.key: unexplained_basis(null, columns[t.key]) for t in library}
+    the vertical is inside a frame drift, not the other way round). ``bases``: each term's
+    :func:`~solver.discovery.scoring.unexplained_basis`. Maps the term's key to the other term
+    and that correlation."""
     out: dict[str, tuple[Term, float]] = {}
     for i, first in enumerate(library):
         for second in library[i + 1 :]:
@@ -201,10 +231,128 @@ def term_sizes(
             continue
         needed = noncentrality_needed(basis.shape[1], dof, level, power)
         classical = float(np.sqrt(needed * scale2 / float(effect @ effect)))
-        size = calibrated_size(null, basis, effect, replicates, level, power, classical)
-        reason = "" if np.isfinite(size) else "not detected at any size tried"
+        size, reason = calibrated_size(null, basis, effect, replicates, level, power, classical)
+        if np.isfinite(size) and not robust_in_every_direction(
+            null, basis, projected, indices, level
+        ):
+            size, reason = (
+                np.inf,
+                f"{UNDETECTABLE_LARGE} in some directions (gear phases, flex axes)",
+            )
         out.append(DetectableSize(term, parameter, size, reason))
     return out
+
+
+def separated(
+    null: NullModel,
+    size: DetectableSize,
+    columns: FloatArray,
+    rivals: list[tuple[Term, FloatArray]],
+    replicates: list[FloatArray],
+    level: float,
+    power: float,
+    names: tuple[str, ...],
+) -> DetectableSize:
+    """``size`` raised to its separation size from the hardest of ``rivals`` (each a term and
+    the orthonormal basis (R, ·) of its part the model cannot absorb) when that is larger
+    (module docstring); unchanged when it has no finite size or nothing is harder."""
+    if not np.isfinite(size.smallest) or not rivals:
+        return size
+    indices = dict(size_groups(size.term))[size.parameter]
+    rival, basis, effect = hardest_rival(null.project(columns), indices, rivals)
+    needed, why = separation_size(null, columns, basis, effect, replicates, level, power)
+    if needed <= size.smallest:
+        return size
+    if not np.isfinite(needed):
+        reason = f"not told from {describe(rival, names)}: {why}"
+        return replace(size, smallest=np.inf, reason=reason, separated_from=rival)
+    return replace(size, smallest=needed, separated_from=rival)
+
+
+def hardest_rival(
+    projected: FloatArray, indices: list[int], rivals: list[tuple[Term, FloatArray]]
+) -> tuple[Term, FloatArray, FloatArray]:
+    """Of ``rivals`` (term, basis (R, ·)), the one after which the term's columns
+    ``projected`` (R, m; already off the model) keep the least signal in their weakest
+    direction within ``indices`` — the largest variance of the joint estimate: that rival,
+    its basis and the term's signature in that direction off both, ``(I − BBᵀ) C̃ v`` (R,)."""
+    hardest: tuple[float, Term, FloatArray, FloatArray] | None = None
+    for rival, basis in rivals:
+        rest = projected - basis @ (basis.T @ projected)
+        effect = rest @ weakest_direction(rest.T @ rest, indices)
+        strength = float(effect @ effect)
+        if hardest is None or strength < hardest[0]:
+            hardest = (strength, rival, basis, effect)
+    assert hardest is not None
+    return hardest[1], hardest[2], hardest[3]
+
+
+def separation_size(
+    null: NullModel,
+    columns: FloatArray,
+    rival_basis: FloatArray,
+    effect: FloatArray,
+    replicates: list[FloatArray],
+    level: float,
+    power: float,
+) -> tuple[float, str]:
+    """Smallest size of ``effect`` (R,; the term's signature off the model and the rival) at
+    which the joint test — the term's ``columns`` (R, m) with the rival's (orthonormal basis
+    ``rival_basis``, already off the model) in the model too — rejects at ``level`` with
+    ``power``: :func:`calibrated_size` on the residual and ``replicates`` projected off the
+    rival as well, from the classical noncentral-F size. Returns (size, reason) like
+    :func:`calibrated_size`; inf when the rival leaves nothing."""
+    joint = NullModel(
+        null.residual - rival_basis @ (rival_basis.T @ null.residual),
+        np.hstack([null.basis, rival_basis]),
+        null.d,
+        null.flip_seed,
+    )
+    basis = unexplained_basis(joint, columns)
+    dof = min(joint.dof, joint.n_samples) - basis.shape[1]
+    signal = float(effect @ effect)
+    if dof <= 0 or basis.shape[1] == 0 or signal <= 0.0:
+        return float("inf"), "it leaves nothing to test"
+    scale2 = float(joint.residual @ joint.residual) / max(joint.dof, 1)
+    needed = noncentrality_needed(basis.shape[1], dof, level, power)
+    start = float(np.sqrt(needed * scale2 / signal))
+    off = [r - rival_basis @ (rival_basis.T @ r) for r in replicates]
+    return calibrated_size(joint, basis, effect, off, level, power, start)
+
+
+def robust_in_every_direction(
+    null: NullModel, basis: FloatArray, projected: FloatArray, indices: list[int], level: float
+) -> bool:
+    """Does the sign-flip half reject, at ``level``, the signature alone (an effect that
+    dominates the noise) in every direction of the size group ``indices`` — a gear error at
+    every phase, a flex about every axis ⟂ the joint? With several coefficients the
+    per-sample scores of one signature need not agree, so its p-value has a floor that
+    depends on the direction (:func:`calibrated_size` checks only the weakest one). Checked on
+    :data:`LIMIT_DIRECTIONS` directions spread over the group (unit vectors, (m,))."""
+    if len(indices) < 2:
+        return True
+    for direction in spread_directions(len(indices)):
+        coefficients = np.zeros(projected.shape[1])
+        coefficients[indices] = direction
+        z, _ = flip_whitened(null.sample_scores(basis, projected @ coefficients))
+        if flip_p_value(z, null.flip_seed) > level:
+            return False
+    return True
+
+
+LIMIT_DIRECTIONS = 6
+
+
+def spread_directions(k: int) -> FloatArray:
+    """:data:`LIMIT_DIRECTIONS` unit vectors (·, k) spread over the directions of a k-space
+    (a direction and its opposite are one: the statistic is even): angles 0…π in the plane,
+    else the axes and the diagonals."""
+    if k == 2:
+        angles = np.pi * np.arange(LIMIT_DIRECTIONS) / LIMIT_DIRECTIONS
+        return np.column_stack([np.cos(angles), np.sin(angles)])
+    diagonals = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, 1.0], [1.0, 1.0, -1.0]])[:, :k]
+    out = np.vstack([np.eye(k), diagonals])[:LIMIT_DIRECTIONS]
+    return np.asarray(out / np.linalg.norm(out, axis=1, keepdims=True))
 
 
 def weakest_direction(gram: FloatArray, indices: list[int]) -> FloatArray:
@@ -241,14 +389,19 @@ def calibrated_size(
     level: float,
     power: float,
     start: float,
-) -> float:
+) -> tuple[float, str]:
     """Smallest size s (scan by :data:`SIZE_STEP` down or up from ``start``, then bisection)
     at which ``s · effect`` (R,) added to the replicates (alternating signs) is rejected by
-    both halves of the score test in at least ``power`` of them; inf when none up to
-    :data:`MAX_SIZE_FACTOR` · ``start``."""
+    both halves of the score test in at least ``power`` of them, *and at every larger size*
+    (checked at 2 s, 4 s and :data:`LIMIT_FACTOR` s; a miss restarts the scan above it). The
+    sign-flip half is not monotone in the size: once the effect dominates the noise, its
+    p-value tends to that of the signature alone, which the level may never reach when the
+    signature rests on a few samples. Returns (size, reason): inf with the reason when no size
+    up to :data:`MAX_SIZE_FACTOR` · ``start`` holds."""
     trials = _Trials(null, basis, effect, replicates)
     count = len(replicates)
     needed = int(np.ceil(power * count - 1e-9))
+    ceiling = MAX_SIZE_FACTOR * start
 
     def detected(size: float) -> bool:
         hits = 0
@@ -258,17 +411,43 @@ def calibrated_size(
                 break
         return hits >= needed
 
-    if detected(start):  # scan down from the classical size, else up
+    if not detected(LIMIT_FACTOR * start):
+        return float("inf"), UNDETECTABLE_LARGE
+    size = _smallest_detected(detected, start, ceiling)
+    while np.isfinite(size):
+        missed = [f * size for f in (2.0, 4.0) if not detected(f * size)]
+        if not missed:
+            break
+        size = _smallest_detected(detected, max(missed) * SIZE_STEP, ceiling, scan_down=False)
+    return size, "" if np.isfinite(size) else "not detected at any size tried"
+
+
+LIMIT_FACTOR = 1e3
+"""The size, in units of the classical one, at which the effect dominates the noise: the
+sign-flip half then gives the p-value of the signature alone."""
+UNDETECTABLE_LARGE = (
+    "not detected however large: the robust test's evidence rests on too few samples"
+)
+
+
+def _smallest_detected(
+    detected: Callable[[float], bool], start: float, ceiling: float, scan_down: bool = True
+) -> float:
+    """Geometric scan from ``start`` (down while detected, else up to ``ceiling``), then
+    :data:`BISECTIONS` bisections: the smallest detected size found; inf when none."""
+    if scan_down and detected(start):
         low, high = start / SIZE_STEP, start
         while detected(low):
             low, high = low / SIZE_STEP, low
             if high < start / MAX_SIZE_FACTOR:
                 return float(high)
+    elif detected(start):
+        return float(start)
     else:
         low, high = start, start * SIZE_STEP
         while not detected(high):
             low, high = high, high * SIZE_STEP
-            if high > MAX_SIZE_FACTOR * start:
+            if high > ceiling:
                 return float("inf")
     for _ in range(BISECTIONS):
         middle = float(np.sqrt(low * high))

@@ -301,10 +301,11 @@ def candidate_library(
     out: list[Term] = []
     clock_unit = bank.clock_unit
     shapes = drift_variants(float(bank.clock.max()))
-    for index in np.flatnonzero(chain.is_revolute()):
-        j = int(index)
+    revolute = [int(j) for j in np.flatnonzero(chain.is_revolute())]
+    scale_nm = max([float(np.ptp(bank.nominal_tau(chain.joint_names[j]))) for j in revolute] or [0])
+    for j in revolute:
         name = chain.joint_names[j]
-        loaded = _varies(bank.nominal_tau(name))
+        loaded = _load_varies(bank.nominal_tau(name), scale_nm)
         if loaded:
             out.append(compliance_term(chain, j))
             tau = bank.nominal_tau(name)
@@ -313,7 +314,7 @@ def candidate_library(
                 for zone in deadzones(tau, CANDIDATE_DEADZONES)
                 if _varies(deadzone_sign(tau, zone))  # a load that never changes sign cannot
             ]
-        if all(_varies(bank.nominal_tau(f"{name}.{lab}")) for lab in FLEX_LABELS):
+        if all(_load_varies(bank.nominal_tau(f"{name}.{lab}"), scale_nm) for lab in FLEX_LABELS):
             out.append(flex_term(chain, j))
         out += [gear_term(chain, j, h) for h in HARMONICS]
         out.append(direction_backlash_term(chain, j))
@@ -343,6 +344,19 @@ def drift_feature(term: Term) -> str:
 def _varies(values: np.ndarray) -> bool:
     """A driving signal that changes across the recording (e.g. not the vertical first joint)."""
     return bool(np.ptp(values) > 1e-9 * max(1.0, float(np.abs(values).max())))
+
+
+LOAD_RANGE_FRACTION = 1e-6
+"""A gravity moment (N·m) drives a term only if it ranges over more than this fraction of the
+largest joint torque range of the recording: below, it is round-off of a moment that is zero
+by the robot's geometry (the UR10e's upper arm about its own length, 5e-8 N·m against 222 N·m
+at the shoulder), and a coefficient fitted to it comes out absurd (a bending of 7e4 rad/N·m)."""
+
+
+def _load_varies(tau_nm: np.ndarray, scale_nm: float) -> bool:
+    """Does a gravity moment (n,) change across the recording, on the robot's scale of loads
+    ``scale_nm`` (the largest joint torque range)?"""
+    return _varies(tau_nm) and bool(np.ptp(tau_nm) > LOAD_RANGE_FRACTION * scale_nm)
 
 
 # Effects whose coefficients a physical mechanism makes non-negative (deflection along the load,

@@ -615,6 +615,7 @@ class _Search:
                 absorbed_limit=options.absorbed_limit,
                 unexplained=frozenset(self.misfits),
                 collinear=options.collinear_correlation,
+                joint_level=level,
             ),
             detection_level=level,
             detection_power=DETECTION_POWER,

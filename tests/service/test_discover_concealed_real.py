@@ -67,6 +67,19 @@ def test_unmodified_real_recordings_name_nothing(unmodified: dict[str, FindingsR
         assert result.detectability is not None
 
 
+def test_no_term_is_driven_by_a_moment_the_geometry_makes_zero(
+    unmodified: dict[str, FindingsResult],
+) -> None:
+    """The UR10e's upper arm has no gravity moment about its own length (5e-8 N·m of
+    round-off against 222 N·m at the shoulder): its bending is not a candidate (a fit to that
+    round-off named a bending of 7e4 rad/N·m), while the forearm's is."""
+    detectability = unmodified["ur10e"].detectability
+    assert detectability is not None
+    bending = {s.joint for s in detectability.sizes if s.effect == "link_bending"}
+    assert "shoulder_lift_joint" not in bending
+    assert "elbow_joint" in bending
+
+
 @pytest.mark.parametrize(
     ("name", "effect_name", "effect", "variant", "joint", "seed"),
     [
