@@ -78,7 +78,7 @@ def separating_poses(
     rows = np.arange(n + pool_size)
     design = evaluate(big, fit.terms, fit.params, rows, candidates=tuple(terms))
     d = data.rows
-    nuisance = np.concatenate([design.links[:, :, fit.kept_links], design.terms], axis=2)
+    nuisance = np.concatenate([fit.nuisance(design.links), design.terms], axis=2)
     target = np.concatenate([design.candidates[t.key] for t in terms], axis=2)
     x = whitened(np.concatenate([nuisance, target], axis=2), w)
     signatures = [
