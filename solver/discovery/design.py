@@ -67,13 +67,7 @@ def separating_poses(
     data = ctx.data
     n = data.n_samples
     pool = sample_configurations(ctx.chain, pool_size, rng)
-    joined = replace(
-        data,
-        joint_positions=np.vstack([data.joint_positions, pool]),
-        measured_pose=np.concatenate([data.measured_pose, np.tile(np.eye(4), (pool_size, 1, 1))]),
-        time_s=None,
-        payload_kg=np.r_[data.payload(), np.zeros(pool_size)],
-    )
+    joined = data.with_configurations(pool)
     big = Context.build(ctx.chain, joined)
     rows = np.arange(n + pool_size)
     design = evaluate(big, fit.terms, fit.params, rows, candidates=tuple(terms))

@@ -127,6 +127,24 @@ class DiscoveryData:
             self.joint_positions[rows], np.zeros((rows.size, 0)), measured[rows], group
         )
 
+    def with_configurations(self, configurations: FloatArray) -> DiscoveryData:
+        """The recording followed by new ``configurations`` (P, k) rad with nothing measured
+        (identity poses, zero marker positions, socket 0, no payload, no time stamps): rows
+        whose columns a pose design evaluates."""
+        pool = configurations.shape[0]
+        measured = self.measured
+        if measured is not None:
+            measured = np.concatenate([measured, np.zeros((pool, *measured.shape[1:]))])
+        return replace(
+            self,
+            joint_positions=np.vstack([self.joint_positions, configurations]),
+            measured_pose=np.concatenate([self.measured_pose, np.tile(np.eye(4), (pool, 1, 1))]),
+            time_s=None,
+            payload_kg=np.r_[self.payload(), np.zeros(pool)],
+            measured=measured,
+            group=None if self.group is None else np.r_[self.group, np.zeros(pool, dtype=np.intp)],
+        )
+
     def range_m(self) -> FloatArray | None:
         """Per row the distance of what was measured from the measurement frame's origin (the
         mean over markers), m; None when nothing is measured in a sensor frame (sockets)."""
