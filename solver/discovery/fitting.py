@@ -50,6 +50,11 @@ FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
 
 RANK_TOLERANCE = 1e-7
+# A nuisance direction (link correction, socket point, marker offset) the recording pins down
+# no better than this (standard error, rad or m) stays at its start: Gauss–Newton's
+# linearisation does not hold over such a range (e.g. the tilt of the last joint's axis when
+# a ball in a socket sits on that axis).
+NUISANCE_RANGE = 0.1
 
 
 @dataclass(frozen=True, eq=False)
@@ -351,11 +356,13 @@ def start_parameters(ctx: Context) -> ModelParameters:
     return ModelParameters(start.links, np.zeros(0))
 
 
-def _kept_links(links_w: FloatArray, terms_w: FloatArray) -> IndexArray:
+def _kept_links(links_w: FloatArray, terms_w: FloatArray, residual_w: FloatArray) -> IndexArray:
     """Link columns the data can identify once the term columns are in (terms take priority).
 
     Column-pivoted QR of the unit-norm link columns after projecting out the term columns;
-    the POE redundancies (and geometry that a term explains exactly) drop out by name.
+    the POE redundancies (and geometry that a term explains exactly) drop out by name, and so
+    does a pivot whose standard error given the ones before it, ``s/|R_jj|`` with ``s`` the
+    RMS whitened residual, exceeds :data:`NUISANCE_RANGE`.
     """
     norms = np.linalg.norm(links_w, axis=0)
     nonzero = np.flatnonzero(norms > 1e-12 * max(norms.max(), 1e-300))
@@ -366,7 +373,9 @@ def _kept_links(links_w: FloatArray, terms_w: FloatArray) -> IndexArray:
     _, r, pivots = scipy.linalg.qr(a, mode="economic", pivoting=True)
     diagonal = np.abs(np.diag(r))
     rank = int(np.sum(diagonal > RANK_TOLERANCE * max(diagonal[0], 1e-300)))
-    return np.sort(nonzero[pivots[:rank]])
+    scatter = np.sqrt(float(residual_w @ residual_w) / max(residual_w.size, 1))
+    pinned = diagonal[:rank] * norms[nonzero][pivots[:rank]] * NUISANCE_RANGE > scatter
+    return np.sort(nonzero[pivots[:rank][pinned]])
 
 
 def orthonormal_basis(matrix: FloatArray, tolerance: float = RANK_TOLERANCE) -> FloatArray:
@@ -401,20 +410,34 @@ def constraint_rows(
 
 
 def _constrained_step(
-    a: FloatArray, r: FloatArray, constraint: tuple[FloatArray, FloatArray] | None
+    a: FloatArray,
+    r: FloatArray,
+    constraint: tuple[FloatArray, FloatArray] | None,
+    damping: float = 0.0,
 ) -> FloatArray:
     """Gauss–Newton step of ``r ≈ a δ``: without constraints the least-squares step; with
     ``C δ_nuisance = c`` the step ``δ = C⁺c + N z``, N a basis of the null space of C and z the
-    least-squares step of the rows in those free directions."""
+    least-squares step of the rows in those free directions. ``damping`` λ > 0: the
+    Levenberg–Marquardt step instead, ``min |r − a δ|² + λ |D δ|²`` with D the column norms
+    (the constraints still met)."""
     if constraint is None:
-        return np.asarray(np.linalg.lstsq(a, r, rcond=None)[0], dtype=np.float64)
-    c, jacobian = constraint
-    k = jacobian.shape[1]
-    free = scipy.linalg.null_space(jacobian)  # (k, k − c)
-    particular = np.zeros(a.shape[1])
-    particular[:k] = np.linalg.pinv(jacobian) @ c
-    reduced = np.hstack([a[:, :k] @ free, a[:, k:]])
-    z = np.linalg.lstsq(reduced, r - a @ particular, rcond=None)[0]
+        particular, free, reduced, target = np.zeros(a.shape[1]), None, a, r
+    else:
+        c, jacobian = constraint
+        k = jacobian.shape[1]
+        free = scipy.linalg.null_space(jacobian)  # (k, k − c)
+        particular = np.zeros(a.shape[1])
+        particular[:k] = np.linalg.pinv(jacobian) @ c
+        reduced = np.hstack([a[:, :k] @ free, a[:, k:]])
+        target = r - a @ particular
+    if damping > 0.0:
+        scale = np.sqrt(damping) * np.linalg.norm(reduced, axis=0)
+        reduced = np.vstack([reduced, np.diag(scale)])
+        target = np.r_[target, np.zeros(scale.size)]
+    z = np.asarray(np.linalg.lstsq(reduced, target, rcond=None)[0], dtype=np.float64)
+    if free is None:
+        return z
+    k = free.shape[0]
     step = particular.copy()
     step[:k] += free @ z[: free.shape[1]]
     step[k:] += z[free.shape[1] :]
@@ -422,11 +445,13 @@ def _constrained_step(
 
 
 def _merit(cost: float, constraint: tuple[FloatArray, FloatArray] | None, weight: float) -> float:
-    """The cost with the constraints' violation (m), each weighted as a residual of a
-    thousandth of the translation noise 1/``weight`` (the known distances hold far below it)."""
+    """The cost with the constraints' violation (m), each weighted as a residual of the
+    translation noise 1/``weight``: the line search's measure of progress. Every step meets
+    the linearised constraints exactly, so the violation left is of second order in the step
+    and vanishes as the fit converges."""
     if constraint is None:
         return cost
-    return cost + float(np.sum((1e3 * weight * constraint[0]) ** 2))
+    return cost + float(np.sum((weight * constraint[0]) ** 2))
 
 
 def fit_model(
@@ -457,7 +482,7 @@ def fit_model(
         )
 
     r, links_w, terms_w = stacked(design)
-    kept = _kept_links(links_w, terms_w)
+    kept = _kept_links(links_w, terms_w, r)
     constraint = constraint_rows(ctx, params, kept)
     n_pinned = 0 if constraint is None else constraint[0].size
     if r.size <= kept.size - n_pinned + p_terms:
@@ -468,19 +493,20 @@ def fit_model(
     cost = float(r @ r)
     merit = _merit(cost, constraint, translation_weight)
     converged, iterations = False, 0
+    carried = 0.0  # Levenberg–Marquardt damping kept from the last step (0: Gauss–Newton)
     while iterations < max_iterations:
         iterations += 1
         a = np.hstack([links_w[:, kept], terms_w])
-        step = _constrained_step(a, r, constraint)
+        step = _constrained_step(a, r, constraint, carried)
         predicted = a @ step
         if float(predicted @ predicted) <= tolerance * max(cost, 1e-300) and merit - cost <= (
             tolerance * max(cost, 1e-300)
         ):
             converged = True  # Gauss–Newton cannot lower the cost any further
             break
-        scale = 1.0
+        damping = carried
         for _ in range(20):
-            candidate = _apply(params, scale * step, kept)
+            candidate = _apply(params, step, kept)
             trial = evaluate(ctx, terms, candidate, rows)
             r_new, links_new, terms_new = stacked(trial)
             new_cost = float(r_new @ r_new)
@@ -488,12 +514,16 @@ def fit_model(
             new_merit = _merit(new_cost, new_constraint, translation_weight)
             if new_merit <= merit:
                 break
-            scale *= 0.5
+            # the linearisation does not hold that far: a Levenberg–Marquardt step, damped
+            # more each time (poorly identified nuisance directions stop running off)
+            damping = max(10.0 * damping, 1e-8)
+            step = _constrained_step(a, r, constraint, damping)
         else:
             converged = True
             break
         params, design, r, links_w, terms_w = candidate, trial, r_new, links_new, terms_new
         constraint = new_constraint
+        carried = damping / 10.0 if damping >= 1e-7 else 0.0
         change = merit - new_merit
         cost, merit = new_cost, new_merit
         if change <= tolerance * max(merit, 1e-300):
