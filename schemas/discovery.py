@@ -84,8 +84,10 @@ class DiscoveryOptions(_Model):
     )
     sensor_sigma_mm: float | None = Field(None, gt=0.0, description="Sensor noise, for χ²/dof.")
     sensor_sigma_deg: float | None = Field(None, gt=0.0)
-    measurement: str = CalibrationOptions.model_fields["measurement"]
-    point_distance_m: float | None = CalibrationOptions.model_fields["point_distance_m"]
+    measurement: str = CalibrationOptions.model_fields["measurement"]  # type: ignore[assignment]
+    point_distance_m: float | None = CalibrationOptions.model_fields[  # type: ignore[assignment]
+        "point_distance_m"
+    ]
 
     @field_validator("measurement")
     @classmethod

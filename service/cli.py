@@ -16,7 +16,7 @@ import pydantic
 import typer
 
 from schemas.calibration import CalibrationResult
-from schemas.dataset import read_configurations, read_dataset, write_dataset
+from schemas.dataset import read_configurations, write_dataset
 from schemas.design import DesignOptions, DesignResult
 from service import pipeline, result_json, scenarios
 from service.flags import (

@@ -266,9 +266,7 @@ def _discover(
     chain = chain_for(robot, options)
     result = solver_discovery.discover(chain, data, solver_options(options))
     if measurement is not None and not data.is_pose:
-        measurement = measurement.model_copy(
-            update=_measured_unknowns(chain, data, result.params)
-        )
+        measurement = measurement.model_copy(update=_measured_unknowns(chain, data, result.params))
     names = chain.joint_names
     plots: list[str] = []
     findings = []

@@ -9,7 +9,7 @@ Terms driven by time or approach direction cannot be separated by a choice of po
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray

@@ -397,9 +397,7 @@ def constraint_rows(
     if ctx.data.is_pose:
         return None
     chain = ctx.chain
-    measured = MeasuredParameters(
-        params.links, np.zeros(len(chain.compliance_axes)), params.extra
-    )
+    measured = MeasuredParameters(params.links, np.zeros(len(chain.compliance_axes)), params.extra)
     residual, jacobian = ctx.data.model.constraints(chain, measured)
     if residual.size == 0:
         return None

@@ -3,10 +3,10 @@ compliance is named with the right joint and size on simulated ball-in-socket ro
 simulated three-marker rows, and nothing is named on the same rows without it.
 
 The recordings are simulated independently of discovery's model: ball in socket by damped
-Newton on the rigid chain's tool point (:func:`solver.measurement.simulate.configurations_at_points`)
-to two sockets 50 mm apart with 0.05 mm of play, the compliance then hidden in the recorded
-joint angle (the link sits at ``q_recorded + c·τ(q)``); markers by the forward kinematics of a
-chain that carries the compliance, three markers at their own offsets on the flange.
+Newton on the rigid chain's tool point (``configurations_at_points``) to two sockets 50 mm
+apart with 0.05 mm of play, the compliance then hidden in the recorded joint angle (the link
+sits at ``q_recorded + c·τ(q)``); markers by the forward kinematics of a chain that carries
+the compliance, three markers at their own offsets on the flange.
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ def _discover(
     capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
 ) -> dict:
-    code, stdout, stderr = run(
+    code, _, stderr = run(
         ["discover", *args, "--robot", "panda", "-o", out, "--no-plots"], capsys, monkeypatch
     )
     assert code == 0, stderr
@@ -129,7 +129,8 @@ def test_ball_in_socket_discovery_names_a_concealed_compliance(
     assert abs(value / compliance - 1.0) < 0.2, value
     # the held-out ball-centre scatter drops to the socket play (mean 3-D norm ≈ 1.6 σ)
     assert findings["heldout"]["after"]["trans_mm"] < 1.3 * 1.6 * NOISE_M * 1e3
-    assert findings["heldout"]["before"]["trans_mm"] > 1.5 * findings["heldout"]["after"]["trans_mm"]
+    heldout = findings["heldout"]
+    assert heldout["before"]["trans_mm"] > 1.5 * heldout["after"]["trans_mm"]
 
 
 @pytest.mark.parametrize("compliance", [COMPLIANCE_RAD_PER_NM, 0.0], ids=["compliant", "rigid"])
@@ -162,8 +163,10 @@ def test_eye_on_head_discovery_is_refused_with_the_reason(
     frame = frame.rename(columns={"x1": "x", "y1": "y", "z1": "z"})
     frame.drop(columns=["x2", "y2", "z2", "x3", "y3", "z3"]).to_csv(data, index=False)
     code, _, stderr = run(
-        ["discover", data, "--robot", "panda", "--measurement", "eye-on-head:panda_joint2"]
-        + ["-o", tmp_path / "f.json"],
+        [
+            *("discover", data, "--robot", "panda"),
+            *("--measurement", "eye-on-head:panda_joint2", "-o", tmp_path / "f.json"),
+        ],
         capsys,
         monkeypatch,
     )
