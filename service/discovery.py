@@ -63,9 +63,9 @@ from solver.discovery.fitting import ModelParameters as FitParameters
 from solver.discovery.health import HealthReport
 from solver.discovery.library import UNEXPLAINED, Term, library_term
 from solver.discovery.results import HeldoutError, PlotPanel, TermEstimate
-from solver.errors import KincalError, ModelError
-from solver.measurement import EyeOnHead, RelativeBase
+from solver.errors import ModelError
 from solver.measurement import ModelParameters as MeasuredParameters
+from solver.measurement import RelativeBase
 from solver.model import KinematicChain, build_chain
 
 __all__ = [
@@ -139,6 +139,7 @@ def discover_source(
     ``options.measurement`` (:mod:`service.measurement_run`: a platonics ball-in-socket folder,
     a FIGAROH file with all its markers, chosen pose components, ...)."""
     started = time.perf_counter()
+    check_measurement(options)
     chain = chain_for(robot, options)
     reading = measurement_options(options)
     model = measurement_run.measurement_for(reading, chain, source, marker)
@@ -151,12 +152,6 @@ def discover_source(
             source=name,
         )
         return discover(dataset, robot, options, plot_dir, plot_stem)
-    if isinstance(model, EyeOnHead):
-        raise KincalError(
-            "kincal discover --measurement eye-on-head is not available: discovery's columns "
-            "run over the whole chain, and with the sensor on the chain the links and joints "
-            "before it cancel; calibrate it with kincal calibrate"
-        )
     recording = measurement_run.read_measured(
         source, chain, reading, model, marker=marker, name=name
     )
@@ -171,6 +166,16 @@ def discover_source(
         started,
         described,
     )
+
+
+def check_measurement(options: DiscoveryOptions) -> None:
+    """A :class:`ModelError` for a measurement discovery does not run on (eye-on-head)."""
+    if options.measurement.partition(":")[0] == "eye-on-head":
+        raise ModelError(
+            "discovery with measurement 'eye-on-head' is not available: discovery's columns "
+            "run over the whole chain, and with the sensor on the chain the links and joints "
+            "before it cancel; calibrate it with kincal calibrate"
+        )
 
 
 def measurement_options(options: DiscoveryOptions) -> CalibrationOptions:

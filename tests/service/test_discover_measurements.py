@@ -171,4 +171,31 @@ def test_eye_on_head_discovery_is_refused_with_the_reason(
         monkeypatch,
     )
     assert code == 2
-    assert "eye-on-head is not available" in stderr and "kincal calibrate" in stderr
+    assert "'eye-on-head' is not available" in stderr and "kincal calibrate" in stderr
+
+
+def test_http_discovery_refuses_measurements_of_a_folder_or_every_marker(tmp_path: Path) -> None:
+    """The service discovers on one uploaded dataset: 'point' gets a 422 problem naming
+    ``kincal discover``; 'eye-on-head' a 422 with the reason."""
+    from fastapi.testclient import TestClient
+
+    from service.api.app import create_app
+    from tests.service.api.conftest import fresh_database_url, make_settings, upload_csv
+
+    with (
+        fresh_database_url(tmp_path) as url,
+        TestClient(create_app(make_settings(tmp_path, url))) as client,
+    ):
+        dataset = upload_csv(client).json()
+        responses = [
+            client.post(
+                "/api/v1/discoveries",
+                json={"dataset_id": dataset["id"], "options": {"measurement": measurement}},
+            )
+            for measurement in ("point", "eye-on-head:shoulder_lift_joint")
+        ]
+    expected = ("kincal discover", "'eye-on-head' is not available")
+    for response, text in zip(responses, expected, strict=True):
+        assert response.status_code == 422, response.text
+        assert response.headers["content-type"].startswith("application/problem+json")
+        assert text in response.json()["detail"]
