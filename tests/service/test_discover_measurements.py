@@ -1,6 +1,6 @@
 """``kincal discover`` on measurements other than a marker pose (issue 15): a concealed joint
-compliance is named with the right joint and size on simulated ball-in-socket rows and on
-simulated three-marker rows, and nothing is named on the same rows without it.
+compliance is named with the right joint and size on simulated ball-in-socket rows, three-marker
+rows and plane-contact rows (tz, rx, ry), and nothing is named on the same rows without it.
 
 The recordings are simulated independently of discovery's model: ball in socket by damped
 Newton on the rigid chain's tool point (``configurations_at_points``) to two sockets 50 mm
@@ -83,6 +83,26 @@ def write_marker_file(path: Path, compliance: float, seed: int = 4) -> None:
     pd.DataFrame(table).to_csv(path, index=False)
 
 
+def write_pose_file(path: Path, compliance: float, seed: int = 6) -> None:
+    """A pose CSV (x,y,z, quaternion) of the compliant chain in a measurement frame near the
+    robot base, 0.05 mm / 0.05 mrad of noise: a plane contact reads tz, rx, ry of it."""
+    _, soft = _chains()
+    rng = np.random.default_rng(seed)
+    n = 300
+    q = sample_configurations(soft, n, rng)
+    loads = gravity_loads(soft, q)
+    params = ChainParameters(soft.nominal_links.copy(), np.array([compliance]))
+    frame = lie.se3_exp(np.array([2e-3, -3e-3, 4e-3, 1e-3, -2e-3, 3e-3]))
+    params.links[0] = frame @ params.links[0]
+    pose = forward_kinematics(soft, params, q, loads)
+    pose = pose @ lie.se3_exp(NOISE_M * rng.standard_normal((n, 6)))
+    table = {name: q[:, j] for j, name in enumerate(soft.joint_names)}
+    table.update({axis: pose[:, a, 3] for a, axis in enumerate("xyz")})
+    quaternion = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
+    table.update({name: quaternion[:, a] for a, name in enumerate(("qx", "qy", "qz", "qw"))})
+    pd.DataFrame(table).to_csv(path, index=False)
+
+
 def _discover(
     args: list[object],
     out: Path,
@@ -147,6 +167,29 @@ def test_three_marker_discovery_names_a_concealed_compliance(
     assert len(measurement["components"]) == 9
     offsets = np.array([measurement["unknowns"][f"marker_1.{a}"] for a in "xyz"])
     assert offsets.shape == (3,)
+    if compliance == 0.0:
+        assert findings["findings"] == [] and findings["ambiguous"] == []
+        return
+    value = _compliance_named(findings)
+    assert abs(value / compliance - 1.0) < 0.2, value
+
+
+@pytest.mark.parametrize("compliance", [COMPLIANCE_RAD_PER_NM, 0.0], ids=["compliant", "rigid"])
+def test_plane_contact_discovery_names_a_concealed_compliance(
+    compliance: float,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    write_pose_file(tmp_path / "poses.csv", compliance)
+    findings = _discover(
+        [tmp_path / "poses.csv", "--measurement", "components:tz,rx,ry"],
+        tmp_path / "f.json",
+        capsys,
+        monkeypatch,
+    )
+    assert findings["measurement"]["components"] == ["tz", "rx", "ry"]
+    assert findings["measurement"]["frame"] == "measurement frame"
     if compliance == 0.0:
         assert findings["findings"] == [] and findings["ambiguous"] == []
         return
