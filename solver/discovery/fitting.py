@@ -462,7 +462,12 @@ def fit_model(
     max_iterations: int = 40,
     tolerance: float = 1e-10,
 ) -> ModelFit:
-    """Gauss–Newton on the whitened residuals (Eq. 10 with the extra term columns)."""
+    """Gauss–Newton on the whitened residuals (Eq. 10 with the extra term columns) over the
+    nuisance columns :func:`_kept_links` keeps and θ, the measurement model's known distances
+    met in every step (:func:`_constrained_step`). A step that does not lower the cost (with
+    the constraints' violation, :func:`_merit`) is replaced by Levenberg–Marquardt steps damped
+    tenfold each time, and the damping is relaxed tenfold after each accepted step until it is
+    pure Gauss–Newton again; a fit whose Gauss–Newton steps all succeed is plain Gauss–Newton."""
     d = ctx.data.rows
     params = start
     design = evaluate(ctx, terms, params, rows)
