@@ -29,6 +29,21 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+def known_measurement(value: str) -> str:
+    """``value`` if it names a measurement (the ``measurement`` option of calibrate and
+    discover), else a ValueError listing them."""
+    kind, _, argument = value.partition(":")
+    plain = ("auto", "pose", "position", "point", "markers", "relative-base")
+    if kind in plain and not argument:
+        return value
+    if kind in ("components", "eye-on-head") and argument:
+        return value
+    raise ValueError(
+        f"unknown measurement {value!r}; choose auto, pose, position, point, markers, "
+        "relative-base, components:<tx,ty,tz,rx,ry,rz subset> or eye-on-head:<joint>"
+    )
+
+
 class CalibrationOptions(_Model):
     """Everything a calibration run can be told: the HTTP body, the CLI flags
     (:data:`service.flags.CALIBRATION_FLAGS`) and a ``--config`` TOML file share this model, so
@@ -190,16 +205,7 @@ class CalibrationOptions(_Model):
     @field_validator("measurement")
     @classmethod
     def _measurement_known(cls, value: str) -> str:
-        kind, _, argument = value.partition(":")
-        plain = ("auto", "pose", "position", "point", "markers", "relative-base")
-        if kind in plain and not argument:
-            return value
-        if kind in ("components", "eye-on-head") and argument:
-            return value
-        raise ValueError(
-            f"unknown measurement {value!r}; choose auto, pose, position, point, markers, "
-            "relative-base, components:<tx,ty,tz,rx,ry,rz subset> or eye-on-head:<joint>"
-        )
+        return known_measurement(value)
 
     @field_validator("outlier_sigma")
     @classmethod

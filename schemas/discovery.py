@@ -14,9 +14,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from schemas.calibration import DatasetInfo
+from schemas.calibration import CalibrationOptions, DatasetInfo, known_measurement
 
 FINDINGS_FORMAT: Literal["kincal.findings/1"] = "kincal.findings/1"
 
@@ -84,6 +84,36 @@ class DiscoveryOptions(_Model):
     )
     sensor_sigma_mm: float | None = Field(None, gt=0.0, description="Sensor noise, for χ²/dof.")
     sensor_sigma_deg: float | None = Field(None, gt=0.0)
+    measurement: str = CalibrationOptions.model_fields["measurement"]  # type: ignore[assignment]
+    point_distance_m: float | None = CalibrationOptions.model_fields[  # type: ignore[assignment]
+        "point_distance_m"
+    ]
+
+    @field_validator("measurement")
+    @classmethod
+    def _measurement_known(cls, value: str) -> str:
+        return known_measurement(value)
+
+
+class DiscoveryMeasurement(_Model):
+    """What the rows measure when they are not the marker's pose or position (issue 15)."""
+
+    type: str = Field(description="ball in socket 'point', 'markers', 'components:…', ….")
+    frame: str = Field(description="The frame the residuals are in.")
+    components: list[str] = Field(description="Name of each residual row of a sample.")
+    labels: list[str] = Field(default_factory=list, description="Sockets or markers.")
+    unknowns: dict[str, float] = Field(
+        default_factory=dict,
+        description="The measurement's own unknowns in the final model (socket points, marker "
+        "offsets), m, fitted with the geometry as nuisance parameters.",
+    )
+    constraint_residuals_m: list[float] = Field(
+        default_factory=list, description="Known socket distances minus fitted ones, m."
+    )
+    left_out: list[str] = Field(
+        default_factory=list,
+        description="Library effects this measurement cannot see, each with the reason.",
+    )
 
 
 class ErrorPair(_Model):
@@ -298,4 +328,7 @@ class FindingsResult(_Model):
         None, description="Smallest detectable size of every library term left out."
     )
     plots: list[str] = Field(default_factory=list, description="PNG files next to the JSON.")
+    measurement: DiscoveryMeasurement | None = Field(
+        None, description="The measurement of the rows when not the marker's pose/position."
+    )
     elapsed_s: float

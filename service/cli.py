@@ -16,7 +16,7 @@ import pydantic
 import typer
 
 from schemas.calibration import CalibrationResult
-from schemas.dataset import read_configurations, read_dataset, write_dataset
+from schemas.dataset import read_configurations, write_dataset
 from schemas.design import DesignOptions, DesignResult
 from service import pipeline, result_json, scenarios
 from service.flags import (
@@ -62,6 +62,8 @@ DhOpt = Annotated[
     ),
 ]
 OutputOpt = Annotated[Path, typer.Option("-o", "--output", help="Output file.")]
+MeasurementOpt = Annotated[str | None, typer.Option(help=option_help("measurement"))]
+PointDistanceOpt = Annotated[float | None, typer.Option(help=option_help("point_distance_m"))]
 ExecutorOpt = Annotated[
     str | None,
     typer.Option(
@@ -275,10 +277,8 @@ def calibrate(
         Path | None,
         typer.Option(help=option_help("noise_covariance", "; a JSON file holding the 6×6 array")),
     ] = None,
-    measurement: Annotated[str | None, typer.Option(help=option_help("measurement"))] = None,
-    point_distance: Annotated[
-        float | None, typer.Option(help=option_help("point_distance_m"))
-    ] = None,
+    measurement: MeasurementOpt = None,
+    point_distance: PointDistanceOpt = None,
     marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
     executor: ExecutorOpt = None,
     dask: DaskOpt = None,
@@ -652,7 +652,13 @@ def rank(
 
 @app.command()
 def discover(
-    data: Annotated[Path, typer.Argument(help="Dataset: CSV, Parquet or JSON.")],
+    data: Annotated[
+        Path,
+        typer.Argument(
+            help="Dataset: CSV, Parquet, JSON or industrial_calibration YAML; or a folder of "
+            "ball-in-socket hole_<k>.csv files."
+        ),
+    ],
     output: OutputOpt,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,
@@ -677,6 +683,8 @@ def discover(
     bootstrap: Annotated[int, typer.Option(min=0, help="Bootstrap replicates.")] = 50,
     noise_mm: Annotated[float | None, typer.Option(help="Sensor noise σ (mm), for χ².")] = None,
     noise_deg: Annotated[float | None, typer.Option(help="Sensor noise σ (deg).")] = None,
+    measurement: MeasurementOpt = None,
+    point_distance: PointDistanceOpt = None,
     marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
     plots: Annotated[bool, typer.Option(help="Write a PNG per finding next to -o.")] = True,
     report: Annotated[
@@ -703,18 +711,20 @@ def discover(
             bootstrap=bootstrap,
             sensor_sigma_mm=noise_mm,
             sensor_sigma_deg=noise_deg,
+            measurement=measurement or "auto",
+            point_distance_m=point_distance,
         )
     except pydantic.ValidationError as exc:
         first = exc.errors()[0]
+        flag = CALIBRATION_FLAGS.get(str(first["loc"][0]))
         raise KincalError(
-            f"option {first['loc'][0]}: {first['msg']} (got {first.get('input')!r})"
+            f"option {first['loc'][0]}{f' ({flag})' if flag else ''}: {first['msg']} "
+            f"(got {first.get('input')!r})"
         ) from exc
-    chain = discovery.chain_for(description, options)
-    dataset = read_dataset(
-        data, chain.joint_names, other_joint_names=chain.other_joint_names, marker=marker
-    )
     plot_dir = output.resolve().parent if plots else None
-    findings = discovery.discover(dataset, description, options, plot_dir, output.stem)
+    findings = discovery.discover_source(
+        data, description, options, plot_dir, output.stem, marker=marker
+    )
     _write_json(output, findings.model_dump_json(indent=1))
     typer.echo(discovery.summary(findings))
     typer.echo(f"\nfindings written to {output}")

@@ -22,7 +22,7 @@ from schemas.calibration import (
     ModelCorrection,
     ModelCorrections,
 )
-from schemas.dataset import PoseDataset
+from schemas.dataset import PoseDataset, read_dataset
 from schemas.discovery import (
     EFFECTS,
     Ambiguity,
@@ -31,7 +31,9 @@ from schemas.discovery import (
     Detectability,
     DetectableSize,
     DiscoveredModel,
+    DiscoveryMeasurement,
     DiscoveryOptions,
+    Effect,
     ErrorPair,
     Finding,
     FindingsResult,
@@ -45,6 +47,7 @@ from schemas.discovery import (
     Step,
     Unexplained,
 )
+from service import measurement_run
 from service.result_json import kincal_version
 from service.robots import RobotDescription
 from solver import discovery as solver_discovery
@@ -56,10 +59,13 @@ from solver.discovery.carry import (
 )
 from solver.discovery.explain import describe, reported_parameters
 from solver.discovery.features import FeatureBank, probe_chain
+from solver.discovery.fitting import ModelParameters as FitParameters
 from solver.discovery.health import HealthReport
 from solver.discovery.library import UNEXPLAINED, Term, library_term
 from solver.discovery.results import HeldoutError, PlotPanel, TermEstimate
 from solver.errors import ModelError
+from solver.measurement import ModelParameters as MeasuredParameters
+from solver.measurement import RelativeBase
 from solver.model import KinematicChain, build_chain
 
 __all__ = [
@@ -68,6 +74,7 @@ __all__ = [
     "carry_model",
     "chain_for",
     "discover",
+    "discover_source",
     "summary",
 ]
 
@@ -110,11 +117,161 @@ def discover(
     plot_dir: Path | None = None,
     plot_stem: str = "findings",
 ) -> FindingsResult:
-    """Run discovery; with ``plot_dir`` also write one PNG per finding there."""
+    """Run discovery on a pose/position recording; with ``plot_dir`` also write one PNG per
+    finding there."""
     started = time.perf_counter()
+    return _discover(
+        solver_data(dataset, options), dataset.source, robot, options, plot_dir, plot_stem, started
+    )
+
+
+def discover_source(
+    source: Path,
+    robot: RobotDescription,
+    options: DiscoveryOptions,
+    plot_dir: Path | None = None,
+    plot_stem: str = "findings",
+    *,
+    marker: int | None = None,
+    name: str | None = None,
+) -> FindingsResult:
+    """Run discovery on a recording file or folder, read as ``kincal calibrate`` reads it for
+    ``options.measurement`` (:mod:`service.measurement_run`: a platonics ball-in-socket folder,
+    a FIGAROH file with all its markers, chosen pose components, ...)."""
+    started = time.perf_counter()
+    check_measurement(options)
     chain = chain_for(robot, options)
-    data = solver_data(dataset, options)
+    reading = measurement_options(options)
+    model = measurement_run.measurement_for(reading, chain, source, marker)
+    if model is None:
+        dataset = read_dataset(
+            source,
+            chain.joint_names,
+            other_joint_names=chain.other_joint_names,
+            marker=marker,
+            source=name,
+        )
+        return discover(dataset, robot, options, plot_dir, plot_stem)
+    recording = measurement_run.read_measured(
+        source, chain, reading, model, marker=marker, name=name
+    )
+    data, described, effects = measured_data(recording, options)
+    return _discover(
+        data,
+        recording.source,
+        robot,
+        options.model_copy(update={"effects": effects}) if effects is not None else options,
+        plot_dir,
+        plot_stem,
+        started,
+        described,
+    )
+
+
+def check_measurement(options: DiscoveryOptions) -> None:
+    """A :class:`ModelError` for a measurement discovery does not run on (eye-on-head)."""
+    if options.measurement.partition(":")[0] == "eye-on-head":
+        raise ModelError(
+            "discovery with measurement 'eye-on-head' is not available: discovery's columns "
+            "run over the whole chain, and with the sensor on the chain the links and joints "
+            "before it cancel; calibrate it with kincal calibrate"
+        )
+
+
+def measurement_options(options: DiscoveryOptions) -> CalibrationOptions:
+    """The calibration options :mod:`service.measurement_run` reads a recording with."""
+    return CalibrationOptions(
+        measurement=options.measurement,
+        point_distance_m=options.point_distance_m,
+        gravity_base_m_s2=options.gravity_base_m_s2,
+        payload_kg=options.payload_kg,
+    )
+
+
+LEFT_OUT: dict[str, dict[str, str]] = {
+    "point": {
+        "depth_scale": "no sensor measures the ball: nothing is read along a camera's depth "
+        "axis (the sockets are fixed points of the robot base frame)",
+    },
+    "markers": {
+        "depth_scale": "a camera's depth scale moves each marker along its own line of sight, "
+        "not the flange frame the library's column moves; not modelled for several markers",
+    },
+    "components": {
+        "depth_scale": "the components are measured in the frame of a contact (e.g. a plane), "
+        "not along a camera's depth axis",
+    },
+}
+"""Library effects a measurement cannot see, with the reason (reported in ``left_out``)."""
+
+
+def measured_data(
+    recording: measurement_run.MeasuredRecording, options: DiscoveryOptions
+) -> tuple[solver_discovery.DiscoveryData, DiscoveryMeasurement, list[Effect] | None]:
+    """The rows of a measurement model as discovery sees them, what the findings say about
+    the measurement, and the library effects searched (None: as asked)."""
+    model, rows = recording.model, recording.rows
+    n = rows.n
+    pose_rows = isinstance(model, RelativeBase)
+    kind = model.name
+    measured_pose = (
+        rows.measured
+        if rows.measured.shape[1:] == (4, 4)
+        else _marker_positions_as_poses(rows.measured, n)
+    )
+    data = solver_discovery.DiscoveryData(
+        joint_positions=rows.joint_positions,
+        measured_pose=measured_pose,
+        position_only=recording.position_only,
+        payload_kg=np.full(n, options.payload_kg),
+        gravity_base=np.asarray(options.gravity_base_m_s2, dtype=float),
+        measurement=None if pose_rows else model,
+        measured=None if pose_rows or rows.measured.shape[1:] == (4, 4) else rows.measured,
+        group=rows.group,
+    )
+    reasons = LEFT_OUT.get(kind, {})
+    left_out = [
+        f"{effect}: {reason}" for effect, reason in reasons.items() if effect in options.effects
+    ]
+    effects = [e for e in options.effects if e not in reasons] if reasons else None
+    frame = (
+        "end effector (tip) frame; the measurement frame is the marker on the robot base, "
+        "fitted as the measurement frame always is"
+        if pose_rows
+        else model.frame
+    )
+    described = DiscoveryMeasurement(
+        type=options.measurement if options.measurement != "auto" else kind,
+        frame=frame,
+        components=list(model.components),
+        labels=list(recording.labels),
+        left_out=left_out,
+    )
+    return data, described, effects
+
+
+def _marker_positions_as_poses(measured: np.ndarray, n: int) -> np.ndarray:
+    """Identity poses at the mean marker position (N, 4, 4) (sockets: at the origin)."""
+    pose = np.tile(np.eye(4), (n, 1, 1))
+    if measured.ndim == 3 and measured.shape[2] == 3 and measured.shape[1]:
+        pose[:, :3, 3] = measured.mean(axis=1)
+    return pose
+
+
+def _discover(
+    data: solver_discovery.DiscoveryData,
+    source: str,
+    robot: RobotDescription,
+    options: DiscoveryOptions,
+    plot_dir: Path | None,
+    plot_stem: str,
+    started: float,
+    measurement: DiscoveryMeasurement | None = None,
+) -> FindingsResult:
+    chain = chain_for(robot, options)
     result = solver_discovery.discover(chain, data, solver_options(options))
+    if measurement is not None and not data.is_pose:
+        measurement = measurement.model_copy(update=_measured_unknowns(chain, data, result.params))
     names = chain.joint_names
     plots: list[str] = []
     findings = []
@@ -131,7 +288,7 @@ def discover(
         kincal_version=kincal_version(),
         created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         dataset=DatasetInfo(
-            source=dataset.source, n_samples=dataset.n_samples, position_only=data.position_only
+            source=source, n_samples=data.n_samples, position_only=data.position_only
         ),
         robot=RobotRef(
             name=robot.name,
@@ -177,8 +334,26 @@ def discover(
         n_candidates=result.n_candidates,
         detectability=_detectability(result, names),
         plots=plots,
+        measurement=measurement,
         elapsed_s=time.perf_counter() - started,
     )
+
+
+def _measured_unknowns(
+    chain: KinematicChain, data: solver_discovery.DiscoveryData, params: FitParameters
+) -> dict[str, object]:
+    """The measurement model's own unknowns and its known-distance residuals at the final
+    model (``params``: the discovery's :class:`~solver.discovery.fitting.ModelParameters`)."""
+    model = data.model
+    extra = params.extra
+    probe = probe_chain(chain)
+    measured = MeasuredParameters(params.links, np.zeros(len(probe.compliance_axes)), extra)
+    residual, _ = model.constraints(probe, measured)
+    weight = getattr(model, "distance_weight", 1.0)
+    return {
+        "unknowns": {n: float(v) for n, v in zip(model.extra_names(), extra, strict=True)},
+        "constraint_residuals_m": [float(v) / weight for v in residual],
+    }
 
 
 def solver_data(dataset: PoseDataset, options: DiscoveryOptions) -> solver_discovery.DiscoveryData:

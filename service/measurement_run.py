@@ -58,7 +58,7 @@ from service.result_json import (
 from solver import lie
 from solver.calibration import FitOptions, outlier_mask
 from solver.covariance.estimate import CovarianceEstimate, estimate_from_samples
-from solver.errors import KincalError
+from solver.errors import KincalError, ModelError
 from solver.kinematics import parameter_names
 from solver.measurement import (
     EyeOnHead,
@@ -84,6 +84,19 @@ BoolArray = NDArray[np.bool_]
 
 IN_MEMORY_MODELS = ("point", "markers", "components", "relative-base", "eye-on-head")
 """Measurements calibrated in memory here; 'pose' and 'position' stream (service.pipeline)."""
+
+
+def refuse_file_measurement(measurement: str, command: str) -> None:
+    """The service works on one uploaded dataset (a pose or position per row): a
+    :class:`ModelError` for the measurements that read a folder or every marker of a file,
+    naming the ``kincal`` ``command`` that reads them."""
+    kind = measurement.partition(":")[0]
+    if kind in ("point", "markers"):
+        raise ModelError(
+            f"measurement {kind!r} reads a folder of ball-in-socket hole files or every "
+            "marker of a FIGAROH file; the service works on one uploaded dataset (pose or "
+            f"position per row): run kincal {command} on the folder or file instead"
+        )
 
 
 def measurement_kind(options: CalibrationOptions, source: str | Path | PoseDataset) -> str:

@@ -19,7 +19,6 @@ from pathlib import Path
 from pydantic import BaseModel, ConfigDict
 
 from schemas.calibration import CalibrationOptions
-from schemas.dataset import read_dataset
 from schemas.discovery import DiscoveryOptions, FindingsResult
 from service import discovery, pipeline
 from service.discovery_html import render_discovery_report
@@ -169,17 +168,17 @@ def discovery_job(ctx: JobContext) -> None:
     ctx.progress("loading", 0.0)
     params = DiscoveryJobParams.model_validate(ctx.params)
     robot = robot_description(params.robot, ctx.files)
-    chain = discovery.chain_for(robot, params.options)
-    dataset = read_dataset(
-        ctx.files.path(params.dataset.data_path),
-        chain.joint_names,
-        other_joint_names=chain.other_joint_names,
-        source=params.dataset.name,
-    )
     ctx.progress("discover", DISCOVERY_FRACTION)
     with tempfile.TemporaryDirectory(prefix="kincal-discovery-") as folder:
         plot_dir = Path(folder)
-        findings = discovery.discover(dataset, robot, params.options, plot_dir, "finding")
+        findings = discovery.discover_source(
+            ctx.files.path(params.dataset.data_path),
+            robot,
+            params.options,
+            plot_dir,
+            "finding",
+            name=params.dataset.name,
+        )
         ctx.progress("report", DISCOVERY_REPORT_FRACTION)
         plots = {name: (plot_dir / name).read_bytes() for name in findings.plots}
     ctx.write_artifact("result", "findings.json", findings.model_dump_json(indent=1).encode())

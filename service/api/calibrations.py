@@ -27,6 +27,7 @@ from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.results import CachedResult
 from service.api.robots import one_line
+from service.measurement_run import refuse_file_measurement
 from service.robots import RobotDescription
 from service.storage import repository
 from service.storage.models import Job
@@ -176,13 +177,7 @@ def create_calibration(
         if body.discovery_id is not None:
             carried, findings = carried_discovery(state, principal.tenant_id, body, robot)
         pipeline.check_calibration(robot, body.options, findings)
-        kind = body.options.measurement.partition(":")[0]
-        if kind in ("point", "markers"):
-            raise ModelError(
-                f"measurement {kind!r} reads a folder of ball-in-socket hole files or every "
-                "marker of a FIGAROH file; the service calibrates one uploaded dataset (pose or "
-                "position per row): run kincal calibrate on the folder or file instead"
-            )
+        refuse_file_measurement(body.options.measurement, "calibrate")
         return carried
 
     return jobs_common.accept_dataset_job(

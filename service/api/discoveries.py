@@ -20,8 +20,11 @@ from service.api.deps import API_PREFIX, PrincipalDep, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, problem_responses
+from service.measurement_run import refuse_file_measurement
+from service.robots import RobotDescription
 from service.storage.models import Job
 from service.tasks import DiscoveryJobParams
+from solver.model import KinematicChain
 
 PREFIX = f"{API_PREFIX}/discoveries"
 router = APIRouter(prefix=PREFIX, tags=["discoveries"])
@@ -50,6 +53,13 @@ RESOURCE = JobResource(
 )
 
 
+def _checked(robot: RobotDescription, options: DiscoveryOptions) -> KinematicChain:
+    """The user's chain; measurements the service cannot read from one dataset refused."""
+    refuse_file_measurement(options.measurement, "discover")
+    discovery.check_measurement(options)
+    return discovery.chain_for(robot, options)
+
+
 @router.post(
     "",
     status_code=202,
@@ -70,7 +80,7 @@ def create_discovery(
         body,
         idempotency_key,
         dataset_id=body.dataset_id,
-        check_options=lambda robot: discovery.chain_for(robot, body.options),
+        check_options=lambda robot: _checked(robot, body.options),
         make_params=lambda dataset, robot, _chain: DiscoveryJobParams(
             dataset=dataset, robot=robot, options=body.options
         ),

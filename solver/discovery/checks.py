@@ -82,12 +82,15 @@ def with_columns(null: NullModel, columns: FloatArray) -> NullModel:
     return NullModel(residual, basis, null.d, null.flip_seed)
 
 
-def reweighted(fit: ModelFit, extra: list[FloatArray]) -> tuple[NullModel, FloatArray]:
+def reweighted(
+    fit: ModelFit, extra: list[FloatArray], blocks: list[slice | list[int]]
+) -> tuple[NullModel, FloatArray]:
     """Null model (fit's Jacobian only) whitened with the noise the alternative leaves.
 
     The fit's noise scale still contains whatever the model misses, and the mix of
     translation and rotation rows with it; re-estimating it per block from the residual of the
     linearised fit with the ``extra`` columns too gives the test its power where the signal is.
+    ``blocks``: the residual rows sharing a noise scale (``DiscoveryData.noise_blocks``).
     Returns the null model and the row scale (R,) to apply to any further columns.
     """
     d = fit.design.residual.shape[1]
@@ -95,7 +98,6 @@ def reweighted(fit: ModelFit, extra: list[FloatArray]) -> tuple[NullModel, Float
     basis = orthonormal_basis(stacked)
     residual = fit.residual_w - basis @ (basis.T @ fit.residual_w)
     leverage = np.sum(basis**2, axis=1)
-    blocks = [slice(0, 3)] if d == 3 else [slice(0, 3), slice(3, 6)]
     factor = np.ones(d)
     e2 = (residual**2).reshape(-1, d)
     room = (1.0 - leverage).reshape(-1, d)
@@ -108,11 +110,13 @@ def reweighted(fit: ModelFit, extra: list[FloatArray]) -> tuple[NullModel, Float
     return NullModel(r - model_basis @ (model_basis.T @ r), model_basis, d), scale
 
 
-def conditional_test(fit: ModelFit, first: FloatArray, second: FloatArray) -> ScoreTest | None:
+def conditional_test(
+    fit: ModelFit, first: FloatArray, second: FloatArray, blocks: list[slice | list[int]]
+) -> ScoreTest | None:
     """Score test of candidate columns ``first`` with ``second`` in the model as well (both
     whitened, (R, ·)); the noise scale is re-estimated with both fitted (:func:`reweighted`).
     None when ``second`` (and the model) absorb ``first`` entirely."""
-    base, scale = reweighted(fit, [first, second])
+    base, scale = reweighted(fit, [first, second], blocks)
     given = with_columns(base, second * scale[:, None])
     return score_test(given, "conditional", first * scale[:, None])
 
@@ -142,7 +146,7 @@ def lack_of_fit(
         extra = load_basis(tau, library=False, extra=True)
     family_cols = axis_function_columns(unit, family, fit.weights)
     extra_cols = axis_function_columns(unit, extra, fit.weights)
-    base, scale = reweighted(fit, [family_cols, extra_cols])
+    base, scale = reweighted(fit, [family_cols, extra_cols], ctx.data.noise_blocks())
     augmented = with_columns(base, family_cols * scale[:, None])
     return score_test(augmented, f"lack_of_fit:{term.family}:{j}", extra_cols * scale[:, None])
 
@@ -178,9 +182,9 @@ def residual_structure(
             if result is not None:
                 tests[f"{kind}:{j}"] = (kind, j, result)
     clock = ctx.bank.clock[rows]
-    ranges = np.linalg.norm(ctx.data.measured_pose[rows, :3, 3], axis=1)
-    for kind, variable in (("time", clock), ("range", ranges)):
-        if np.ptp(variable) > 0:
+    ranges = ctx.data.range_m()
+    for kind, variable in (("time", clock), ("range", None if ranges is None else ranges[rows])):
+        if variable is not None and np.ptp(variable) > 0:
             result = score_test(
                 null, kind, component_columns(legendre_basis(variable, range(1, 5)), d)
             )

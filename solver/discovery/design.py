@@ -9,7 +9,7 @@ Terms driven by time or approach direction cannot be separated by a choice of po
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -67,18 +67,12 @@ def separating_poses(
     data = ctx.data
     n = data.n_samples
     pool = sample_configurations(ctx.chain, pool_size, rng)
-    joined = replace(
-        data,
-        joint_positions=np.vstack([data.joint_positions, pool]),
-        measured_pose=np.concatenate([data.measured_pose, np.tile(np.eye(4), (pool_size, 1, 1))]),
-        time_s=None,
-        payload_kg=np.r_[data.payload(), np.zeros(pool_size)],
-    )
+    joined = data.with_configurations(pool)
     big = Context.build(ctx.chain, joined)
     rows = np.arange(n + pool_size)
     design = evaluate(big, fit.terms, fit.params, rows, candidates=tuple(terms))
     d = data.rows
-    nuisance = np.concatenate([design.links[:, :, fit.kept_links], design.terms], axis=2)
+    nuisance = np.concatenate([fit.nuisance(design.links), design.terms], axis=2)
     target = np.concatenate([design.candidates[t.key] for t in terms], axis=2)
     x = whitened(np.concatenate([nuisance, target], axis=2), w)
     signatures = [

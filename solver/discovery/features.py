@@ -39,6 +39,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from solver.measurement.models import (
+    FixedPoints,
+    FullPose,
+    MeasurementModel,
+    MeasurementRows,
+    Position,
+)
 from solver.model import ComplianceAxis, KinematicChain, gravity_loads
 
 FloatArray = NDArray[np.float64]
@@ -60,6 +67,13 @@ class DiscoveryData:
     (rotation ignored when ``position_only``); ``time_s`` (N,) or None (then time features use
     the acquisition index); ``payload_kg`` (N,) known payload; ``gravity_base`` (3,) m/s² in the
     base frame (the user's model).
+
+    ``measurement``: what a row measures when it is not the marker's pose or position
+    (:mod:`solver.measurement.models`: ball in socket, several markers, chosen pose
+    components), None for those two; then ``measured`` holds its rows' measurements
+    (:attr:`MeasurementRows.measured`, e.g. (N, m, 3) marker positions; None: ``measured_pose``)
+    and ``group`` (N,) each row's socket. ``measured_pose`` is then only used as a position per
+    row for the "range" variable (:meth:`range_m`) and may be identity.
     """
 
     joint_positions: FloatArray
@@ -68,15 +82,77 @@ class DiscoveryData:
     time_s: FloatArray | None = None
     payload_kg: FloatArray | None = None
     gravity_base: FloatArray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
+    measurement: MeasurementModel | None = None
+    measured: FloatArray | None = None
+    group: NDArray[np.intp] | None = None
 
     @property
     def n_samples(self) -> int:
         return int(self.joint_positions.shape[0])
 
     @property
+    def model(self) -> MeasurementModel:
+        """The measurement model of the rows (pose or position unless ``measurement``)."""
+        if self.measurement is not None:
+            return self.measurement
+        return Position() if self.position_only else FullPose()
+
+    @property
+    def is_pose(self) -> bool:
+        """Rows measure the marker's pose or position (the residuals of DESIGN.md §2)."""
+        return self.measurement is None
+
+    @property
     def rows(self) -> int:
-        """Residual rows per sample: 3 (position-only) or 6."""
+        """Residual rows per sample: 3 (position-only), 6 (pose), or the model's dimension."""
+        if self.measurement is not None:
+            return self.measurement.dim
         return 3 if self.position_only else 6
+
+    def noise_blocks(self) -> list[slice | list[int]]:
+        """Residual rows sharing one noise scale: the translation rows, the rotation rows (a
+        slice where they are contiguous)."""
+        model = self.model
+        return [
+            slice(b[0], b[-1] + 1) if list(b) == list(range(b[0], b[-1] + 1)) else list(b)
+            for b in (model.translation_rows, model.rotation_rows)
+            if b
+        ]
+
+    def measurement_rows(self, rows: NDArray[np.intp]) -> MeasurementRows:
+        """``rows`` as the measurement model takes them (loads unused: the model sees the tip)."""
+        measured = self.measured_pose if self.measured is None else self.measured
+        group = None if self.group is None else self.group[rows]
+        return MeasurementRows.of(
+            self.joint_positions[rows], np.zeros((rows.size, 0)), measured[rows], group
+        )
+
+    def with_configurations(self, configurations: FloatArray) -> DiscoveryData:
+        """The recording followed by new ``configurations`` (P, k) rad with nothing measured
+        (identity poses, zero marker positions, socket 0, no payload, no time stamps): rows
+        whose columns a pose design evaluates."""
+        pool = configurations.shape[0]
+        measured = self.measured
+        if measured is not None:
+            measured = np.concatenate([measured, np.zeros((pool, *measured.shape[1:]))])
+        return replace(
+            self,
+            joint_positions=np.vstack([self.joint_positions, configurations]),
+            measured_pose=np.concatenate([self.measured_pose, np.tile(np.eye(4), (pool, 1, 1))]),
+            time_s=None,
+            payload_kg=np.r_[self.payload(), np.zeros(pool)],
+            measured=measured,
+            group=None if self.group is None else np.r_[self.group, np.zeros(pool, dtype=np.intp)],
+        )
+
+    def range_m(self) -> FloatArray | None:
+        """Per row the distance of what was measured from the measurement frame's origin (the
+        mean over markers), m; None when nothing is measured in a sensor frame (sockets)."""
+        if isinstance(self.measurement, FixedPoints):
+            return None
+        if self.measured is not None and self.measured.ndim == 3 and self.measured.shape[2] == 3:
+            return np.asarray(np.linalg.norm(self.measured, axis=2).mean(axis=1), dtype=float)
+        return np.asarray(np.linalg.norm(self.measured_pose[:, :3, 3], axis=1), dtype=float)
 
     def payload(self) -> FloatArray:
         if self.payload_kg is None:

@@ -16,6 +16,15 @@ columns are ``Σ_a c_a g_a ∂φ_a/∂θ``, obtained the same way with the deriv
 drift column is ``Ad(X)^-1 f(t)``; the depth column is the EE-frame image of the position shift.
 Rows are whitened by a per-block noise scale (translation, rotation) estimated from the
 residuals with the degrees of freedom the fit used (hat-matrix trace per block).
+
+Measurement models (issue 15; :mod:`solver.measurement.models`): the residual of a row is the
+model's at the predicted tip pose and its own unknowns (socket points, marker offsets), and
+every column above — a tip-local twist (6 rows) — goes through the model's map
+``M`` (d, 6) of :meth:`~solver.measurement.models.MeasurementModel.at_tip`; the model's unknowns
+are nuisance columns beside the link corrections, the links it cannot see are left out, and
+its extra equations (known socket distances) hold exactly in every Gauss–Newton step (the
+step is taken in the null space of their Jacobian). For pose and position rows ``M`` is the
+first d rows of I₆: exactly the columns above.
 """
 
 from __future__ import annotations
@@ -32,6 +41,8 @@ from solver.discovery.features import DiscoveryData, FeatureBank, axis_of
 from solver.discovery.library import Term, drift_feature
 from solver.errors import CalibrationError
 from solver.kinematics import ChainParameters, evaluate_chain, pose_residuals
+from solver.measurement.models import ModelParameters as MeasuredParameters
+from solver.measurement.models import chain_column_count
 from solver.model import ComplianceAxis, KinematicChain
 from solver.simulate import depth_direction
 
@@ -39,6 +50,11 @@ FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
 
 RANK_TOLERANCE = 1e-7
+# A nuisance direction (link correction, socket point, marker offset) the recording pins down
+# no better than this (standard error, rad or m) stays at its start: Gauss–Newton's
+# linearisation does not hold over such a range (e.g. the tilt of the last joint's axis when
+# a ball in a socket sits on that axis).
+NUISANCE_RANGE = 0.1
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,10 +76,12 @@ class Context:
 
 @dataclass(frozen=True)
 class ModelParameters:
-    """Link placements (k+1, 4, 4) and the concatenated term coefficients θ (p,)."""
+    """Link placements (k+1, 4, 4), the concatenated term coefficients θ (p,) and the
+    measurement model's own unknowns ``extra`` (E,) (none for pose and position rows)."""
 
     links: FloatArray
     theta: FloatArray
+    extra: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def with_terms(self, terms: tuple[Term, ...], values: dict[str, FloatArray]) -> ModelParameters:
         """θ laid out for ``terms``; coefficients taken from ``values`` by key, zero otherwise."""
@@ -90,9 +108,11 @@ def by_key(terms: tuple[Term, ...], theta: FloatArray) -> dict[str, FloatArray]:
 class Design:
     """Residuals and columns at one parameter point, for ``rows`` of the recording.
 
-    ``residual`` (n, d) unweighted, m and rad, EE frame. Columns (n, d, ·): ``links`` the 6 local
-    twist components of every L_i; ``terms`` θ in model order; ``candidates`` per key;
-    ``unit`` the column per unit angle of a requested axis (plots, pose design).
+    ``residual`` (n, d) unweighted, m and rad, EE frame (the measurement model's frame for
+    other rows). Columns (n, d, ·): ``links`` the 6 local twist components of every L_i, then
+    the measurement model's own unknowns (the nuisance columns); ``terms`` θ in model order;
+    ``candidates`` per key; ``unit`` the column per unit angle of a requested axis (plots,
+    pose design).
     """
 
     rows: IndexArray
@@ -129,7 +149,7 @@ def evaluate(
 ) -> Design:
     """Residuals and all columns (see module docstring) in one chain sweep."""
     data, bank, chain = ctx.data, ctx.bank, ctx.chain
-    d = data.rows
+    d = data.rows if data.is_pose else 6  # rows of the columns before the measurement map
     gravity, extra_payload = _globals(terms, params.theta, data)
     axes: list[ComplianceAxis] = []
     coefficients: list[float] = []
@@ -221,14 +241,37 @@ def evaluate(
     link_cols = evaluation.link_jacobians[:, :, :d, :].transpose(0, 2, 1, 3)
     link_cols = link_cols.reshape(rows.size, d, 6 * n_links)
     term_cols = [columns_of(t, idx) for t, idx in zip(terms, term_axes, strict=True)]
+    terms_all = np.concatenate(term_cols, axis=2) if term_cols else np.zeros((rows.size, d, 0))
+    candidate_cols = {c.key: columns_of(c, candidate_axes.get(c.key)) for c in candidates}
+    unit = {u: comp[:, i] for u, i in unit_index.items()}
+    if data.is_pose:
+        return Design(
+            rows=rows,
+            pose=pose,
+            residual=pose_residuals(
+                pose, data.measured_pose[rows], position_only=data.position_only
+            ),
+            links=link_cols,
+            terms=terms_all,
+            candidates=candidate_cols,
+            unit=unit,
+        )
+    model = data.model
+    residual, tip_map, extra_cols = model.at_tip(pose, params.extra, data.measurement_rows(rows))
+    visible = model.visible_columns(chain)[: 6 * n_links]
+
+    def mapped(columns: FloatArray) -> FloatArray:
+        """Tip-twist columns (n, 6, ·) -> residual columns (n, d, ·)."""
+        return np.asarray(tip_map @ columns, dtype=np.float64)
+
     return Design(
         rows=rows,
         pose=pose,
-        residual=pose_residuals(pose, data.measured_pose[rows], position_only=data.position_only),
-        links=link_cols,
-        terms=np.concatenate(term_cols, axis=2) if term_cols else np.zeros((rows.size, d, 0)),
-        candidates={c.key: columns_of(c, candidate_axes.get(c.key)) for c in candidates},
-        unit={u: comp[:, i] for u, i in unit_index.items()},
+        residual=residual,
+        links=np.concatenate([mapped(link_cols) * visible, extra_cols], axis=2),
+        terms=mapped(terms_all),
+        candidates={k: mapped(v) for k, v in candidate_cols.items()},
+        unit={u: mapped(v[:, :, None])[:, :, 0] for u, v in unit.items()},
     )
 
 
@@ -247,8 +290,11 @@ class ModelFit:
     """A converged fit of ``terms`` on ``rows``.
 
     ``weights`` (d,) multiply residual components (1/σ per block); ``jacobian`` (n·d, p) the
-    whitened columns estimated (kept links, then θ); ``covariance`` (p_θ, p_θ) of θ, the larger
+    whitened columns estimated (kept nuisance columns — links and the measurement model's
+    unknowns — times ``nuisance_map``, then θ); ``covariance`` (p_θ, p_θ) of θ, the larger
     (per entry) of the classical and the per-sample cluster-robust sandwich estimate.
+    ``nuisance_map`` (kept, kept − c): a basis of the kept nuisance directions the model's c
+    extra equations (known socket distances) leave free; None without such equations.
     """
 
     terms: tuple[Term, ...]
@@ -264,6 +310,17 @@ class ModelFit:
     iterations: int
     converged: bool
     covariance: FloatArray
+    nuisance_map: FloatArray | None = None
+
+    @property
+    def n_nuisance(self) -> int:
+        """Nuisance columns of ``jacobian`` (before θ)."""
+        return self.kept_links.size if self.nuisance_map is None else self.nuisance_map.shape[1]
+
+    def nuisance(self, links: FloatArray) -> FloatArray:
+        """The nuisance columns of a design's ``links`` (n, d, ·) as in ``jacobian``."""
+        kept = links[:, :, self.kept_links]
+        return kept if self.nuisance_map is None else kept @ self.nuisance_map
 
     @property
     def dof(self) -> int:
@@ -283,19 +340,29 @@ def whitened(values: FloatArray, weights: FloatArray) -> FloatArray:
 
 
 def start_parameters(ctx: Context) -> ModelParameters:
-    """Closed-form measurement frame and tool on the nominal geometry (solver.alignment)."""
+    """Closed-form measurement frame and tool on the nominal geometry (solver.alignment); the
+    measurement model's own start (:meth:`~solver.measurement.models.MeasurementModel.start`:
+    socket points, marker offsets) for other rows."""
     data = ctx.data
+    if not data.is_pose:
+        model = data.model
+        rows = data.measurement_rows(ctx.all_rows)
+        model.check_rows(rows)
+        own = model.start(ctx.chain, rows)
+        return ModelParameters(own.links, np.zeros(0), own.extra)
     start = initial_parameters(
         ctx.chain, data.joint_positions, data.measured_pose, position_only=data.position_only
     )
     return ModelParameters(start.links, np.zeros(0))
 
 
-def _kept_links(links_w: FloatArray, terms_w: FloatArray) -> IndexArray:
+def _kept_links(links_w: FloatArray, terms_w: FloatArray, residual_w: FloatArray) -> IndexArray:
     """Link columns the data can identify once the term columns are in (terms take priority).
 
     Column-pivoted QR of the unit-norm link columns after projecting out the term columns;
-    the POE redundancies (and geometry that a term explains exactly) drop out by name.
+    the POE redundancies (and geometry that a term explains exactly) drop out by name, and so
+    does a pivot whose standard error given the ones before it, ``s/|R_jj|`` with ``s`` the
+    RMS whitened residual, exceeds :data:`NUISANCE_RANGE`.
     """
     norms = np.linalg.norm(links_w, axis=0)
     nonzero = np.flatnonzero(norms > 1e-12 * max(norms.max(), 1e-300))
@@ -306,7 +373,9 @@ def _kept_links(links_w: FloatArray, terms_w: FloatArray) -> IndexArray:
     _, r, pivots = scipy.linalg.qr(a, mode="economic", pivoting=True)
     diagonal = np.abs(np.diag(r))
     rank = int(np.sum(diagonal > RANK_TOLERANCE * max(diagonal[0], 1e-300)))
-    return np.sort(nonzero[pivots[:rank]])
+    scatter = np.sqrt(float(residual_w @ residual_w) / max(residual_w.size, 1))
+    pinned = diagonal[:rank] * norms[nonzero][pivots[:rank]] * NUISANCE_RANGE > scatter
+    return np.sort(nonzero[pivots[:rank][pinned]])
 
 
 def orthonormal_basis(matrix: FloatArray, tolerance: float = RANK_TOLERANCE) -> FloatArray:
@@ -319,6 +388,70 @@ def orthonormal_basis(matrix: FloatArray, tolerance: float = RANK_TOLERANCE) -> 
     return u[:, s > tolerance * s[0]]
 
 
+def constraint_rows(
+    ctx: Context, params: ModelParameters, kept: IndexArray
+) -> tuple[FloatArray, FloatArray] | None:
+    """The measurement model's extra equations (known socket distances) at ``params``:
+    residual (c,) and their Jacobian over the ``kept`` nuisance columns (c, kept), the sign
+    convention of the rows (``c(θ ⊕ δ) ≈ c − C δ``); None without any."""
+    if ctx.data.is_pose:
+        return None
+    chain = ctx.chain
+    measured = MeasuredParameters(params.links, np.zeros(len(chain.compliance_axes)), params.extra)
+    residual, jacobian = ctx.data.model.constraints(chain, measured)
+    if residual.size == 0:
+        return None
+    n_link_cols = 6 * params.links.shape[0]
+    p = chain_column_count(chain)
+    nuisance = np.concatenate([jacobian[:, :n_link_cols], jacobian[:, p:]], axis=1)
+    return residual, nuisance[:, kept]
+
+
+def _constrained_step(
+    a: FloatArray,
+    r: FloatArray,
+    constraint: tuple[FloatArray, FloatArray] | None,
+    damping: float = 0.0,
+) -> FloatArray:
+    """Gauss–Newton step of ``r ≈ a δ``: without constraints the least-squares step; with
+    ``C δ_nuisance = c`` the step ``δ = C⁺c + N z``, N a basis of the null space of C and z the
+    least-squares step of the rows in those free directions. ``damping`` λ > 0: the
+    Levenberg–Marquardt step instead, ``min |r − a δ|² + λ |D δ|²`` with D the column norms
+    (the constraints still met)."""
+    if constraint is None:
+        particular, free, reduced, target = np.zeros(a.shape[1]), None, a, r
+    else:
+        c, jacobian = constraint
+        k = jacobian.shape[1]
+        free = scipy.linalg.null_space(jacobian)  # (k, k − c)
+        particular = np.zeros(a.shape[1])
+        particular[:k] = np.linalg.pinv(jacobian) @ c
+        reduced = np.hstack([a[:, :k] @ free, a[:, k:]])
+        target = r - a @ particular
+    if damping > 0.0:
+        scale = np.sqrt(damping) * np.linalg.norm(reduced, axis=0)
+        reduced = np.vstack([reduced, np.diag(scale)])
+        target = np.r_[target, np.zeros(scale.size)]
+    z = np.asarray(np.linalg.lstsq(reduced, target, rcond=None)[0], dtype=np.float64)
+    if free is None:
+        return z
+    k = free.shape[0]
+    step = particular.copy()
+    step[:k] += free @ z[: free.shape[1]]
+    step[k:] += z[free.shape[1] :]
+    return step
+
+
+def _merit(cost: float, constraint: tuple[FloatArray, FloatArray] | None, weight: float) -> float:
+    """The cost with the constraints' violation (m), each weighted as a residual of the
+    translation noise 1/``weight``: the line search's measure of progress. Every step meets
+    the linearised constraints exactly, so the violation left is of second order in the step
+    and vanishes as the fit converges."""
+    if constraint is None:
+        return cost
+    return cost + float(np.sum((weight * constraint[0]) ** 2))
+
+
 def fit_model(
     ctx: Context,
     terms: tuple[Term, ...],
@@ -329,13 +462,19 @@ def fit_model(
     max_iterations: int = 40,
     tolerance: float = 1e-10,
 ) -> ModelFit:
-    """Gauss–Newton on the whitened residuals (Eq. 10 with the extra term columns)."""
+    """Gauss–Newton on the whitened residuals (Eq. 10 with the extra term columns) over the
+    nuisance columns :func:`_kept_links` keeps and θ, the measurement model's known distances
+    met in every step (:func:`_constrained_step`). A step that does not lower the cost (with
+    the constraints' violation, :func:`_merit`) is replaced by Levenberg–Marquardt steps damped
+    tenfold each time, and the damping is relaxed tenfold after each accepted step until it is
+    pure Gauss–Newton again; a fit whose Gauss–Newton steps all succeed is plain Gauss–Newton."""
     d = ctx.data.rows
     params = start
     design = evaluate(ctx, terms, params, rows)
     p_terms = design.terms.shape[2]
     if start.theta.size != p_terms:
         raise ValueError("start parameters do not match the terms")
+    translation_weight = float(weights[ctx.data.noise_blocks()[0]][0])
 
     def stacked(des: Design) -> tuple[FloatArray, FloatArray, FloatArray]:
         n = des.rows.size
@@ -346,41 +485,56 @@ def fit_model(
         )
 
     r, links_w, terms_w = stacked(design)
-    kept = _kept_links(links_w, terms_w)
-    if r.size <= kept.size + p_terms:
+    kept = _kept_links(links_w, terms_w, r)
+    constraint = constraint_rows(ctx, params, kept)
+    n_pinned = 0 if constraint is None else constraint[0].size
+    if r.size <= kept.size - n_pinned + p_terms:
         raise CalibrationError(
-            f"{rows.size} samples give {r.size} equations for {kept.size + p_terms} parameters; "
-            "record more configurations"
+            f"{rows.size} samples give {r.size} equations for "
+            f"{kept.size - n_pinned + p_terms} parameters; record more configurations"
         )
     cost = float(r @ r)
+    merit = _merit(cost, constraint, translation_weight)
     converged, iterations = False, 0
+    carried = 0.0  # Levenberg–Marquardt damping kept from the last step (0: Gauss–Newton)
     while iterations < max_iterations:
         iterations += 1
         a = np.hstack([links_w[:, kept], terms_w])
-        step = np.asarray(np.linalg.lstsq(a, r, rcond=None)[0], dtype=np.float64)
+        step = _constrained_step(a, r, constraint, carried)
         predicted = a @ step
-        if float(predicted @ predicted) <= tolerance * max(cost, 1e-300):
+        if float(predicted @ predicted) <= tolerance * max(cost, 1e-300) and merit - cost <= (
+            tolerance * max(cost, 1e-300)
+        ):
             converged = True  # Gauss–Newton cannot lower the cost any further
             break
-        scale = 1.0
+        damping = carried
         for _ in range(20):
-            candidate = _apply(params, scale * step, kept)
+            candidate = _apply(params, step, kept)
             trial = evaluate(ctx, terms, candidate, rows)
             r_new, links_new, terms_new = stacked(trial)
             new_cost = float(r_new @ r_new)
-            if new_cost <= cost:
+            new_constraint = constraint_rows(ctx, candidate, kept)
+            new_merit = _merit(new_cost, new_constraint, translation_weight)
+            if new_merit <= merit:
                 break
-            scale *= 0.5
+            # the linearisation does not hold that far: a Levenberg–Marquardt step, damped
+            # more each time (poorly identified nuisance directions stop running off)
+            damping = max(10.0 * damping, 1e-8)
+            step = _constrained_step(a, r, constraint, damping)
         else:
             converged = True
             break
         params, design, r, links_w, terms_w = candidate, trial, r_new, links_new, terms_new
-        change = cost - new_cost
-        cost = new_cost
-        if change <= tolerance * max(cost, 1e-300):
+        constraint = new_constraint
+        carried = damping / 10.0 if damping >= 1e-7 else 0.0
+        change = merit - new_merit
+        cost, merit = new_cost, new_merit
+        if change <= tolerance * max(merit, 1e-300):
             converged = True
             break
-    a = np.hstack([links_w[:, kept], terms_w])
+    nuisance_map = None if constraint is None else scipy.linalg.null_space(constraint[1])
+    nuisance = links_w[:, kept] if nuisance_map is None else links_w[:, kept] @ nuisance_map
+    a = np.hstack([nuisance, terms_w])
     basis = orthonormal_basis(a)
     return ModelFit(
         terms=terms,
@@ -395,16 +549,19 @@ def fit_model(
         cost=cost,
         iterations=iterations,
         converged=converged,
-        covariance=_theta_covariance(a, r, kept.size, d, basis),
+        covariance=_theta_covariance(a, r, nuisance.shape[1], d, basis),
+        nuisance_map=nuisance_map,
     )
 
 
 def _apply(params: ModelParameters, step: FloatArray, kept: IndexArray) -> ModelParameters:
     n_links = params.links.shape[0]
-    twists = np.zeros(6 * n_links)
-    twists[kept] = step[: kept.size]
-    links = params.links @ lie.se3_exp(twists.reshape(n_links, 6))
-    return ModelParameters(links, params.theta + step[kept.size :])
+    nuisance = np.zeros(6 * n_links + params.extra.size)
+    nuisance[kept] = step[: kept.size]
+    links = params.links @ lie.se3_exp(nuisance[: 6 * n_links].reshape(n_links, 6))
+    return ModelParameters(
+        links, params.theta + step[kept.size :], params.extra + nuisance[6 * n_links :]
+    )
 
 
 def _theta_covariance(
@@ -431,16 +588,17 @@ def _theta_covariance(
     return c * np.outer(scale, scale)
 
 
-def noise_weights(fit: ModelFit, position_only: bool) -> FloatArray:
-    """New weights 1/σ (d,) from the fit's residuals, per block, with the hat-matrix dof.
+def noise_weights(fit: ModelFit, blocks: list[slice | list[int]]) -> FloatArray:
+    """New weights 1/σ (d,) from the fit's residuals, per block of residual rows
+    (:meth:`~solver.discovery.features.DiscoveryData.noise_blocks`: translation, rotation),
+    with the hat-matrix dof.
 
     σ_b² = Σ_{rows in b} r² / Σ_{rows in b} (1 − h), h the leverages of the whitened design.
     """
-    d = 3 if position_only else 6
+    d = fit.design.residual.shape[1]
     basis = orthonormal_basis(fit.jacobian)
     leverage = np.sum(basis**2, axis=1).reshape(-1, d)
     residual = fit.design.residual
-    blocks = [slice(0, 3)] if position_only else [slice(0, 3), slice(3, 6)]
     weights = np.empty(d)
     for b in blocks:
         sigma2 = float(np.sum(residual[:, b] ** 2) / max(np.sum(1.0 - leverage[:, b]), 1.0))
@@ -460,7 +618,7 @@ def fit_with_noise(
     w = np.ones(ctx.data.rows) if weights is None else weights
     fit = fit_model(ctx, terms, start, rows, w)
     for _ in range(rounds):
-        w = noise_weights(fit, ctx.data.position_only)
+        w = noise_weights(fit, ctx.data.noise_blocks())
         fit = fit_model(ctx, terms, fit.params, rows, w)
     return fit
 

@@ -75,9 +75,11 @@ def health_report(
     clock = ctx.bank.clock[rows]
     if np.ptp(clock) > 0:
         variables.append(("time", None, legendre_basis(clock, range(1, 4))))
-    ranges = np.linalg.norm(ctx.data.measured_pose[rows, :3, 3], axis=1)
-    variables.append(("range", None, legendre_basis(ranges, range(1, 4))))
+    ranges = ctx.data.range_m()
+    if ranges is not None:
+        variables.append(("range", None, legendre_basis(ranges[rows], range(1, 4))))
     rss = float(null.residual @ null.residual)
+    names = COMPONENT_NAMES if ctx.data.is_pose else ctx.data.model.components
     dependences = []
     for variable, joint, basis in variables:
         result = score_test(null, variable, component_columns(basis, d))
@@ -89,23 +91,33 @@ def health_report(
                 joint,
                 result.p_value,
                 result.delta_ss / rss,
-                _per_component(null, basis, d),
+                _per_component(null, basis, d, names),
             )
         )
     dependences.sort(key=lambda dep: dep.p_value)
     weights = fit.weights
     sigma = 1.0 / weights
+    blocks = ctx.data.noise_blocks()
+    translation_rows, rotation_rows = blocks[0], blocks[1] if len(blocks) > 1 else None
     chi2 = None
     if sensor_sigma is not None:
-        scale = np.r_[[sensor_sigma[0]] * 3, [sensor_sigma[1]] * 3][:d]
+        scale = np.full(d, sensor_sigma[0])
+        if rotation_rows is not None:
+            scale[rotation_rows] = sensor_sigma[1]
         chi2 = float(np.sum((residual / scale) ** 2) / max(fit.dof, 1))
-    rotation = None if d == 3 else residual[:, 3:]
+    rotation = None if rotation_rows is None else residual[:, rotation_rows]
+    translation = residual[:, translation_rows]
     return HealthReport(
         n_samples=int(rows.size),
         n_parameters=fit.rank,
-        sigma_translation_mm=float(sigma[0] * 1e3),
-        sigma_rotation_deg=None if d == 3 else float(np.degrees(sigma[3])),
-        rms_translation_mm=float(np.sqrt(np.mean(np.sum(residual[:, :3] ** 2, axis=1))) * 1e3),
+        sigma_translation_mm=float(sigma[translation_rows][0] * 1e3),
+        sigma_rotation_deg=None
+        if rotation_rows is None
+        else float(np.degrees(sigma[rotation_rows][0])),
+        rms_translation_mm=float(
+            np.sqrt(np.mean(np.sum(translation**2, axis=1) / max(translation.shape[1] // 3, 1)))
+            * 1e3
+        ),
         rms_rotation_deg=None
         if rotation is None
         else float(np.degrees(np.sqrt(np.mean(np.sum(rotation**2, axis=1))))),
@@ -114,7 +126,9 @@ def health_report(
     )
 
 
-def _per_component(null: NullModel, basis: FloatArray, d: int) -> dict[str, float]:
+def _per_component(
+    null: NullModel, basis: FloatArray, d: int, names: tuple[str, ...]
+) -> dict[str, float]:
     """Share of each residual component's sum of squares the variable explains."""
     residual = null.residual.reshape(-1, d)
     out = {}
@@ -124,5 +138,5 @@ def _per_component(null: NullModel, basis: FloatArray, d: int) -> dict[str, floa
         q = unexplained_basis(null, columns.reshape(-1, basis.shape[1]))
         explained = float(np.sum((q.T @ null.residual) ** 2))
         total = float(residual[:, c] @ residual[:, c])
-        out[COMPONENT_NAMES[c]] = explained / total if total > 0 else 0.0
+        out[names[c]] = explained / total if total > 0 else 0.0
     return out

@@ -398,7 +398,9 @@ class _Search:
         for key in plausible:
             if key == best or same_mechanism(by_key[best], by_key[key]):
                 continue
-            given = conditional_test(self.fit, columns[best], columns[key])
+            given = conditional_test(
+                self.fit, columns[best], columns[key], self.ctx.data.noise_blocks()
+            )
             if given is not None and given.p_value < self.options.alpha:
                 continue  # the best one keeps its evidence: separable
             correlation = canonical_correlation(null, columns[best], columns[key])
@@ -481,7 +483,7 @@ class _Search:
             if t.key not in {s.key for s in fit.terms}
         ]
         design = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates=tuple(library))
-        n_links = fit.kept_links.size
+        n_links = fit.n_nuisance
         notes = []
         for term, where in zip(fit.terms, slices(fit.terms), strict=True):
             if term not in suspect:

@@ -18,6 +18,7 @@ from solver.discovery.fitting import (
 from solver.discovery.library import Term
 from solver.discovery.results import HeldoutError
 from solver.errors import CalibrationError
+from solver.measurement.fit import row_errors
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
@@ -62,9 +63,14 @@ def cross_validate(
         errors = np.sum(whitened(design.residual, weights) ** 2, axis=1)
         per_sample[test] = errors
         sse += float(errors.sum())
-        t_mm, r_deg = pose_errors(
-            design.pose, ctx.data.measured_pose[test], position_only=ctx.data.position_only
-        )
+        if ctx.data.is_pose:
+            t_mm, r_deg = pose_errors(
+                design.pose, ctx.data.measured_pose[test], position_only=ctx.data.position_only
+            )
+        else:
+            model = ctx.data.model
+            t_mm, rotation_deg = row_errors(model, design.residual)
+            r_deg = rotation_deg if model.rotation_rows else None
         translation.append(t_mm)
         if r_deg is not None:
             rotation.append(r_deg)

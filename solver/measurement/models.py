@@ -181,6 +181,17 @@ class MeasurementModel(ABC):
     ) -> tuple[FloatArray, FloatArray | None]:
         """Residual (N, d) and, with ``jacobian``, ``A`` (N, d, P + E)."""
 
+    @abstractmethod
+    def at_tip(
+        self, pose: FloatArray, extra: FloatArray, rows: MeasurementRows
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The model at a predicted end-effector pose ``X`` (N, 4, 4) and its own unknowns
+        ``extra`` (E,): residual (N, d), the map ``M`` (N, d, 6) of a tip-local twist ``t``
+        (``X ← X·Exp(t)``) to the residual, ``r ≈ r − M t``, and the residual's columns of the
+        unknowns (N, d, E), same sign convention. The chain columns of :meth:`linearise` are
+        ``M J_tip``; discovery (:mod:`solver.discovery.fitting`) maps its own tip-twist columns
+        (terms, drift, depth) through ``M`` too."""
+
     def constraints(
         self, chain: KinematicChain, params: ModelParameters
     ) -> tuple[FloatArray, FloatArray]:
@@ -220,6 +231,23 @@ def _links_folded(
     links[first] = world @ links[first]
     links[-1] = links[-1] @ tool
     return ModelParameters(links, np.zeros(len(chain.compliance_axes)))
+
+
+def _linearised(
+    model: MeasurementModel,
+    chain: KinematicChain,
+    params: ModelParameters,
+    rows: MeasurementRows,
+    jacobian: bool,
+) -> tuple[FloatArray, FloatArray | None]:
+    """:meth:`MeasurementModel.linearise` from :meth:`MeasurementModel.at_tip`: chain columns
+    ``M J_tip`` (N, d, P), then the model's own unknowns (N, d, E)."""
+    if not jacobian:
+        pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+        return model.at_tip(pose, params.extra, rows)[0], None
+    pose, j_tip = tip_linearisation(chain, params, rows)
+    residual, tip_map, columns = model.at_tip(pose, params.extra, rows)
+    return residual, np.concatenate([tip_map @ j_tip, columns], axis=2)
 
 
 # --- full pose and position (DESIGN.md §2) ------------------------------------------------------
@@ -289,6 +317,15 @@ class FullPose(MeasurementModel):
         pose, j_tip = tip_linearisation(chain, params, rows)
         residual = pose_residuals(pose, rows.measured, position_only=self.position_only)
         return residual, self._with_extra_columns(j_tip[:, :d])
+
+    def at_tip(
+        self, pose: FloatArray, extra: FloatArray, rows: MeasurementRows
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``r = Log(X⁻¹ X_m)`` (first 3 rows for position), ``M`` the first d rows of I₆."""
+        n, d = pose.shape[0], self.dim
+        residual = pose_residuals(pose, rows.measured, position_only=self.position_only)
+        tip_map = np.broadcast_to(np.eye(6)[:d], (n, d, 6))
+        return residual, tip_map, np.zeros((n, d, 0))
 
     def check_rows(self, rows: MeasurementRows) -> None:
         _check_pose_rows(self, rows)
@@ -390,20 +427,18 @@ class PoseComponents(MeasurementModel):
         *,
         jacobian: bool = True,
     ) -> tuple[FloatArray, FloatArray | None]:
-        if jacobian:
-            pose, j_tip = tip_linearisation(chain, params, rows)
-        else:
-            pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+        return _linearised(self, chain, params, rows, jacobian)
+
+    def at_tip(
+        self, pose: FloatArray, extra: FloatArray, rows: MeasurementRows
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
         rotation = pose[:, :3, :3]
         rotation_error = lie.so3_log(rows.measured[:, :3, :3] @ np.swapaxes(rotation, 1, 2))
         error = np.concatenate([rows.measured[:, :3, 3] - pose[:, :3, 3], rotation_error], axis=1)
-        residual = error[:, self.index]
-        if not jacobian:
-            return residual, None
-        full = np.empty_like(j_tip)
-        full[:, :3] = rotation @ j_tip[:, :3]
-        full[:, 3:] = lie.so3_right_jacobian_inverse(rotation_error) @ (rotation @ j_tip[:, 3:])
-        return residual, self._with_extra_columns(full[:, self.index])
+        full = np.zeros((pose.shape[0], 6, 6))
+        full[:, :3, :3] = rotation
+        full[:, 3:, 3:] = lie.so3_right_jacobian_inverse(rotation_error) @ rotation
+        return error[:, self.index], full[:, self.index], np.zeros((pose.shape[0], self.dim, 0))
 
     def check_rows(self, rows: MeasurementRows) -> None:
         _check_pose_rows(self, rows)
@@ -523,17 +558,20 @@ class FixedPoints(MeasurementModel):
         *,
         jacobian: bool = True,
     ) -> tuple[FloatArray, FloatArray | None]:
-        points = self.points(params)[rows.group]
-        if not jacobian:
-            pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
-            return points - pose[:, :3, 3], None
-        pose, j_tip = tip_linearisation(chain, params, rows)
-        residual = points - pose[:, :3, 3]
-        a = self._with_extra_columns(pose[:, :3, :3] @ j_tip[:, :3])
-        p = chain_column_count(chain)
+        return _linearised(self, chain, params, rows, jacobian)
+
+    def at_tip(
+        self, pose: FloatArray, extra: FloatArray, rows: MeasurementRows
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``r = P_g − p``, ``M = R [I 0]``, ``−I`` at the row's socket point."""
+        n = pose.shape[0]
+        residual = extra.reshape(self.n_points, 3)[rows.group] - pose[:, :3, 3]
+        tip_map = np.zeros((n, 3, 6))
+        tip_map[:, :, :3] = pose[:, :3, :3]
+        columns = np.zeros((n, 3, 3 * self.n_points))
         for axis in range(3):
-            a[np.arange(rows.n), axis, p + 3 * rows.group + axis] = -1.0
-        return residual, a
+            columns[np.arange(n), axis, 3 * rows.group + axis] = -1.0
+        return residual, tip_map, columns
 
     def constraints(
         self, chain: KinematicChain, params: ModelParameters
@@ -626,23 +664,24 @@ class MultiMarker(MeasurementModel):
         *,
         jacobian: bool = True,
     ) -> tuple[FloatArray, FloatArray | None]:
-        offsets = self.offsets(params)
-        if jacobian:
-            pose, j_tip = tip_linearisation(chain, params, rows)
-        else:
-            pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+        return _linearised(self, chain, params, rows, jacobian)
+
+    def at_tip(
+        self, pose: FloatArray, extra: FloatArray, rows: MeasurementRows
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``r_j = p_m,j − (p + R t_j)``, ``M_j = R [I, −[t_j]x]``, ``R`` at ``t_j``."""
+        n = pose.shape[0]
+        offsets = extra.reshape(self.n_markers, 3)
         rotation = pose[:, :3, :3]
         predicted = pose[:, None, :3, 3] + np.einsum("nij,mj->nmi", rotation, offsets)
-        residual = (rows.measured - predicted).reshape(rows.n, -1)
-        if not jacobian:
-            return residual, None
-        p = chain_column_count(chain)
-        a = np.zeros((rows.n, self.dim, p + self.dim))
+        residual = (rows.measured - predicted).reshape(n, -1)
+        tip_map = np.zeros((n, self.dim, 6))
+        columns = np.zeros((n, self.dim, self.dim))
         for j, offset in enumerate(offsets):
             lever = np.concatenate([np.eye(3), -lie.skew(offset)], axis=1)  # (3, 6)
-            a[:, 3 * j : 3 * j + 3, :p] = rotation @ (lever @ j_tip)
-            a[:, 3 * j : 3 * j + 3, p + 3 * j : p + 3 * j + 3] = rotation
-        return residual, a
+            tip_map[:, 3 * j : 3 * j + 3] = rotation @ lever
+            columns[:, 3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = rotation
+        return residual, tip_map, columns
 
     def check_rows(self, rows: MeasurementRows) -> None:
         if rows.measured.shape[1:] != (self.n_markers, 3):
@@ -794,6 +833,12 @@ class EyeOnHead(MeasurementModel):
         if a is not None:
             a[:, :, : chain_column_count(chain)] *= self.visible_columns(chain)
         return residual, a
+
+    def at_tip(
+        self, pose: FloatArray, extra: FloatArray, rows: MeasurementRows
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """As the inner pose/position model, ``pose`` being the tip in the sensor frame."""
+        return self.inner.at_tip(pose, extra, rows)
 
     def check_rows(self, rows: MeasurementRows) -> None:
         _check_pose_rows(self, rows)
