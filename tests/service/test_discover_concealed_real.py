@@ -31,6 +31,13 @@ ROBOT_FLAGS: dict[str, list[object]] = {
 }
 
 
+SIZE_PARAMETER = {
+    "backlash": "backlash_rad",
+    "joint_compliance": "compliance_rad_per_nm",
+    "joint_scale": "scale_error",
+}
+
+
 def _write(path: Path, joint_positions: np.ndarray, poses: np.ndarray) -> None:
     """A recording as a kincal dataset CSV (q1…qk, x y z, qx qy qz qw), rows in order."""
     quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
@@ -87,6 +94,10 @@ def test_no_term_is_driven_by_a_moment_the_geometry_makes_zero(
         ("fr3", "backlash_direction", "backlash", "direction", "panda_joint6", 2),
         ("ur10e", "backlash_load", "backlash", "load", "wrist_1_joint", 1),
         ("ur10e", "backlash_direction", "backlash", "direction", "elbow_joint", 3),
+        # reported ambiguous (held-out ties with 0.97–0.99-correlated candidates) until the
+        # stated size included the separation from the hardest rival
+        ("fr3", "joint_compliance", "joint_compliance", "", "panda_joint3", 0),
+        ("fr3", "joint_scale", "joint_scale", "", "panda_joint7", 5),
     ],
 )
 def test_effect_concealed_at_twice_the_stated_detectability_is_named(
@@ -123,5 +134,5 @@ def test_effect_concealed_at_twice_the_stated_detectability_is_named(
         if (f.effect, f.joint) == (effect, joint) and f.variant.startswith(variant)
     ]
     assert named, [(f.effect, f.joint, f.variant) for f in result.findings]
-    size = named[0].parameters["backlash_rad"]
+    size = named[0].parameters[SIZE_PARAMETER[effect]]
     assert size == pytest.approx(truth, rel=0.25)
