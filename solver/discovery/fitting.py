@@ -356,13 +356,18 @@ def start_parameters(ctx: Context) -> ModelParameters:
     return ModelParameters(start.links, np.zeros(0))
 
 
-def _kept_links(links_w: FloatArray, terms_w: FloatArray, residual_w: FloatArray) -> IndexArray:
+def _kept_links(
+    links_w: FloatArray, terms_w: FloatArray, residual_w: FloatArray, pin: bool = True
+) -> IndexArray:
     """Link columns the data can identify once the term columns are in (terms take priority).
 
     Column-pivoted QR of the unit-norm link columns after projecting out the term columns;
-    the POE redundancies (and geometry that a term explains exactly) drop out by name, and so
-    does a pivot whose standard error given the ones before it, ``s/|R_jj|`` with ``s`` the
-    RMS whitened residual, exceeds :data:`NUISANCE_RANGE`.
+    the POE redundancies (and geometry that a term explains exactly) drop out by name, and
+    with ``pin`` (measurement models other than pose and position) so does a pivot whose
+    standard error given the ones before it, ``s/|R_jj|`` with ``s`` the RMS whitened residual,
+    exceeds :data:`NUISANCE_RANGE`. Pose and position rows keep every identifiable direction,
+    as they always have: on the FR3 recording pinning a poorly determined one changes what
+    discovery reports (a base flex of the wrong sign at panda_joint1 becomes visible).
     """
     norms = np.linalg.norm(links_w, axis=0)
     nonzero = np.flatnonzero(norms > 1e-12 * max(norms.max(), 1e-300))
@@ -375,7 +380,7 @@ def _kept_links(links_w: FloatArray, terms_w: FloatArray, residual_w: FloatArray
     rank = int(np.sum(diagonal > RANK_TOLERANCE * max(diagonal[0], 1e-300)))
     scatter = np.sqrt(float(residual_w @ residual_w) / max(residual_w.size, 1))
     pinned = diagonal[:rank] * norms[nonzero][pivots[:rank]] * NUISANCE_RANGE > scatter
-    return np.sort(nonzero[pivots[:rank][pinned]])
+    return np.sort(nonzero[pivots[:rank][pinned | (not pin)]])
 
 
 def orthonormal_basis(matrix: FloatArray, tolerance: float = RANK_TOLERANCE) -> FloatArray:
@@ -485,7 +490,7 @@ def fit_model(
         )
 
     r, links_w, terms_w = stacked(design)
-    kept = _kept_links(links_w, terms_w, r)
+    kept = _kept_links(links_w, terms_w, r, pin=not ctx.data.is_pose)
     constraint = constraint_rows(ctx, params, kept)
     n_pinned = 0 if constraint is None else constraint[0].size
     if r.size <= kept.size - n_pinned + p_terms:
