@@ -463,7 +463,16 @@ class CovarianceResult(_Model):
     confidence: float = Field(0.95, description="Level of the std confidence intervals.")
     stderr_method: str | None = Field(None, description="How standard errors were computed.")
     solver: SolverReport
-    noise: CovarianceFrame
+    noise: CovarianceFrame = Field(
+        description="Σ_n: the measurement noise (tip frame; for measurement 'components' the "
+        "chosen components in the measurement frame); with several noise sources (one per "
+        "marker, measurement 'markers') their mean, each in noise_sources."
+    )
+    noise_sources: list[CovarianceFrame] | None = Field(
+        None,
+        description="Measurement 'markers': each marker's own position noise Σ_n,j (tip "
+        "frame), independent across markers; null for one noise source.",
+    )
     frames: list[CovarianceFrame]
     identifiability: CovarianceIdentifiability
 

@@ -136,6 +136,7 @@ class MeasuredRecording:
     source: str
     labels: tuple[str, ...]
     position_only: bool
+    notes: tuple[str, ...] = ()
 
 
 def _loads(chain: KinematicChain, options: CalibrationOptions, q: np.ndarray) -> np.ndarray:
@@ -180,9 +181,12 @@ def read_measured(
     elif isinstance(model, MultiMarker):
         markers = read_all_markers(source, chain.joint_names, chain.other_joint_names)
         q = markers.joint_positions
-        rows = MeasurementRows.of(q, _loads(chain, options, q), markers.marker_positions_m)
-        labels = tuple(f"marker {j + 1}" for j in range(model.n_markers))
-        return MeasuredRecording(model, rows, name or markers.source, labels, True)
+        positions = markers.marker_positions_m
+        keep, notes = distinct_markers(positions)
+        model = dataclasses.replace(model, n_markers=len(keep))
+        rows = MeasurementRows.of(q, _loads(chain, options, q), positions[:, keep])
+        labels = tuple(f"marker {j + 1}" for j in keep)
+        return MeasuredRecording(model, rows, name or markers.source, labels, True, notes)
     else:
         dataset = read_dataset(
             source,
@@ -207,6 +211,24 @@ def read_measured(
         raise KincalError("measurement 'markers' needs a FIGAROH file with several markers")
     rows = MeasurementRows.of(q, _loads(chain, options, q), pose)
     return MeasuredRecording(model, rows, name or dataset.source, (), dataset.is_position_only)
+
+
+def distinct_markers(positions_m: np.ndarray) -> tuple[list[int], tuple[str, ...]]:
+    """The markers (N, m, 3) to read: each once, a marker whose positions repeat an earlier
+    marker's in every row dropped (it is the same measurement twice: it would count that
+    marker double in the fit, and its residual minus the other's is exactly zero, which makes
+    the covariance of Eq. 12 singular); with a note per dropped marker."""
+    keep: list[int] = []
+    notes = []
+    for j in range(positions_m.shape[1]):
+        same = [k for k in keep if np.array_equal(positions_m[:, j], positions_m[:, k])]
+        if same:
+            notes.append(
+                f"marker {j + 1} repeats marker {same[0] + 1} in every row: read once"
+            )
+        else:
+            keep.append(j)
+    return keep, tuple(notes)
 
 
 def check_covariance_request(options: CalibrationOptions, model: MeasurementModel) -> str | None:
@@ -297,7 +319,7 @@ def calibrate_measurement(
     recording) is not run for these measurements yet."""
     started = time.perf_counter()
     model, rows = recording.model, recording.rows
-    notes = [n for n in [check_covariance_request(options, model)] if n]
+    notes = [*recording.notes, *[n for n in [check_covariance_request(options, model)] if n]]
     first = fit_measurement(chain, model, rows, fit_options)
     kept, rule_note = screen(model, first, options)
     notes.append(rule_note)

@@ -2,7 +2,11 @@
 
 Frames: every random source f has a 6×6 covariance Σ_f of a local twist [v; w] (m, rad) and an
 end-effector-frame Jacobian A_f(q) (d×6, d = 6 full pose or 3 position-only, DESIGN.md §2).
-The measurement noise is one more frame (listed last) whose Jacobian is the first d rows of I_6.
+The measurement noise is one more frame (listed last) whose Jacobian is the first d rows of I_6
+— or, for residuals laid out otherwise (a subset of pose components, several markers per row),
+k noise frames listed last, each a constant 0/1 Jacobian ``U_j`` (d×6) that puts noise axis a
+into residual row ``noise_rows[j][a]`` (−1: the axis does not reach the residual), so that the
+noise part of Eq. (12) is ``Σ_j U_j Σ_{n,j} U_jᵀ`` (e.g. block-diagonal across markers).
 
 θ holds one entry per free parameter p = (frame f, axis i, axis j), i ≤ j, with
 ``Σ_f = Σ_p θ_p E_p``, ``E_p = e_i e_jᵀ + e_j e_iᵀ`` (i ≠ j) or ``e_i e_iᵀ`` (i = j): θ_p is the
@@ -41,9 +45,12 @@ ROTATION_AXES = (3, 4, 5)
 class CovarianceLayout:
     """Which covariance entries are estimated, and in which order θ stores them.
 
-    ``frame_names`` lists every source, the noise frame (if any) last. ``free_axes[f][i]`` says
-    whether axis i of frame f may carry randomness; for "full" all pairs of free axes are
-    parameters. ``residual_dim`` d is 6 (pose) or 3 (position-only).
+    ``frame_names`` lists every source, the noise frame(s) (if any) last. ``free_axes[f][i]``
+    says whether axis i of frame f may carry randomness; for "full" all pairs of free axes are
+    parameters. ``residual_dim`` d is 6 (pose), 3 (position-only) or any other residual size
+    with ``noise_rows``. ``noise_frame`` names the first noise frame; ``noise_rows`` (one tuple
+    of 6 per noise frame, empty for the default) the residual row of each noise axis (−1:
+    none); the default is one noise frame on rows 0..d−1.
     """
 
     frame_names: tuple[str, ...]
@@ -51,15 +58,53 @@ class CovarianceLayout:
     residual_dim: int
     free_axes: tuple[tuple[bool, ...], ...]
     noise_frame: str | None
+    noise_rows: tuple[tuple[int, ...], ...] = ()
 
     @property
     def n_frames(self) -> int:
         return len(self.frame_names)
 
     @property
+    def n_noise_frames(self) -> int:
+        if self.noise_frame is None:
+            return 0
+        return max(len(self.noise_rows), 1)
+
+    @property
     def n_chain_frames(self) -> int:
-        """Frames whose Jacobians the caller supplies (all but the noise frame)."""
-        return self.n_frames - (self.noise_frame is not None)
+        """Frames whose Jacobians the caller supplies (all but the noise frames)."""
+        return self.n_frames - self.n_noise_frames
+
+    @property
+    def noise_frame_names(self) -> tuple[str, ...]:
+        return self.frame_names[self.n_chain_frames :]
+
+    @cached_property
+    def noise_row_table(self) -> IntArray:
+        """(k, 6): residual row of each axis of each noise frame, −1 where none."""
+        if self.noise_rows:
+            return np.array(self.noise_rows, dtype=np.intp).reshape(-1, 6)
+        d = self.residual_dim
+        return np.array([[a if a < d else -1 for a in range(6)]], dtype=np.intp)
+
+    @cached_property
+    def noise_param_rows(self) -> IntArray:
+        """Residual row of every noise entry of θ (diagonal layouts: its unit column), −1
+        where the axis does not reach the residual, in θ order of the noise entries."""
+        noise = np.flatnonzero(self.is_noise)
+        return self.noise_row_table[
+            self.param_frame[noise] - self.n_chain_frames, self.param_row[noise]
+        ]
+
+    def noise_jacobians(self) -> FloatArray:
+        """``U_j`` (k, d, 6) of the noise frames (the 0/1 placement of each axis)."""
+        table = self.noise_row_table
+        out = np.zeros((table.shape[0], self.residual_dim, 6))
+        for j, rows in enumerate(table):
+            for axis, row in enumerate(rows):
+                if row >= 0:
+                    out[j, row, axis] = 1.0
+        return out
 
     @cached_property
     def _params(self) -> tuple[IntArray, IntArray, IntArray]:
@@ -101,9 +146,7 @@ class CovarianceLayout:
     @cached_property
     def is_noise(self) -> BoolArray:
         """True for entries of the noise frame, (Q,)."""
-        if self.noise_frame is None:
-            return np.zeros(self.n_params, dtype=bool)
-        return self.param_frame == self.n_frames - 1
+        return self.param_frame >= self.n_chain_frames
 
     @cached_property
     def column_i(self) -> IntArray:
@@ -147,17 +190,24 @@ def make_layout(
     include_noise: bool = True,
     noise_name: str = "noise",
     free_axes: Mapping[str, Sequence[str]] | None = None,
+    noise_rows: Mapping[str, Sequence[int]] | None = None,
 ) -> CovarianceLayout:
-    """Layout for the caller's frames (+ the noise frame, last).
+    """Layout for the caller's frames (+ the noise frame(s), last).
 
     ``free_axes`` maps a frame name to the axes (names from ``POSE_AXES``) that may be random;
-    frames not named have all six free.
+    frames not named have all six free. ``noise_rows``: noise frames by name, each with the
+    residual row of its six axes (−1: none; such axes are not free), for residuals other than
+    a pose or position (then ``residual_dim`` may be any size); None: one noise frame
+    ``noise_name`` on rows 0..d−1 (d = 6 or 3).
     """
-    if residual_dim not in (3, 6):
+    if noise_rows is None and residual_dim not in (3, 6):
         raise SolverError(f"residual_dim must be 3 or 6, got {residual_dim}")
+    if noise_rows is not None:
+        _check_noise_rows(noise_rows, residual_dim)
     if structure not in ("diag", "full"):
         raise SolverError(f"structure must be 'diag' or 'full', got {structure!r}")
-    names = tuple(frame_names) + ((noise_name,) if include_noise else ())
+    noise_names = (noise_name,) if noise_rows is None else tuple(noise_rows)
+    names = tuple(frame_names) + (noise_names if include_noise else ())
     if len(set(names)) != len(names):
         raise SolverError(f"frame names must be unique (noise frame is {noise_name!r}): {names}")
     free_axes = dict(free_axes or {})
@@ -172,13 +222,39 @@ def make_layout(
             raise SolverError(
                 f"free_axes[{name!r}] has unknown axes {sorted(bad)}; use {POSE_AXES}"
             )
-        free.append(tuple(axis in axes for axis in POSE_AXES))
+        reaches = (noise_rows or {}).get(name, range(6))
+        free.append(tuple(a in axes and reaches[k] >= 0 for k, a in enumerate(POSE_AXES)))
+    rows = () if noise_rows is None else tuple(
+        tuple(int(r) for r in noise_rows[name]) for name in noise_names
+    )
     layout = CovarianceLayout(
-        names, structure, residual_dim, tuple(free), noise_name if include_noise else None
+        names,
+        structure,
+        residual_dim,
+        tuple(free),
+        noise_names[0] if include_noise else None,
+        rows,
     )
     if layout.n_params == 0:
         raise SolverError("no free covariance entries: check free_axes")
     return layout
+
+
+def _check_noise_rows(noise_rows: Mapping[str, Sequence[int]], residual_dim: int) -> None:
+    """Each noise frame: six rows in −1..d−1, no row twice in the same frame."""
+    if not noise_rows:
+        raise SolverError("noise_rows names no noise frame")
+    for name, rows in noise_rows.items():
+        used = [int(r) for r in rows if r >= 0]
+        if (
+            len(rows) != 6
+            or any(not -1 <= int(r) < residual_dim for r in rows)
+            or len(set(used)) != len(used)
+        ):
+            raise SolverError(
+                f"noise_rows[{name!r}] must give 6 distinct residual rows in 0..{residual_dim - 1} "
+                f"(or -1), got {list(rows)}"
+            )
 
 
 def column_matrix(frame_jacobians: FloatArray, layout: CovarianceLayout) -> FloatArray:
@@ -196,7 +272,8 @@ def column_matrix(frame_jacobians: FloatArray, layout: CovarianceLayout) -> Floa
     cols = frame_jacobians.transpose(0, 2, 1, 3).reshape(n, d, 6 * n_frames)
     if layout.noise_frame is None:
         return np.ascontiguousarray(cols)
-    noise = np.broadcast_to(np.eye(6)[:d], (n, d, 6))
+    units = layout.noise_jacobians().transpose(1, 0, 2).reshape(d, -1)
+    noise = np.broadcast_to(units, (n, d, units.shape[1]))
     return np.concatenate([cols, noise], axis=2)
 
 

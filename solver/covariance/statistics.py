@@ -299,7 +299,7 @@ def diag_statistics_batch_last(
         if residuals is not None:
             z = pair_products(residuals[:, part], known_covariance)
         sums = sums + _diag_sums(
-            columns[:, :, part], slots, support, layout.param_row[noise], z, mask, zeroed
+            columns[:, :, part], slots, support, layout.noise_param_rows, z, mask, zeroed
         )
     return sums.statistics(layout, order, known_covariance)
 
@@ -332,7 +332,7 @@ def _diag_design_gram(
             assert known_covariance is not None
             known = known_covariance[start:stop].transpose(1, 2, 0)
         if left is None:
-            slots, units, order = layout.column_i[chain], layout.param_row[noise], None
+            slots, units, order = layout.column_i[chain], layout.noise_param_rows, None
         else:  # whitened: every column general, the noise frame's too (T_n e_i)
             cols, r = _whitened(left[start:stop], cols, r, layout)
             slots, units = np.arange(layout.n_params), np.zeros(0, dtype=np.intp)
@@ -356,9 +356,9 @@ def _whitened(
     out = np.zeros((layout.n_params, d, t.shape[2]))
     chain = np.flatnonzero(~layout.is_noise)
     out[chain] = np.einsum("rsn,psn->prn", t, cols[layout.column_i[chain]])
-    for p in np.flatnonzero(layout.is_noise):
-        if layout.param_row[p] < d:
-            out[p] = t[:, layout.param_row[p]]
+    for p, row in zip(np.flatnonzero(layout.is_noise), layout.noise_param_rows, strict=True):
+        if row >= 0:
+            out[p] = t[:, row]
     r = None if residuals is None else np.einsum("rsn,sn->rn", t, residuals)
     return out, r
 
@@ -410,7 +410,7 @@ def _diag_sums(
 ) -> _DiagSums:
     """Sums over one block for the entries ``slots`` (general columns ``columns[slot]``, of
     which the first ``support`` rows may be non-zero) followed by ``unit_axes`` (columns
-    ``e_i``, the unwhitened noise frame). ``z`` (D, n): :func:`pair_products`; ``used``
+    ``e_i`` of residual row i, −1 for none: the unwhitened noise frames). ``z`` (D, n): :func:`pair_products`; ``used``
     (n,) the samples to count, the others' columns already zero if ``zeroed``."""
     d, n = columns.shape[1], columns.shape[2]
     count = n if used is None else int(np.count_nonzero(used))
@@ -443,13 +443,13 @@ def _diag_sums(
             gram[np.ix_(rows_g, rows_h)] = block
             gram[np.ix_(rows_h, rows_g)] = block.T
         for u, axis in enumerate(unit_axes):
-            if axis < d and _diagonal_entry(int(axis)) < width_g:
+            if axis >= 0 and _diagonal_entry(int(axis)) < width_g:
                 column = design_g[:, _diagonal_entry(int(axis))].sum(axis=-1)
                 gram[n_general + u, rows_g] = gram[rows_g, n_general + u] = column
         if z is not None:
             cross[rows_g] = flat_g @ z[:width_g].reshape(-1)
     for u, axis in enumerate(unit_axes):
-        if axis < d:
+        if axis >= 0:
             gram[n_general + u, n_general + u] = count
             if z is not None:
                 cross[n_general + u] = z[_diagonal_entry(int(axis))].sum()

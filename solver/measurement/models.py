@@ -150,6 +150,15 @@ class MeasurementModel(ABC):
         """Whether the random-perturbation covariances of Eq. (12) are defined for it."""
         return False
 
+    @property
+    def noise_rows(self) -> dict[str, tuple[int, ...]] | None:
+        """The noise layout of Eq. (12) for this residual (as rotated by
+        :meth:`tip_frame_rotation`): noise sources by name, each with the residual row of its
+        six axes [v; w] (−1: the axis does not reach the residual), see
+        :func:`solver.covariance.layout.make_layout`; None: one tip-frame noise on rows
+        0..d−1, as for a pose or position recording."""
+        return None
+
     def extra_names(self) -> list[str]:
         """Names of the model's own unknowns (E)."""
         return []
@@ -377,6 +386,21 @@ class PoseComponents(MeasurementModel):
     def rotation_rows(self) -> tuple[int, ...]:
         return tuple(i for i, c in enumerate(self.selected) if c.startswith("r"))
 
+    @property
+    def supports_covariance(self) -> bool:
+        return True
+
+    @property
+    def noise_rows(self) -> dict[str, tuple[int, ...]]:
+        """One noise source, of the chosen components only, in the measurement frame (a subset
+        of components cannot be rotated into the tip frame): axis a of ``[v; w]`` is the
+        component ``TWIST_COMPONENTS[a]``."""
+        return {
+            "noise": tuple(
+                self.selected.index(c) if c in self.selected else -1 for c in TWIST_COMPONENTS
+            )
+        }
+
     def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
         """The nominal chain: without all six components there is no closed-form alignment;
         the measurement frame must be near the robot base (e.g. the plane under the robot)."""
@@ -590,6 +614,30 @@ class MultiMarker(MeasurementModel):
     @property
     def components(self) -> tuple[str, ...]:
         return tuple(f"m{j + 1}.{a}" for j in range(self.n_markers) for a in ("x", "y", "z"))
+
+    @property
+    def supports_covariance(self) -> bool:
+        return True
+
+    @property
+    def noise_rows(self) -> dict[str, tuple[int, ...]]:
+        """One position noise per marker (its own 3×3 Σ_n,j, tip frame), independent across
+        markers: the noise part of Eq. (12) is ``blockdiag(Σ_n,1 … Σ_n,m)``."""
+        return {
+            f"noise.m{j + 1}": (3 * j, 3 * j + 1, 3 * j + 2, -1, -1, -1)
+            for j in range(self.n_markers)
+        }
+
+    def tip_frame_rotation(
+        self, chain: KinematicChain, params: ModelParameters, rows: MeasurementRows
+    ) -> FloatArray:
+        """``blockdiag(Rᵀ … Rᵀ)`` (N, 3m, 3m): every marker's residual in the tip frame, where
+        ``Rᵀ A_chain,j = [I, −[t_j]x] J_tip`` and the markers' noise is constant."""
+        pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+        out = np.zeros((rows.n, self.dim, self.dim))
+        for j in range(self.n_markers):
+            out[:, 3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = pose[:, :3, :3].transpose(0, 2, 1)
+        return out
 
     def extra_names(self) -> list[str]:
         return [f"marker_{j + 1}.{a}" for j in range(self.n_markers) for a in ("x", "y", "z")]
