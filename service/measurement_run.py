@@ -6,9 +6,8 @@ several markers at once, chosen pose components, a frame on the base, a sensor o
 calibration of :mod:`service.pipeline`. :func:`calibrate_measurement` reads the recording into
 memory, fits it (:func:`solver.measurement.fit_measurement`, Eq. 8–10), screens gross errors,
 runs the held-out splits of DESIGN.md §4 and assembles the same result JSON, with the model's
-own unknowns in ``measurement``. The covariance calibration (Eq. 12–17) is defined for pose
-and position residuals only: asked for explicitly it is refused with the reason, by default it
-is skipped with a note.
+own unknowns in ``measurement``, and the covariance calibration (Eq. 12–17) of every type with
+its noise layout (:attr:`~solver.measurement.models.MeasurementModel.noise_rows`).
 """
 
 from __future__ import annotations
@@ -223,29 +222,10 @@ def distinct_markers(positions_m: np.ndarray) -> tuple[list[int], tuple[str, ...
     for j in range(positions_m.shape[1]):
         same = [k for k in keep if np.array_equal(positions_m[:, j], positions_m[:, k])]
         if same:
-            notes.append(
-                f"marker {j + 1} repeats marker {same[0] + 1} in every row: read once"
-            )
+            notes.append(f"marker {j + 1} repeats marker {same[0] + 1} in every row: read once")
         else:
             keep.append(j)
     return keep, tuple(notes)
-
-
-def check_covariance_request(options: CalibrationOptions, model: MeasurementModel) -> str | None:
-    """Refuse an explicitly requested covariance calibration the model does not support; a
-    note when the default one is skipped (None: nothing to say)."""
-    if model.supports_covariance or options.covariance == "none":
-        return None
-    if "covariance" in options.model_fields_set:
-        raise KincalError(
-            f"covariance calibration (paper Eq. 12-17) is not available for measurement "
-            f"'{model.name}' yet (it is defined for pose and position residuals); pass "
-            "--covariance none"
-        )
-    return (
-        f"covariances of the random perturbations not estimated: Eq. 12 is not available for "
-        f"measurement '{model.name}' yet"
-    )
 
 
 def screen(
@@ -319,7 +299,7 @@ def calibrate_measurement(
     recording) is not run for these measurements yet."""
     started = time.perf_counter()
     model, rows = recording.model, recording.rows
-    notes = [*recording.notes, *[n for n in [check_covariance_request(options, model)] if n]]
+    notes = list(recording.notes)
     first = fit_measurement(chain, model, rows, fit_options)
     kept, rule_note = screen(model, first, options)
     notes.append(rule_note)

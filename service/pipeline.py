@@ -466,9 +466,7 @@ def _calibrate_measured(
         setup.options,
         fit_options(setup.options, free_columns=setup.free_columns),
         fit_options(setup.options, baseline=True, n_links=setup.chain.n_links),
-        covariance_settings(recording.model.dim, setup, recording.model.noise_rows)
-        if recording.model.supports_covariance
-        else None,
+        covariance_settings(recording.model.dim, setup, recording.model.noise_rows),
     )
     timings["calibration"] = calibrated.elapsed_s
     robot = setup.robot

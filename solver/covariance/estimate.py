@@ -475,9 +475,7 @@ def frame_results(
     known_noise: FloatArray | None,
     noise_name: str,
     unseen: Sequence[tuple[str | None, ...]] = (),
-) -> tuple[
-    tuple[FrameCovariance, ...], FrameCovariance | None, tuple[FrameCovariance, ...]
-]:
+) -> tuple[tuple[FrameCovariance, ...], FrameCovariance | None, tuple[FrameCovariance, ...]]:
     """The estimated θ as per-frame covariances (6×6, [v; w], m² and rad², each frame's own
     axes) with their uncertainties, the noise frame: estimated (the layout's last frame; with
     several noise frames :func:`pooled_noise` of them), the known (d, d) Σ_n padded to 6×6

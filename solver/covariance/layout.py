@@ -224,8 +224,10 @@ def make_layout(
             )
         reaches = (noise_rows or {}).get(name, range(6))
         free.append(tuple(a in axes and reaches[k] >= 0 for k, a in enumerate(POSE_AXES)))
-    rows = () if noise_rows is None else tuple(
-        tuple(int(r) for r in noise_rows[name]) for name in noise_names
+    rows = (
+        ()
+        if noise_rows is None
+        else tuple(tuple(int(r) for r in noise_rows[name]) for name in noise_names)
     )
     layout = CovarianceLayout(
         names,

@@ -410,8 +410,9 @@ def _diag_sums(
 ) -> _DiagSums:
     """Sums over one block for the entries ``slots`` (general columns ``columns[slot]``, of
     which the first ``support`` rows may be non-zero) followed by ``unit_axes`` (columns
-    ``e_i`` of residual row i, −1 for none: the unwhitened noise frames). ``z`` (D, n): :func:`pair_products`; ``used``
-    (n,) the samples to count, the others' columns already zero if ``zeroed``."""
+    ``e_i`` of residual row i, −1 for none: the unwhitened noise frames). ``z`` (D, n):
+    :func:`pair_products`; ``used`` (n,) the samples to count, the others' columns already
+    zero if ``zeroed``."""
     d, n = columns.shape[1], columns.shape[2]
     count = n if used is None else int(np.count_nonzero(used))
     skip = None if used is None or count == n else ~used

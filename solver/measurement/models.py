@@ -146,11 +146,6 @@ class MeasurementModel(ABC):
         return ()
 
     @property
-    def supports_covariance(self) -> bool:
-        """Whether the random-perturbation covariances of Eq. (12) are defined for it."""
-        return False
-
-    @property
     def noise_rows(self) -> dict[str, tuple[int, ...]] | None:
         """The noise layout of Eq. (12) for this residual (as rotated by
         :meth:`tip_frame_rotation`): noise sources by name, each with the residual row of its
@@ -260,10 +255,6 @@ class FullPose(MeasurementModel):
     @property
     def rotation_rows(self) -> tuple[int, ...]:
         return (3, 4, 5)
-
-    @property
-    def supports_covariance(self) -> bool:
-        return True
 
     @property
     def position_only(self) -> bool:
@@ -387,10 +378,6 @@ class PoseComponents(MeasurementModel):
         return tuple(i for i, c in enumerate(self.selected) if c.startswith("r"))
 
     @property
-    def supports_covariance(self) -> bool:
-        return True
-
-    @property
     def noise_rows(self) -> dict[str, tuple[int, ...]]:
         """One noise source, of the chosen components only, in the measurement frame (a subset
         of components cannot be rotated into the tip frame): axis a of ``[v; w]`` is the
@@ -489,10 +476,6 @@ class FixedPoints(MeasurementModel):
     @property
     def components(self) -> tuple[str, ...]:
         return ("x", "y", "z")
-
-    @property
-    def supports_covariance(self) -> bool:
-        return True  # the noise: the ball's play in its socket
 
     def tip_frame_rotation(
         self, chain: KinematicChain, params: ModelParameters, rows: MeasurementRows
@@ -614,10 +597,6 @@ class MultiMarker(MeasurementModel):
     @property
     def components(self) -> tuple[str, ...]:
         return tuple(f"m{j + 1}.{a}" for j in range(self.n_markers) for a in ("x", "y", "z"))
-
-    @property
-    def supports_covariance(self) -> bool:
-        return True
 
     @property
     def noise_rows(self) -> dict[str, tuple[int, ...]]:
@@ -750,10 +729,6 @@ class EyeOnHead(MeasurementModel):
     @property
     def inner(self) -> FullPose:
         return Position() if self.measure_position_only else FullPose()
-
-    @property
-    def supports_covariance(self) -> bool:
-        return True  # as the inner pose/position; frames up to the sensor's body cancel (A = 0)
 
     @property
     def dim(self) -> int:
