@@ -464,14 +464,9 @@ class CovarianceResult(_Model):
     stderr_method: str | None = Field(None, description="How standard errors were computed.")
     solver: SolverReport
     noise: CovarianceFrame = Field(
-        description="Σ_n: the measurement noise (tip frame; for measurement 'components' the "
-        "chosen components in the measurement frame); with several noise sources (one per "
-        "marker, measurement 'markers') their mean, each in noise_sources."
-    )
-    noise_sources: list[CovarianceFrame] | None = Field(
-        None,
-        description="Measurement 'markers': each marker's own position noise Σ_n,j (tip "
-        "frame), independent across markers; null for one noise source.",
+        description="Σ_n: the measurement noise (tip frame; measurement 'markers': each "
+        "marker's position noise, the same for all, independent across markers; measurement "
+        "'components': the chosen components', in the measurement frame)."
     )
     frames: list[CovarianceFrame]
     identifiability: CovarianceIdentifiability

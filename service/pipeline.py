@@ -508,7 +508,7 @@ def calibrate(
 def covariance_settings(
     residual_dim: int,
     setup: CalibrationSetup,
-    noise_rows: Mapping[str, Sequence[int]] | None = None,
+    noise_rows: Mapping[str, Sequence[Sequence[int]]] | None = None,
 ) -> CovarianceSettings | None:
     """The covariance stage of ``setup`` for residuals of ``residual_dim`` rows with the noise
     layout ``noise_rows`` (None: a pose's or position's; see

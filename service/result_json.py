@@ -266,8 +266,6 @@ def covariance_result(estimate: CovarianceEstimate, joint_index: list[int]) -> C
             objective=solution.objective,
         ),
         noise=_covariance_frame(estimate.noise, None),
-        noise_sources=[_covariance_frame(source, None) for source in estimate.noise_sources]
-        or None,
         frames=[
             _covariance_frame(frame, j)
             for frame, j in zip(estimate.frames, joint_index, strict=True)

@@ -96,7 +96,6 @@ class CovarianceEstimate:
     with ``fixed=True``; None if the noise was neither). ``theta`` (Q,) after the null-space
     rule, labelled by ``layout.labels()``; ``theta_covariance`` (Q, Q) or None.
     ``moment_solution`` is the Eq. (14) solver's raw answer, ``solution`` the final stage's.
-    ``noise_sources``: the noise frames when the layout has several (``noise`` their mean).
     """
 
     estimator: EstimatorName
@@ -114,8 +113,6 @@ class CovarianceEstimate:
     theta_covariance: FloatArray | None = field(default=None, repr=False)
     uncertainty: ThetaUncertainty | None = field(default=None, repr=False)
     warnings: tuple[str, ...] = ()
-    noise_sources: tuple[FrameCovariance, ...] = ()
-    """With several noise frames (one per marker): each; ``noise`` is then their mean."""
 
     @property
     def converged(self) -> bool:
@@ -136,16 +133,10 @@ class CovarianceEstimate:
         return np.zeros((6, 6)) if self.noise is None else self.noise.covariance
 
     def residual_noise(self) -> FloatArray:
-        """The noise part of Eq. (12) in the residual's rows, (d, d): ``Σ_j U_j Σ_n,j U_jᵀ``
-        over the layout's noise placements (one on rows 0..d−1 for a pose or position)."""
-        placements = self.layout.noise_jacobians()
-        sources = self.noise_sources or (self.noise,) * placements.shape[0]
-        d = self.layout.residual_dim
-        out = np.zeros((d, d))
-        for u, source in zip(placements, sources, strict=True):
-            if source is not None:
-                out += u @ source.covariance @ u.T
-        return out
+        """The noise part of Eq. (12) in the residual's rows, (d, d): ``Σ_k U_k Σ_n U_kᵀ``
+        over the placements of the noise (one on rows 0..d−1 for a pose or position)."""
+        placements = self.layout.noise_jacobians()  # (K, d, 6)
+        return np.einsum("kia,ab,kjb->ij", placements, self.noise_covariance(), placements)
 
     def ee_covariance(self, frame_jacobians: FloatArray, *, include_noise: bool) -> FloatArray:
         """Eq. (12) at new configurations: (N, d, d) from frame Jacobians (N, F_chain, d, 6)."""
@@ -378,7 +369,7 @@ def estimate_from_samples(
             notes.append(f"no standard errors: {exc}")
     seen_on = sub if sub is not None else subsample(samples, SE_SAMPLES)
     unseen = unseen_axes(seen_on.frame_jacobians, layout)
-    frames, noise, sources = frame_results(layout, theta, unc, known, noise_name, unseen)
+    frames, noise = frame_results(layout, theta, unc, known, noise_name, unseen)
     return CovarianceEstimate(
         estimator,
         layout.structure,
@@ -395,7 +386,6 @@ def estimate_from_samples(
         cov,
         unc,
         tuple(notes),
-        sources,
     )
 
 
@@ -410,27 +400,27 @@ SE_METHOD = {
 def known_noise_covariance(
     noise_covariance: FloatArray | None,
     residual_dim: int,
-    noise_rows: Sequence[Sequence[int]] | None = None,
+    placements: Sequence[Sequence[int]] | None = None,
 ) -> FloatArray | None:
     """A known measurement-noise covariance Σ_n as the (d, d) block of the residual space.
 
     ``noise_covariance``: 6×6 ([v; w], m² and rad², end-effector frame) or already d×d; it is
     symmetrised, and for position-only residuals (d = 3) its translational block is kept.
-    With ``noise_rows`` (one tuple of six residual rows per noise source, −1: none, as in
-    :func:`~.layout.make_layout`) a 6×6 Σ_n (or a 3×3 position noise) is every source's:
-    ``Σ_j U_j Σ_n U_jᵀ``.
+    With ``placements`` (the noise's placements, each the residual row of the six axes, −1:
+    none, as in :func:`~.layout.make_layout`) a 6×6 Σ_n (or a 3×3 position noise) is
+    placed on each: ``Σ_k U_k Σ_n U_kᵀ``.
     None stays None (Σ_n is then estimated as one more frame, Eq. 13).
     """
     if noise_covariance is None:
         return None
     d = residual_dim
     known = np.asarray(noise_covariance, dtype=float)
-    if noise_rows is not None and known.shape == (3, 3) and d != 3:  # a position noise
+    if placements is not None and known.shape == (3, 3) and d != 3:  # a position noise
         known = np.pad(known, ((0, 3), (0, 3)))
-    if noise_rows is not None and known.shape == (6, 6):
+    if placements is not None and known.shape == (6, 6):
         sym = 0.5 * (known + known.T)
         out = np.zeros((d, d))
-        for rows in noise_rows:
+        for rows in placements:
             axes = [a for a in range(6) if rows[a] >= 0]
             placed = [int(rows[a]) for a in axes]
             out[np.ix_(placed, placed)] += sym[np.ix_(axes, axes)]
@@ -475,51 +465,22 @@ def frame_results(
     known_noise: FloatArray | None,
     noise_name: str,
     unseen: Sequence[tuple[str | None, ...]] = (),
-) -> tuple[tuple[FrameCovariance, ...], FrameCovariance | None, tuple[FrameCovariance, ...]]:
+) -> tuple[tuple[FrameCovariance, ...], FrameCovariance | None]:
     """The estimated θ as per-frame covariances (6×6, [v; w], m² and rad², each frame's own
-    axes) with their uncertainties, the noise frame: estimated (the layout's last frame; with
-    several noise frames :func:`pooled_noise` of them), the known (d, d) Σ_n padded to 6×6
-    (read through the first noise placement's rows), or None; and the noise frames when there
-    are several (else empty). ``unseen``: per chain frame, why the data
-    cannot see each axis (:func:`.identifiability.unseen_axes`)."""
+    axes) with their uncertainties, and the noise frame: estimated (the layout's last frame),
+    the known (d, d) Σ_n read through the noise's first placement into 6×6, or None.
+    ``unseen``: per chain frame, why the data cannot see each axis
+    (:func:`.identifiability.unseen_axes`)."""
     frames = _frames(layout, theta, unc, unseen)
-    chain = tuple(frames[: layout.n_chain_frames])
     if layout.noise_frame is not None:
-        noise = tuple(frames[layout.n_chain_frames :])
-        if len(noise) == 1:
-            return chain, noise[0], ()
-        return chain, pooled_noise(noise_name, noise), noise
+        return tuple(frames[:-1]), frames[-1]
     if known_noise is None:
-        return chain, None, ()
-    d = layout.residual_dim
-    if layout.noise_rows:  # the known noise of one source, from the first placement's rows
-        rows = layout.noise_row_table[0]
-        axes = np.flatnonzero(rows >= 0)
-        full = np.zeros((6, 6))
-        full[np.ix_(axes, axes)] = known_noise[np.ix_(rows[axes], rows[axes])]
-    else:
-        full = np.zeros((6, 6))
-        full[:d, :d] = known_noise
-    return chain, _fixed_frame(noise_name, full), ()
-
-
-def pooled_noise(name: str, sources: Sequence[FrameCovariance]) -> FrameCovariance:
-    """One Σ_n standing for several noise sources of the same kind (e.g. one per marker): their
-    mean covariance, its σ = sqrt of the mean variance; identifiable and estimated where every
-    source's axis is; no intervals (each source carries its own)."""
-    covariance = np.mean([s.covariance for s in sources], axis=0)
-    nan = np.full(6, np.nan)
-    return FrameCovariance(
-        name,
-        covariance,
-        np.sqrt(np.clip(np.diag(covariance), 0.0, None)),
-        nan,
-        nan,
-        nan,
-        np.zeros(6, bool),
-        np.all([s.identifiable for s in sources], axis=0),
-        np.all([s.estimated for s in sources], axis=0),
-    )
+        return tuple(frames), None
+    rows = np.array(layout.placements[0][0], dtype=np.intp)  # the first placement's rows
+    axes = np.flatnonzero(rows >= 0)
+    full = np.zeros((6, 6))
+    full[np.ix_(axes, axes)] = known_noise[np.ix_(rows[axes], rows[axes])]
+    return tuple(frames), _fixed_frame(noise_name, full)
 
 
 def _frames(

@@ -4,9 +4,13 @@ Frames: every random source f has a 6×6 covariance Σ_f of a local twist [v; w]
 end-effector-frame Jacobian A_f(q) (d×6, d = 6 full pose or 3 position-only, DESIGN.md §2).
 The measurement noise is one more frame (listed last) whose Jacobian is the first d rows of I_6
 — or, for residuals laid out otherwise (a subset of pose components, several markers per row),
-k noise frames listed last, each a constant 0/1 Jacobian ``U_j`` (d×6) that puts noise axis a
-into residual row ``noise_rows[j][a]`` (−1: the axis does not reach the residual), so that the
-noise part of Eq. (12) is ``Σ_j U_j Σ_{n,j} U_jᵀ`` (e.g. block-diagonal across markers).
+a noise frame with one or more placements ``U_k`` (d×6, constant 0/1: noise axis a goes to
+residual row ``rows_k[a]``, −1: nowhere), all sharing the frame's Σ_n, so that its part of
+Eq. (12) is ``Σ_k U_k Σ_n U_kᵀ`` (e.g. ``blockdiag(Σ_n, …, Σ_n)`` over markers). A layout
+with several placements ("tied") computes through :meth:`CovarianceLayout.untied` (each
+placement its own frame, the ordinary rank-one columns) and folds the result with
+:attr:`CovarianceLayout.tie_matrix`: Σ_E is linear in θ, so Grams, gradients and information
+matrices fold as ``Tᵀ·T``.
 
 θ holds one entry per free parameter p = (frame f, axis i, axis j), i ≤ j, with
 ``Σ_f = Σ_p θ_p E_p``, ``E_p = e_i e_jᵀ + e_j e_iᵀ`` (i ≠ j) or ``e_i e_iᵀ`` (i = j): θ_p is the
@@ -48,9 +52,9 @@ class CovarianceLayout:
     ``frame_names`` lists every source, the noise frame(s) (if any) last. ``free_axes[f][i]``
     says whether axis i of frame f may carry randomness; for "full" all pairs of free axes are
     parameters. ``residual_dim`` d is 6 (pose), 3 (position-only) or any other residual size
-    with ``noise_rows``. ``noise_frame`` names the first noise frame; ``noise_rows`` (one tuple
-    of 6 per noise frame, empty for the default) the residual row of each noise axis (−1:
-    none); the default is one noise frame on rows 0..d−1.
+    with ``noise_rows``. ``noise_frame`` names the first noise frame; ``noise_rows`` (per noise
+    frame, its placements, each the residual row of the 6 axes, −1: none; empty for the
+    default) lays the noise out; the default is one noise frame on rows 0..d−1.
     """
 
     frame_names: tuple[str, ...]
@@ -58,7 +62,7 @@ class CovarianceLayout:
     residual_dim: int
     free_axes: tuple[tuple[bool, ...], ...]
     noise_frame: str | None
-    noise_rows: tuple[tuple[int, ...], ...] = ()
+    noise_rows: tuple[tuple[tuple[int, ...], ...], ...] = ()
 
     @property
     def n_frames(self) -> int:
@@ -79,32 +83,93 @@ class CovarianceLayout:
     def noise_frame_names(self) -> tuple[str, ...]:
         return self.frame_names[self.n_chain_frames :]
 
-    @cached_property
-    def noise_row_table(self) -> IntArray:
-        """(k, 6): residual row of each axis of each noise frame, −1 where none."""
+    @property
+    def placements(self) -> tuple[tuple[tuple[int, ...], ...], ...]:
+        """Per noise frame (or, without one, of the known noise), its placements' rows."""
         if self.noise_rows:
-            return np.array(self.noise_rows, dtype=np.intp).reshape(-1, 6)
+            return self.noise_rows
         d = self.residual_dim
-        return np.array([[a if a < d else -1 for a in range(6)]], dtype=np.intp)
+        return ((tuple(a if a < d else -1 for a in range(6)),),)
+
+    @property
+    def is_tied(self) -> bool:
+        """Some estimated noise frame has several placements sharing its Σ_n."""
+        return self.noise_frame is not None and any(len(p) > 1 for p in self.placements)
 
     @cached_property
     def noise_param_rows(self) -> IntArray:
         """Residual row of every noise entry of θ (diagonal layouts: its unit column), −1
-        where the axis does not reach the residual, in θ order of the noise entries."""
+        where the axis does not reach the residual, in θ order of the noise entries; for an
+        untied layout (one placement per noise frame)."""
+        if self.is_tied:
+            raise SolverError("a tied noise layout has no single row per entry: use untied()")
         noise = np.flatnonzero(self.is_noise)
-        return self.noise_row_table[
-            self.param_frame[noise] - self.n_chain_frames, self.param_row[noise]
-        ]
+        table = np.array([p[0] for p in self.placements], dtype=np.intp).reshape(-1, 6)
+        return table[self.param_frame[noise] - self.n_chain_frames, self.param_row[noise]]
 
     def noise_jacobians(self) -> FloatArray:
-        """``U_j`` (k, d, 6) of the noise frames (the 0/1 placement of each axis)."""
-        table = self.noise_row_table
-        out = np.zeros((table.shape[0], self.residual_dim, 6))
-        for j, rows in enumerate(table):
-            for axis, row in enumerate(rows):
+        """``U_k`` (K, d, 6) of every placement of every noise frame, in frame order (the
+        columns :func:`column_matrix` appends)."""
+        rows = [r for frame in self.placements for r in frame]
+        out = np.zeros((len(rows), self.residual_dim, 6))
+        for k, placement in enumerate(rows):
+            for axis, row in enumerate(placement):
                 if row >= 0:
-                    out[j, row, axis] = 1.0
+                    out[k, row, axis] = 1.0
         return out
+
+    @cached_property
+    def _untied(self) -> tuple[CovarianceLayout, FloatArray]:
+        names = list(self.frame_names[: self.n_chain_frames])
+        free = list(self.free_axes[: self.n_chain_frames])
+        rows: list[tuple[tuple[int, ...], ...]] = []
+        for name, frame_free, frame in zip(
+            self.noise_frame_names,
+            self.free_axes[self.n_chain_frames :],
+            self.placements,
+            strict=True,
+        ):
+            for k, placement in enumerate(frame):
+                names.append(name if len(frame) == 1 else f"{name}@{k + 1}")
+                free.append(frame_free)
+                rows.append((placement,))
+        untied = CovarianceLayout(
+            tuple(names),
+            self.structure,
+            self.residual_dim,
+            tuple(free),
+            self.noise_frame,
+            tuple(rows),
+        )
+        tie = np.zeros((untied.n_params, self.n_params))
+        source = np.arange(untied.n_frames)
+        source[self.n_chain_frames :] = np.repeat(
+            np.arange(self.n_chain_frames, self.n_frames), [len(p) for p in self.placements]
+        )
+        for q in range(untied.n_params):
+            match = (
+                (self.param_frame == source[untied.param_frame[q]])
+                & (self.param_row == untied.param_row[q])
+                & (self.param_col == untied.param_col[q])
+            )
+            tie[q, np.flatnonzero(match)[0]] = 1.0
+        return untied, tie
+
+    def untied(self) -> CovarianceLayout:
+        """Every placement of a noise frame its own frame (``<name>@k``), same free axes."""
+        return self._untied[0] if self.is_tied else self
+
+    @property
+    def tie_matrix(self) -> FloatArray:
+        """T (Q_untied, Q): the untied θ of a θ (each noise placement a copy of its frame's)."""
+        return self._untied[1] if self.is_tied else np.eye(self.n_params)
+
+    def column_covariances(self, theta: FloatArray) -> FloatArray:
+        """Σ of every frame of the columns of :func:`column_matrix` (each noise placement
+        its frame's Σ_n), (F_chain + K, 6, 6)."""
+        if not self.is_tied:
+            return self.frame_covariances(theta)
+        return self.untied().frame_covariances(self.tie_matrix @ theta)
 
     @cached_property
     def _params(self) -> tuple[IntArray, IntArray, IntArray]:
@@ -190,15 +255,16 @@ def make_layout(
     include_noise: bool = True,
     noise_name: str = "noise",
     free_axes: Mapping[str, Sequence[str]] | None = None,
-    noise_rows: Mapping[str, Sequence[int]] | None = None,
+    noise_rows: Mapping[str, Sequence[Sequence[int]]] | None = None,
 ) -> CovarianceLayout:
     """Layout for the caller's frames (+ the noise frame(s), last).
 
     ``free_axes`` maps a frame name to the axes (names from ``POSE_AXES``) that may be random;
-    frames not named have all six free. ``noise_rows``: noise frames by name, each with the
-    residual row of its six axes (−1: none; such axes are not free), for residuals other than
-    a pose or position (then ``residual_dim`` may be any size); None: one noise frame
-    ``noise_name`` on rows 0..d−1 (d = 6 or 3).
+    frames not named have all six free. ``noise_rows``: the noise frame by name, with its
+    placements (one or more; each the residual row of the six axes, −1: none; an axis that
+    reaches no row in any placement is not free), for residuals other than a pose or position
+    (then ``residual_dim`` may be any size); None: one noise frame ``noise_name`` on rows
+    0..d−1 (d = 6 or 3).
     """
     if noise_rows is None and residual_dim not in (3, 6):
         raise SolverError(f"residual_dim must be 3 or 6, got {residual_dim}")
@@ -222,12 +288,16 @@ def make_layout(
             raise SolverError(
                 f"free_axes[{name!r}] has unknown axes {sorted(bad)}; use {POSE_AXES}"
             )
-        reaches = (noise_rows or {}).get(name, range(6))
-        free.append(tuple(a in axes and reaches[k] >= 0 for k, a in enumerate(POSE_AXES)))
+        placements = (noise_rows or {}).get(name, [range(6)])
+        reaches = [any(p[k] >= 0 for p in placements) for k in range(6)]
+        free.append(tuple(a in axes and reaches[k] for k, a in enumerate(POSE_AXES)))
     rows = (
         ()
         if noise_rows is None
-        else tuple(tuple(int(r) for r in noise_rows[name]) for name in noise_names)
+        else tuple(
+            tuple(tuple(int(r) for r in placement) for placement in noise_rows[name])
+            for name in noise_names
+        )
     )
     layout = CovarianceLayout(
         names,
@@ -242,21 +312,23 @@ def make_layout(
     return layout
 
 
-def _check_noise_rows(noise_rows: Mapping[str, Sequence[int]], residual_dim: int) -> None:
-    """Each noise frame: six rows in −1..d−1, no row twice in the same frame."""
-    if not noise_rows:
-        raise SolverError("noise_rows names no noise frame")
-    for name, rows in noise_rows.items():
-        used = [int(r) for r in rows if r >= 0]
-        if (
-            len(rows) != 6
-            or any(not -1 <= int(r) < residual_dim for r in rows)
-            or len(set(used)) != len(used)
-        ):
-            raise SolverError(
-                f"noise_rows[{name!r}] must give 6 distinct residual rows in 0..{residual_dim - 1} "
-                f"(or -1), got {list(rows)}"
-            )
+def _check_noise_rows(noise_rows: Mapping[str, Sequence[Sequence[int]]], residual_dim: int) -> None:
+    """Each noise frame: at least one placement of six rows in −1..d−1, no row twice."""
+    if len(noise_rows) != 1:
+        raise SolverError(f"noise_rows must name one noise frame, got {list(noise_rows)}")
+    used: list[int] = []
+    for name, placements in noise_rows.items():
+        for rows in placements:
+            if len(rows) != 6 or any(not -1 <= int(r) < residual_dim for r in rows):
+                raise SolverError(
+                    f"noise_rows[{name!r}]: each placement must give 6 residual rows in "
+                    f"0..{residual_dim - 1} (or -1), got {list(rows)}"
+                )
+            used += [int(r) for r in rows if r >= 0]
+        if not placements:
+            raise SolverError(f"noise_rows[{name!r}] has no placement")
+    if len(set(used)) != len(used):
+        raise SolverError(f"noise_rows place two noise axes on one residual row: {noise_rows}")
 
 
 def column_matrix(frame_jacobians: FloatArray, layout: CovarianceLayout) -> FloatArray:

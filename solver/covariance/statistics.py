@@ -173,11 +173,30 @@ def design_gram(
 
     ``left`` (N, d, d) is T_n, e.g. the inverse Cholesky factor of Σ_E(q_n) (then the Gram is
     twice the Fisher information of the Gaussian likelihood); ``residuals`` are transformed by
-    it, ``known_covariance`` ((d, d) or per sample (N, d, d)) must already be.
+    it, ``known_covariance`` ((d, d) or per sample (N, d, d)) must already be. A tied layout
+    (a noise frame with several placements) is computed untied and folded.
     """
     n_total = frame_jacobians.shape[0]
     if chunk_size < 1:
         raise SolverError(f"chunk_size must be positive, got {chunk_size}")
+    if layout.is_tied:  # Σ_E linear in θ = T θ_untied: the Gram and cross term fold
+        untied = design_gram(
+            frame_jacobians,
+            layout.untied(),
+            residuals=residuals,
+            left=left,
+            known_covariance=known_covariance,
+            chunk_size=chunk_size,
+        )
+        tie = layout.tie_matrix
+        return MomentStatistics(
+            layout,
+            tie.T @ untied.gram @ tie,
+            tie.T @ untied.cross,
+            untied.const,
+            untied.n_samples,
+            known_covariance,
+        )
     if layout.structure == "diag":
         return _diag_design_gram(
             frame_jacobians, layout, residuals, left, known_covariance, chunk_size
@@ -280,8 +299,8 @@ def diag_statistics_batch_last(
     the other samples' columns are zero already (saves clearing their products); ``rows``
     (Q_chain,): :func:`leading_rows` of those columns when the caller knows them.
     """
-    if layout.structure != "diag":
-        raise SolverError("diag_statistics_batch_last needs a diagonal layout")
+    if layout.structure != "diag" or layout.is_tied:
+        raise SolverError("diag_statistics_batch_last needs a diagonal, untied layout")
     if block < 1:
         raise SolverError(f"block must be positive, got {block}")
     chain = np.flatnonzero(~layout.is_noise)

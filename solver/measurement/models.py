@@ -146,12 +146,12 @@ class MeasurementModel(ABC):
         return ()
 
     @property
-    def noise_rows(self) -> dict[str, tuple[int, ...]] | None:
+    def noise_rows(self) -> dict[str, tuple[tuple[int, ...], ...]] | None:
         """The noise layout of Eq. (12) for this residual (as rotated by
-        :meth:`tip_frame_rotation`): noise sources by name, each with the residual row of its
-        six axes [v; w] (−1: the axis does not reach the residual), see
-        :func:`solver.covariance.layout.make_layout`; None: one tip-frame noise on rows
-        0..d−1, as for a pose or position recording."""
+        :meth:`tip_frame_rotation`): the noise frame by name with its placements, each the
+        residual row of the six axes [v; w] (−1: the axis does not reach the residual), all
+        sharing one Σ_n (:func:`solver.covariance.layout.make_layout`); None: one tip-frame
+        noise on rows 0..d−1, as for a pose or position recording."""
         return None
 
     def extra_names(self) -> list[str]:
@@ -378,15 +378,12 @@ class PoseComponents(MeasurementModel):
         return tuple(i for i, c in enumerate(self.selected) if c.startswith("r"))
 
     @property
-    def noise_rows(self) -> dict[str, tuple[int, ...]]:
-        """One noise source, of the chosen components only, in the measurement frame (a subset
-        of components cannot be rotated into the tip frame): axis a of ``[v; w]`` is the
+    def noise_rows(self) -> dict[str, tuple[tuple[int, ...], ...]]:
+        """The noise of the chosen components only, in the measurement frame (a subset of
+        components cannot be rotated into the tip frame): axis a of ``[v; w]`` is the
         component ``TWIST_COMPONENTS[a]``."""
-        return {
-            "noise": tuple(
-                self.selected.index(c) if c in self.selected else -1 for c in TWIST_COMPONENTS
-            )
-        }
+        rows = tuple(self.selected.index(c) if c in self.selected else -1 for c in TWIST_COMPONENTS)
+        return {"noise": (rows,)}
 
     def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
         """The nominal chain: without all six components there is no closed-form alignment;
@@ -599,12 +596,11 @@ class MultiMarker(MeasurementModel):
         return tuple(f"m{j + 1}.{a}" for j in range(self.n_markers) for a in ("x", "y", "z"))
 
     @property
-    def noise_rows(self) -> dict[str, tuple[int, ...]]:
-        """One position noise per marker (its own 3×3 Σ_n,j, tip frame), independent across
-        markers: the noise part of Eq. (12) is ``blockdiag(Σ_n,1 … Σ_n,m)``."""
+    def noise_rows(self) -> dict[str, tuple[tuple[int, ...], ...]]:
+        """One position noise Σ_n (3×3, tip frame) shared by the markers, independent across
+        them: the noise part of Eq. (12) is ``blockdiag(Σ_n, …, Σ_n)``."""
         return {
-            f"noise.m{j + 1}": (3 * j, 3 * j + 1, 3 * j + 2, -1, -1, -1)
-            for j in range(self.n_markers)
+            "noise": tuple((3 * j, 3 * j + 1, 3 * j + 2, -1, -1, -1) for j in range(self.n_markers))
         }
 
     def tip_frame_rotation(

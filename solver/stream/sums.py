@@ -224,7 +224,7 @@ def covariance_spec(
     noise_covariance: FloatArray | None = None,
     noise_name: str = "noise",
     free_axes: Mapping[str, Sequence[str]] | None = None,
-    noise_rows: Mapping[str, Sequence[int]] | None = None,
+    noise_rows: Mapping[str, Sequence[Sequence[int]]] | None = None,
 ) -> CovarianceSpec:
     """The covariance statistics to take of residuals of ``residual_dim`` d rows: frames
     ``frame_names`` perturbing the chain joints ``frame_index``, the noise frame (or a known
@@ -232,7 +232,7 @@ def covariance_spec(
     noise layout of residuals other than a pose or position) as in :func:`make_layout`."""
     d = residual_dim
     known = known_noise_covariance(
-        noise_covariance, d, None if noise_rows is None else list(noise_rows.values())
+        noise_covariance, d, None if noise_rows is None else next(iter(noise_rows.values()))
     )
     layout = make_layout(
         frame_names,
