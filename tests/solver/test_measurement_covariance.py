@@ -7,6 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.linalg
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from solver import lie
 from solver.calibration import FitOptions
@@ -354,3 +356,42 @@ def test_plane_contact_covariances_recover_the_true_scatter() -> None:
         assert abs(p / t - 1.0) < 0.15, (rows_of, p, t)
     assert estimate.noise is not None
     assert list(estimate.noise.estimated) == [False, False, True, True, True, False]
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    n_markers=st.integers(1, 3),
+    structure=st.sampled_from(["diag", "full"]),
+    estimator=st.sampled_from(["moment", "reml"]),
+    seed=st.integers(0, 2**16),
+)
+def test_tied_noise_estimates_are_positive_semidefinite(
+    n_markers: int, structure: str, estimator: str, seed: int
+) -> None:
+    """Whatever the residuals (here: Gaussian with a random, unrelated covariance), every Σ_f,
+    the shared Σ_n and the Σ_E predicted with the markers' blockdiag noise are PSD."""
+    rng = np.random.default_rng(seed)
+    d, n = 3 * n_markers, 60
+    layout = make_layout(
+        ["a", "b"],
+        d,
+        structure=structure,  # type: ignore[arg-type]
+        noise_rows={"noise": MultiMarker(n_markers).noise_rows["noise"]},
+    )
+    mixing = rng.standard_normal((d, d))
+    samples = ArraySamples(
+        rng.standard_normal((n, d)) @ mixing.T * 1e-3,
+        1e-2 * rng.standard_normal((n, 2, d, 6)),
+        rng.standard_normal((n, d, 2)),
+    )
+    estimate = estimate_from_samples(
+        samples,
+        layout,
+        estimator=estimator,  # type: ignore[arg-type]
+        standard_errors=False,
+    )
+    tolerance = 1e-12
+    for covariance in [*estimate.frame_covariances(), estimate.noise_covariance()]:
+        assert np.linalg.eigvalsh(covariance).min() >= -tolerance * max(1.0, covariance.max())
+    predicted = estimate.ee_covariance(samples.frame_jacobians, include_noise=True)
+    assert np.linalg.eigvalsh(predicted).min() >= -1e-15
