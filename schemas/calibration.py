@@ -469,7 +469,11 @@ class CovarianceResult(_Model):
     confidence: float = Field(0.95, description="Level of the std confidence intervals.")
     stderr_method: str | None = Field(None, description="How standard errors were computed.")
     solver: SolverReport
-    noise: CovarianceFrame
+    noise: CovarianceFrame = Field(
+        description="Σ_n: the measurement noise (tip frame; measurement 'markers': each "
+        "marker's position noise, the same for all, independent across markers; measurement "
+        "'components': the chosen components', in the measurement frame)."
+    )
     frames: list[CovarianceFrame]
     identifiability: CovarianceIdentifiability
 

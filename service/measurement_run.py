@@ -6,9 +6,8 @@ several markers at once, chosen pose components, a frame on the base, a sensor o
 calibration of :mod:`service.pipeline`. :func:`calibrate_measurement` reads the recording into
 memory, fits it (:func:`solver.measurement.fit_measurement`, Eq. 8–10), screens gross errors,
 runs the held-out splits of DESIGN.md §4 and assembles the same result JSON, with the model's
-own unknowns in ``measurement``. The covariance calibration (Eq. 12–17) is defined for pose
-and position residuals only: asked for explicitly it is refused with the reason, by default it
-is skipped with a note.
+own unknowns in ``measurement``, and the covariance calibration (Eq. 12–17) of every type with
+its noise layout (:attr:`~solver.measurement.models.MeasurementModel.noise_rows`).
 """
 
 from __future__ import annotations
@@ -76,8 +75,14 @@ from solver.measurement import (
 )
 from solver.measurement.fit import HeldoutError, covariance_samples
 from solver.model import KinematicChain, gravity_loads
-from solver.stream.calibrate import BEFORE, CALIBRATED, CovarianceSettings
-from solver.stream.screening import family_wise_z, robust_spread
+from solver.predictive import mahalanobis_squared
+from solver.stream.calibrate import BEFORE, CALIBRATED, MODEL_RULE_ROUNDS, CovarianceSettings
+from solver.stream.screening import (
+    family_wise_t2,
+    family_wise_z,
+    model_rule_refusal,
+    robust_spread,
+)
 from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, verdict_status
 
 BoolArray = NDArray[np.bool_]
@@ -149,6 +154,7 @@ class MeasuredRecording:
     source: str
     labels: tuple[str, ...]
     position_only: bool
+    notes: tuple[str, ...] = ()
 
 
 def _loads(chain: KinematicChain, options: CalibrationOptions, q: np.ndarray) -> np.ndarray:
@@ -193,9 +199,12 @@ def read_measured(
     elif isinstance(model, MultiMarker):
         markers = read_all_markers(source, chain.joint_names, chain.other_joint_names)
         q = markers.joint_positions
-        rows = MeasurementRows.of(q, _loads(chain, options, q), markers.marker_positions_m)
-        labels = tuple(f"marker {j + 1}" for j in range(model.n_markers))
-        return MeasuredRecording(model, rows, name or markers.source, labels, True)
+        positions = markers.marker_positions_m
+        keep, notes = distinct_markers(positions)
+        model = dataclasses.replace(model, n_markers=len(keep))
+        rows = MeasurementRows.of(q, _loads(chain, options, q), positions[:, keep])
+        labels = tuple(f"marker {j + 1}" for j in keep)
+        return MeasuredRecording(model, rows, name or markers.source, labels, True, notes)
     else:
         dataset = read_dataset(
             source,
@@ -222,21 +231,20 @@ def read_measured(
     return MeasuredRecording(model, rows, name or dataset.source, (), dataset.is_position_only)
 
 
-def check_covariance_request(options: CalibrationOptions, model: MeasurementModel) -> str | None:
-    """Refuse an explicitly requested covariance calibration the model does not support; a
-    note when the default one is skipped (None: nothing to say)."""
-    if model.supports_covariance or options.covariance == "none":
-        return None
-    if "covariance" in options.model_fields_set:
-        raise KincalError(
-            f"covariance calibration (paper Eq. 12-17) is not available for measurement "
-            f"'{model.name}' yet (it is defined for pose and position residuals); pass "
-            "--covariance none"
-        )
-    return (
-        f"covariances of the random perturbations not estimated: Eq. 12 is not available for "
-        f"measurement '{model.name}' yet"
-    )
+def distinct_markers(positions_m: np.ndarray) -> tuple[list[int], tuple[str, ...]]:
+    """The markers (N, m, 3) to read: each once, a marker whose positions repeat an earlier
+    marker's in every row dropped (it is the same measurement twice: it would count that
+    marker double in the fit, and its residual minus the other's is exactly zero, which makes
+    the covariance of Eq. 12 singular); with a note per dropped marker."""
+    keep: list[int] = []
+    notes = []
+    for j in range(positions_m.shape[1]):
+        same = [k for k in keep if np.array_equal(positions_m[:, j], positions_m[:, k])]
+        if same:
+            notes.append(f"marker {j + 1} repeats marker {same[0] + 1} in every row: read once")
+        else:
+            keep.append(j)
+    return keep, tuple(notes)
 
 
 def screen(
@@ -246,8 +254,8 @@ def screen(
 ) -> tuple[BoolArray, str]:
     """Rows kept by the outlier rule at the first fit and a note on the rule applied. 'sigma':
     the paper's §V-A rule; 'model': its robust first step (median and 1.4826·MAD per
-    component, family-wise threshold at outlier_level; its Σ_E step is not run for these
-    measurements)."""
+    component, family-wise threshold at outlier_level; its Σ_E step follows the covariances,
+    :func:`screen_by_covariance`)."""
     rule = options.screening
     n = fit.residuals.shape[0]
     if rule == "none":
@@ -258,9 +266,62 @@ def screen(
     centre, scale = robust_spread(fit.residuals)
     z = family_wise_z(options.outlier_level, n, model.dim)
     kept = np.all(np.abs(fit.residuals - centre) <= z * np.where(scale > 0, scale, np.inf), axis=1)
-    return kept, (
-        f"model rule, robust first step only (|z| <= {z:.2f} per component); its Σ_E step "
-        f"is not run for measurement '{model.name}'"
+    return kept, f"model rule, robust first step: |z| <= {z:.2f} per component"
+
+
+def screen_by_covariance(
+    chain: KinematicChain,
+    rows: MeasurementRows,
+    kept: BoolArray,
+    fit: MeasurementFit,
+    estimate: CovarianceEstimate,
+    settings: CovarianceSettings,
+    options: CalibrationOptions,
+    fit_options: FitOptions,
+) -> tuple[BoolArray, MeasurementFit, CovarianceEstimate, str]:
+    """The model rule's Σ_E step, as for a streamed pose recording
+    (:func:`solver.stream.calibrate.screen_by_model`): every row (those the first step removed
+    too) judged by ``r_nᵀ Σ_E(q_n)⁻¹ r_n`` with Σ_E of Eq. 12 (the model's noise layout
+    included) at the fit of the rows ``kept`` (N,), removed beyond Hotelling's T² at which one
+    clean row of the recording would fall with probability ``outlier_level``
+    (:func:`family_wise_t2`); refit and covariances again on the rows kept, until the removed
+    rows no longer change (at most :data:`MODEL_RULE_ROUNDS` rounds). A round that would leave
+    too few rows or remove more than half (:func:`model_rule_refusal`) removes nothing.
+    Returns the kept mask (N,), the fit and covariances on those rows and a note."""
+    d = fit.model.dim
+    min_rows = len(fit.estimated) // d + 1
+    threshold = np.inf
+    for _ in range(MODEL_RULE_ROUNDS):
+        samples = covariance_samples(chain, fit, rows, settings.spec.frames)
+        sigma_e = estimate.ee_covariance(samples.frame_jacobians, include_noise=True)
+        dof = fit.residuals.shape[0] - len(fit.estimated) / d
+        threshold = family_wise_t2(options.outlier_level, rows.n, d, dof)
+        beyond = mahalanobis_squared(samples.residuals, sigma_e) > threshold
+        if np.array_equal(~beyond, kept):
+            break
+        refused = model_rule_refusal(rows.n, int(beyond.sum()), min_rows, converged=fit.converged)
+        if refused is not None:
+            return (
+                kept,
+                fit,
+                estimate,
+                (
+                    f"model rule, Σ_E step: would remove {int(beyond.sum())} of {rows.n} rows "
+                    f"({refused}); kept the rows before it"
+                ),
+            )
+        kept = ~beyond
+        used = rows.take(np.flatnonzero(kept))
+        fit = fit_measurement(chain, fit.model, used, fit_options)
+        estimate = estimate_covariances(chain, fit, used, settings)
+    return (
+        kept,
+        fit,
+        estimate,
+        (
+            f"model rule, Σ_E step: T² <= {threshold:.1f} per row against its own Σ_E(q) "
+            f"(Eq. 12), level {options.outlier_level}"
+        ),
     )
 
 
@@ -306,17 +367,24 @@ def calibrate_measurement(
 ) -> MeasurementCalibration:
     """Fit, outlier rule, refit and "before" fit on the kept rows, covariances (Eq. 12–17 at
     the refit, with ``covariance``), held-out splits. The model rule takes its robust first
-    step only: its Σ_E step (every row against its own predicted Σ_E, as for a streamed pose
-    recording) is not run for these measurements yet."""
+    step, then, with covariances, its Σ_E step (:func:`screen_by_covariance`: every row
+    against its own predicted Σ_E, as for a streamed pose recording); with ``covariance``
+    "none" the first step alone."""
     started = time.perf_counter()
     model, rows = recording.model, recording.rows
-    notes = [n for n in [check_covariance_request(options, model)] if n]
+    notes = list(recording.notes)
     first = fit_measurement(chain, model, rows, fit_options)
     kept, rule_note = screen(model, first, options)
     notes.append(rule_note)
     used = rows.take(np.flatnonzero(kept))
     fit = fit_measurement(chain, model, used, fit_options) if not kept.all() else first
     estimate = None if covariance is None else estimate_covariances(chain, fit, used, covariance)
+    if estimate is not None and covariance is not None and options.screening == "model":
+        kept, fit, estimate, step_note = screen_by_covariance(
+            chain, rows, kept, fit, estimate, covariance, options, fit_options
+        )
+        notes.append(step_note)
+        used = rows.take(np.flatnonzero(kept))
     baseline = fit_measurement(chain, model, used, baseline_options)
     splits: list[HeldoutError] = []
     if options.heldout:

@@ -17,7 +17,7 @@ import contextlib
 import multiprocessing
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -466,7 +466,7 @@ def _calibrate_measured(
         setup.options,
         fit_options(setup.options, free_columns=setup.free_columns),
         fit_options(setup.options, baseline=True, n_links=setup.chain.n_links),
-        covariance_settings(model.dim, setup) if model.supports_covariance else None,
+        covariance_settings(recording.model.dim, setup, recording.model.noise_rows),
     )
     timings["calibration"] = calibrated.elapsed_s
     robot = setup.robot
@@ -505,9 +505,14 @@ def calibrate(
     return calibrate_source(dataset, setup, progress=progress).result
 
 
-def covariance_settings(residual_dim: int, setup: CalibrationSetup) -> CovarianceSettings | None:
-    """The covariance stage of ``setup`` for residuals of ``residual_dim`` rows (None:
-    ``covariance`` "none")."""
+def covariance_settings(
+    residual_dim: int,
+    setup: CalibrationSetup,
+    noise_rows: Mapping[str, Sequence[Sequence[int]]] | None = None,
+) -> CovarianceSettings | None:
+    """The covariance stage of ``setup`` for residuals of ``residual_dim`` rows with the noise
+    layout ``noise_rows`` (None: a pose's or position's; see
+    :func:`solver.covariance.layout.make_layout`); None: ``covariance`` "none"."""
     options = setup.options
     if options.covariance == "none":
         return None
@@ -526,5 +531,6 @@ def covariance_settings(residual_dim: int, setup: CalibrationSetup) -> Covarianc
         structure=options.covariance,
         noise_covariance=noise,
         free_axes=free_axes,
+        noise_rows=noise_rows,
     )
     return CovarianceSettings(spec, options.covariance_estimator, options.covariance_solver)

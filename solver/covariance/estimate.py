@@ -132,9 +132,15 @@ class CovarianceEstimate:
         """Σ_n (6, 6), zeros if there is none."""
         return np.zeros((6, 6)) if self.noise is None else self.noise.covariance
 
+    def residual_noise(self) -> FloatArray:
+        """The noise part of Eq. (12) in the residual's rows, (d, d): ``Σ_k U_k Σ_n U_kᵀ``
+        over the placements of the noise (one on rows 0..d−1 for a pose or position)."""
+        placements = self.layout.noise_jacobians()  # (K, d, 6)
+        return np.einsum("kia,ab,kjb->ij", placements, self.noise_covariance(), placements)
+
     def ee_covariance(self, frame_jacobians: FloatArray, *, include_noise: bool) -> FloatArray:
         """Eq. (12) at new configurations: (N, d, d) from frame Jacobians (N, F_chain, d, 6)."""
-        noise = self.noise_covariance() if include_noise else None
+        noise = self.residual_noise() if include_noise else None
         return ee_covariance_batch(frame_jacobians, self.frame_covariances(), noise)
 
 
@@ -392,18 +398,33 @@ SE_METHOD = {
 
 
 def known_noise_covariance(
-    noise_covariance: FloatArray | None, residual_dim: int
+    noise_covariance: FloatArray | None,
+    residual_dim: int,
+    placements: Sequence[Sequence[int]] | None = None,
 ) -> FloatArray | None:
     """A known measurement-noise covariance Σ_n as the (d, d) block of the residual space.
 
     ``noise_covariance``: 6×6 ([v; w], m² and rad², end-effector frame) or already d×d; it is
     symmetrised, and for position-only residuals (d = 3) its translational block is kept.
+    With ``placements`` (the noise's placements, each the residual row of the six axes, −1:
+    none, as in :func:`~.layout.make_layout`) a 6×6 Σ_n (or a 3×3 position noise) is
+    placed on each: ``Σ_k U_k Σ_n U_kᵀ``.
     None stays None (Σ_n is then estimated as one more frame, Eq. 13).
     """
     if noise_covariance is None:
         return None
     d = residual_dim
     known = np.asarray(noise_covariance, dtype=float)
+    if placements is not None and known.shape == (3, 3) and d != 3:  # a position noise
+        known = np.pad(known, ((0, 3), (0, 3)))
+    if placements is not None and known.shape == (6, 6):
+        sym = 0.5 * (known + known.T)
+        out = np.zeros((d, d))
+        for rows in placements:
+            axes = [a for a in range(6) if rows[a] >= 0]
+            placed = [int(rows[a]) for a in axes]
+            out[np.ix_(placed, placed)] += sym[np.ix_(axes, axes)]
+        return out
     if known.shape not in ((6, 6), (d, d)):
         raise SolverError(f"noise_covariance must be 6×6 or {d}×{d}, got {known.shape}")
     return np.asarray(0.5 * (known + known.T)[:d, :d])
@@ -447,16 +468,18 @@ def frame_results(
 ) -> tuple[tuple[FrameCovariance, ...], FrameCovariance | None]:
     """The estimated θ as per-frame covariances (6×6, [v; w], m² and rad², each frame's own
     axes) with their uncertainties, and the noise frame: estimated (the layout's last frame),
-    the known (d, d) Σ_n padded to 6×6, or None. ``unseen``: per chain frame, why the data
-    cannot see each axis (:func:`.identifiability.unseen_axes`)."""
+    the known (d, d) Σ_n read through the noise's first placement into 6×6, or None.
+    ``unseen``: per chain frame, why the data cannot see each axis
+    (:func:`.identifiability.unseen_axes`)."""
     frames = _frames(layout, theta, unc, unseen)
     if layout.noise_frame is not None:
         return tuple(frames[:-1]), frames[-1]
     if known_noise is None:
         return tuple(frames), None
-    d = layout.residual_dim
+    rows = np.array(layout.placements[0][0], dtype=np.intp)  # the first placement's rows
+    axes = np.flatnonzero(rows >= 0)
     full = np.zeros((6, 6))
-    full[:d, :d] = known_noise
+    full[np.ix_(axes, axes)] = known_noise[np.ix_(rows[axes], rows[axes])]
     return tuple(frames), _fixed_frame(noise_name, full)
 
 

@@ -485,14 +485,15 @@ def _noise_warnings(statements: list[str], layout: CovarianceLayout) -> list[str
     """One warning per set of chain frames that share a statement with the noise frame."""
     if layout.noise_frame is None:
         return []
-    noise = layout.noise_frame
-    chain_names = layout.frame_names[:-1]
+    noise_names = set(layout.noise_frame_names)
+    noise = ", ".join(layout.noise_frame_names)
+    chain_names = layout.frame_names[: layout.n_chain_frames]
     groups: dict[tuple[str, ...], list[str]] = {}
     for s in statements:
         mentioned = set(re.findall(r"frames? ([^:]+?) (?:has|have|and) ", s))
         names = {n.strip() for m in mentioned for n in m.split(", ")}
         names |= set(re.findall(r"([^\s·]+):(?:var|cov|isotropic)", s))  # combinations
-        if noise not in names:
+        if not names & noise_names:
             continue
         chain = tuple(f for f in chain_names if f in names)
         if chain:

@@ -60,7 +60,10 @@ def ee_covariance_batch(
 
 
 def theta_gradient(layout: CovarianceLayout, psi: FloatArray) -> FloatArray:
-    """``∂NLL/∂θ_p = ⟨Ψ_f, E_p⟩``: Ψ_ii for variances, 2Ψ_ij for covariances, (Q,)."""
+    """``∂NLL/∂θ_p = ⟨Ψ_f, E_p⟩``: Ψ_ii for variances, 2Ψ_ij for covariances, (Q,); ``psi``
+    per frame of the columns (a tied noise frame: per placement, summed by the fold)."""
+    if layout.is_tied:
+        return layout.tie_matrix.T @ theta_gradient(layout.untied(), psi)
     f, i, j = layout.param_frame, layout.param_row, layout.param_col
     return np.where(layout.is_variance, 1.0, 2.0) * psi[f, i, j]
 
@@ -119,7 +122,7 @@ def _psi_from_omega(chunk: _Chunk, omega: FloatArray, layout: CovarianceLayout) 
     """
     cols = chunk.columns
     t = omega @ cols
-    n_frames = layout.n_frames
+    n_frames = cols.shape[2] // 6  # the columns' frames (a tied noise: one per placement)
     if layout.structure == "diag":
         diagonal = np.einsum("ndc,ndc->c", cols, t).reshape(n_frames, 6)
         return diagonal[:, :, None] * np.eye(6)
@@ -143,11 +146,11 @@ def gaussian_nll(
     Returns (inf, 0) where some Σ_E is not positive definite. Constants (N·d·log 2π) omitted.
     One pass over the samples.
     """
-    model = _EECovariance(layout, layout.frame_covariances(theta), known_covariance)
+    model = _EECovariance(layout, layout.column_covariances(theta), known_covariance)
     parts = samples.map(_ml_chunk, model)
     done = [part for part in parts if part is not None]
     if len(done) < len(parts):
-        return float("inf"), np.zeros((layout.n_frames, 6, 6))
+        return float("inf"), np.zeros((layout.untied().n_frames, 6, 6))
     value = float(sum(part[0] for part in done))
     psi = total([part[1] for part in done])
     return value, 0.5 * (psi + psi.transpose(0, 2, 1))
@@ -212,11 +215,11 @@ def restricted_nll(
     basis ``X T``). Two passes over the samples: the sums ``XᵀV⁻¹X`` and ``XᵀV⁻¹r`` first,
     then Ψ, which needs them; O(N·d²·k + N·d·k²) per evaluation.
     """
-    model = _EECovariance(layout, layout.frame_covariances(theta), known_covariance, transform)
+    model = _EECovariance(layout, layout.column_covariances(theta), known_covariance, transform)
     parts = samples.map(_reml_sums, model)
     done = [part for part in parts if part is not None]
     if len(done) < len(parts):
-        return float("inf"), np.zeros((layout.n_frames, 6, 6))
+        return float("inf"), np.zeros((layout.untied().n_frames, 6, 6))
     value = float(sum(part[0] for part in done))
     fisher_x = total([part[1] for part in done])
     u = total([part[2] for part in done])
@@ -224,7 +227,7 @@ def restricted_nll(
     try:
         chol = np.linalg.cholesky(fisher_x)
     except np.linalg.LinAlgError:
-        return float("inf"), np.zeros((layout.n_frames, 6, 6))
+        return float("inf"), np.zeros((layout.untied().n_frames, 6, 6))
     m_inv = np.linalg.inv(fisher_x)
     m_inv_u = m_inv @ u
     value += 2.0 * float(np.log(np.diag(chol)).sum()) - float(u @ m_inv_u)
@@ -250,7 +253,7 @@ def restriction(
     reml = restricted_nll(theta, samples, transform, layout, known_covariance=known_covariance)
     ml = gaussian_nll(theta, samples, layout, known_covariance=known_covariance)
     if not (np.isfinite(reml[0]) and np.isfinite(ml[0])):
-        return float("inf"), np.zeros((layout.n_frames, 6, 6))
+        return float("inf"), np.zeros((layout.untied().n_frames, 6, 6))
     return reml[0] - ml[0], reml[1] - ml[1]
 
 
@@ -301,7 +304,7 @@ def whitening(
     Lᵀ is the symmetric square root (works for singular PSD Σ_E); L⁻¹ needs Σ_E ≻ 0.
     """
     cols = column_matrix(frame_jacobians, layout)
-    cov = ee_covariance_batch(_frame_view(cols), layout.frame_covariances(theta), known_covariance)
+    cov = ee_covariance_batch(_frame_view(cols), layout.column_covariances(theta), known_covariance)
     if not inverse:
         eigval, eigvec = np.linalg.eigh(0.5 * (cov + cov.transpose(0, 2, 1)))
         root = (eigvec * np.sqrt(np.clip(eigval, 0.0, None))[:, None, :]) @ eigvec.transpose(
@@ -347,8 +350,19 @@ def fisher_information_reml(
     Whitened (W = blockdiag L_n⁻¹, U orthonormal basis of W X, Π_n = U_n U_nᵀ = R_n R_nᵀ with
     R_n its d×d square root, S̃ = L⁻¹ ∂Σ_E L⁻ᵀ):
     ``tr(PV_pPV_q) = Σ_n ⟨S̃_p, S̃_q⟩ − 2 Σ_n ⟨S̃_p R_n, S̃_q R_n⟩ + ⟨Z_p, Z_q⟩``,
-    ``Z_p = Σ_n U_nᵀ S̃_p U_n``.
+    ``Z_p = Σ_n U_nᵀ S̃_p U_n``. A tied layout is computed untied and folded (``Tᵀ I T``).
     """
+    if layout.is_tied:
+        tie = layout.tie_matrix
+        untied = fisher_information_reml(
+            tie @ theta,
+            frame_jacobians,
+            fit_basis,
+            layout.untied(),
+            known_covariance=known_covariance,
+            chunk_size=chunk_size,
+        )
+        return tie.T @ untied @ tie
     left = whitening(theta, frame_jacobians, layout, known_covariance, inverse=True)
     n, d, k = fit_basis.shape
     white_x = left @ fit_basis

@@ -173,11 +173,30 @@ def design_gram(
 
     ``left`` (N, d, d) is T_n, e.g. the inverse Cholesky factor of Σ_E(q_n) (then the Gram is
     twice the Fisher information of the Gaussian likelihood); ``residuals`` are transformed by
-    it, ``known_covariance`` ((d, d) or per sample (N, d, d)) must already be.
+    it, ``known_covariance`` ((d, d) or per sample (N, d, d)) must already be. A tied layout
+    (a noise frame with several placements) is computed untied and folded.
     """
     n_total = frame_jacobians.shape[0]
     if chunk_size < 1:
         raise SolverError(f"chunk_size must be positive, got {chunk_size}")
+    if layout.is_tied:  # Σ_E linear in θ = T θ_untied: the Gram and cross term fold
+        untied = design_gram(
+            frame_jacobians,
+            layout.untied(),
+            residuals=residuals,
+            left=left,
+            known_covariance=known_covariance,
+            chunk_size=chunk_size,
+        )
+        tie = layout.tie_matrix
+        return MomentStatistics(
+            layout,
+            tie.T @ untied.gram @ tie,
+            tie.T @ untied.cross,
+            untied.const,
+            untied.n_samples,
+            known_covariance,
+        )
     if layout.structure == "diag":
         return _diag_design_gram(
             frame_jacobians, layout, residuals, left, known_covariance, chunk_size
@@ -280,8 +299,8 @@ def diag_statistics_batch_last(
     the other samples' columns are zero already (saves clearing their products); ``rows``
     (Q_chain,): :func:`leading_rows` of those columns when the caller knows them.
     """
-    if layout.structure != "diag":
-        raise SolverError("diag_statistics_batch_last needs a diagonal layout")
+    if layout.structure != "diag" or layout.is_tied:
+        raise SolverError("diag_statistics_batch_last needs a diagonal, untied layout")
     if block < 1:
         raise SolverError(f"block must be positive, got {block}")
     chain = np.flatnonzero(~layout.is_noise)
@@ -299,7 +318,7 @@ def diag_statistics_batch_last(
         if residuals is not None:
             z = pair_products(residuals[:, part], known_covariance)
         sums = sums + _diag_sums(
-            columns[:, :, part], slots, support, layout.param_row[noise], z, mask, zeroed
+            columns[:, :, part], slots, support, layout.noise_param_rows, z, mask, zeroed
         )
     return sums.statistics(layout, order, known_covariance)
 
@@ -332,7 +351,7 @@ def _diag_design_gram(
             assert known_covariance is not None
             known = known_covariance[start:stop].transpose(1, 2, 0)
         if left is None:
-            slots, units, order = layout.column_i[chain], layout.param_row[noise], None
+            slots, units, order = layout.column_i[chain], layout.noise_param_rows, None
         else:  # whitened: every column general, the noise frame's too (T_n e_i)
             cols, r = _whitened(left[start:stop], cols, r, layout)
             slots, units = np.arange(layout.n_params), np.zeros(0, dtype=np.intp)
@@ -356,9 +375,9 @@ def _whitened(
     out = np.zeros((layout.n_params, d, t.shape[2]))
     chain = np.flatnonzero(~layout.is_noise)
     out[chain] = np.einsum("rsn,psn->prn", t, cols[layout.column_i[chain]])
-    for p in np.flatnonzero(layout.is_noise):
-        if layout.param_row[p] < d:
-            out[p] = t[:, layout.param_row[p]]
+    for p, row in zip(np.flatnonzero(layout.is_noise), layout.noise_param_rows, strict=True):
+        if row >= 0:
+            out[p] = t[:, row]
     r = None if residuals is None else np.einsum("rsn,sn->rn", t, residuals)
     return out, r
 
@@ -410,8 +429,9 @@ def _diag_sums(
 ) -> _DiagSums:
     """Sums over one block for the entries ``slots`` (general columns ``columns[slot]``, of
     which the first ``support`` rows may be non-zero) followed by ``unit_axes`` (columns
-    ``e_i``, the unwhitened noise frame). ``z`` (D, n): :func:`pair_products`; ``used``
-    (n,) the samples to count, the others' columns already zero if ``zeroed``."""
+    ``e_i`` of residual row i, −1 for none: the unwhitened noise frames). ``z`` (D, n):
+    :func:`pair_products`; ``used`` (n,) the samples to count, the others' columns already
+    zero if ``zeroed``."""
     d, n = columns.shape[1], columns.shape[2]
     count = n if used is None else int(np.count_nonzero(used))
     skip = None if used is None or count == n else ~used
@@ -443,13 +463,13 @@ def _diag_sums(
             gram[np.ix_(rows_g, rows_h)] = block
             gram[np.ix_(rows_h, rows_g)] = block.T
         for u, axis in enumerate(unit_axes):
-            if axis < d and _diagonal_entry(int(axis)) < width_g:
+            if axis >= 0 and _diagonal_entry(int(axis)) < width_g:
                 column = design_g[:, _diagonal_entry(int(axis))].sum(axis=-1)
                 gram[n_general + u, rows_g] = gram[rows_g, n_general + u] = column
         if z is not None:
             cross[rows_g] = flat_g @ z[:width_g].reshape(-1)
     for u, axis in enumerate(unit_axes):
-        if axis < d:
+        if axis >= 0:
             gram[n_general + u, n_general + u] = count
             if z is not None:
                 cross[n_general + u] = z[_diagonal_entry(int(axis))].sum()

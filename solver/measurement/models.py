@@ -146,9 +146,13 @@ class MeasurementModel(ABC):
         return ()
 
     @property
-    def supports_covariance(self) -> bool:
-        """Whether the random-perturbation covariances of Eq. (12) are defined for it."""
-        return False
+    def noise_rows(self) -> dict[str, tuple[tuple[int, ...], ...]] | None:
+        """The noise layout of Eq. (12) for this residual (as rotated by
+        :meth:`tip_frame_rotation`): the noise frame by name with its placements, each the
+        residual row of the six axes [v; w] (−1: the axis does not reach the residual), all
+        sharing one Σ_n (:func:`solver.covariance.layout.make_layout`); None: one tip-frame
+        noise on rows 0..d−1, as for a pose or position recording."""
+        return None
 
     def extra_names(self) -> list[str]:
         """Names of the model's own unknowns (E)."""
@@ -281,10 +285,6 @@ class FullPose(MeasurementModel):
         return (3, 4, 5)
 
     @property
-    def supports_covariance(self) -> bool:
-        return True
-
-    @property
     def position_only(self) -> bool:
         return False
 
@@ -414,6 +414,14 @@ class PoseComponents(MeasurementModel):
     def rotation_rows(self) -> tuple[int, ...]:
         return tuple(i for i, c in enumerate(self.selected) if c.startswith("r"))
 
+    @property
+    def noise_rows(self) -> dict[str, tuple[tuple[int, ...], ...]]:
+        """The noise of the chosen components only, in the measurement frame (a subset of
+        components cannot be rotated into the tip frame): axis a of ``[v; w]`` is the
+        component ``TWIST_COMPONENTS[a]``."""
+        rows = tuple(self.selected.index(c) if c in self.selected else -1 for c in TWIST_COMPONENTS)
+        return {"noise": (rows,)}
+
     def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
         """The nominal chain: without all six components there is no closed-form alignment;
         the measurement frame must be near the robot base (e.g. the plane under the robot)."""
@@ -500,10 +508,6 @@ class FixedPoints(MeasurementModel):
     @property
     def components(self) -> tuple[str, ...]:
         return ("x", "y", "z")
-
-    @property
-    def supports_covariance(self) -> bool:
-        return True  # the noise: the ball's play in its socket
 
     def tip_frame_rotation(
         self, chain: KinematicChain, params: ModelParameters, rows: MeasurementRows
@@ -629,6 +633,25 @@ class MultiMarker(MeasurementModel):
     def components(self) -> tuple[str, ...]:
         return tuple(f"m{j + 1}.{a}" for j in range(self.n_markers) for a in ("x", "y", "z"))
 
+    @property
+    def noise_rows(self) -> dict[str, tuple[tuple[int, ...], ...]]:
+        """One position noise Σ_n (3×3, tip frame) shared by the markers, independent across
+        them: the noise part of Eq. (12) is ``blockdiag(Σ_n, …, Σ_n)``."""
+        return {
+            "noise": tuple((3 * j, 3 * j + 1, 3 * j + 2, -1, -1, -1) for j in range(self.n_markers))
+        }
+
+    def tip_frame_rotation(
+        self, chain: KinematicChain, params: ModelParameters, rows: MeasurementRows
+    ) -> FloatArray:
+        """``blockdiag(Rᵀ … Rᵀ)`` (N, 3m, 3m): every marker's residual in the tip frame, where
+        ``Rᵀ A_chain,j = [I, −[t_j]x] J_tip`` and the markers' noise is constant."""
+        pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+        out = np.zeros((rows.n, self.dim, self.dim))
+        for j in range(self.n_markers):
+            out[:, 3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = pose[:, :3, :3].transpose(0, 2, 1)
+        return out
+
     def extra_names(self) -> list[str]:
         return [f"marker_{j + 1}.{a}" for j in range(self.n_markers) for a in ("x", "y", "z")]
 
@@ -741,10 +764,6 @@ class EyeOnHead(MeasurementModel):
     @property
     def inner(self) -> FullPose:
         return Position() if self.measure_position_only else FullPose()
-
-    @property
-    def supports_covariance(self) -> bool:
-        return True  # as the inner pose/position; frames up to the sensor's body cancel (A = 0)
 
     @property
     def dim(self) -> int:

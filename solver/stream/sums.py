@@ -224,13 +224,16 @@ def covariance_spec(
     noise_covariance: FloatArray | None = None,
     noise_name: str = "noise",
     free_axes: Mapping[str, Sequence[str]] | None = None,
+    noise_rows: Mapping[str, Sequence[Sequence[int]]] | None = None,
 ) -> CovarianceSpec:
     """The covariance statistics to take of residuals of ``residual_dim`` d rows: frames
     ``frame_names`` perturbing the chain joints ``frame_index``, the noise frame (or a known
-    noise covariance, 6×6 or d×d), diagonal or full Σ; ``free_axes`` as in
-    :func:`make_layout`."""
+    noise covariance, 6×6 or d×d), diagonal or full Σ; ``free_axes`` and ``noise_rows`` (the
+    noise layout of residuals other than a pose or position) as in :func:`make_layout`."""
     d = residual_dim
-    known = known_noise_covariance(noise_covariance, d)
+    known = known_noise_covariance(
+        noise_covariance, d, None if noise_rows is None else next(iter(noise_rows.values()))
+    )
     layout = make_layout(
         frame_names,
         d,
@@ -238,5 +241,6 @@ def covariance_spec(
         include_noise=known is None,
         noise_name=noise_name,
         free_axes=free_axes,
+        noise_rows=noise_rows,
     )
     return CovarianceSpec(tuple(int(f) for f in frame_index), layout, known, noise_name)
