@@ -78,6 +78,7 @@ from solver.model import KinematicChain, gravity_loads
 from solver.predictive import mahalanobis_squared
 from solver.stream.calibrate import BEFORE, CALIBRATED, MODEL_RULE_ROUNDS, CovarianceSettings
 from solver.stream.screening import (
+    covariance_too_uncertain,
     family_wise_t2,
     family_wise_z,
     model_rule_refusal,
@@ -287,8 +288,13 @@ def screen_by_covariance(
     (:func:`family_wise_t2`); refit and covariances again on the rows kept, until the removed
     rows no longer change (at most :data:`MODEL_RULE_ROUNDS` rounds). A round that would leave
     too few rows or remove more than half (:func:`model_rule_refusal`) removes nothing.
-    Returns the kept mask (N,), the fit and covariances on those rows and a note."""
+    Skipped, with the reason in the note, when Σ_E rests on too few equations per covariance
+    entry (:func:`~solver.stream.screening.covariance_too_uncertain`). Returns the kept mask
+    (N,), the fit and covariances on those rows and a note."""
     d = fit.model.dim
+    too_uncertain = covariance_too_uncertain(fit.residuals.size, estimate.identifiability.rank)
+    if too_uncertain is not None:
+        return kept, fit, estimate, f"model rule, Σ_E step: skipped, {too_uncertain}"
     min_rows = len(fit.estimated) // d + 1
     threshold = np.inf
     for _ in range(MODEL_RULE_ROUNDS):
