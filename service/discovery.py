@@ -22,7 +22,7 @@ from schemas.calibration import (
     ModelCorrection,
     ModelCorrections,
 )
-from schemas.dataset import PoseDataset, read_dataset
+from schemas.dataset import PoseDataset
 from schemas.discovery import (
     EFFECTS,
     Ambiguity,
@@ -144,13 +144,7 @@ def discover_source(
     reading = measurement_options(options)
     model = measurement_run.measurement_for(reading, chain, source, marker)
     if model is None:
-        dataset = read_dataset(
-            source,
-            chain.joint_names,
-            other_joint_names=chain.other_joint_names,
-            marker=marker,
-            source=name,
-        )
+        dataset = measurement_run.read_chain_dataset(source, chain, marker, name)
         return discover(dataset, robot, options, plot_dir, plot_stem)
     recording = measurement_run.read_measured(
         source, chain, reading, model, marker=marker, name=name

@@ -168,6 +168,22 @@ def _loads(chain: KinematicChain, options: CalibrationOptions, q: np.ndarray) ->
     )
 
 
+def read_chain_dataset(
+    source: str | Path,
+    chain: KinematicChain,
+    marker: int | None = None,
+    name: str | None = None,
+) -> PoseDataset:
+    """A pose/position recording (file or folder) read for ``chain``'s joints, by name."""
+    return read_dataset(
+        source,
+        chain.joint_names,
+        other_joint_names=chain.other_joint_names,
+        marker=marker,
+        source=name,
+    )
+
+
 def read_measured(
     source: str | Path | PoseDataset,
     chain: KinematicChain,
@@ -207,13 +223,7 @@ def read_measured(
         labels = tuple(f"marker {j + 1}" for j in keep)
         return MeasuredRecording(model, rows, name or markers.source, labels, True, notes)
     else:
-        dataset = read_dataset(
-            source,
-            chain.joint_names,
-            other_joint_names=chain.other_joint_names,
-            marker=marker,
-            source=name,
-        )
+        dataset = read_chain_dataset(source, chain, marker, name)
     q = dataset.joint_positions
     pose = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
     needs_rotation = isinstance(model, PoseComponents) and bool(model.rotation_rows)

@@ -29,7 +29,7 @@ from schemas.calibration import (
     ModelCorrections,
     RobotInfo,
 )
-from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_chunks, read_dataset
+from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_chunks
 from schemas.discovery import FindingsResult
 from service import measurement_run
 from service.result_json import ResidualSample, assemble_result, chain_for, sample_residuals
@@ -268,13 +268,7 @@ def open_recording(
                 cache_bytes=int(stream.cache_mb * 1024 * 1024),
             )
             return Recording(problem, None, plan.source, None, ())
-        dataset = read_dataset(
-            source,
-            chain.joint_names,
-            other_joint_names=chain.other_joint_names,
-            marker=marker,
-            source=name,
-        )
+        dataset = measurement_run.read_chain_dataset(source, chain, marker, name)
     corrections: ModelCorrections | None = None
     notes: tuple[str, ...] = ()
     if setup.findings is not None:
