@@ -15,6 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from solver.discovery.detectability import flip_p_bound
 from solver.discovery.fitting import orthonormal_basis
 from solver.discovery.scoring import (
     NullModel,
@@ -49,6 +50,23 @@ def test_exact_p_value_is_the_share_of_all_sign_patterns(
     scores = np.random.default_rng(seed).normal(shift, 1.0, size=(n, m))
     z, _ = flip_whitened(scores)
     assert flip_p_value(z) == pytest.approx(_brute_force(z), abs=1e-12)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(2, 18),
+    m=st.integers(1, 3),
+    shift=st.floats(-2.0, 2.0),
+    seed=st.integers(0, 2**31),
+)
+def test_hoeffding_bound_is_above_the_exact_p_value(
+    n: int, m: int, shift: float, seed: int
+) -> None:
+    """The bound the stated detectability uses to skip enumerating patterns is never below
+    the exact p-value (:func:`solver.discovery.detectability.flip_p_bound`)."""
+    scores = np.random.default_rng(seed).normal(shift, 1.0, size=(n, m))
+    z, _ = flip_whitened(scores)
+    assert flip_p_bound(z) >= flip_p_value(z) - 1e-12
 
 
 def test_all_samples_agreeing_gives_the_smallest_p_value() -> None:
