@@ -652,6 +652,11 @@ class MeasurementResult(_Model):
     )
     notes: list[str] = Field(default_factory=list)
 
+    def unknown_names(self) -> list[str]:
+        """The names of the measurement's own unknowns (they may appear in
+        ``predictive.parameter_covariance`` next to the chain parameters)."""
+        return [u.name for u in self.unknowns]
+
 
 class CalibrationResult(_Model):
     format: Literal["kincal.calibration/1"] = RESULT_FORMAT
