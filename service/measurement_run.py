@@ -84,6 +84,7 @@ from solver.measurement.predictive import (
 from solver.model import KinematicChain, gravity_loads
 from solver.predictive import mahalanobis_squared
 from solver.stream.calibrate import BEFORE, CALIBRATED, MODEL_RULE_ROUNDS, CovarianceSettings
+from solver.stream.coverage import NLL_TOLERANCE
 from solver.stream.screening import (
     covariance_too_uncertain,
     family_wise_t2,
@@ -353,8 +354,13 @@ def estimate_covariances(
     fit: MeasurementFit,
     rows: MeasurementRows,
     settings: CovarianceSettings,
+    start: CovarianceEstimate | None = None,
 ) -> CovarianceEstimate:
-    """The covariance calibration (paper §IV-C) of the rows ``fit`` used, at the fit."""
+    """The covariance calibration (paper §IV-C) of the rows ``fit`` used, at the fit. With
+    ``start`` (a predictor's covariances, for the predictive coverage): ML/REML started from
+    its θ, stopped as the held-out predictors of a pose recording are
+    (:data:`~solver.stream.coverage.NLL_TOLERANCE` of the whole log-likelihood), no standard
+    errors."""
     spec = settings.spec
     return estimate_from_samples(
         covariance_samples(chain, fit, rows, spec.frames),
@@ -363,6 +369,9 @@ def estimate_covariances(
         estimator=settings.estimator,
         solver=settings.solver,
         noise_name=spec.noise_name,
+        standard_errors=start is None,
+        likelihood_tolerance=1e-10 if start is None else NLL_TOLERANCE / max(rows.n, 1),
+        start_theta=None if start is None else start.theta,
     )
 
 
@@ -412,14 +421,14 @@ def calibrate_measurement(
     baseline = fit_measurement(chain, model, used, baseline_options)
     predictive = None
     if estimate is not None and covariance is not None:
-        settings = covariance
+        settings, start = covariance, estimate
         predictive = measurement_predictive(
             chain,
             used,
             fit,
             estimate,
             lambda r: fit_measurement(chain, model, r, fit_options),
-            lambda f, r: estimate_covariances(chain, f, r, settings),
+            lambda f, r: estimate_covariances(chain, f, r, settings, start),
             tuple(settings.spec.frames),
             row_weights(model, fit_options),
             options.seeds if options.heldout else (),

@@ -99,7 +99,7 @@ def predictive_lines(predictive: PredictiveCovariance) -> list[str]:
             f"{axis} {1e3 * std:.3f} {'mrad' if _is_rotation(axis) else 'mm'}"
             for axis, std in zip(error.axes, error.std, strict=True)
         ]
-        frame = "the measurement frame" if error.frame is None else error.frame
+        frame = "the measurement frame" if error.frame is None else f"the {error.frame}"
         lines.append(
             f"model error (σ along the axes of {frame}, from {error.n_residuals} "
             f"cross-validated residuals): {', '.join(cells)}"
