@@ -582,12 +582,19 @@ class ModelErrorPart(_Model):
     docs/predictive.md."""
 
     axes: list[str] = Field(
-        description="x, y, z (m) [, rx, ry, rz (rad)] of the measurement frame."
+        description="x, y, z (m) [, rx, ry, rz (rad)] of the measurement frame; for the "
+        "other measurement types the residual's components (measurement.components)."
     )
     variance: list[float] = Field(description="m² and rad², one per axis.")
     std: list[float] = Field(description="m and rad, one per axis.")
     n_residuals: int = Field(description="Cross-validated residuals it was fitted to.")
     method: str
+    frame: str | None = Field(
+        default=None,
+        description="The frame of the axes: None for a pose/position recording (the "
+        "measurement frame); for the other measurement types the residual's frame of the type "
+        "(measurement.frame).",
+    )
 
 
 class CoverageLevel(_Model):
@@ -644,6 +651,11 @@ class MeasurementResult(_Model):
         default_factory=list, description="Known socket distance minus the fitted one, m."
     )
     notes: list[str] = Field(default_factory=list)
+
+    def unknown_names(self) -> list[str]:
+        """The names of the measurement's own unknowns (they may appear in
+        ``predictive.parameter_covariance`` next to the chain parameters)."""
+        return [u.name for u in self.unknowns]
 
 
 class CalibrationResult(_Model):

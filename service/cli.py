@@ -547,6 +547,9 @@ def predict(
                 "model-error parts are left out (zero)",
                 err=True,
             )
+        not_applicable = ranking.not_applicable_note(result)
+        if not_applicable is not None and chosen in ("total", "model_error"):
+            typer.echo(f"note: {not_applicable}", err=True)
         covariance = ranking.predicted_covariance(
             result,
             configurations.joint_positions,

@@ -34,6 +34,7 @@ from schemas.calibration import (
     MeasuredUnknown,
     MeasurementResult,
     OutlierReport,
+    PredictiveCovariance,
     RobotInfo,
     SolverReport,
     Verdict,
@@ -53,6 +54,7 @@ from service.result_json import (
     covariance_result,
     fixed_names,
     kincal_version,
+    predictive_block,
 )
 from solver import lie
 from solver.calibration import FitOptions, outlier_mask
@@ -73,10 +75,16 @@ from solver.measurement import (
     heldout_errors,
     row_errors,
 )
-from solver.measurement.fit import HeldoutError, covariance_samples
+from solver.measurement.fit import HeldoutError, covariance_samples, row_weights
+from solver.measurement.predictive import (
+    INNER_FOLDS,
+    MeasurementPredictive,
+    measurement_predictive,
+)
 from solver.model import KinematicChain, gravity_loads
 from solver.predictive import mahalanobis_squared
 from solver.stream.calibrate import BEFORE, CALIBRATED, MODEL_RULE_ROUNDS, CovarianceSettings
+from solver.stream.coverage import NLL_TOLERANCE
 from solver.stream.screening import (
     covariance_too_uncertain,
     family_wise_t2,
@@ -346,8 +354,13 @@ def estimate_covariances(
     fit: MeasurementFit,
     rows: MeasurementRows,
     settings: CovarianceSettings,
+    start: CovarianceEstimate | None = None,
 ) -> CovarianceEstimate:
-    """The covariance calibration (paper §IV-C) of the rows ``fit`` used, at the fit."""
+    """The covariance calibration (paper §IV-C) of the rows ``fit`` used, at the fit. With
+    ``start`` (a predictor's covariances, for the predictive coverage): ML/REML started from
+    its θ, stopped as the held-out predictors of a pose recording are
+    (:data:`~solver.stream.coverage.NLL_TOLERANCE` of the whole log-likelihood), no standard
+    errors."""
     spec = settings.spec
     return estimate_from_samples(
         covariance_samples(chain, fit, rows, spec.frames),
@@ -356,6 +369,9 @@ def estimate_covariances(
         estimator=settings.estimator,
         solver=settings.solver,
         noise_name=spec.noise_name,
+        standard_errors=start is None,
+        likelihood_tolerance=1e-10 if start is None else NLL_TOLERANCE / max(rows.n, 1),
+        start_theta=None if start is None else start.theta,
     )
 
 
@@ -371,6 +387,7 @@ class MeasurementCalibration:
     notes: tuple[str, ...]
     elapsed_s: float
     covariance: CovarianceEstimate | None = None
+    predictive: MeasurementPredictive | None = None
 
 
 def calibrate_measurement(
@@ -402,6 +419,21 @@ def calibrate_measurement(
         notes.append(step_note)
         used = rows.take(np.flatnonzero(kept))
     baseline = fit_measurement(chain, model, used, baseline_options)
+    predictive = None
+    if estimate is not None and covariance is not None:
+        settings, start = covariance, estimate
+        predictive = measurement_predictive(
+            chain,
+            used,
+            fit,
+            estimate,
+            lambda r: fit_measurement(chain, model, r, fit_options),
+            lambda f, r: estimate_covariances(chain, f, r, settings, start),
+            tuple(settings.spec.frames),
+            row_weights(model, fit_options),
+            options.seeds if options.heldout else (),
+            options.train_fraction,
+        )
     splits: list[HeldoutError] = []
     if options.heldout:
         splits = heldout_errors(
@@ -421,6 +453,7 @@ def calibrate_measurement(
         tuple(notes),
         time.perf_counter() - started,
         estimate,
+        predictive,
     )
 
 
@@ -502,6 +535,9 @@ def measurement_result(
         covariance=None
         if calibrated.covariance is None
         else covariance_result(calibrated.covariance, covariance_index or []),
+        predictive=None
+        if calibrated.predictive is None
+        else _predictive(calibrated.predictive, model, options),
         identifiability=Identifiability(
             n_parameters=len(parameter_names(chain)) + len(model.extra_names()),
             rank=fit.rank,
@@ -563,6 +599,46 @@ def measurement_result(
             ],
             notes=list(calibrated.notes),
         ),
+    )
+
+
+def _predictive(
+    predictive: MeasurementPredictive, model: MeasurementModel, options: CalibrationOptions
+) -> PredictiveCovariance:
+    """The ``predictive`` block of a measurement calibration: Cov(θ̂) of the chain parameters
+    and the model's own unknowns, the model-error part along the residual's own components
+    (``model.frame``), the held-out coverage in the residual space (d = ``model.dim``)."""
+    space = (
+        "residual rotated into the tip frame"
+        if model.name in ("point", "markers")
+        else f"residual in {model.frame}"
+    )
+    return predictive_block(
+        estimated=predictive.estimated,
+        parameter_covariance=predictive.parameter_covariance,
+        parameter_method="sandwich G⁺ (Σ A_wᵀ W Σ_E W A_w) G⁺ of the weighted least-squares "
+        "fit over the chain parameters and the measurement's own unknowns (listed, not "
+        "profiled), G with the known-distance equations (exact); Σ_E (with the noise of the "
+        "type's layout) from the calibrated covariances",
+        model_error=predictive.model_error,
+        axes=list(model.components),
+        frame=model.frame,
+        model_error_method=(
+            "maximum likelihood on the held-out residuals of every split (the measurement's "
+            "residual space), each with Σ_E + noise + J_θ Cov(θ̂) J_θᵀ of its split's "
+            "training rows"
+            if predictive.n_splits
+            else f"maximum likelihood on {INNER_FOLDS}-fold cross-validated residuals of the "
+            "used rows (no held-out splits)"
+        ),
+        found=predictive.coverage,
+        n_splits=predictive.n_splits,
+        coverage_protocol=f"the held-out splits of evaluation ({predictive.n_splits} of "
+        f"{len(options.seeds)} gave covariances), d = {model.dim} ({space}); per split, "
+        f"geometry, compliance, the measurement's own unknowns, covariances "
+        f"({options.covariance_estimator}), Cov(θ̂) and the model-error part "
+        f"({INNER_FOLDS}-fold cross-validation inside the training rows, in "
+        f"{predictive.nested} splits) from its training rows only",
     )
 
 

@@ -57,10 +57,41 @@ def no_predictive(result: CalibrationResult) -> str:
     measurement = result.measurement
     if measurement is not None and measurement.type not in ("pose", "position"):
         return (
-            f"has no predictive covariance: Cov(θ̂) and the model-error part are not computed "
-            f"for measurement '{measurement.type}' yet (its random-effects part is)"
+            "has no predictive covariance: it was calibrated without covariances "
+            f"(measurement '{measurement.type}'), or by a kincal before issue 15"
         )
     return NO_PREDICTIVE
+
+
+TIP_FRAME = "end effector (tip) frame"
+"""How a measurement type whose residual is the tip pose names its frame (the start of
+``measurement.frame``: relative-base, eye-on-head)."""
+
+
+def model_error_applies(result: CalibrationResult) -> bool:
+    """Whether the result's model-error part is a covariance of the predicted tip pose: for
+    pose/position recordings (measurement-frame axes) and the types whose residual is the tip
+    pose (tip-frame axes); not for a ball in a socket, markers or chosen components, whose
+    residual is not the tip pose (their model error is in their own residual space)."""
+    measurement = result.measurement
+    if measurement is None or measurement.type in ("pose", "position"):
+        return True
+    return measurement.frame.startswith(TIP_FRAME)
+
+
+def not_applicable_note(result: CalibrationResult) -> str | None:
+    """What ``kincal predict`` leaves out of a measurement-type result's total, in words; None
+    when every part applies."""
+    measurement = result.measurement
+    if result.predictive is None or model_error_applies(result) or measurement is None:
+        return None
+    return (
+        f"measurement '{measurement.type}': the model-error part is estimated in its own "
+        f"residual space ({measurement.frame}, components {', '.join(measurement.components)}), "
+        "not for the tip pose: it is not applicable to the predicted tip covariance and left "
+        "out (zero); the parameter part is the tip's J_θ Cov(θ̂) J_θᵀ over the chain "
+        "parameters (the measurement's own unknowns do not move the tip)"
+    )
 
 
 NO_IK_SOLUTION = (
@@ -140,24 +171,28 @@ def predictive_model(
     chain, params = (model.chain, model.params) if model else result_json.result_chain(result)
     names = parameter_names(chain)
     block = result.predictive
-    unknown = [n for n in block.parameter_covariance.parameters if n not in names]
+    listed = block.parameter_covariance.parameters
+    own = set(result.measurement.unknown_names()) if result.measurement is not None else set()
+    unknown = [n for n in listed if n not in names and n not in own]
     if unknown:
         raise KincalError(
             f"predictive.parameter_covariance names {unknown}, not parameters of the chain; "
             "the result is inconsistent, re-run calibrate"
         )
+    matrix = np.array(block.parameter_covariance.matrix, dtype=float).reshape(len(listed), -1)
+    chain_rows = [i for i, n in enumerate(listed) if n in names]  # the tip's marginal block
     variance = np.zeros(6)
-    if block.model_error is not None:
+    if block.model_error is not None and model_error_applies(result):
         values = np.array(block.model_error.variance, dtype=float)
         variance[: values.size] = values
     built = PredictiveModel(
         chain,
         params,
-        np.array([names.index(n) for n in block.parameter_covariance.parameters], dtype=np.intp),
-        np.array(block.parameter_covariance.matrix, dtype=float).reshape(
-            len(block.parameter_covariance.parameters), -1
-        ),
+        np.array([names.index(listed[i]) for i in chain_rows], dtype=np.intp),
+        matrix[np.ix_(chain_rows, chain_rows)],
         variance,
+        model_error_in_tip_frame=result.measurement is not None
+        and result.measurement.frame.startswith(TIP_FRAME),
     )
     if model is not None:
         _PREDICTIVE[model] = built

@@ -96,11 +96,12 @@ def predictive_lines(predictive: PredictiveCovariance) -> list[str]:
     error = predictive.model_error
     if error is not None:
         cells = [
-            f"{axis} {1e3 * std:.3f} {'mm' if axis in ('x', 'y', 'z') else 'mrad'}"
+            f"{axis} {1e3 * std:.3f} {'mrad' if _is_rotation(axis) else 'mm'}"
             for axis, std in zip(error.axes, error.std, strict=True)
         ]
+        frame = "the measurement frame" if error.frame is None else f"the {error.frame}"
         lines.append(
-            f"model error (σ along the measurement frame's axes, from {error.n_residuals} "
+            f"model error (σ along the axes of {frame}, from {error.n_residuals} "
             f"cross-validated residuals): {', '.join(cells)}"
         )
     coverage = predictive.coverage
@@ -113,8 +114,9 @@ def predictive_lines(predictive: PredictiveCovariance) -> list[str]:
     shares = ", ".join(
         f"{100 * c.observed:.0f} % in the {100 * c.level:.0f} %" for c in coverage.levels
     )
+    noun = "poses" if error is None or error.frame is None else "rows"
     lines.append(
-        f"predictive coverage on {coverage.n_heldout} held-out poses ({coverage.dimension}-D, "
+        f"predictive coverage on {coverage.n_heldout} held-out {noun} ({coverage.dimension}-D, "
         f"{coverage.n_splits} splits, every part from training rows only): {shares} ellipsoid; "
         f"mean Mahalanobis² {coverage.mean_mahalanobis_sq:.2f} (χ² mean "
         f"{coverage.chi2_mean:.0f})"
@@ -123,6 +125,11 @@ def predictive_lines(predictive: PredictiveCovariance) -> list[str]:
 
 
 AXES = ("x", "y", "z", "rx", "ry", "rz")
+
+
+def _is_rotation(axis: str) -> bool:
+    """A model-error axis in rad: rx..rz of a pose, or a chosen rotation component."""
+    return axis.rsplit(".", 1)[-1] in ("rx", "ry", "rz")
 
 
 def covariance_table(covariance: CovarianceResult) -> list[str]:

@@ -53,7 +53,7 @@ from solver.kinematics import (
     pose_residuals,
 )
 from solver.model import KinematicChain, build_chain, gravity_loads
-from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS
+from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS, Coverage, ModelErrorFit
 from solver.selection import fixed_names
 from solver.stream.calibrate import BEFORE, CALIBRATED, RecordingCalibration
 from solver.stream.coverage import INNER_CV_ROWS, INNER_FOLDS, PredictiveCalibration
@@ -502,13 +502,14 @@ def _predictive_result(
     predictive: PredictiveCalibration, options: CalibrationOptions
 ) -> PredictiveCovariance:
     """The ``predictive`` block: Cov(θ̂), the model-error part and the held-out coverage."""
-    variance = predictive.model_error.variance
-    model_error = ModelErrorPart(
-        axes=list(MODEL_ERROR_AXES[: variance.size]),
-        variance=variance.tolist(),
-        std=np.sqrt(variance).tolist(),
-        n_residuals=predictive.model_error.n_residuals,
-        method=(
+    return predictive_block(
+        estimated=predictive.estimated,
+        parameter_covariance=predictive.parameter_covariance,
+        parameter_method="sandwich G⁻¹ (Σ A_wᵀ W Σ_E W A_w) G⁻¹ of the weighted least-squares "
+        "fit, Σ_E (with Σ_n) from the calibrated covariances",
+        model_error=predictive.model_error,
+        axes=list(MODEL_ERROR_AXES[: predictive.model_error.variance.size]),
+        model_error_method=(
             "maximum likelihood on the held-out residuals of every split, each with "
             "Σ_E + Σ_n + J_θ Cov(θ̂) J_θᵀ of its split's training rows"
             if predictive.splits
@@ -516,33 +517,61 @@ def _predictive_result(
             "(no held-out splits; covariances not re-estimated per left-out sample, so what a "
             "calibration of this size gets wrong about Σ_E is not in it)"
         ),
+        found=predictive.coverage,
+        n_splits=len(predictive.splits),
+        coverage_protocol=f"the held-out splits of evaluation ({len(predictive.splits)} of "
+        f"{len(options.seeds)} gave covariances); per split, geometry, compliance, "
+        f"covariances ({options.covariance_estimator}), Cov(θ̂) and the model-error part "
+        f"({_model_error_protocol(predictive)}) from its training rows only",
+    )
+
+
+def predictive_block(
+    *,
+    estimated: list[str],
+    parameter_covariance: FloatArray,
+    parameter_method: str,
+    model_error: ModelErrorFit,
+    axes: list[str],
+    model_error_method: str,
+    found: Coverage | None,
+    n_splits: int,
+    coverage_protocol: str,
+    frame: str | None = None,
+) -> PredictiveCovariance:
+    """The ``predictive`` block of any calibration (pose or other measurement type): Cov(θ̂)
+    of ``estimated``, the model-error variances along ``axes`` (of ``frame``, the residual's
+    frame; None: the measurement frame of a pose recording) and the held-out coverage."""
+    variance = model_error.variance
+    error = ModelErrorPart(
+        axes=axes,
+        variance=variance.tolist(),
+        std=np.sqrt(variance).tolist(),
+        n_residuals=model_error.n_residuals,
+        method=model_error_method,
+        frame=frame,
     )
     report = None
-    found = predictive.coverage
     if found is not None:
         report = CoverageReport(
             dimension=found.dimension,
             n_heldout=found.n,
-            n_splits=len(predictive.splits),
+            n_splits=n_splits,
             levels=[CoverageLevel(level=a, observed=found.at(a)) for a in COVERAGE_LEVELS],
             curve=[CoverageLevel(level=a, observed=found.at(a)) for a in CURVE_LEVELS],
             mean_mahalanobis_sq=found.mean_d2,
             chi2_mean=float(found.dimension),
             median_mahalanobis_sq=found.median_d2,
             chi2_median=found.chi2_median,
-            protocol=f"the held-out splits of evaluation ({len(predictive.splits)} of "
-            f"{len(options.seeds)} gave covariances); per split, geometry, compliance, "
-            f"covariances ({options.covariance_estimator}), Cov(θ̂) and the model-error part "
-            f"({_model_error_protocol(predictive)}) from its training rows only",
+            protocol=coverage_protocol,
         )
     return PredictiveCovariance(
         parameter_covariance=ParameterCovariance(
-            parameters=list(predictive.estimated),
-            matrix=predictive.parameter_covariance.tolist(),
-            method="sandwich G⁻¹ (Σ A_wᵀ W Σ_E W A_w) G⁻¹ of the weighted least-squares fit, "
-            "Σ_E (with Σ_n) from the calibrated covariances",
+            parameters=list(estimated),
+            matrix=parameter_covariance.tolist(),
+            method=parameter_method,
         ),
-        model_error=model_error,
+        model_error=error,
         coverage=report,
     )
 

@@ -367,6 +367,9 @@ class PredictiveModel:
     estimated: IntArray
     parameter_covariance: FloatArray
     model_error_variance: FloatArray
+    model_error_in_tip_frame: bool = False
+    """True: the variances are along the end-effector frame's axes (a measurement type whose
+    residual is the tip pose, e.g. relative-base), so T(q) = I."""
 
     def parts(self, joint_positions: FloatArray, loads_nm: FloatArray) -> PredictiveParts:
         """:class:`PredictiveParts` at configurations (N, k) rad, gravity loads (N, n_axes)."""
@@ -376,5 +379,10 @@ class PredictiveModel:
         return PredictiveParts(
             point.pose,
             parameter_part(point.parameter_jacobian, self.parameter_covariance),
-            model_error_part(measurement_axes(point.pose, 6), self.model_error_variance),
+            model_error_part(
+                np.broadcast_to(np.eye(6), (point.pose.shape[0], 6, 6))
+                if self.model_error_in_tip_frame
+                else measurement_axes(point.pose, 6),
+                self.model_error_variance,
+            ),
         )
