@@ -25,10 +25,16 @@ DiscoveryOptions`, at α); below that, a held-out comparison between two models 
 correlate 0.97–0.999 decides, and the data rarely prefer either (the pair is reported
 ambiguous). So the stated size is also at least the *separation size*
 (:func:`separation_size`): the smallest at which the joint test with the hardest other library
-term in the model rejects with ``power`` — calibrated the same way, on the recording's residual
-and its replicates projected off that term too. The hardest term is the one that leaves the
-largest variance of the term's estimate in its weakest direction once both are fitted; the
-report names it (``separated_from``). A measurement-frame drift mixes metres and
+term in the model rejects with ``power`` at the Holm level (when that rival is ranked first,
+the term must pass a later step's Holm test given it) — calibrated the same way, on the
+recording's residual and its replicates projected off that term too. The hardest term is the
+one that leaves the largest variance of the term's estimate in its weakest direction once both
+are fitted; the report names it (``separated_from``).
+
+"Nothing larger went unseen" must hold above the size too: the sign-flip half is not monotone
+in the size (:func:`calibrated_size` checks 2×, 4× and the limit;
+:func:`robust_in_every_direction` the limit in every gear phase or flex axis), else no size is
+stated. A measurement-frame drift mixes metres and
 radians: its translation and rotation parts get one size each (its test keeps 6 dof). No size
 is stated (infinite, with the reason) when the model absorbs the weakest direction to
 ``absorbed_limit`` (the step would be ambiguous with the geometry: e.g. a depth scale along a
