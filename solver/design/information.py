@@ -63,6 +63,7 @@ class InformationBlock:
     scale: FloatArray
     names: tuple[str, ...]
     basis: FloatArray | None = None
+    nuisance: int = 0
 
     @property
     def n_candidates(self) -> int:
@@ -70,6 +71,12 @@ class InformationBlock:
 
     @property
     def dimension(self) -> int:
+        """p: the parameters the criterion is on (the nuisance columns profiled out)."""
+        return int(self.factors.shape[2]) - self.nuisance
+
+    @property
+    def columns(self) -> int:
+        """p + e: the factors' columns, the e nuisance columns last."""
         return int(self.factors.shape[2])
 
     def subset(self, index: IntArray) -> InformationBlock:
@@ -77,10 +84,37 @@ class InformationBlock:
         return replace(self, factors=self.factors[index])
 
     def information(self, index: IntArray | None = None) -> FloatArray:
-        """``prior + Σ_{n ∈ index} M_n`` (p, p); all candidates when ``index`` is None."""
+        """``prior + Σ_{n ∈ index} M_n`` (p, p), the nuisance parameters profiled out
+        (:func:`profiled`); all candidates when ``index`` is None."""
         f = self.factors if index is None else self.factors[index]
-        flat = f.reshape(-1, self.dimension)
-        return self.prior + flat.T @ flat
+        flat = f.reshape(-1, self.columns)
+        return profiled(self.prior + flat.T @ flat, self.nuisance)
+
+
+def profiled(information: FloatArray, nuisance: int) -> FloatArray:
+    """The information about the first p parameters when the last ``nuisance`` (e) ones are
+    unknown too: the Schur complement ``M_pp − M_pe M_ee⁺ M_ep`` (p, p) of the (p+e, p+e)
+    information (the inverse of the (p, p) block of M⁻¹). Matrix-concave in M, so every
+    concave criterion of it stays concave in the design weights."""
+    if nuisance == 0:
+        return information
+    p = information.shape[0] - nuisance
+    m_pe, m_ee = information[:p, p:], information[p:, p:]
+    gain = np.linalg.lstsq(m_ee, m_pe.T, rcond=None)[0]  # M_ee⁺ M_ep (e, p)
+    schur = information[:p, :p] - m_pe @ gain
+    return np.asarray(0.5 * (schur + schur.T), dtype=float)
+
+
+def profiled_factors(information: FloatArray, factors: FloatArray, nuisance: int) -> FloatArray:
+    """``F̃_n = F_n,p − F_n,e M_ee⁺ M_ep`` (N, r, p): the derivative of the profiled information
+    :func:`profiled` in the weight of candidate n is ``F̃_nᵀ F̃_n`` times the weight's
+    multiplier (``d(M_pp − M_pe M_ee⁻¹ M_ep) = dM_pp − dM_pe B − Bᵀ dM_ep + Bᵀ dM_ee B`` with
+    ``B = M_ee⁻¹ M_ep``), so the gradient of a criterion keeps the form ``‖F̃_n G‖²``."""
+    if nuisance == 0:
+        return factors
+    p = information.shape[0] - nuisance
+    gain = np.linalg.lstsq(information[p:, p:], information[p:, :p], rcond=None)[0]
+    return np.asarray(factors[:, :, :p] - factors[:, :, p:] @ gain, dtype=float)
 
 
 def whitened_pose_jacobian(
