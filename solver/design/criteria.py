@@ -77,7 +77,6 @@ class DesignProblem:
 
     def information(self, block: InformationBlock, weights: FloatArray) -> FloatArray:
         """``P + K Σ w_n M_n`` (p, p), over the candidates with non-zero weight."""
-        support = np.flatnonzero(weights > 0.0)
         return profiled(self.full_information(block, weights), block.nuisance)
 
     def full_information(self, block: InformationBlock, weights: FloatArray) -> FloatArray:
