@@ -29,7 +29,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
-from solver.design.information import InformationBlock
+from solver.design.information import InformationBlock, profiled, profiled_factors
 from solver.errors import SolverError
 
 FloatArray = NDArray[np.float64]
@@ -77,9 +77,13 @@ class DesignProblem:
 
     def information(self, block: InformationBlock, weights: FloatArray) -> FloatArray:
         """``P + K Σ w_n M_n`` (p, p), over the candidates with non-zero weight."""
+        return profiled(self.full_information(block, weights), block.nuisance)
+
+    def full_information(self, block: InformationBlock, weights: FloatArray) -> FloatArray:
+        """``P + K Σ w_n M_n`` (p+e, p+e) with the nuisance parameters (none for pose)."""
         support = np.flatnonzero(weights > 0.0)
         rows = block.factors[support] * np.sqrt(self.count * weights[support])[:, None, None]
-        flat = rows.reshape(-1, block.dimension)
+        flat = rows.reshape(-1, block.columns)
         return block.prior + flat.T @ flat
 
     def value(self, weights: FloatArray) -> float:
@@ -96,13 +100,15 @@ class DesignProblem:
         """The criterion and a (super)gradient in the weights (N,)."""
         total, gradient = 0.0, np.zeros(self.n_candidates)
         for block in self.blocks:
-            m = self.information(block, weights)
+            full = self.full_information(block, weights)
+            m = profiled(full, block.nuisance)
             value = criterion_value(self.criterion, m, self.task_root)
             if not np.isfinite(value):
                 return value, gradient
             total += value
             root = gradient_root(self.criterion, m, self.task_root)
-            gradient += self.count * np.sum((block.factors @ root) ** 2, axis=(1, 2))
+            factors = profiled_factors(full, block.factors, block.nuisance)
+            gradient += self.count * np.sum((factors @ root) ** 2, axis=(1, 2))
         return total, gradient
 
     def set_value(self, index: IntArray) -> float:
@@ -116,8 +122,9 @@ class DesignProblem:
         candidate of ``pool`` (P,) -> (P,), by rank-r updates of the information without the
         pose removed, ``C = (M − M_i)⁻¹``: D adds ``log det(I + F_n C F_nᵀ) / p`` (matrix
         determinant lemma), A and I subtract ``tr((I + F_n C F_nᵀ)⁻¹ W_n W_nᵀ)`` with
-        ``W_n = F_n C R`` (Woodbury). E, or a singular ``M − M_i``, is evaluated set by set."""
-        if self.criterion == "E":
+        ``W_n = F_n C R`` (Woodbury). E, nuisance parameters (the profiled information is no
+        rank-r update), or a singular ``M − M_i``, is evaluated set by set."""
+        if self.criterion == "E" or any(block.nuisance for block in self.blocks):
             return self._swap_values_by_sets(index, position, pool)
         total = np.zeros(pool.size)
         for block in self.blocks:

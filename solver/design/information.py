@@ -29,7 +29,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.calibration import FitOptions, identifiable_columns, weighted
+from solver.calibration import (
+    FitOptions,
+    free_columns,
+    identifiable_columns,
+    pivoted_columns,
+    weighted,
+)
 from solver.covariance.identifiability import RANK_RTOL
 from solver.covariance.layout import (
     CovarianceLayout,
@@ -40,7 +46,24 @@ from solver.covariance.layout import (
 )
 from solver.covariance.likelihood import whitening
 from solver.errors import SolverError
-from solver.kinematics import ChainParameters, evaluate_chain, parameter_names, stacked_jacobian
+from solver.kinematics import (
+    ChainParameters,
+    evaluate_chain,
+    forward_kinematics,
+    parameter_names,
+    stacked_jacobian,
+)
+from solver.measurement.fit import row_weights
+from solver.measurement.models import (
+    EyeOnHead,
+    FullPose,
+    MeasurementModel,
+    MeasurementRows,
+    ModelParameters,
+    MultiMarker,
+    PoseComponents,
+    chain_column_count,
+)
 from solver.model import KinematicChain
 
 FloatArray = NDArray[np.float64]
@@ -63,6 +86,7 @@ class InformationBlock:
     scale: FloatArray
     names: tuple[str, ...]
     basis: FloatArray | None = None
+    nuisance: int = 0
 
     @property
     def n_candidates(self) -> int:
@@ -70,6 +94,12 @@ class InformationBlock:
 
     @property
     def dimension(self) -> int:
+        """p: the parameters the criterion is on (the nuisance columns profiled out)."""
+        return int(self.factors.shape[2]) - self.nuisance
+
+    @property
+    def columns(self) -> int:
+        """p + e: the factors' columns, the e nuisance columns last."""
         return int(self.factors.shape[2])
 
     def subset(self, index: IntArray) -> InformationBlock:
@@ -77,10 +107,37 @@ class InformationBlock:
         return replace(self, factors=self.factors[index])
 
     def information(self, index: IntArray | None = None) -> FloatArray:
-        """``prior + Σ_{n ∈ index} M_n`` (p, p); all candidates when ``index`` is None."""
+        """``prior + Σ_{n ∈ index} M_n`` (p, p), the nuisance parameters profiled out
+        (:func:`profiled`); all candidates when ``index`` is None."""
         f = self.factors if index is None else self.factors[index]
-        flat = f.reshape(-1, self.dimension)
-        return self.prior + flat.T @ flat
+        flat = f.reshape(-1, self.columns)
+        return profiled(self.prior + flat.T @ flat, self.nuisance)
+
+
+def profiled(information: FloatArray, nuisance: int) -> FloatArray:
+    """The information about the first p parameters when the last ``nuisance`` (e) ones are
+    unknown too: the Schur complement ``M_pp − M_pe M_ee⁺ M_ep`` (p, p) of the (p+e, p+e)
+    information (the inverse of the (p, p) block of M⁻¹). Matrix-concave in M, so every
+    concave criterion of it stays concave in the design weights."""
+    if nuisance == 0:
+        return information
+    p = information.shape[0] - nuisance
+    m_pe, m_ee = information[:p, p:], information[p:, p:]
+    gain = np.linalg.lstsq(m_ee, m_pe.T, rcond=None)[0]  # M_ee⁺ M_ep (e, p)
+    schur = information[:p, :p] - m_pe @ gain
+    return np.asarray(0.5 * (schur + schur.T), dtype=float)
+
+
+def profiled_factors(information: FloatArray, factors: FloatArray, nuisance: int) -> FloatArray:
+    """``F̃_n = F_n,p − F_n,e M_ee⁺ M_ep`` (N, r, p): the derivative of the profiled information
+    :func:`profiled` in the weight of candidate n is ``F̃_nᵀ F̃_n`` times the weight's
+    multiplier (``d(M_pp − M_pe M_ee⁻¹ M_ep) = dM_pp − dM_pe B − Bᵀ dM_ep + Bᵀ dM_ee B`` with
+    ``B = M_ee⁻¹ M_ep``), so the gradient of a criterion keeps the form ``‖F̃_n G‖²``."""
+    if nuisance == 0:
+        return factors
+    p = information.shape[0] - nuisance
+    gain = np.linalg.lstsq(information[p:, p:], information[p:, :p], rcond=None)[0]
+    return np.asarray(factors[:, :, :p] - factors[:, :, p:] @ gain, dtype=float)
 
 
 def whitened_pose_jacobian(
@@ -243,3 +300,82 @@ def _covariance_factors(
     )
     left = whitening(theta, jac, layout, None, inverse=True)
     return design_matrix(left @ column_matrix(jac, layout), layout) / np.sqrt(2.0)
+
+
+def ideal_rows(
+    model: MeasurementModel,
+    chain: KinematicChain,
+    params: ModelParameters,
+    joint_positions: FloatArray,
+    loads_nm: FloatArray,
+) -> MeasurementRows:
+    """Rows whose measurements are what ``model`` predicts at ``params`` (zero residual), so
+    its Jacobian is the one a calibration sees at convergence: poses (N, 4, 4) for the pose
+    models (in the model's measurement frame), marker positions (N, m, 3) for markers."""
+    rows = MeasurementRows.of(joint_positions, loads_nm)
+    if isinstance(model, MultiMarker):
+        pose = forward_kinematics(chain, params, joint_positions, loads_nm)
+        markers = pose[:, None, :3, 3] + np.einsum(
+            "nij,mj->nmi", pose[:, :3, :3], model.offsets(params)
+        )
+        return MeasurementRows.of(joint_positions, loads_nm, markers)
+    if isinstance(model, (FullPose, EyeOnHead)):
+        return MeasurementRows.of(
+            joint_positions, loads_nm, model.predicted_pose(chain, params, rows)
+        )
+    if isinstance(model, PoseComponents):
+        pose = forward_kinematics(chain, params, joint_positions, loads_nm)
+        return MeasurementRows.of(joint_positions, loads_nm, pose)
+    raise SolverError(f"measurement {model.name!r}: no ideal rows for a design")
+
+
+def model_information(
+    chain: KinematicChain,
+    params: ModelParameters,
+    model: MeasurementModel,
+    joint_positions: FloatArray,
+    loads_nm: FloatArray,
+    noise_std: FloatArray,
+    *,
+    options: FitOptions | None = None,
+) -> InformationBlock:
+    """The geometry block of candidates for any measurement model, from its own Jacobian
+    ``A`` (N, d, P + E) of :meth:`MeasurementModel.linearise` (Eq. 10), whitened by the noise
+    of each residual row ``noise_std`` (d,): ``F_n = Σ^{-1/2} A_n[:, keep]``. ``keep``: the
+    columns :func:`solver.measurement.fit.fit_measurement` would fit on all candidates (free,
+    visible to the model, surviving pivoted QR on the fit's weighted rows). The model's own
+    unknowns (socket points, marker offsets) are the last ``nuisance`` columns, profiled out
+    by the criteria; its extra equations (known distances) are the prior."""
+    options = options or FitOptions()
+    rows = ideal_rows(model, chain, params, joint_positions, loads_nm)
+    _, jacobian = model.linearise(chain, params, rows)
+    assert jacobian is not None
+    _, extra_a = model.constraints(chain, params)
+    weights = row_weights(model, options)
+    fit_rows = (jacobian * weights[None, :, None]).reshape(-1, jacobian.shape[2])
+    free = free_columns(chain, options, jacobian.shape[2])
+    n_chain = chain_column_count(chain)
+    free[:n_chain] &= model.visible_columns(chain)
+    keep = pivoted_columns(np.concatenate([fit_rows, extra_a]), free, options.rank_tolerance)[0]
+    whitened = jacobian[:, :, keep] / noise_std[None, :, None]
+    scale = column_scale(whitened)
+    factors = whitened / scale
+    # Known distances: equations of the whole design, unweighted by the poses (m, as the rows).
+    prior_rows = extra_a[:, keep] / (float(noise_std[0]) * scale)
+    names = parameter_names(chain) + model.extra_names()
+    return InformationBlock(
+        "geometry",
+        np.ascontiguousarray(factors),
+        prior_rows.T @ prior_rows,
+        scale,
+        tuple(names[i] for i in keep[keep < n_chain]),
+        nuisance=int(np.sum(keep >= n_chain)),
+    )
+
+
+def model_noise_std(model: MeasurementModel, noise_m: float, noise_rad: float) -> FloatArray:
+    """The sensor noise of each residual row (d,): ``noise_m`` on translation rows, ``noise_rad``
+    on rotation rows."""
+    noise = np.full(model.dim, noise_m)
+    noise[list(model.rotation_rows)] = noise_rad
+    return noise

@@ -45,7 +45,7 @@ def equilibrated_pose_jacobian(
     parameter of the geometry ``block``."""
     evaluation = evaluate_chain(chain, params, joint_positions, loads_nm)
     jacobian = stacked_jacobian(evaluation)[:, :rows][:, :, block_columns(chain, block)]
-    return jacobian / block.scale
+    return jacobian / block.scale[: block.dimension]
 
 
 def task_root(task_jacobian: FloatArray) -> FloatArray:
@@ -70,7 +70,7 @@ def standard_errors(
     """Per parameter of a geometry block: the standard error in its own units and the
     equilibrated one (its effect on a measurement, in units of the sensor noise)."""
     equilibrated = np.sqrt(np.clip(np.diag(parameter_covariance(information)), 0.0, None))
-    return equilibrated / block.scale, equilibrated
+    return equilibrated / block.scale[: block.dimension], equilibrated
 
 
 def predicted_pose_variance(information: FloatArray, task_jacobian: FloatArray) -> FloatArray:

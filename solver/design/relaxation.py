@@ -153,9 +153,10 @@ def solve_first_order(
 
 
 def _information_expression(problem: DesignProblem, weights: cp.Variable, b: int) -> cp.Expression:
-    """``P + K Σ w_n M_n`` as an affine matrix expression (for E's ``lambda_min``)."""
+    """``P + K Σ w_n M_n`` (p+e, p+e) as an affine matrix expression (for E's ``lambda_min``
+    and the nuisance parameters' Schur complement)."""
     block = problem.blocks[b]
-    p = block.dimension
+    p = block.columns
     matrices = np.einsum("nri,nrj->nij", block.factors, block.factors)
     matrices = 0.5 * (matrices + matrices.transpose(0, 2, 1))
     flat = matrices.reshape(block.n_candidates, p * p)
@@ -225,6 +226,30 @@ def _socp_term(
     return -cp.sum(spent) / (p if problem.criterion == "A" else 1), constraints
 
 
+def _profiled_term(
+    problem: DesignProblem, weights: cp.Variable, b: int
+) -> tuple[cp.Expression, list[cp.Constraint]]:
+    """A block with nuisance parameters: the criterion of X (p, p) subject to the LMI
+    ``[[M_pp(w) − X, M_pe(w)], [M_ep(w), M_ee(w)]] ⪰ 0``, which holds exactly when X is below
+    the Schur complement ``M_pp − M_pe M_ee⁻¹ M_ep`` (Boyd & Vandenberghe §A.5.5), so the
+    maximum over X is the criterion of the profiled information (a p×p PSD cone per block)."""
+    block = problem.blocks[b]
+    p, e = block.dimension, block.nuisance
+    full = _information_expression(problem, weights, b)
+    x = cp.Variable((p, p), symmetric=True)
+    lifted = cp.bmat([[x, np.zeros((p, e))], [np.zeros((e, p)), np.zeros((e, e))]])
+    constraints = [full - lifted >> 0]
+    if problem.criterion == "D":
+        return cp.log_det(x) / p, constraints
+    if problem.criterion == "E":
+        return cp.lambda_min(x), constraints
+    root = np.eye(p) if problem.criterion == "A" else problem.task_root
+    assert root is not None
+    # tr(Rᵀ X⁻¹ R) = Σ_j matrix_frac(R e_j, X)
+    spent = cp.sum([cp.matrix_frac(root[:, j], x) for j in range(root.shape[1])])
+    return -spent / (p if problem.criterion == "A" else 1), constraints
+
+
 def solve_clarabel(problem: DesignProblem) -> Relaxation:
     """The relaxation as a conic program in cvxpy, solved by Clarabel."""
     started = time.perf_counter()
@@ -232,7 +257,11 @@ def solve_clarabel(problem: DesignProblem) -> Relaxation:
     w = cp.Variable(n, nonneg=True)
     terms, constraints = [], [cp.sum(w) == 1]
     for b in range(len(problem.blocks)):
-        if problem.criterion == "E":
+        if problem.blocks[b].nuisance:
+            term, lmi = _profiled_term(problem, w, b)
+            terms.append(term)
+            constraints += lmi
+        elif problem.criterion == "E":
             terms.append(cp.lambda_min(_information_expression(problem, w, b)))
         else:
             term, cones = _socp_term(problem, w, b)
