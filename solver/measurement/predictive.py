@@ -57,13 +57,11 @@ from solver.predictive import (
     model_error_part,
     parameter_part,
 )
+from solver.stream.coverage import INNER_FOLDS  # the pose protocol's inner folds
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
-INNER_FOLDS = 3
-"""Folds of the cross-validation inside a split's training rows that gives the split its
-model-error part (as :data:`solver.stream.coverage.INNER_FOLDS`)."""
 
 Fitter = Callable[[MeasurementRows], MeasurementFit]
 """Fits rows with the calibration's settings (the model's own unknowns included)."""
