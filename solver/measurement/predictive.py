@@ -57,7 +57,7 @@ from solver.predictive import (
     model_error_part,
     parameter_part,
 )
-from solver.stream.coverage import INNER_FOLDS  # the pose protocol's inner folds
+from solver.stream.coverage import INNER_FOLDS, ScoredRows  # as the pose protocol's
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -79,26 +79,6 @@ class MeasurementPredictor:
     estimate: CovarianceEstimate
     parameter_covariance: FloatArray
     frames: tuple[int, ...]
-
-
-@dataclass(frozen=True)
-class ScoredRows:
-    """Rows scored by a predictor they took no part in: ``residuals`` (N, d), ``base`` (N, d, d)
-    = Σ_E + noise + J_θ Cov(θ̂) J_θᵀ, ``axes`` T (N, d, d), all in the covariance's space."""
-
-    residuals: FloatArray
-    base: FloatArray
-    axes: FloatArray
-
-    @classmethod
-    def join(cls, parts: Sequence[ScoredRows], d: int) -> ScoredRows:
-        if not parts:
-            return cls(np.zeros((0, d)), np.zeros((0, d, d)), np.zeros((0, d, d)))
-        return cls(
-            np.concatenate([p.residuals for p in parts]),
-            np.concatenate([p.base for p in parts]),
-            np.concatenate([p.axes for p in parts]),
-        )
 
 
 def residual_axes(chain: KinematicChain, fit: MeasurementFit, rows: MeasurementRows) -> FloatArray:
@@ -179,7 +159,8 @@ def score_rows(
     samples = covariance_samples(chain, fit, rows, predictor.frames)
     random = predictor.estimate.ee_covariance(samples.frame_jacobians, include_noise=True)
     parts = parameter_part(parameter_jacobian(chain, fit, rows), predictor.parameter_covariance)
-    return ScoredRows(samples.residuals, random + parts, residual_axes(chain, fit, rows))
+    axes = residual_axes(chain, fit, rows)
+    return ScoredRows(samples.residuals, random + parts, random, axes)
 
 
 def cross_validated(

@@ -239,7 +239,8 @@ def train_predictor(
 
 @dataclass(frozen=True)
 class ScoredRows:
-    """Rows scored by a predictor: end-effector-frame residuals (n, d), the covariance of
+    """Rows scored by a predictor: residuals (n, d) in the covariance's space (the end-effector
+    frame for poses; :mod:`solver.measurement.predictive` for the other types), the covariance of
     every part but the model error (``base``, (n, d, d)), Σ_E + Σ_n alone (``random``) and
     the measurement axes T (n, d, d) of :func:`~solver.predictive.measurement_axes`."""
 
