@@ -82,6 +82,11 @@ class DiscoveryOptions(_Model):
     outlier_level: float | None = Field(
         1e-3, gt=0.0, lt=1.0, description="Gross-outlier screening level (None: keep all)."
     )
+    detectability: bool = Field(
+        True,
+        description="State the smallest detectable size of every library term left out (a "
+        "report only: the findings do not depend on it; false saves most of a small run).",
+    )
     sensor_sigma_mm: float | None = Field(None, gt=0.0, description="Sensor noise, for χ²/dof.")
     sensor_sigma_deg: float | None = Field(None, gt=0.0)
     measurement: str = CalibrationOptions.model_fields["measurement"]  # type: ignore[assignment]
@@ -325,7 +330,9 @@ class FindingsResult(_Model):
     model: DiscoveredModel
     n_candidates: int = Field(description="Library terms tested at the first step.")
     detectability: Detectability | None = Field(
-        None, description="Smallest detectable size of every library term left out."
+        None,
+        description="Smallest detectable size of every library term left out (null when "
+        "the options turned it off).",
     )
     plots: list[str] = Field(default_factory=list, description="PNG files next to the JSON.")
     measurement: DiscoveryMeasurement | None = Field(

@@ -684,6 +684,13 @@ def discover(
     ] = None,
     folds: Annotated[int, typer.Option(help="K of the held-out check.")] = 5,
     bootstrap: Annotated[int, typer.Option(min=0, help="Bootstrap replicates.")] = 50,
+    detectability: Annotated[
+        bool,
+        typer.Option(
+            help="State the smallest detectable size of each term left out (a report only; "
+            "--no-detectability saves most of a small recording's run)."
+        ),
+    ] = True,
     noise_mm: Annotated[float | None, typer.Option(help="Sensor noise σ (mm), for χ².")] = None,
     noise_deg: Annotated[float | None, typer.Option(help="Sensor noise σ (deg).")] = None,
     measurement: MeasurementOpt = None,
@@ -712,6 +719,7 @@ def discover(
             effects=_names(effects) or list(discovery.EFFECTS),  # type: ignore[arg-type]
             folds=folds,
             bootstrap=bootstrap,
+            detectability=detectability,
             sensor_sigma_mm=noise_mm,
             sensor_sigma_deg=noise_deg,
             measurement=measurement or "auto",

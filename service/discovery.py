@@ -107,6 +107,7 @@ def solver_options(options: DiscoveryOptions) -> solver_discovery.DiscoveryOptio
         sensor_sigma=sensor,
         outlier_level=options.outlier_level,
         heldout_level=options.heldout_level,
+        detectability=options.detectability,
     )
 
 
@@ -567,6 +568,8 @@ def summary(findings: FindingsResult) -> str:
         lines.append("nothing missing: no library term or structure is significant")
     if findings.detectability is not None and findings.detectability.sizes:
         lines += detectability_lines(findings.detectability)
+    elif findings.detectability is None:
+        lines.append("smallest detectable sizes: not computed (--no-detectability)")
     before, after = findings.heldout.before, findings.heldout.after
     rot = (
         ""
@@ -650,7 +653,9 @@ def detectability_lines(detectability: Detectability) -> list[str]:
 
 def _detectability(
     result: solver_discovery.DiscoveryResult, names: tuple[str, ...]
-) -> Detectability:
+) -> Detectability | None:
+    if result.detectable is None:
+        return None
     return Detectability(
         level=result.detection_level,
         power=result.detection_power,

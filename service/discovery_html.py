@@ -142,8 +142,10 @@ def _detectability(findings: FindingsResult) -> str:
     """Per library term left out, the smallest size this recording would have detected."""
     e = html.escape
     detectability = findings.detectability
-    if detectability is None or not detectability.sizes:
-        return "<p>Not computed for this report.</p>"
+    if detectability is None:
+        return "<p>Not computed: the discovery ran with detectability turned off.</p>"
+    if not detectability.sizes:
+        return "<p>No library term is left out of the model.</p>"
     joints = list(findings.robot.joint_names)
     groups = detectability_groups(detectability)
     header = "<tr><th>term</th>" + "".join(f"<th>{e(j)}</th>" for j in joints)

@@ -115,6 +115,9 @@ class DiscoveryOptions:
     one-sided paired t-test over samples significant at this level.
     ``outlier_level``: probability that screening drops any sample of a recording that fits
     the current model (:func:`solver.discovery.validation.screen_outliers`); None keeps all.
+    ``detectability``: state the smallest detectable size of every library term left out
+    (:mod:`solver.discovery.detectability`). The sizes are computed after the search and
+    change nothing it names; False skips them (most of a run's time on a small recording).
     """
 
     alpha: float = 0.01
@@ -131,6 +134,7 @@ class DiscoveryOptions:
     sensor_sigma: tuple[float, float] | None = None
     separating_poses: int = 6
     pose_pool: int = 400
+    detectability: bool = True
 
 
 def discover(
@@ -618,7 +622,9 @@ class _Search:
                 unexplained=frozenset(self.misfits),
                 collinear=options.collinear_correlation,
                 joint_level=level,
-            ),
+            )
+            if options.detectability
+            else None,
             detection_level=level,
             detection_power=DETECTION_POWER,
         )

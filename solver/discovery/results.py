@@ -149,6 +149,6 @@ class DiscoveryResult:
     n_candidates: int
     clock_unit: str
     outlier_rows: IndexArray  # 0-based samples left out as gross outliers of the final model
-    detectable: list[DetectableSize] = field(default_factory=list)
+    detectable: list[DetectableSize] | None = field(default_factory=list)  # None: not computed
     detection_level: float = float("nan")  # per-test level of the detectable sizes
     detection_power: float = float("nan")

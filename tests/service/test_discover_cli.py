@@ -191,7 +191,7 @@ def test_fr3_negative_compliance_is_reported_not_named() -> None:
     from tests.conftest import REAL_DATA
 
     joints = [f"panda_joint{i}" for i in range(2, 8)]
-    options = DiscoveryOptions(compliant_joints=joints, bootstrap=10)
+    options = DiscoveryOptions(compliant_joints=joints, bootstrap=10, detectability=False)
     description = robot("panda")
     model = discovery.chain_for(description, options)
     dataset = read_dataset(
@@ -249,7 +249,7 @@ def test_simulated_effect_is_discovered(label: str) -> None:
         description, n_samples=200, seed=3, effects=("geometry", "camera", "marker", *names)
     )
     compliant = [scn.chain.joint_names[i] for i in declared]
-    options = DiscoveryOptions(compliant_joints=compliant, bootstrap=5)
+    options = DiscoveryOptions(compliant_joints=compliant, bootstrap=5, detectability=False)
     dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
     result = discovery.discover(dataset, description, options)
     joints = list(scn.chain.joint_names)

@@ -23,7 +23,7 @@ from solver.simulate import JointEffect, SimulationSpec, look_at, simulate_recor
 from tests.conftest import chain
 
 N = 200
-OPTIONS = DiscoveryOptions(seed=0, bootstrap=20)
+OPTIONS = DiscoveryOptions(seed=0, bootstrap=20, detectability=False)  # sizes: test_detectability
 J = chain("kinova").joint_names
 
 

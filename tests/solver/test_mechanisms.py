@@ -146,7 +146,9 @@ def _backlash_run(simulator: str, name: str, seed: int) -> DiscoveryResult:
         q, pose, t = simulated.joint_positions, simulated.measured_pose, simulated.time_s
     rigid = dataclasses.replace(KINOVA, compliance_axes=())
     return discover(
-        rigid, DiscoveryData(q, pose, False, t), DiscoveryOptions(seed=seed, bootstrap=10)
+        rigid,
+        DiscoveryData(q, pose, False, t),
+        DiscoveryOptions(seed=seed, bootstrap=10, detectability=False),
     )
 
 
