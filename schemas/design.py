@@ -130,6 +130,23 @@ class DesignOptions(_Model):
         "payload, rank tolerance and covariance frames decide the identifiable parameters).",
     )
 
+    @model_validator(mode="before")
+    @classmethod
+    def _calibration_measurement(cls, data: object) -> object:
+        """Without ``measurement``, the calibration options' own (a ``kincal calibrate``
+        config reused for the design) when it names one."""
+        if not isinstance(data, dict) or "measurement" in data:
+            return data
+        calibration = data.get("calibration")
+        planned = (
+            calibration.get("measurement")
+            if isinstance(calibration, dict)
+            else getattr(calibration, "measurement", None)
+        )
+        if isinstance(planned, str) and planned != "auto":
+            return {**data, "measurement": planned}
+        return data
+
     @field_validator("measurement")
     @classmethod
     def _measurement_known(cls, value: str) -> str:

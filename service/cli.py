@@ -1172,9 +1172,12 @@ def design_summary(out: DesignResult) -> str:
     if out.measurement is not None:
         nuisance = out.measurement.nuisance_parameters
         lines.append(
-            f"measurement {out.measurement.type}: standard errors of the chain parameters with "
-            f"the measurement's {len(nuisance)} own unknowns profiled out"
-            + (f" ({', '.join(nuisance)})" if nuisance else "")
+            f"measurement {out.measurement.type}: standard errors of the chain parameters"
+            + (
+                f" with its {len(nuisance)} own unknowns profiled out ({', '.join(nuisance)})"
+                if nuisance
+                else " (no unknowns of its own)"
+            )
         )
     if out.sequential is not None and out.sequential.unidentifiable_before:
         lines.append(

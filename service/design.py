@@ -297,7 +297,9 @@ def check_configurations(chain: KinematicChain, q: FloatArray, what: str) -> Non
         )
 
 
-def _loads(model: DesignModel, q: FloatArray) -> FloatArray:
+def design_loads(model: DesignModel, q: FloatArray) -> FloatArray:
+    """Gravity loads (N, n_axes) N·m of configurations q (N, k) under the calibration's
+    gravity and payload."""
     return gravity_loads(
         model.chain,
         q,
@@ -402,9 +404,9 @@ def run_design(
             f"n_poses: {options.n_poses} poses wanted but only {q.shape[0]} candidates; give "
             "more candidates, widen the working volume or allow repeats"
         )
-    loads = _loads(model, q)
+    loads = design_loads(model, q)
     prior_q = None if recorded is None else recorded.joint_positions
-    old = None if prior_q is None else (prior_q, _loads(model, prior_q))
+    old = None if prior_q is None else (prior_q, design_loads(model, prior_q))
     rows = model.noise_std.shape[0]
     fit = pipeline.fit_options(model.calibration)
     if model.measurement is None:
@@ -412,7 +414,7 @@ def run_design(
             chain, model.params, q, loads, model.noise_std, options=fit, recorded=old
         )
     else:
-        model, geometry = _measurement_block(model, options, q, loads, sockets)
+        model, geometry = measurement_block(model, options, q, loads, sockets)
         rows = 6 if model.measurement is not None and model.measurement.rotation_rows else 3
     if task is not None:
         check_configurations(chain, task, "task")
@@ -421,7 +423,7 @@ def run_design(
             chain, TASK_SAMPLES, np.random.default_rng([options.seed, 1]), volume_of(options)
         )
     task_jac = equilibrated_pose_jacobian(
-        chain, model.params, task, _loads(model, task), geometry, rows
+        chain, model.params, task, design_loads(model, task), geometry, rows
     )
     blocks: list[InformationBlock] = []
     if options.stage in ("geometry", "both"):
@@ -505,7 +507,7 @@ def run_design(
     )
 
 
-def _measurement_block(
+def measurement_block(
     model: DesignModel,
     options: DesignOptions,
     q: FloatArray,

@@ -19,13 +19,15 @@ import pytest
 from fastapi.testclient import TestClient
 
 from schemas.calibration import CalibrationOptions
+from schemas.design import DesignOptions
 from service import pipeline
+from service.design import volume_of
 from service.robots import load_robot
-from solver.design.candidates import Volume, sample_candidates
+from solver.design.candidates import Volume, sample_candidates, tip_poses
 from solver.design.criteria import DesignProblem
 from solver.design.information import InformationBlock, model_information, model_noise_std
 from solver.measurement import FixedPoints, KnownDistance, MeasurementModel, MultiMarker
-from solver.measurement.models import ModelParameters, PoseComponents
+from solver.measurement.models import EyeOnHead, ModelParameters, PoseComponents, RelativeBase
 from solver.model import KinematicChain, build_chain, gravity_loads
 from tests.service.api.conftest import assert_problem
 from tests.service.cli_support import run
@@ -86,8 +88,8 @@ def design_cli(
     out = tmp_path / f"design{len(list(tmp_path.iterdir()))}.json"
     code, stdout, stderr = run(["design", *args, "-o", out], capsys, monkeypatch)
     assert code == 0, stderr
-    assert "profiled out" in stdout
     document: dict[str, Any] = json.loads(out.read_text())
+    assert f"measurement {document['options']['measurement']}: standard errors" in stdout
     return document
 
 
@@ -103,6 +105,52 @@ def check_design(document: dict[str, Any], block: InformationBlock, criterion: s
     se = np.array([p["standard_error"] for p in document["parameters"]])
     np.testing.assert_allclose(se, chain_standard_errors(block, chosen), rtol=1e-9)
     assert document["measurement"]["nuisance_parameters"] == list(block.nuisance_names)
+
+
+@pytest.mark.parametrize(
+    ("measurement", "extra", "model"),
+    [
+        ("relative-base", ["--min-spacing", "0.8"], RelativeBase()),
+        (
+            "eye-on-head:j2s6s200_joint_2",
+            ["--cone", "0,0,0,0,0,1,60,0.1,1.0", "--criterion", "A"],
+            EyeOnHead(sensor_joint=1),
+        ),
+    ],
+    ids=["relative-base", "eye-on-head"],
+)
+def test_cli_designs_with_sampled_constraints(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    measurement: str,
+    extra: list[str],
+    model: MeasurementModel,
+) -> None:
+    """Sampled candidates with the pose designs' constraints (spacing, a view cone) for the
+    base-marker and sensor-on-the-chain types; criterion, bound and standard errors as the
+    solver's."""
+    document = design_cli(
+        tmp_path,
+        capsys,
+        monkeypatch,
+        *("--robot", "kinova", "--measurement", measurement, *extra),
+        *("--n-candidates", N_CANDIDATES, "--poses", K),
+    )
+    chain = chain_of("kinova")
+    options = DesignOptions.model_validate(document["options"])
+    q = sample_candidates(chain, N_CANDIDATES, np.random.default_rng(0), volume_of(options))
+    chosen = np.array([p["candidate"] for p in document["poses"]])
+    np.testing.assert_array_equal([p["joint_positions"] for p in document["poses"]], q[chosen])
+    if options.min_spacing_rad:
+        gaps = np.linalg.norm(q[chosen, None] - q[None, chosen], axis=2)
+        assert gaps[np.triu_indices(K, 1)].min() >= options.min_spacing_rad
+    if options.cone is not None:
+        assert volume_of(options).contains(tip_poses(chain, q)).all()
+    nominal = ModelParameters.nominal(chain)
+    block = solver_block(chain, model, nominal, q)
+    check_design(document, block, options.criterion)
+    assert document["measurement"]["nuisance_parameters"] == []
 
 
 @pytest.mark.parametrize(
