@@ -92,8 +92,8 @@ def run_case(case: Case, n_candidates: int, n_poses: int, clarabel: int) -> str:
     c = out.criterion
     row = (
         f"{case.name:24s} {q.shape[0]:5d} {block.dimension:3d}+{block.nuisance:<3d} "
-        f"{c.method:11s} {c.elapsed_s:7.2f} {total_s:7.2f} {c.value:9.4f} {c.upper_bound:9.4f} "
-        f"{c.efficiency:6.3f} {float(np.median(randoms)):9.4f}"
+        f"{c.method:11s} {c.status:14s} {c.elapsed_s:7.2f} {total_s:7.2f} "
+        f"{c.value:9.4f} {c.upper_bound:9.4f} {c.efficiency:6.3f} {float(np.median(randoms)):9.4f}"
     )
     if clarabel:
         small = DesignProblem((block.subset(np.arange(min(clarabel, q.shape[0]))),), "D", n_poses)
@@ -108,8 +108,8 @@ def run_case(case: Case, n_candidates: int, n_poses: int, clarabel: int) -> str:
 
 
 HEADER = (
-    f"{'case':24s} {'cands':>5s} {'p+e':7s} {'method':11s} {'relax s':>7s} {'total s':>7s} "
-    f"{'D':>9s} {'bound':>9s} {'effic':>6s} {'random D':>9s}"
+    f"{'case':24s} {'cands':>5s} {'p+e':7s} {'method':11s} {'status':14s} {'relax s':>7s} "
+    f"{'total s':>7s} {'D':>9s} {'bound':>9s} {'effic':>6s} {'random D':>9s}"
 )
 
 
