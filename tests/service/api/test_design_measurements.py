@@ -26,7 +26,13 @@ from service.robots import load_robot
 from solver.design.candidates import Volume, sample_candidates, tip_poses
 from solver.design.criteria import DesignProblem
 from solver.design.information import InformationBlock, model_information, model_noise_std
-from solver.measurement import FixedPoints, KnownDistance, MeasurementModel, MultiMarker
+from solver.measurement import (
+    FixedPoints,
+    KnownDistance,
+    MeasurementModel,
+    MeasurementRows,
+    MultiMarker,
+)
 from solver.measurement.models import EyeOnHead, ModelParameters, PoseComponents, RelativeBase
 from solver.model import KinematicChain, build_chain, gravity_loads
 from tests.service.api.conftest import assert_problem
@@ -107,9 +113,14 @@ def check_design(document: dict[str, Any], block: InformationBlock, criterion: s
     assert document["measurement"]["nuisance_parameters"] == list(block.nuisance_names)
 
 
+MARKER_FLAGS = ["--marker-offsets", ",".join(str(v) for o in OFFSETS_M for v in o)]
+
+
 @pytest.mark.parametrize(
     ("measurement", "extra", "model"),
     [
+        ("components:tz,rx,ry", [], PoseComponents(("tz", "rx", "ry"))),
+        ("markers", MARKER_FLAGS, MultiMarker(3)),
         ("relative-base", ["--min-spacing", "0.8"], RelativeBase()),
         (
             "eye-on-head:j2s6s200_joint_2",
@@ -117,9 +128,9 @@ def check_design(document: dict[str, Any], block: InformationBlock, criterion: s
             EyeOnHead(sensor_joint=1),
         ),
     ],
-    ids=["relative-base", "eye-on-head"],
+    ids=["plane-contact", "markers", "relative-base", "eye-on-head"],
 )
-def test_cli_designs_with_sampled_constraints(
+def test_cli_designs_each_measurement_type(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
@@ -127,9 +138,11 @@ def test_cli_designs_with_sampled_constraints(
     extra: list[str],
     model: MeasurementModel,
 ) -> None:
-    """Sampled candidates with the pose designs' constraints (spacing, a view cone) for the
-    base-marker and sensor-on-the-chain types; criterion, bound and standard errors as the
-    solver's."""
+    """``kincal design --measurement TYPE`` on sampled candidates (defaults for the plane
+    contact and three markers; spacing, a view cone and criterion A for the base marker and
+    the sensor on the chain): the criterion and standard errors are the solver's, the bound
+    holds, the constraints hold, the markers' offsets are listed as profiled-out unknowns and
+    make auto choose the first-order method."""
     document = design_cli(
         tmp_path,
         capsys,
@@ -148,66 +161,19 @@ def test_cli_designs_with_sampled_constraints(
     if options.cone is not None:
         assert volume_of(options).contains(tip_poses(chain, q)).all()
     nominal = ModelParameters.nominal(chain)
-    block = solver_block(chain, model, nominal, q)
-    check_design(document, block, options.criterion)
-    assert document["measurement"]["nuisance_parameters"] == []
-
-
-@pytest.mark.parametrize(
-    ("measurement", "extra", "model"),
-    [
-        ("components:tz,rx,ry", [], PoseComponents(("tz", "rx", "ry"))),
-        (
-            "markers",
-            ["--marker-offsets", ",".join(str(v) for o in OFFSETS_M for v in o)],
-            MultiMarker(3),
-        ),
-    ],
-    ids=["plane-contact", "markers"],
-)
-def test_cli_designs_a_measurement_type_with_defaults(
-    tmp_path: Path,
-    capsys: pytest.CaptureFixture[str],
-    monkeypatch: pytest.MonkeyPatch,
-    measurement: str,
-    extra: list[str],
-    model: MeasurementModel,
-) -> None:
-    """``kincal design --measurement TYPE`` (sampled candidates, default criterion, method and
-    noise): the criterion and standard errors are the solver's, the bound holds, the markers'
-    offsets are listed as profiled-out unknowns."""
-    document = design_cli(
-        tmp_path,
-        capsys,
-        monkeypatch,
-        "--robot",
-        "kinova",
-        "--measurement",
-        measurement,
-        *extra,
-        "--n-candidates",
-        N_CANDIDATES,
-        "--poses",
-        K,
-    )
-    chain = chain_of("kinova")
-    q = sample_candidates(chain, N_CANDIDATES, np.random.default_rng(0), Volume())
-    assert [p["joint_positions"] for p in document["poses"]] == [
-        q[p["candidate"]].tolist() for p in document["poses"]
-    ]
-    nominal = ModelParameters.nominal(chain)
-    extra_m = np.ravel(OFFSETS_M) if isinstance(model, MultiMarker) else np.zeros(0)
-    params = ModelParameters(nominal.links, nominal.compliance_rad_per_nm, extra_m)
+    offsets = np.ravel(OFFSETS_M) if isinstance(model, MultiMarker) else np.zeros(0)
+    params = ModelParameters(nominal.links, nominal.compliance_rad_per_nm, offsets)
     block = solver_block(chain, model, params, q)
-    check_design(document, block)
+    check_design(document, block, options.criterion)
     report = document["measurement"]
     assert report["type"] == measurement
+    assert report["components"] == list(model.components)
     if isinstance(model, MultiMarker):
         assert block.nuisance == 9 and report["nuisance_parameters"][0] == "marker_1.x"
         # auto: the first-order method where Clarabel would need the nuisance LMI
         assert document["criterion"]["method"] == "first_order"
     else:
-        assert report["nuisance_parameters"] == [] and report["components"] == ["tz", "rx", "ry"]
+        assert report["nuisance_parameters"] == []
         assert document["criterion"]["method"] == "clarabel"
 
 
@@ -221,28 +187,21 @@ def socket_slice(folder: Path, rows: int = 20) -> Path:
 
 
 def test_ball_in_socket_design_beats_random_subsets(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+    client: TestClient,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """``--measurement point --candidates FOLDER --point-distance 0.05`` on a slice of a real
     platonics Panda recording (2 sockets × 20 configurations): which 16 to measure. The
     designed set's criterion is the solver's (sockets profiled out, the known distance as a
-    prior) and beats the median of 200 random 16-subsets of the same candidates."""
+    prior) and beats the median of 200 random 16-subsets of the same candidates. The same
+    candidates as a CSV with a socket column, and over HTTP with candidate_sockets, are
+    designed alike."""
     folder = socket_slice(tmp_path / "panda")
-    document = design_cli(
-        tmp_path,
-        capsys,
-        monkeypatch,
-        "--robot",
-        "panda",
-        "--measurement",
-        "point",
-        "--point-distance",
-        "0.05",
-        "--candidates",
-        folder,
-        "--poses",
-        16,
-    )
+    point = ("--robot", "panda", "--measurement", "point", "--poses", 16)
+    args = (*point, "--point-distance", "0.05", "--candidates", folder)
+    document = design_cli(tmp_path, capsys, monkeypatch, *args)
     assert document["candidates"] == 40 and document["candidate_source"] == "given"
     report = document["measurement"]
     assert report["sockets"] == ["world_frame/hole_0", "world_frame/hole_1"]
@@ -251,8 +210,6 @@ def test_ball_in_socket_design_beats_random_subsets(
     q = np.concatenate([np.loadtxt(f, delimiter=",") for f in sorted(folder.glob("*/hole_?.csv"))])
     group = np.repeat([0, 1], 20)
     points = FixedPoints(2, (KnownDistance(0, 1, 0.05),))
-    from solver.measurement import MeasurementRows
-
     params = points.start(chain, MeasurementRows.of(q, _loads(chain, q), None, group))
     block = solver_block(chain, points, params, q, group)
     assert block.nuisance == 6 and block.prior.any()
@@ -265,20 +222,25 @@ def test_ball_in_socket_design_beats_random_subsets(
     table = pd.DataFrame(q, columns=chain.joint_names).assign(socket=group)
     table.to_csv(tmp_path / "sockets.csv", index=False)
     csv = design_cli(
-        tmp_path,
-        capsys,
-        monkeypatch,
-        "--robot",
-        "panda",
-        "--measurement",
-        "point",
-        "--candidates",
-        tmp_path / "sockets.csv",
-        "--poses",
-        16,
+        tmp_path, capsys, monkeypatch, *point, "--candidates", tmp_path / "sockets.csv"
     )
     assert csv["measurement"]["sockets"] == ["socket 0", "socket 1"]
     check_design(csv, solver_block(chain, FixedPoints(2), params, q, group))
+    # and over HTTP: candidates_rad with the socket of each
+    body = {
+        "robot": "panda",
+        "options": {"n_poses": 16, "measurement": "point"},
+        "candidates_rad": q.tolist(),
+        "candidate_sockets": group.tolist(),
+    }
+    response = client.post("/api/v1/designs", json=body)
+    assert response.status_code == 200, response.text
+    http = response.json()
+    assert [p["candidate"] for p in http["poses"]] == [p["candidate"] for p in csv["poses"]]
+    assert http["parameters"] == csv["parameters"]
+    assert http["measurement"]["nuisance_parameters"] == [
+        f"point_{g}.{a}" for g in (0, 1) for a in "xyz"
+    ]
 
 
 @pytest.mark.parametrize(
@@ -325,12 +287,11 @@ def test_http_designs_markers_like_the_cli(
     assert response.status_code == 200, response.text
     document = response.json()
     pd.DataFrame(q, columns=chain.joint_names).to_csv(tmp_path / "c.csv", index=False)
-    offsets = ",".join(str(v) for o in OFFSETS_M for v in o)
     cli = design_cli(
         tmp_path,
         capsys,
         monkeypatch,
-        *("--robot", "kinova", "--measurement", "markers", "--marker-offsets", offsets),
+        *("--robot", "kinova", "--measurement", "markers", *MARKER_FLAGS),
         *("--candidates", tmp_path / "c.csv", "--poses", 10),
     )
     assert [p["candidate"] for p in document["poses"]] == [p["candidate"] for p in cli["poses"]]
