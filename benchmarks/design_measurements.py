@@ -77,7 +77,7 @@ def run_case(case: Case, n_candidates: int, n_poses: int, clarabel: int) -> str:
     model = design.design_model(robot, options)
     given, sockets = None, None
     if case.folder is not None:
-        given, sockets = design.read_candidates(SOCKETS / case.folder, model, options)
+        given, sockets = design.read_candidates(SOCKETS / case.folder, model)
     started = time.perf_counter()
     out = design.run_design(robot, options, candidates=given, model=model, sockets=sockets)
     total_s = time.perf_counter() - started

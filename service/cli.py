@@ -1124,7 +1124,7 @@ def design(
     chain = model.chain
     given, sockets = None, None
     if candidates is not None:
-        given, sockets = designs.read_candidates(candidates, model, options)
+        given, sockets = designs.read_candidates(candidates, model)
     task_q = None
     if task is not None:
         task_q = read_configurations(

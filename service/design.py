@@ -331,9 +331,7 @@ def candidate_set(
     return given[inside], notes, None if sockets is None else sockets.take(inside)
 
 
-def read_candidates(
-    path: Path, model: DesignModel, options: DesignOptions
-) -> tuple[FloatArray, Sockets | None]:
+def read_candidates(path: Path, model: DesignModel) -> tuple[FloatArray, Sockets | None]:
     """Candidates of ``kincal design --candidates``: joint columns of a file (a recording
     works too); for measurement 'point' a platonics folder of hole_<k>.csv files (read as
     ``kincal calibrate`` reads it: sockets, and with ``point_distance_m`` the known distance
@@ -368,12 +366,12 @@ def read_candidates(
         source=path.name,
         other_joint_names=chain.other_joint_names,
     ).joint_positions
-    labels, index = np.unique(frame["socket"].astype(str).to_numpy(), return_inverse=True)
-    return q, Sockets(index.astype(np.intp), tuple(f"socket {v}" for v in labels))
+    return q, socket_candidates(frame["socket"].astype(str).tolist())
 
 
-def socket_candidates(sockets: list[int] | None) -> Sockets | None:
-    """Sockets of HTTP candidates (``candidate_sockets``), numbered as given."""
+def socket_candidates(sockets: list[int] | list[str] | None) -> Sockets | None:
+    """The sockets of candidates named by a value each (HTTP ``candidate_sockets``, a CSV's
+    ``socket`` column), numbered in sorted order."""
     if sockets is None:
         return None
     labels, index = np.unique(np.asarray(sockets), return_inverse=True)
