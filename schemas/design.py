@@ -10,10 +10,10 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from schemas.api import JobStatus
-from schemas.calibration import CalibrationOptions, Vector3
+from schemas.calibration import CalibrationOptions, Vector3, known_measurement
 
 DESIGN_FORMAT: Literal["kincal.design/1"] = "kincal.design/1"
 DEFAULT_NOISE_MM = 0.05
@@ -80,8 +80,22 @@ class DesignOptions(_Model):
         description="Information about geometry and compliance (Eq. 8–10), about the "
         "covariances (Eq. 12–17), or both (D: sum of both stages' log det per dimension).",
     )
-    measurement: Literal["pose", "position"] = Field(
-        "pose", description="What the sensor measures: full 6-D pose or 3-D position."
+    measurement: str = Field(
+        "pose",
+        description="What each recorded row will measure, as the calibration's measurement "
+        "option names it (docs/measurements.md): 'pose', 'position', 'components:tz,rx,ry' "
+        "(chosen pose components, e.g. a plane contact), 'point' (ball in socket: candidates "
+        "must be recorded socket configurations), 'markers' (several markers at once: "
+        "marker_offsets_m), 'relative-base' (position of the tip marker in the frame of a "
+        "marker on the base) or 'eye-on-head:<joint>' (full pose seen by a sensor after that "
+        "joint). The measurement's own unknowns (sockets, marker offsets) are profiled out.",
+    )
+    marker_offsets_m: list[Vector3] | None = Field(
+        None,
+        min_length=2,
+        max_length=50,
+        description="Measurement 'markers': each marker's expected offset from the tip frame "
+        "(in the tip frame), x, y, z m; the design's information depends on them.",
     )
     n_candidates: int = Field(
         2000, ge=1, le=100_000, description="Candidates drawn when none are given."
@@ -115,6 +129,68 @@ class DesignOptions(_Model):
         description="The calibration the poses are for (its compliance, flex axes, gravity, "
         "payload, rank tolerance and covariance frames decide the identifiable parameters).",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _calibration_measurement(cls, data: object) -> object:
+        """Without ``measurement``, the calibration options' own (a ``kincal calibrate``
+        config reused for the design) when it names one."""
+        if not isinstance(data, dict) or "measurement" in data:
+            return data
+        calibration = data.get("calibration")
+        planned = (
+            calibration.get("measurement")
+            if isinstance(calibration, dict)
+            else getattr(calibration, "measurement", None)
+        )
+        if isinstance(planned, str) and planned != "auto":
+            return {**data, "measurement": planned}
+        return data
+
+    @field_validator("measurement")
+    @classmethod
+    def _measurement_known(cls, value: str) -> str:
+        if value == "auto":
+            raise ValueError(
+                "a design plans one measurement type: choose pose, position, point, markers, "
+                "relative-base, components:<subset of tx,ty,tz,rx,ry,rz> or eye-on-head:<joint>"
+            )
+        return known_measurement(value)
+
+    @property
+    def measurement_kind(self) -> str:
+        """The measurement type without its argument ('components', 'eye-on-head', ...)."""
+        return self.measurement.partition(":")[0]
+
+    @model_validator(mode="after")
+    def _measurement_combination(self) -> DesignOptions:
+        kind = self.measurement_kind
+        if kind not in ("pose", "position") and self.stage != "geometry":
+            raise ValueError(
+                f"measurement {kind!r}: stage {self.stage!r} is designed for pose and "
+                "position recordings only; use stage 'geometry'"
+            )
+        if kind == "markers" and self.marker_offsets_m is None:
+            raise ValueError(
+                "measurement 'markers' needs marker_offsets_m: each marker's expected offset "
+                "from the tip frame, x,y,z m (at least 2 markers)"
+            )
+        if kind != "markers" and self.marker_offsets_m is not None:
+            raise ValueError("marker_offsets_m is for measurement 'markers'; leave it out")
+        planned = self.calibration.measurement
+        streamed = ("pose", "position")
+        if planned not in ("auto", self.measurement) and (
+            kind not in streamed or planned.partition(":")[0] not in streamed
+        ):
+            raise ValueError(
+                f"calibration.measurement {planned!r} differs from measurement "
+                f"{self.measurement!r}; leave the calibration's measurement out (or 'auto')"
+            )
+        if self.calibration.point_distance_m is not None and kind != "point":
+            raise ValueError(
+                "calibration.point_distance_m is for measurement 'point'; leave it out"
+            )
+        return self
 
     @model_validator(mode="after")
     def _combination(self) -> DesignOptions:
@@ -169,6 +245,26 @@ class CovarianceDesignReport(_Model):
     unidentifiable: list[str]
 
 
+class MeasurementDesignReport(_Model):
+    """What the design's rows measure (a type other than pose or position) and the
+    measurement's own unknowns, profiled out of the predicted standard errors."""
+
+    type: str = Field(description="The measurement option.")
+    frame: str = Field(description="Frame of the residual of one row.")
+    components: list[str] = Field(description="Components of one row's residual.")
+    nuisance_parameters: list[str] = Field(
+        description="The measurement's own unknowns the calibration fits too (socket points, "
+        "marker offsets): profiled out of the information (Schur complement), so "
+        "``parameters`` are the chain's standard errors with them unknown."
+    )
+    sockets: list[str] = Field(
+        default_factory=list, description="Measurement 'point': the sockets of the candidates."
+    )
+    known_distances: int = Field(
+        0, description="Measurement 'point': known socket distances (prior equations)."
+    )
+
+
 class SequentialReport(_Model):
     recorded_poses: int
     unidentifiable_before: list[str] = Field(
@@ -203,6 +299,9 @@ class DesignResult(_Model):
     task_configurations: int
     covariance: CovarianceDesignReport | None = None
     sequential: SequentialReport | None = None
+    measurement: MeasurementDesignReport | None = Field(
+        None, description="Measurement types other than pose and position."
+    )
     notes: list[str] = Field(default_factory=list)
 
 
@@ -233,6 +332,42 @@ class DesignCreate(_Model):
     task_rad: list[list[float]] | None = Field(
         None, min_length=1, max_length=10_000, description="Task configurations (criterion I)."
     )
+    candidate_sockets: list[int] | None = Field(
+        None,
+        min_length=1,
+        max_length=100_000,
+        description="Measurement 'point': the socket (0, 1, ...) each of candidates_rad was "
+        "recorded in (ball-in-socket rows need a physical contact).",
+    )
+
+    @model_validator(mode="after")
+    def _sockets(self) -> DesignCreate:
+        point = self.options.measurement_kind == "point"
+        if point and (self.candidates_rad is None or self.candidate_sockets is None):
+            missing = "candidates_rad" if self.candidates_rad is None else "candidate_sockets"
+            raise ValueError(
+                f"{missing}: measurement 'point' needs recorded socket configurations "
+                "(candidates_rad) and the socket of each (candidate_sockets): ball-in-socket "
+                "rows need a physical contact, so candidates cannot be sampled"
+            )
+        if not point and self.candidate_sockets is not None:
+            raise ValueError("candidate_sockets is for measurement 'point'; leave it out")
+        if point and self.options.calibration.point_distance_m is not None:
+            raise ValueError(
+                "options.calibration.point_distance_m: known socket distances pair the "
+                "hole_0/hole_1 files of a platonics folder; use kincal design --candidates "
+                "FOLDER --point-distance, or leave it out here"
+            )
+        if (
+            self.candidates_rad is not None
+            and self.candidate_sockets is not None
+            and len(self.candidate_sockets) != len(self.candidates_rad)
+        ):
+            raise ValueError(
+                f"candidate_sockets: {len(self.candidate_sockets)} sockets for "
+                f"{len(self.candidates_rad)} candidates_rad; give one per candidate"
+            )
+        return self
 
 
 class DesignLinks(_Model):

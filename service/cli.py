@@ -945,6 +945,7 @@ DESIGN_FLAGS = {
     "prior_perturbation_deg": "--prior-perturbation-deg",
     "method": "--method",
     "allow_repeats": "--allow-repeats",
+    "marker_offsets_m": "--marker-offsets",
     "calibration": "--config",
 }
 
@@ -963,6 +964,16 @@ def _design_options(values: dict[str, object]) -> DesignOptions:
 def _box(text: str) -> dict[str, object]:
     values = numbers(text, "--box", 6)
     return {"low_m": values[:3], "high_m": values[3:]}
+
+
+def _offsets(text: str) -> list[list[float]]:
+    values = numbers(text, "--marker-offsets")
+    if len(values) % 3:
+        raise KincalError(
+            f"--marker-offsets takes x,y,z (m) of each marker, 3 numbers per marker; got "
+            f"{len(values)} numbers"
+        )
+    return [values[i : i + 3] for i in range(0, len(values), 3)]
 
 
 def _cone(text: str) -> dict[str, object]:
@@ -1003,11 +1014,28 @@ def design(
         str | None, typer.Option(help="geometry [default], covariance or both.")
     ] = None,
     measurement: Annotated[
-        str | None, typer.Option(help="pose [default] or position (what the sensor measures).")
+        str | None,
+        typer.Option(
+            help="What each row will measure, as for kincal calibrate: pose [default], "
+            "position, point (ball in socket: --candidates recorded in the sockets), markers "
+            "(--marker-offsets), relative-base, components:<tx,ty,tz,rx,ry,rz subset> or "
+            "eye-on-head:<joint> (docs/design.md, Measurement types)."
+        ),
+    ] = None,
+    point_distance: PointDistanceOpt = None,
+    marker_offsets: Annotated[
+        str | None,
+        typer.Option(
+            help="Measurement markers: each marker's expected offset from the tip frame, "
+            "x,y,z m per marker, all comma-separated (3 numbers per marker)."
+        ),
     ] = None,
     candidates: Annotated[
         Path | None,
-        typer.Option(help="Candidate configurations (joint columns; a recording works too)."),
+        typer.Option(
+            help="Candidate configurations (joint columns; a recording works too; measurement "
+            "point: a folder of hole_<k>.csv files or a file with a socket column)."
+        ),
     ] = None,
     n_candidates: Annotated[
         int | None, typer.Option(help="Candidates drawn within the joint limits [2000].")
@@ -1091,23 +1119,34 @@ def design(
             "prior_perturbation_deg": prior_perturbation_deg,
             "method": method,
             "allow_repeats": allow_repeats or None,
+            "marker_offsets_m": None if marker_offsets is None else _offsets(marker_offsets),
             "calibration": None
-            if config is None
-            else calibration_options(read_config(config), {}).model_dump(),
+            if config is None and point_distance is None
+            else calibration_options(
+                None if config is None else read_config(config),
+                {"point_distance_m": point_distance},
+            ).model_dump(),
         }
     )
-    chain = designs.design_model(description, options, recorded).chain
-    given = None
+    model = designs.design_model(description, options, recorded)
+    chain = model.chain
+    given, sockets = None, None
     if candidates is not None:
-        given = read_configurations(
-            candidates, chain.joint_names, other_joint_names=chain.other_joint_names
-        ).joint_positions
+        given, sockets = designs.read_candidates(candidates, model)
     task_q = None
     if task is not None:
         task_q = read_configurations(
             task, chain.joint_names, other_joint_names=chain.other_joint_names
         ).joint_positions
-    out = designs.run_design(description, options, candidates=given, task=task_q, recorded=recorded)
+    out = designs.run_design(
+        description,
+        options,
+        candidates=given,
+        task=task_q,
+        recorded=recorded,
+        model=model,
+        sockets=sockets,
+    )
     _write_json(output, out.model_dump_json(indent=1))
     if poses_csv is not None:
         frame = pd.DataFrame([pose.joint_positions for pose in out.poses], columns=out.joint_names)
@@ -1137,6 +1176,16 @@ def design_summary(out: DesignResult) -> str:
             f"covariance statistics: rank {cov.rank} of {cov.n_entries} (all candidates: "
             f"{cov.candidate_rank}), {len(cov.unidentifiable)} quantities identifiable only in "
             "combination"
+        )
+    if out.measurement is not None:
+        nuisance = out.measurement.nuisance_parameters
+        lines.append(
+            f"measurement {out.measurement.type}: standard errors of the chain parameters"
+            + (
+                f" with its {len(nuisance)} own unknowns profiled out ({', '.join(nuisance)})"
+                if nuisance
+                else " (no unknowns of its own)"
+            )
         )
     if out.sequential is not None and out.sequential.unidentifiable_before:
         lines.append(

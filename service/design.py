@@ -18,7 +18,9 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from schemas.dataset import read_configurations
+from schemas.dataset import configurations_from_frame, read_configurations
+from schemas.dataset.constraints import is_socket_folder
+from schemas.dataset.readers import read_frame
 from schemas.design import (
     ConeVolume,
     CovarianceDesignReport,
@@ -27,10 +29,11 @@ from schemas.design import (
     DesignOptions,
     DesignPose,
     DesignResult,
+    MeasurementDesignReport,
     ParameterError,
     SequentialReport,
 )
-from service import pipeline, result_json
+from service import measurement_run, pipeline, result_json
 from service.robots import RobotDescription
 from service.storage.files import FileStore
 from service.tasks import DatasetRef, RobotRef
@@ -54,6 +57,8 @@ from solver.design.information import (
     covariance_information,
     frame_jacobians,
     geometry_information,
+    model_information,
+    model_noise_std,
 )
 from solver.design.prediction import (
     equilibrated_pose_jacobian,
@@ -63,9 +68,18 @@ from solver.design.prediction import (
 )
 from solver.errors import KincalError
 from solver.kinematics import ChainParameters
+from solver.measurement import (
+    FixedPoints,
+    KnownDistance,
+    MeasurementModel,
+    MeasurementRows,
+    MultiMarker,
+)
+from solver.measurement.models import ModelParameters
 from solver.model import KinematicChain, gravity_loads
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 
 TASK_SAMPLES = 500
 """Task configurations drawn in the working volume when none are given."""
@@ -143,32 +157,60 @@ def recorded_design(
 
 
 @dataclass(frozen=True)
+class Sockets:
+    """Ball-in-socket candidates: the socket of each candidate ``index`` (N,), the sockets'
+    names and the known distances between them."""
+
+    index: IntArray
+    labels: tuple[str, ...]
+    distances: tuple[KnownDistance, ...] = ()
+
+    def take(self, keep: NDArray[np.bool_]) -> Sockets:
+        return Sockets(self.index[keep], self.labels, self.distances)
+
+
+POINT_CANDIDATES = (
+    "measurement 'point': ball-in-socket rows need a physical contact, so the candidates must "
+    "be configurations recorded in the sockets: give --candidates a platonics folder of "
+    "hole_<k>.csv files or a CSV with a 'socket' column (HTTP: candidates_rad and "
+    "candidate_sockets); sampled candidates cannot be measured"
+)
+
+
+@dataclass(frozen=True)
 class DesignModel:
-    """The chain at which the information is evaluated and its settings."""
+    """The chain at which the information is evaluated and its settings; ``measurement``
+    the model of a type other than pose or position (None for those)."""
 
     chain: KinematicChain
     params: ChainParameters
     calibration: CalibrationOptions
     noise_std: FloatArray
     prior: CovariancePrior
+    measurement: MeasurementModel | None = None
 
 
 def design_model(
     robot: RobotDescription, options: DesignOptions, recorded: Recorded | None = None
 ) -> DesignModel:
     """The chain (checked calibration options, or a result's calibrated chain), the sensor
-    noise (options, or the result's noise covariance) and the covariance prior."""
+    noise (options, or the result's noise covariance) and the covariance prior; for the other
+    measurement types their model (:func:`service.measurement_run.measurement_model`, the
+    options checked against the robot as a calibration's are)."""
     d = 3 if options.measurement == "position" else 6
     noise_std = np.r_[[options.noise_mm * 1e-3] * 3, [np.radians(options.noise_deg)] * 3]
+    kind, _, argument = options.measurement.partition(":")
+    if recorded is not None and kind not in ("pose", "position"):
+        raise KincalError(
+            f"--measurement {options.measurement}: a sequential design (--result, "
+            "calibration_id) plans pose or position rows; design the other types without a "
+            "recording"
+        )
     if recorded is None:
-        kind = options.calibration.measurement.partition(":")[0]
-        if kind not in ("auto", "pose", "position"):
-            raise KincalError(
-                f"kincal design plans pose or position recordings (its --measurement); the "
-                f"calibration options' measurement {options.calibration.measurement!r} is not "
-                "supported by the design yet: leave it out of the config"
-            )
-        setup = pipeline.check_calibration(robot, options.calibration)
+        calibration = options.calibration
+        if kind not in ("pose", "position"):
+            calibration = calibration.model_copy(update={"measurement": options.measurement})
+        setup = pipeline.check_calibration(robot, calibration)
         chain, params, calibration = (
             setup.chain,
             ChainParameters.nominal(setup.chain),
@@ -179,6 +221,12 @@ def design_model(
         frames = np.zeros((len(index), 6, 6))
         frames[:, 3:, 3:] = sigma**2 * np.eye(3)
         noise_cov = np.diag(noise_std**2)
+        offsets = options.marker_offsets_m or []
+        measurement = measurement_run.measurement_model(kind, argument, chain, len(offsets))
+        if measurement is not None:
+            noise = model_noise_std(measurement, noise_std[0], noise_std[3])
+            prior = CovariancePrior((), (), np.zeros((0, 6, 6)), noise_cov)
+            return DesignModel(chain, params, calibration, noise, prior, measurement)
     else:
         result = recorded.result
         chain, params = result_json.result_chain(result)
@@ -249,7 +297,9 @@ def check_configurations(chain: KinematicChain, q: FloatArray, what: str) -> Non
         )
 
 
-def _loads(model: DesignModel, q: FloatArray) -> FloatArray:
+def design_loads(model: DesignModel, q: FloatArray) -> FloatArray:
+    """Gravity loads (N, n_axes) N·m of configurations q (N, k) under the calibration's
+    gravity and payload."""
     return gravity_loads(
         model.chain,
         q,
@@ -259,20 +309,73 @@ def _loads(model: DesignModel, q: FloatArray) -> FloatArray:
 
 
 def candidate_set(
-    model: DesignModel, options: DesignOptions, given: FloatArray | None
-) -> tuple[FloatArray, list[str]]:
+    model: DesignModel,
+    options: DesignOptions,
+    given: FloatArray | None,
+    sockets: Sockets | None = None,
+) -> tuple[FloatArray, list[str], Sockets | None]:
     """The candidates: given ones (within limits, those outside the volume dropped with a
-    note), or drawn uniformly within the joint limits inside the volume."""
+    note, and their ``sockets`` with them), or drawn uniformly within the joint limits inside
+    the volume (refused for ball in socket: :data:`POINT_CANDIDATES`)."""
     chain, volume = model.chain, volume_of(options)
+    if isinstance(model.measurement, FixedPoints) and (given is None or sockets is None):
+        raise KincalError(POINT_CANDIDATES)
     if given is None:
         rng = np.random.default_rng(options.seed)
-        return sample_candidates(chain, options.n_candidates, rng, volume), []
+        return sample_candidates(chain, options.n_candidates, rng, volume), [], None
     check_configurations(chain, given, "candidates")
     inside = volume.contains(tip_poses(chain, given))
     notes = []
     if not inside.all():
         notes.append(f"{int((~inside).sum())} given candidates outside the working volume dropped")
-    return given[inside], notes
+    return given[inside], notes, None if sockets is None else sockets.take(inside)
+
+
+def read_candidates(path: Path, model: DesignModel) -> tuple[FloatArray, Sockets | None]:
+    """Candidates of ``kincal design --candidates``: joint columns of a file (a recording
+    works too); for measurement 'point' a platonics folder of hole_<k>.csv files (read as
+    ``kincal calibrate`` reads it: sockets, and with ``point_distance_m`` the known distance
+    of each placement's hole_0/hole_1) or a file with a ``socket`` column."""
+    chain = model.chain
+    if not isinstance(model.measurement, FixedPoints):
+        q = read_configurations(
+            path, chain.joint_names, other_joint_names=chain.other_joint_names
+        ).joint_positions
+        return q, None
+    if is_socket_folder(path):
+        recording = measurement_run.read_measured(path, chain, model.calibration, FixedPoints(1))
+        points = recording.model
+        assert isinstance(points, FixedPoints)
+        return recording.rows.joint_positions, Sockets(
+            recording.rows.group, recording.labels, points.distances
+        )
+    if path.is_dir():
+        raise KincalError(f"--candidates {path}: no hole_<k>.csv files; {POINT_CANDIDATES}")
+    frame = read_frame(path, path.name)
+    if "socket" not in frame.columns:
+        raise KincalError(f"--candidates {path}: no 'socket' column; {POINT_CANDIDATES}")
+    if model.calibration.point_distance_m is not None:
+        raise KincalError(
+            f"--point-distance pairs the hole_0/hole_1 files of each placement of a platonics "
+            f"folder; {path.name} has a socket column only: give the folder or drop "
+            "--point-distance"
+        )
+    q = configurations_from_frame(
+        frame.drop(columns="socket"),
+        chain.joint_names,
+        source=path.name,
+        other_joint_names=chain.other_joint_names,
+    ).joint_positions
+    return q, socket_candidates(frame["socket"].astype(str).tolist())
+
+
+def socket_candidates(sockets: list[int] | list[str] | None) -> Sockets | None:
+    """The sockets of candidates named by a value each (HTTP ``candidate_sockets``, a CSV's
+    ``socket`` column), numbered in sorted order."""
+    if sockets is None:
+        return None
+    labels, index = np.unique(np.asarray(sockets), return_inverse=True)
+    return Sockets(index.astype(np.intp), tuple(f"socket {v}" for v in labels))
 
 
 def run_design(
@@ -283,13 +386,15 @@ def run_design(
     task: FloatArray | None = None,
     recorded: Recorded | None = None,
     model: DesignModel | None = None,
+    sockets: Sockets | None = None,
 ) -> DesignResult:
     """Choose ``options.n_poses`` poses (see the module docstring); ``model``: the
-    :func:`design_model` of these arguments when the caller has already built it."""
+    :func:`design_model` of these arguments when the caller has already built it;
+    ``sockets``: the socket of each candidate (measurement 'point')."""
     if model is None:
         model = design_model(robot, options, recorded)
     chain = model.chain
-    q, notes = candidate_set(model, options, candidates)
+    q, notes, sockets = candidate_set(model, options, candidates, sockets)
     if recorded is not None:
         check_configurations(chain, recorded.joint_positions, "recording")
     if q.shape[0] < options.n_poses and not options.allow_repeats:
@@ -297,14 +402,18 @@ def run_design(
             f"n_poses: {options.n_poses} poses wanted but only {q.shape[0]} candidates; give "
             "more candidates, widen the working volume or allow repeats"
         )
-    loads = _loads(model, q)
+    loads = design_loads(model, q)
     prior_q = None if recorded is None else recorded.joint_positions
-    old = None if prior_q is None else (prior_q, _loads(model, prior_q))
+    old = None if prior_q is None else (prior_q, design_loads(model, prior_q))
     rows = model.noise_std.shape[0]
     fit = pipeline.fit_options(model.calibration)
-    geometry = geometry_information(
-        chain, model.params, q, loads, model.noise_std, options=fit, recorded=old
-    )
+    if model.measurement is None:
+        geometry = geometry_information(
+            chain, model.params, q, loads, model.noise_std, options=fit, recorded=old
+        )
+    else:
+        model, geometry = measurement_block(model, options, q, loads, sockets)
+        rows = 6 if model.measurement is not None and model.measurement.rotation_rows else 3
     if task is not None:
         check_configurations(chain, task, "task")
     else:
@@ -312,7 +421,7 @@ def run_design(
             chain, TASK_SAMPLES, np.random.default_rng([options.seed, 1]), volume_of(options)
         )
     task_jac = equilibrated_pose_jacobian(
-        chain, model.params, task, _loads(model, task), geometry, rows
+        chain, model.params, task, design_loads(model, task), geometry, rows
     )
     blocks: list[InformationBlock] = []
     if options.stage in ("geometry", "both"):
@@ -330,11 +439,13 @@ def run_design(
             recorded=old,
         )
         blocks.append(covariance)
-    needed = -(-geometry.dimension // rows)
+    equations = model.noise_std.shape[0]  # per pose
+    unknowns = geometry.columns - int(np.linalg.matrix_rank(geometry.prior))
+    needed = -(-unknowns // equations)
     if recorded is None and options.n_poses < needed:
         raise KincalError(
-            f"n_poses: {options.n_poses} poses give {options.n_poses * rows} equations for "
-            f"{geometry.dimension} identifiable parameters; choose at least {needed} poses"
+            f"n_poses: {options.n_poses} poses give {options.n_poses * equations} equations "
+            f"for {unknowns} identifiable parameters; choose at least {needed} poses"
         )
     problem = DesignProblem(
         tuple(blocks),
@@ -387,7 +498,79 @@ def run_design(
         sequential=None
         if recorded is None or prior_q is None
         else _sequential_report(model, geometry, task_jac, prior_q),
+        measurement=None
+        if model.measurement is None
+        else _measurement_report(options, model.measurement, geometry, sockets),
         notes=notes,
+    )
+
+
+def measurement_block(
+    model: DesignModel,
+    options: DesignOptions,
+    q: FloatArray,
+    loads: FloatArray,
+    sockets: Sockets | None,
+) -> tuple[DesignModel, InformationBlock]:
+    """The geometry block of a measurement type other than pose/position
+    (:func:`solver.design.information.model_information`, its own unknowns as nuisance
+    columns) at the nominal chain and the measurement's expected unknowns: the given marker
+    offsets; for ball in socket the ball offset and socket points that fit the candidates
+    (the model's own start, :meth:`FixedPoints.start`), with the known distances. Returns
+    the model completed (sockets, markers) and the block."""
+    measurement = model.measurement
+    nominal = ChainParameters.nominal(model.chain)
+    group = None
+    if isinstance(measurement, FixedPoints):
+        assert sockets is not None
+        counts = np.bincount(sockets.index, minlength=len(sockets.labels))
+        if np.any(counts == 0):
+            raise KincalError(
+                "candidates: every socket of the working volume needs candidates; "
+                f"{[sockets.labels[g] for g in np.flatnonzero(counts == 0)]} have none left "
+                "(widen the working volume)"
+            )
+        measurement = FixedPoints(len(sockets.labels), sockets.distances)
+        group = sockets.index
+        params: ModelParameters = measurement.start(
+            model.chain, MeasurementRows.of(q, loads, None, group)
+        )
+    elif isinstance(measurement, MultiMarker):
+        offsets = np.asarray(options.marker_offsets_m, dtype=float)
+        measurement = MultiMarker(offsets.shape[0])
+        params = ModelParameters(nominal.links, nominal.compliance_rad_per_nm, offsets.ravel())
+    else:
+        params = ModelParameters(nominal.links, nominal.compliance_rad_per_nm)
+    assert measurement is not None
+    block = model_information(
+        model.chain,
+        params,
+        measurement,
+        q,
+        loads,
+        model.noise_std,
+        options=pipeline.fit_options(model.calibration),
+        group=group,
+    )
+    completed = DesignModel(
+        model.chain, params, model.calibration, model.noise_std, model.prior, measurement
+    )
+    return completed, block
+
+
+def _measurement_report(
+    options: DesignOptions,
+    measurement: MeasurementModel,
+    block: InformationBlock,
+    sockets: Sockets | None,
+) -> MeasurementDesignReport:
+    return MeasurementDesignReport(
+        type=options.measurement,
+        frame=measurement.frame,
+        components=list(measurement.components),
+        nuisance_parameters=list(block.nuisance_names),
+        sockets=[] if sockets is None else list(sockets.labels),
+        known_distances=0 if sockets is None else len(sockets.distances),
     )
 
 

@@ -137,20 +137,32 @@ def measurement_for(
     if kind == "auto" and marker is None and several:
         kind = "markers"
     argument = options.measurement.partition(":")[2]
+    count = 0
+    if kind == "markers" and not isinstance(source, PoseDataset):
+        count = figaroh_marker_count(source)
+    return measurement_model(kind, argument, chain, max(count, 2))
+
+
+def measurement_model(
+    kind: str, argument: str, chain: KinematicChain, n_markers: int = 2
+) -> MeasurementModel | None:
+    """The model of a ``measurement`` option's type and argument (``components:tz,rx,ry``:
+    kind 'components', argument 'tz,rx,ry'), or None for the streamed pose/position types.
+    'point' has one socket and 'markers' ``n_markers`` markers until rows or a design
+    complete them."""
     if kind in ("auto", "pose", "position"):
         return None
     if kind == "point":
-        return FixedPoints(1)  # sockets and distances come with the rows (socket_rows)
+        return FixedPoints(1)  # sockets and distances come with the rows (read_measured)
     if kind == "markers":
-        count = 0 if isinstance(source, PoseDataset) else figaroh_marker_count(source)
-        return MultiMarker(max(count, 2))
+        return MultiMarker(n_markers)
     if kind == "components":
         return PoseComponents(tuple(c.strip() for c in argument.split(",")))
     if kind == "relative-base":
         return RelativeBase()
     if kind == "eye-on-head":  # the joint is checked by service.pipeline.check_calibration
         return EyeOnHead(sensor_joint=list(chain.joint_names).index(argument))
-    raise KincalError(f"measurement {options.measurement!r} is not known")
+    raise KincalError(f"measurement {kind!r} is not known")
 
 
 @dataclass(frozen=True)
@@ -666,6 +678,7 @@ __all__ = [
     "PoseComponents",
     "calibrate_measurement",
     "measurement_for",
+    "measurement_model",
     "measurement_residuals",
     "measurement_result",
     "read_measured",

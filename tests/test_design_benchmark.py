@@ -9,7 +9,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from benchmarks import design
+from benchmarks import design, design_measurements
 
 TINY = design.Settings(seeds=1, poses=(8,), candidates=60, heldout=40, calibrate=True)
 
@@ -77,3 +77,18 @@ def test_figaroh_driver_on_a_tiny_input() -> None:
     assert answer["candidates"] == 40 and len(answer["ranking"]) == 40
     assert abs(answer["socp_weight_sum"] - 1.0) < 1e-6
     assert len(answer["detmax"]["8"]) == 8
+
+
+def test_measurement_design_table_on_a_tiny_input() -> None:
+    """benchmarks/design_measurements.py: the markers row (auto: first-order, the offsets as
+    nuisance columns), its criterion below the bound, and Clarabel's LMI on the same
+    relaxation agreeing with the first-order method."""
+    header, row = design_measurements.table(design_measurements.CASES[1:2], 30, 10, 12)
+    assert header.startswith("case") and row.startswith("3 markers")
+    fields = row.split("|")[0].split()  # "3 markers" is two fields
+    assert int(fields[3].split("+")[1]) > 0 and fields[4] == "first_order"
+    value, bound = float(fields[8]), float(fields[9])
+    assert value <= bound
+    solvers = row.split("|")[1].split()
+    first, conic = float(solvers[4].rstrip(",")), float(solvers[8])
+    assert first == pytest.approx(conic, rel=1e-4)

@@ -34,6 +34,7 @@ from service.design import (
     design_model,
     recorded_design,
     run_design,
+    socket_candidates,
 )
 from service.storage import repository
 from service.storage.models import Job
@@ -205,6 +206,7 @@ def design_now(state: ServiceState, params: DesignJobParams) -> DesignResult:
         task=_matrix(body.task_rad, "task_rad", k),
         recorded=recorded,
         model=model,
+        sockets=socket_candidates(body.candidate_sockets),
     )
 
 

@@ -56,6 +56,7 @@ from solver.kinematics import (
 from solver.measurement.fit import row_weights
 from solver.measurement.models import (
     EyeOnHead,
+    FixedPoints,
     FullPose,
     MeasurementModel,
     MeasurementRows,
@@ -87,6 +88,8 @@ class InformationBlock:
     names: tuple[str, ...]
     basis: FloatArray | None = None
     nuisance: int = 0
+    nuisance_names: tuple[str, ...] = ()
+    """Names of the ``nuisance`` columns (a measurement model's own unknowns)."""
 
     @property
     def n_candidates(self) -> int:
@@ -308,10 +311,20 @@ def ideal_rows(
     params: ModelParameters,
     joint_positions: FloatArray,
     loads_nm: FloatArray,
+    group: IntArray | None = None,
 ) -> MeasurementRows:
     """Rows whose measurements are what ``model`` predicts at ``params`` (zero residual), so
     its Jacobian is the one a calibration sees at convergence: poses (N, 4, 4) for the pose
-    models (in the model's measurement frame), marker positions (N, m, 3) for markers."""
+    models (in the model's measurement frame), marker positions (N, m, 3) for markers; for
+    ball in socket the socket ``group`` (N,) of each row (its Jacobian ``R J_tip[:3]``, ``−I``
+    does not depend on the residual)."""
+    if isinstance(model, FixedPoints):
+        if group is None:
+            raise SolverError(
+                "measurement 'point': a design needs the socket of every candidate (rows "
+                "need a physical contact); give recorded socket configurations"
+            )
+        return MeasurementRows.of(joint_positions, loads_nm, None, group)
     rows = MeasurementRows.of(joint_positions, loads_nm)
     if isinstance(model, MultiMarker):
         pose = forward_kinematics(chain, params, joint_positions, loads_nm)
@@ -338,6 +351,7 @@ def model_information(
     noise_std: FloatArray,
     *,
     options: FitOptions | None = None,
+    group: IntArray | None = None,
 ) -> InformationBlock:
     """The geometry block of candidates for any measurement model, from its own Jacobian
     ``A`` (N, d, P + E) of :meth:`MeasurementModel.linearise` (Eq. 10), whitened by the noise
@@ -345,9 +359,10 @@ def model_information(
     columns :func:`solver.measurement.fit.fit_measurement` would fit on all candidates (free,
     visible to the model, surviving pivoted QR on the fit's weighted rows). The model's own
     unknowns (socket points, marker offsets) are the last ``nuisance`` columns, profiled out
-    by the criteria; its extra equations (known distances) are the prior."""
+    by the criteria; its extra equations (known distances) are the prior. ``group``: the
+    socket of each candidate (N,), for ball in socket."""
     options = options or FitOptions()
-    rows = ideal_rows(model, chain, params, joint_positions, loads_nm)
+    rows = ideal_rows(model, chain, params, joint_positions, loads_nm, group)
     _, jacobian = model.linearise(chain, params, rows)
     assert jacobian is not None
     _, extra_a = model.constraints(chain, params)
@@ -370,6 +385,7 @@ def model_information(
         scale,
         tuple(names[i] for i in keep[keep < n_chain]),
         nuisance=int(np.sum(keep >= n_chain)),
+        nuisance_names=tuple(names[i] for i in keep[keep >= n_chain]),
     )
 
 

@@ -254,9 +254,11 @@ def test_position_measurement_ignores_the_recorded_orientations(
     assert code == 2 and "--measurement position" in err
 
 
-def test_design_refuses_a_measurement_it_cannot_plan(
+def test_design_plans_the_configs_measurement(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    """A calibrate config naming the measurement makes the design plan it: ball in socket
+    without recorded socket candidates is refused naming --candidates."""
     config = tmp_path / "options.toml"
     config.write_text('measurement = "point"\n')
     code, _, stderr = run(
@@ -265,7 +267,7 @@ def test_design_refuses_a_measurement_it_cannot_plan(
         monkeypatch,
     )
     assert code == 2
-    assert "measurement 'point' is not supported by the design" in stderr
+    assert "measurement 'point'" in stderr and "--candidates" in stderr
 
 
 @pytest.mark.parametrize(
