@@ -41,6 +41,7 @@ from schemas.discovery import (
     HealthPair,
     Heldout,
     ModelTerm,
+    NotCandidate,
     OutlierScreen,
     RandomEffect,
     RobotRef,
@@ -139,8 +140,8 @@ def discover_source(
     ``options.measurement`` (:mod:`service.measurement_run`: a platonics ball-in-socket folder,
     a FIGAROH file with all its markers, chosen pose components, ...)."""
     started = time.perf_counter()
-    check_measurement(options)
     chain = chain_for(robot, options)
+    measurement_run.check_sensor_joint(options.measurement, chain)
     reading = measurement_options(options)
     model = measurement_run.measurement_for(reading, chain, source, marker)
     if model is None:
@@ -160,16 +161,6 @@ def discover_source(
         started,
         described,
     )
-
-
-def check_measurement(options: DiscoveryOptions) -> None:
-    """A :class:`ModelError` for a measurement discovery does not run on (eye-on-head)."""
-    if options.measurement.partition(":")[0] == "eye-on-head":
-        raise ModelError(
-            "discovery with measurement 'eye-on-head' is not available: discovery's columns "
-            "run over the whole chain, and with the sensor on the chain the links and joints "
-            "before it cancel; calibrate it with kincal calibrate"
-        )
 
 
 def measurement_options(options: DiscoveryOptions) -> CalibrationOptions:
@@ -265,7 +256,12 @@ def _discover(
     chain = chain_for(robot, options)
     result = solver_discovery.discover(chain, data, solver_options(options))
     if measurement is not None and not data.is_pose:
-        measurement = measurement.model_copy(update=_measured_unknowns(chain, data, result.params))
+        measurement = measurement.model_copy(
+            update={
+                **_measured_unknowns(chain, data, result.params),
+                "not_candidates": _not_candidates(result, data, chain.joint_names),
+            }
+        )
     names = chain.joint_names
     plots: list[str] = []
     findings = []
@@ -348,6 +344,33 @@ def _measured_unknowns(
         "unknowns": {n: float(v) for n, v in zip(model.extra_names(), extra, strict=True)},
         "constraint_residuals_m": [float(v) / weight for v in residual],
     }
+
+
+def _not_candidates(
+    result: solver_discovery.DiscoveryResult,
+    data: solver_discovery.DiscoveryData,
+    names: tuple[str, ...],
+) -> list[NotCandidate]:
+    """The library terms the measurement cannot see (``result.unseen``), each with why."""
+    sensor = data.model.sensor_joint_index
+    where = (
+        f"a sensor riding on the body after {names[sensor]} moves with it, so the term moves "
+        "the sensor and the tip alike"
+        if sensor is not None
+        else f"what is measured ({data.model.frame}) does not change with it"
+    )
+    return [
+        NotCandidate(
+            effect=term.effect,  # type: ignore[arg-type]
+            joint=_joint(term.joint_index, names),
+            variant=term.variant,
+            description=describe(term, names),
+            remaining_fraction=fraction,
+            reason=f"its effect cancels in the residual ({fraction:.1g} of a column left after "
+            f"the model's own columns): {where}",
+        )
+        for term, fraction in result.unseen
+    ]
 
 
 def solver_data(dataset: PoseDataset, options: DiscoveryOptions) -> solver_discovery.DiscoveryData:
@@ -563,6 +586,14 @@ def summary(findings: FindingsResult) -> str:
         lines.append(text if text.startswith("unexplained") else f"unexplained: {text}")
     for r in findings.random_effects:
         lines.append(f"random: {r.explanation}")
+    unseen = [] if findings.measurement is None else findings.measurement.not_candidates
+    if unseen:
+        joints = sorted({u.joint for u in unseen if u.joint}, key=findings.robot.joint_names.index)
+        lines.append(
+            f"not candidates: {len(unseen)} library terms "
+            f"{'on ' + ', '.join(joints) + ' ' if joints else ''}whose effect cancels in what is "
+            f"measured ({unseen[0].reason.split(': ', 1)[1]}); listed in measurement.not_candidates"
+        )
     if not (findings.findings or findings.ambiguous or findings.unexplained):
         lines.append("nothing missing: no library term or structure is significant")
     if findings.detectability is not None and findings.detectability.sizes:

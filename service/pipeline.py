@@ -130,12 +130,8 @@ def check_calibration(
             f"{'are not joints of the chain' if unknown else 'given twice'}; "
             f"choose among {', '.join(names)}"
         )
+    measurement_run.check_sensor_joint(options.measurement, chain)
     kind, _, joint = options.measurement.partition(":")
-    if kind == "eye-on-head" and joint not in names[:-1]:
-        raise ModelError(
-            f"measurement eye-on-head:{joint}: not a joint of the chain before its last; "
-            f"choose one of {', '.join(names[:-1])}"
-        )
     if kind == "components":
         measurement_run.PoseComponents(tuple(c.strip() for c in joint.split(",")))
     return CalibrationSetup(

@@ -152,3 +152,6 @@ class DiscoveryResult:
     detectable: list[DetectableSize] = field(default_factory=list)
     detection_level: float = float("nan")  # per-test level of the detectable sizes
     detection_power: float = float("nan")
+    # library terms the measurement cannot see (not tested, no detectable size), each with the
+    # largest fraction of a column its own columns leave (fitting.unseen_terms)
+    unseen: list[tuple[Term, float]] = field(default_factory=list)
