@@ -188,6 +188,22 @@ def _loads(chain: KinematicChain, options: CalibrationOptions, q: np.ndarray) ->
     )
 
 
+def with_rows(
+    recording: MeasuredRecording,
+    chain: KinematicChain,
+    options: CalibrationOptions,
+    joint_positions: np.ndarray,
+    measured: np.ndarray,
+) -> MeasuredRecording:
+    """``recording`` with new joint positions (N, k) rad (their loads swept again) and
+    measurements (a carried discovery's corrections, :func:`service.discovery.carry_measured`)."""
+    rows = recording.rows
+    loads = _loads(chain, options, joint_positions)
+    return dataclasses.replace(
+        recording, rows=MeasurementRows.of(joint_positions, loads, measured, rows.group)
+    )
+
+
 def read_chain_dataset(
     source: str | Path,
     chain: KinematicChain,

@@ -63,9 +63,10 @@ def write_socket_folder(folder: Path, compliance: float, seed: int = 3) -> int:
     return int(ok.sum())
 
 
-def write_marker_file(path: Path, compliance: float, seed: int = 4) -> None:
+def write_marker_file(path: Path, compliance: float, seed: int = 4, gear_rad: float = 0.0) -> None:
     """A FIGAROH-style CSV: joint columns and x1,y1,z1,…,z3 of three markers on the flange,
-    in a measurement frame away from the base."""
+    in a measurement frame away from the base; with ``gear_rad`` panda_joint4 stands at its
+    reading plus ``gear_rad·sin(q)`` (a periodic transmission error hidden in the reading)."""
     _, soft = _chains()
     rng = np.random.default_rng(seed)
     n = 200
@@ -77,7 +78,9 @@ def write_marker_file(path: Path, compliance: float, seed: int = 4) -> None:
     offsets = np.array([[0.05, 0.0, 0.02], [-0.03, 0.04, 0.03], [0.0, -0.05, 0.06]])
     points = pose[:, None, :3, 3] + np.einsum("nij,mj->nmi", pose[:, :3, :3], offsets)
     points += NOISE_M * rng.standard_normal(points.shape)
-    table = {name: q[:, j] for j, name in enumerate(soft.joint_names)}
+    recorded = q.copy()
+    recorded[:, 3] -= gear_rad * np.sin(q[:, 3])
+    table = {name: recorded[:, j] for j, name in enumerate(soft.joint_names)}
     for m in range(3):
         for a, axis in enumerate("xyz"):
             table[f"{axis}{m + 1}"] = points[:, m, a]
