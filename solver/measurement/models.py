@@ -853,16 +853,19 @@ class EyeOnHead(MeasurementModel):
         visible[6 * chain.n_links + self._hidden_axes(chain)] = False
         return visible
 
-    def _suffix(
-        self, chain: KinematicChain, params: ChainParameters, rows: MeasurementRows
-    ) -> tuple[ModelParameters, MeasurementRows]:
-        """Parameters and rows whose forward kinematics is the chain after the sensor: links
-        and joints up to the sensor made identity, compliances there unloaded."""
+    def _check_sensor(self, chain: KinematicChain) -> None:
         if not 0 <= self.sensor_joint < chain.n_joints - 1:
             raise CalibrationError(
                 f"measurement 'eye-on-head': sensor joint {self.sensor_joint} must be a joint "
                 f"of the chain before its last (0..{chain.n_joints - 2})"
             )
+
+    def _suffix(
+        self, chain: KinematicChain, params: ChainParameters, rows: MeasurementRows
+    ) -> tuple[ModelParameters, MeasurementRows]:
+        """Parameters and rows whose forward kinematics is the chain after the sensor: links
+        and joints up to the sensor made identity, compliances there unloaded."""
+        self._check_sensor(chain)
         links = params.links.copy()
         links[: self.sensor_joint + 1] = np.eye(4)
         q = rows.joint_positions.copy()
@@ -901,10 +904,19 @@ class EyeOnHead(MeasurementModel):
         *,
         jacobian: bool = True,
     ) -> tuple[FloatArray, FloatArray | None]:
-        suffix, moved = self._suffix(chain, params, rows)
-        residual, a = self.inner.linearise(chain, suffix, moved, jacobian=jacobian)
-        if a is not None:
-            a[:, :, : chain_column_count(chain)] *= self.visible_columns(chain)
+        """Residual of the tip in the sensor frame; ``A`` the inner model's map ``M`` chained
+        onto :func:`seen_from_sensor`'s columns (those at or before the sensor cancel: they
+        are left at zero, not fitted)."""
+        if not jacobian:
+            pose = self.predicted_pose(chain, params, rows)
+            return self.inner.at_tip(pose, params.extra, rows)[0], None
+        self._check_sensor(chain)
+        q, loads = rows.joint_positions, rows.loads_nm
+        tip = evaluate_chain(chain, params, q, loads)
+        seen = seen_from_sensor(chain, params, q, loads, self.sensor_joint, tip)
+        residual, tip_map, columns = self.inner.at_tip(seen.pose, params.extra, rows)
+        a = np.concatenate([tip_map @ stacked_jacobian(seen), columns], axis=2)
+        a[:, :, : chain_column_count(chain)] *= self.visible_columns(chain)
         return residual, a
 
     def at_tip(
