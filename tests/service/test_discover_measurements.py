@@ -87,6 +87,19 @@ def write_marker_file(path: Path, compliance: float, seed: int = 4, gear_rad: fl
     pd.DataFrame(table).to_csv(path, index=False)
 
 
+def _write_noisy_poses(
+    path: Path, c: KinematicChain, q: np.ndarray, pose: np.ndarray, rng: np.random.Generator
+) -> None:
+    """A pose CSV (joint columns, x,y,z, quaternion) of ``pose`` (N, 4, 4) with NOISE_M m / rad
+    of noise per component (tip frame)."""
+    pose = pose @ lie.se3_exp(NOISE_M * rng.standard_normal((q.shape[0], 6)))
+    table = {name: q[:, j] for j, name in enumerate(c.joint_names)}
+    table.update({axis: pose[:, a, 3] for a, axis in enumerate("xyz")})
+    quaternion = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
+    table.update({name: quaternion[:, a] for a, name in enumerate(("qx", "qy", "qz", "qw"))})
+    pd.DataFrame(table).to_csv(path, index=False)
+
+
 def write_pose_file(path: Path, compliance: float, seed: int = 6) -> None:
     """A pose CSV (x,y,z, quaternion) of the compliant chain in a measurement frame near the
     robot base, 0.05 mm / 0.05 mrad of noise: a plane contact reads tz, rx, ry of it."""
@@ -99,12 +112,7 @@ def write_pose_file(path: Path, compliance: float, seed: int = 6) -> None:
     frame = lie.se3_exp(np.array([2e-3, -3e-3, 4e-3, 1e-3, -2e-3, 3e-3]))
     params.links[0] = frame @ params.links[0]
     pose = forward_kinematics(soft, params, q, loads)
-    pose = pose @ lie.se3_exp(NOISE_M * rng.standard_normal((n, 6)))
-    table = {name: q[:, j] for j, name in enumerate(soft.joint_names)}
-    table.update({axis: pose[:, a, 3] for a, axis in enumerate("xyz")})
-    quaternion = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
-    table.update({name: quaternion[:, a] for a, name in enumerate(("qx", "qy", "qz", "qw"))})
-    pd.DataFrame(table).to_csv(path, index=False)
+    _write_noisy_poses(path, soft, q, pose, rng)
 
 
 def _discover(
@@ -217,12 +225,7 @@ def write_eye_on_head_file(path: Path, joint: str, compliance: float, seed: int 
     params.links[2] = lie.inverse(mount) @ params.links[2]
     rows = MeasurementRows.of(q, loads, np.zeros((n, 4, 4)))
     pose = EyeOnHead(sensor_joint=1).predicted_pose(soft, params, rows)
-    pose = pose @ lie.se3_exp(NOISE_M * rng.standard_normal((n, 6)))
-    table = {name: q[:, j] for j, name in enumerate(soft.joint_names)}
-    table.update({axis: pose[:, a, 3] for a, axis in enumerate("xyz")})
-    quaternion = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
-    table.update({name: quaternion[:, a] for a, name in enumerate(("qx", "qy", "qz", "qw"))})
-    pd.DataFrame(table).to_csv(path, index=False)
+    _write_noisy_poses(path, soft, q, pose, rng)
 
 
 @pytest.mark.parametrize(
