@@ -352,25 +352,30 @@ def _not_candidates(
     data: solver_discovery.DiscoveryData,
     names: tuple[str, ...],
 ) -> list[NotCandidate]:
-    """The library terms the measurement cannot see (``result.unseen``), each with why."""
+    """The library terms the measurement cannot see (``result.unseen``), each with why: the
+    measurement cancels it, or the model's own columns reproduce it on these rows."""
     sensor = data.model.sensor_joint_index
-    where = (
+    cancels = (
         f"a sensor riding on the body after {names[sensor]} moves with it, so the term moves "
         "the sensor and the tip alike"
         if sensor is not None
         else f"what is measured ({data.model.frame}) does not change with it"
     )
+    absorbed = (
+        "the model's own columns (link corrections, the measurement's unknowns) reproduce it "
+        "exactly on these rows"
+    )
     return [
         NotCandidate(
-            effect=term.effect,  # type: ignore[arg-type]
-            joint=_joint(term.joint_index, names),
-            variant=term.variant,
-            description=describe(term, names),
-            remaining_fraction=fraction,
-            reason=f"its effect cancels in the residual ({fraction:.1g} of a column left after "
-            f"the model's own columns): {where}",
+            effect=u.term.effect,  # type: ignore[arg-type]
+            joint=_joint(u.term.joint_index, names),
+            variant=u.term.variant,
+            description=describe(u.term, names),
+            remaining_fraction=u.left,
+            reason=f"its effect cancels in the residual ({u.left:.1g} of a column left after "
+            f"the model's own columns): {cancels if u.cancelled else absorbed}",
         )
-        for term, fraction in result.unseen
+        for u in result.unseen
     ]
 
 
@@ -688,7 +693,7 @@ def summary(findings: FindingsResult) -> str:
         lines.append(
             f"not candidates: {len(unseen)} library terms "
             f"{'on ' + ', '.join(joints) + ' ' if joints else ''}whose effect cancels in what is "
-            f"measured ({unseen[0].reason.split(': ', 1)[1]}); listed in measurement.not_candidates"
+            "measured (each with the reason in measurement.not_candidates)"
         )
     if not (findings.findings or findings.ambiguous or findings.unexplained):
         lines.append("nothing missing: no library term or structure is significant")

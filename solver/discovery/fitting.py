@@ -289,17 +289,34 @@ is left once the model's own columns are projected out: rounding of a cancellati
 on the chain and a term before it cancel to ~1e-15), not a small effect."""
 
 
-def unseen_terms(ctx: Context, fit: ModelFit, library: list[Term]) -> dict[str, float]:
-    """Library terms the rows cannot see at all, by key, with the largest fraction of a column
-    left (≤ :data:`UNSEEN_FRACTION`).
+@dataclass(frozen=True)
+class Unseen:
+    """A library term the rows cannot see (:func:`unseen_terms`): the largest fraction of one
+    of its columns left after the model's own columns (``left``) and before them
+    (``cancelled``: at most :data:`UNSEEN_FRACTION` when the measurement itself cancels it,
+    e.g. a term before a sensor on the chain; larger when the model's own columns absorb it
+    on these rows)."""
+
+    term: Term
+    left: float
+    before_own_columns: float
+
+    @property
+    def cancelled(self) -> bool:
+        return self.before_own_columns <= UNSEEN_FRACTION
+
+
+def unseen_terms(ctx: Context, fit: ModelFit, library: list[Term]) -> dict[str, Unseen]:
+    """Library terms the rows cannot see at all, by key.
 
     For each column ``c`` of a term: ``|P⊥ W c| / |W c₀|``, with ``W`` the fit's whitening,
     ``P⊥`` the projection off the fit's nuisance columns (link corrections the rows identify
     and the measurement's own unknowns: sensor mount, sockets, marker offsets) and ``c₀`` the
     same column as a sensor fixed in the measurement frame would see it
     (:func:`evaluate` with ``from_sensor=False``; ``c₀ = c`` for every measurement whose
-    sensor does not ride on the chain). A term at or before a chain-borne sensor moves the
-    sensor and the tip alike, so its ``c`` cancels: it is decided here by its columns, not by
+    sensor does not ride on the chain). A term is unseen when that is at most
+    :data:`UNSEEN_FRACTION` for every column: a term at or before a chain-borne sensor moves
+    the sensor and the tip alike, so its ``c`` cancels — decided here by its columns, not by
     where it sits. Columns with ``c₀ = 0`` (not excited) are not judged; a term none of whose
     columns is excited is left to the library's own rules. Pose and position rows see every
     term's effect on the end effector (``M = I``): nothing is judged for them ({})."""
@@ -310,7 +327,7 @@ def unseen_terms(ctx: Context, fit: ModelFit, library: list[Term]) -> dict[str, 
     fixed = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates, from_sensor=False)
     n, d = fit.rows.size, ctx.data.rows
     basis = orthonormal_basis(whitened(fit.nuisance(seen.links), fit.weights).reshape(n * d, -1))
-    out: dict[str, float] = {}
+    out: dict[str, Unseen] = {}
     for term in library:
         columns = whitened(seen.candidates[term.key], fit.weights).reshape(n * d, -1)
         left = np.linalg.norm(columns - basis @ (basis.T @ columns), axis=0)
@@ -322,7 +339,8 @@ def unseen_terms(ctx: Context, fit: ModelFit, library: list[Term]) -> dict[str, 
             continue
         fraction = float(np.max(left[excited] / scale[excited]))
         if fraction <= UNSEEN_FRACTION:
-            out[term.key] = fraction
+            before = np.linalg.norm(columns, axis=0)
+            out[term.key] = Unseen(term, fraction, float(np.max(before[excited] / scale[excited])))
     return out
 
 

@@ -41,6 +41,7 @@ from solver.discovery.features import DiscoveryData, probe_chain
 from solver.discovery.fitting import (
     Context,
     ModelFit,
+    Unseen,
     evaluate,
     extend,
     fit_with_noise,
@@ -188,7 +189,7 @@ class _Search:
         self.steps: list[Step] = []
         self.n_candidates = 0
         self.judged: set[str] = set()
-        self.unseen: dict[str, tuple[Term, float]] = {}
+        self.unseen: dict[str, Unseen] = {}
         self.declared_notes = self._declared_checks()
 
     def run(self) -> DiscoveryResult:
@@ -268,8 +269,7 @@ class _Search:
         library = candidate_library(self.ctx.chain, self.ctx.bank, self.terms, self.options.effects)
         fresh = [t for t in library if t.key not in self.judged]
         self.judged |= {t.key for t in fresh}
-        for key, fraction in unseen_terms(self.ctx, self.fit, fresh).items():
-            self.unseen[key] = (next(t for t in fresh if t.key == key), fraction)
+        self.unseen.update(unseen_terms(self.ctx, self.fit, fresh))
         return [t for t in library if t.key not in self.unseen]
 
     def _candidates(self) -> _Candidates:

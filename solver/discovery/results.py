@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from solver.discovery.design import SeparatingPoses
 from solver.discovery.detectability import DetectableSize
-from solver.discovery.fitting import ModelParameters
+from solver.discovery.fitting import ModelParameters, Unseen
 from solver.discovery.health import HealthReport
 from solver.discovery.library import Term
 
@@ -152,6 +152,5 @@ class DiscoveryResult:
     detectable: list[DetectableSize] = field(default_factory=list)
     detection_level: float = float("nan")  # per-test level of the detectable sizes
     detection_power: float = float("nan")
-    # library terms the measurement cannot see (not tested, no detectable size), each with the
-    # largest fraction of a column its own columns leave (fitting.unseen_terms)
-    unseen: list[tuple[Term, float]] = field(default_factory=list)
+    # library terms the measurement cannot see (not tested, no detectable size)
+    unseen: list[Unseen] = field(default_factory=list)

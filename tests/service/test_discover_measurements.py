@@ -209,11 +209,14 @@ def test_plane_contact_discovery_names_a_concealed_compliance(
     assert abs(value / compliance - 1.0) < 0.2, value
 
 
-def write_eye_on_head_file(path: Path, joint: str, compliance: float, seed: int = 7) -> None:
+def write_eye_on_head_file(
+    path: Path, joint: str, compliance: float, seed: int = 7, backlash_rad: float = 0.0
+) -> None:
     """A pose CSV of the tip seen by a sensor riding on the body after panda_joint2 (mounted
     0.23 m and 37° away from that body's frame), 300 rows, 0.05 mm / 0.05 mrad of noise, from
     a chain carrying a compliance on ``joint`` under the full gravity load (the simulator of
-    the eye-on-head calibration tests: :meth:`EyeOnHead.predicted_pose`)."""
+    the eye-on-head calibration tests: :meth:`EyeOnHead.predicted_pose`); with
+    ``backlash_rad`` the link of ``joint`` stands at its reading + ½·backlash·sign(its load)."""
     d = robot("panda")
     soft = build_chain(d.urdf_xml, d.base_frame, d.tip_frame, compliant_joints=[joint])
     rng = np.random.default_rng(seed)
@@ -225,26 +228,38 @@ def write_eye_on_head_file(path: Path, joint: str, compliance: float, seed: int 
     params.links[2] = lie.inverse(mount) @ params.links[2]
     rows = MeasurementRows.of(q, loads, np.zeros((n, 4, 4)))
     pose = EyeOnHead(sensor_joint=1).predicted_pose(soft, params, rows)
-    _write_noisy_poses(path, soft, q, pose, rng)
+    recorded = q.copy()
+    recorded[:, soft.joint_names.index(joint)] -= 0.5 * backlash_rad * np.sign(loads[:, 0])
+    _write_noisy_poses(path, soft, recorded, pose, rng)
+
+
+BACKLASH_RAD = 3e-4
 
 
 @pytest.mark.parametrize(
-    ("joint", "compliance"),
-    [("panda_joint4", COMPLIANCE_RAD_PER_NM), ("panda_joint4", 0.0), ("panda_joint2", 3e-4)],
-    ids=["after-sensor", "rigid", "at-sensor"],
+    ("joint", "compliance", "backlash"),
+    [
+        ("panda_joint4", COMPLIANCE_RAD_PER_NM, 0.0),
+        ("panda_joint4", 0.0, BACKLASH_RAD),
+        ("panda_joint4", 0.0, 0.0),
+        ("panda_joint2", 3e-4, 0.0),
+    ],
+    ids=["compliance-after-sensor", "backlash-after-sensor", "rigid", "at-sensor"],
 )
-def test_eye_on_head_discovery_names_a_compliance_after_the_sensor(
+def test_eye_on_head_discovery_names_a_term_after_the_sensor(
     joint: str,
     compliance: float,
+    backlash: float,
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """Sensor after panda_joint2: a compliance of panda_joint4 is named with its size; none is
-    named on rigid rows, nor for a tenfold compliance of panda_joint2 itself, which moves the
-    sensor and the tip alike — that joint's terms are listed as not candidates, with the
-    reason, and so is every term of panda_joint1 (decided by their columns)."""
-    write_eye_on_head_file(tmp_path / "eye.csv", joint, compliance)
+    """Sensor after panda_joint2: a compliance or a load-sign backlash of panda_joint4 is named
+    with its size; nothing is named on rigid rows, nor for a tenfold compliance of panda_joint2
+    itself, which moves the sensor and the tip alike — that joint's terms are listed as not
+    candidates, with the reason, and so is every term of panda_joint1 (decided by their
+    columns)."""
+    write_eye_on_head_file(tmp_path / "eye.csv", joint, compliance, backlash_rad=backlash)
     findings = _discover(
         [tmp_path / "eye.csv", "--measurement", "eye-on-head:panda_joint2"],
         tmp_path / "f.json",
@@ -265,13 +280,14 @@ def test_eye_on_head_discovery_names_a_compliance_after_the_sensor(
     ) in by_term
     sized = {(s["effect"], s["joint"]) for s in findings["detectability"]["sizes"]}
     assert ("joint_compliance", "panda_joint3") in sized and not sized & set(by_term)
-    if joint == "panda_joint2" or compliance == 0.0:
+    if joint == "panda_joint2" or compliance == backlash == 0.0:
         assert findings["findings"] == [] and findings["ambiguous"] == [], findings["findings"]
         return
-    named = [(f["effect"], f["joint"]) for f in findings["findings"]]
-    assert named == [("joint_compliance", "panda_joint4")], named
+    named = [(f["effect"], f["joint"], f["variant"]) for f in findings["findings"]]
+    effect, truth = ("joint_compliance", compliance) if compliance else ("backlash", backlash)
+    assert named == [(effect, "panda_joint4", "" if compliance else "load")], named
     (value,) = findings["findings"][0]["parameters"].values()
-    assert abs(value / compliance - 1.0) < 0.2, value
+    assert abs(value / truth - 1.0) < 0.2, value
 
 
 def test_eye_on_head_discovery_refuses_a_joint_off_the_chain(
