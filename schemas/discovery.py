@@ -100,6 +100,21 @@ class DiscoveryOptions(_Model):
         return known_measurement(value)
 
 
+class NotCandidate(_Model):
+    """A library term left out because the measurement cannot see it (decided by its columns)."""
+
+    effect: Effect
+    joint: str | None
+    variant: str
+    description: str
+    remaining_fraction: float = Field(
+        description="The largest fraction of one of its columns left once the model's own "
+        "columns (geometry, sensor mount, sockets, marker offsets) are fitted, relative to the "
+        "column a sensor fixed in the measurement frame would see: rounding (≤ 1e-9)."
+    )
+    reason: str
+
+
 class DiscoveryMeasurement(_Model):
     """What the rows measure when they are not the marker's pose or position (issue 15)."""
 
@@ -118,6 +133,12 @@ class DiscoveryMeasurement(_Model):
     left_out: list[str] = Field(
         default_factory=list,
         description="Library effects this measurement cannot see, each with the reason.",
+    )
+    not_candidates: list[NotCandidate] = Field(
+        default_factory=list,
+        description="Library terms whose effect on what is measured cancels (e.g. every term "
+        "at or before the joint carrying an eye-on-head sensor): not tested, no detectable "
+        "size.",
     )
 
 

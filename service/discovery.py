@@ -41,6 +41,7 @@ from schemas.discovery import (
     HealthPair,
     Heldout,
     ModelTerm,
+    NotCandidate,
     OutlierScreen,
     RandomEffect,
     RobotRef,
@@ -53,6 +54,7 @@ from service.robots import RobotDescription
 from solver import discovery as solver_discovery
 from solver import lie
 from solver.discovery.carry import (
+    CorrectedRecording,
     applicable_at_new_configurations,
     correct_recording,
     is_correction,
@@ -140,8 +142,8 @@ def discover_source(
     ``options.measurement`` (:mod:`service.measurement_run`: a platonics ball-in-socket folder,
     a FIGAROH file with all its markers, chosen pose components, ...)."""
     started = time.perf_counter()
-    check_measurement(options)
     chain = chain_for(robot, options)
+    measurement_run.check_sensor_joint(options.measurement, chain)
     reading = measurement_options(options)
     model = measurement_run.measurement_for(reading, chain, source, marker)
     if model is None:
@@ -161,16 +163,6 @@ def discover_source(
         started,
         described,
     )
-
-
-def check_measurement(options: DiscoveryOptions) -> None:
-    """A :class:`ModelError` for a measurement discovery does not run on (eye-on-head)."""
-    if options.measurement.partition(":")[0] == "eye-on-head":
-        raise ModelError(
-            "discovery with measurement 'eye-on-head' is not available: discovery's columns "
-            "run over the whole chain, and with the sensor on the chain the links and joints "
-            "before it cancel; calibrate it with kincal calibrate"
-        )
 
 
 def measurement_options(options: DiscoveryOptions) -> CalibrationOptions:
@@ -266,7 +258,12 @@ def _discover(
     chain = chain_for(robot, options)
     result = solver_discovery.discover(chain, data, solver_options(options))
     if measurement is not None and not data.is_pose:
-        measurement = measurement.model_copy(update=_measured_unknowns(chain, data, result.params))
+        measurement = measurement.model_copy(
+            update={
+                **_measured_unknowns(chain, data, result.params),
+                "not_candidates": _not_candidates(result, data, chain.joint_names),
+            }
+        )
     names = chain.joint_names
     plots: list[str] = []
     findings = []
@@ -351,6 +348,38 @@ def _measured_unknowns(
     }
 
 
+def _not_candidates(
+    result: solver_discovery.DiscoveryResult,
+    data: solver_discovery.DiscoveryData,
+    names: tuple[str, ...],
+) -> list[NotCandidate]:
+    """The library terms the measurement cannot see (``result.unseen``), each with why: the
+    measurement cancels it, or the model's own columns reproduce it on these rows."""
+    sensor = data.model.sensor_joint_index
+    cancels = (
+        f"a sensor riding on the body after {names[sensor]} moves with it, so the term moves "
+        "the sensor and the tip alike"
+        if sensor is not None
+        else f"what is measured ({data.model.frame}) does not change with it"
+    )
+    absorbed = (
+        "the model's own columns (link corrections, the measurement's unknowns) reproduce it "
+        "exactly on these rows"
+    )
+    return [
+        NotCandidate(
+            effect=u.term.effect,  # type: ignore[arg-type]
+            joint=_joint(u.term.joint_index, names),
+            variant=u.term.variant,
+            description=describe(u.term, names),
+            remaining_fraction=u.left,
+            reason=f"its effect cancels in the residual ({u.left:.1g} of a column left after "
+            f"the model's own columns): {cancels if u.cancelled else absorbed}",
+        )
+        for u in result.unseen
+    ]
+
+
 def solver_data(dataset: PoseDataset, options: DiscoveryOptions) -> solver_discovery.DiscoveryData:
     """The recording as discovery sees it (gravity and payload of the user's model)."""
     payload = dataset.payload_kg
@@ -383,6 +412,27 @@ class CarriedModel:
     record: ModelCorrections
 
 
+@dataclasses.dataclass(frozen=True)
+class CarriedMeasurement:
+    """:class:`CarriedModel` for a recording of another measurement type
+    (:func:`carry_measured`): its rows with the joint-angle terms undone on the joint
+    readings (and, where the rows hold a measured pose, the sensor's terms on it)."""
+
+    recording: measurement_run.MeasuredRecording
+    notes: list[str]
+    record: ModelCorrections
+
+
+@dataclasses.dataclass(frozen=True)
+class _Carry:
+    """The correction terms of a discovery with their values, and what was not carried."""
+
+    terms: list[tuple[Term, np.ndarray]]
+    extra_payload_kg: float
+    not_carried: list[str]
+    notes: list[str]
+
+
 def findings_chain(findings: FindingsResult, robot: RobotDescription) -> KinematicChain:
     """The chain the discovery of ``findings`` used, built for ``robot``; :class:`ModelError`
     when ``robot`` has other joints than the findings name."""
@@ -396,15 +446,9 @@ def findings_chain(findings: FindingsResult, robot: RobotDescription) -> Kinemat
     return chain
 
 
-def carry_model(
-    findings: FindingsResult, dataset: PoseDataset, robot: RobotDescription
-) -> CarriedModel:
-    """The discovered model of ``findings`` applied to ``dataset`` for the calibration."""
-    chain = findings_chain(findings, robot)
+def _carry_terms(findings: FindingsResult, chain: KinematicChain, bank: FeatureBank) -> _Carry:
+    """The findings' model terms that are corrections of the recording, at their values."""
     names = chain.joint_names
-    data = solver_data(dataset, findings.options)
-    bank = FeatureBank(probe_chain(chain), data)
-    model = findings.model
     notes: list[str] = []
     if chain.urdf_sha256 != findings.robot.urdf_sha256:
         notes.append(
@@ -415,7 +459,7 @@ def carry_model(
     terms: list[tuple[Term, np.ndarray]] = []
     extra_payload_kg = 0.0
     not_carried: list[str] = []
-    for entry in model.terms:
+    for entry in findings.model.terms:
         if entry.effect == UNEXPLAINED:
             not_carried.append(f"unexplained {entry.variant} structure (no physical name)")
             continue
@@ -432,12 +476,25 @@ def carry_model(
             )
             continue
         terms.append((term, np.array([entry.parameters[p] for p in term.parameters])))
-    corrected = correct_recording(bank, terms)
-    for term in corrected.applied:
-        notes.append(f"undone on the recording at its discovered value: {describe(term, names)}")
-    not_carried += [f"{describe(term, names)} ({reason})" for term, reason in corrected.skipped]
-    notes = [f"not carried: {line}" for line in not_carried] + notes
-    values = {term.key: v for term, v in terms}
+    return _Carry(terms, extra_payload_kg, not_carried, notes)
+
+
+def _carried_record(
+    findings: FindingsResult,
+    carry: _Carry,
+    corrected: CorrectedRecording,
+    names: tuple[str, ...],
+) -> tuple[list[str], ModelCorrections]:
+    """What the user reads about a carry (one line each) and the result JSON's record."""
+    not_carried = carry.not_carried + [
+        f"{describe(term, names)} ({reason})" for term, reason in corrected.skipped
+    ]
+    notes = [f"not carried: {line}" for line in not_carried] + carry.notes
+    notes += [
+        f"undone on the recording at its discovered value: {describe(term, names)}"
+        for term in corrected.applied
+    ]
+    values = {term.key: v for term, v in carry.terms}
     record = ModelCorrections(
         gravity_base_m_s2=findings.options.gravity_base_m_s2,
         payload_kg=findings.options.payload_kg,
@@ -447,6 +504,31 @@ def carry_model(
         ],
         not_carried=not_carried,
     )
+    model = findings.model
+    calibrated = [*model.calibrate_compliant_joints, *model.calibrate_virtual_axes_at]
+    if calibrated:
+        notes.append(f"calibrated afresh: compliance/flex of {', '.join(calibrated)}")
+    if (
+        carry.extra_payload_kg
+        or model.calibrate_gravity_base_m_s2 != findings.options.gravity_base_m_s2
+    ):
+        gravity = ", ".join(f"{g:.4g}" for g in model.calibrate_gravity_base_m_s2)
+        notes.append(
+            f"gravity [{gravity}] m/s² and {carry.extra_payload_kg:+.3g} kg payload from the "
+            "findings"
+        )
+    return notes, record
+
+
+def carry_model(
+    findings: FindingsResult, dataset: PoseDataset, robot: RobotDescription
+) -> CarriedModel:
+    """The discovered model of ``findings`` applied to ``dataset`` for the calibration."""
+    chain = findings_chain(findings, robot)
+    bank = FeatureBank(probe_chain(chain), solver_data(dataset, findings.options))
+    carry = _carry_terms(findings, chain, bank)
+    corrected = correct_recording(bank, carry.terms)
+    notes, record = _carried_record(findings, carry, corrected, chain.joint_names)
     pose = corrected.measured_pose
     payload = dataset.payload_kg
     out = dataclasses.replace(
@@ -456,22 +538,64 @@ def carry_model(
         quaternion_xyzw=None
         if dataset.is_position_only
         else lie.matrix_to_quaternion_xyzw(pose[:, :3, :3]),
-        payload_kg=None if payload is None else payload + extra_payload_kg,
+        payload_kg=None if payload is None else payload + carry.extra_payload_kg,
     )
-    calibrated = [*model.calibrate_compliant_joints, *model.calibrate_virtual_axes_at]
-    if calibrated:
-        notes.append(f"calibrated afresh: compliance/flex of {', '.join(calibrated)}")
-    if extra_payload_kg or model.calibrate_gravity_base_m_s2 != findings.options.gravity_base_m_s2:
-        gravity = ", ".join(f"{g:.4g}" for g in model.calibrate_gravity_base_m_s2)
-        notes.append(
-            f"gravity [{gravity}] m/s² and {extra_payload_kg:+.3g} kg payload from the findings"
-        )
     return CarriedModel(
         dataset=out,
-        corrections=[describe(term, names) for term in corrected.applied],
+        corrections=[describe(term, chain.joint_names) for term in corrected.applied],
         notes=notes,
         record=record,
     )
+
+
+def carry_measured(
+    findings: FindingsResult,
+    recording: measurement_run.MeasuredRecording,
+    robot: RobotDescription,
+    chain: KinematicChain,
+    options: CalibrationOptions,
+) -> CarriedMeasurement:
+    """The discovered model of ``findings`` applied to a recording of another measurement
+    type (ball in socket, markers, pose components, a frame on the base, a sensor on the
+    chain), read for the calibration's ``chain`` and (carried) ``options``.
+
+    Joint-angle terms (gear, backlash, scale, a joint's drift) are undone on the joint
+    readings, which every type has: the robot stood at the corrected angles whatever measured
+    it, and the loads are swept again at them. The sensor's terms (depth scale, drift of the
+    measurement frame) are undone on a measured pose where the rows hold one (components,
+    relative-base, eye-on-head) and not carried otherwise (sockets measure nothing; a marker
+    set's depth and drift are not the flange frame's), with that reason. Compliance, flex,
+    gravity and payload are the calibration's options (:func:`carried_options`), as for a
+    pose recording. The features are those the discovery saw (:func:`measured_data`)."""
+    discovery_chain = findings_chain(findings, robot)
+    data, _, _ = measured_data(recording, findings.options)
+    bank = FeatureBank(probe_chain(discovery_chain), data)
+    carry = _carry_terms(findings, discovery_chain, bank)
+    names = discovery_chain.joint_names
+    measured = recording.rows.measured
+    holds_pose = measured.shape[1:] == (4, 4)
+    if not holds_pose:
+        sensor = [(t, v) for t, v in carry.terms if not t.axes]
+        carry = dataclasses.replace(
+            carry,
+            terms=[(t, v) for t, v in carry.terms if t.axes],
+            not_carried=carry.not_carried
+            + [
+                f"{describe(t, names)} (changes what a sensor reports; the rows of "
+                f"'{recording.model.name}' hold no measured pose to undo it on)"
+                for t, _ in sensor
+            ],
+        )
+    corrected = correct_recording(bank, carry.terms)
+    notes, record = _carried_record(findings, carry, corrected, names)
+    out = measurement_run.with_rows(
+        recording,
+        chain,
+        options,
+        corrected.joint_positions,
+        corrected.measured_pose if holds_pose else measured,
+    )
+    return CarriedMeasurement(out, notes, record)
 
 
 MODEL_OPTIONS = (
@@ -564,6 +688,14 @@ def summary(findings: FindingsResult) -> str:
         lines.append(text if text.startswith("unexplained") else f"unexplained: {text}")
     for r in findings.random_effects:
         lines.append(f"random: {r.explanation}")
+    unseen = [] if findings.measurement is None else findings.measurement.not_candidates
+    if unseen:
+        joints = sorted({u.joint for u in unseen if u.joint}, key=findings.robot.joint_names.index)
+        lines.append(
+            f"not candidates: {len(unseen)} library terms "
+            f"{'on ' + ', '.join(joints) + ' ' if joints else ''}whose effect cancels in what is "
+            "measured (each with the reason in measurement.not_candidates)"
+        )
     if not (findings.findings or findings.ambiguous or findings.unexplained):
         lines.append("nothing missing: no library term or structure is significant")
     if findings.detectability is not None and findings.detectability.sizes:

@@ -113,6 +113,18 @@ def refuse_file_measurement(measurement: str, command: str) -> None:
         )
 
 
+def check_sensor_joint(measurement: str, chain: KinematicChain) -> None:
+    """For ``eye-on-head:<joint>``: a :class:`ModelError` unless ``<joint>`` is a joint of the
+    chain before its last (the sensor rides on the body after it)."""
+    kind, _, joint = measurement.partition(":")
+    names = list(chain.joint_names)
+    if kind == "eye-on-head" and joint not in names[:-1]:
+        raise ModelError(
+            f"measurement eye-on-head:{joint}: not a joint of the chain before its last; "
+            f"choose one of {', '.join(names[:-1])}"
+        )
+
+
 def measurement_kind(options: CalibrationOptions, source: str | Path | PoseDataset) -> str:
     """The measurement in effect: the option, or for 'auto' what the source is."""
     kind = options.measurement.partition(":")[0]
@@ -160,7 +172,7 @@ def measurement_model(
         return PoseComponents(tuple(c.strip() for c in argument.split(",")))
     if kind == "relative-base":
         return RelativeBase()
-    if kind == "eye-on-head":  # the joint is checked by service.pipeline.check_calibration
+    if kind == "eye-on-head":  # the joint is checked by check_sensor_joint
         return EyeOnHead(sensor_joint=list(chain.joint_names).index(argument))
     raise KincalError(f"measurement {kind!r} is not known")
 
@@ -185,6 +197,22 @@ def _loads(chain: KinematicChain, options: CalibrationOptions, q: np.ndarray) ->
         q,
         gravity_base=np.asarray(options.gravity_base_m_s2, dtype=float),
         payload_kg=options.payload_kg,
+    )
+
+
+def with_rows(
+    recording: MeasuredRecording,
+    chain: KinematicChain,
+    options: CalibrationOptions,
+    joint_positions: np.ndarray,
+    measured: np.ndarray,
+) -> MeasuredRecording:
+    """``recording`` with new joint positions (N, k) rad (their loads swept again) and
+    measurements (a carried discovery's corrections, :func:`service.discovery.carry_measured`)."""
+    rows = recording.rows
+    loads = _loads(chain, options, joint_positions)
+    return dataclasses.replace(
+        recording, rows=MeasurementRows.of(joint_positions, loads, measured, rows.group)
     )
 
 

@@ -130,12 +130,8 @@ def check_calibration(
             f"{'are not joints of the chain' if unknown else 'given twice'}; "
             f"choose among {', '.join(names)}"
         )
+    measurement_run.check_sensor_joint(options.measurement, chain)
     kind, _, joint = options.measurement.partition(":")
-    if kind == "eye-on-head" and joint not in names[:-1]:
-        raise ModelError(
-            f"measurement eye-on-head:{joint}: not a joint of the chain before its last; "
-            f"choose one of {', '.join(names[:-1])}"
-        )
     if kind == "components":
         measurement_run.PoseComponents(tuple(c.strip() for c in joint.split(",")))
     return CalibrationSetup(
@@ -444,15 +440,19 @@ def _calibrate_measured(
     """A recording whose rows are not marker poses or positions (ball in socket, several
     markers, pose components, a frame on the base, a sensor on the chain): read into memory
     and calibrated by :mod:`service.measurement_run`."""
-    if setup.findings is not None:
-        raise KincalError(
-            f"--model (a discovery's findings) is available for pose and position recordings; "
-            f"not with measurement '{model.name}'"
-        )
     started = time.perf_counter()
     recording = measurement_run.read_measured(
         source, setup.chain, setup.options, model, marker=marker, name=name
     )
+    corrections: ModelCorrections | None = None
+    notes: tuple[str, ...] = ()
+    if setup.findings is not None:
+        from service import discovery
+
+        carried = discovery.carry_measured(
+            setup.findings, recording, setup.robot, setup.chain, setup.options
+        )
+        recording, corrections, notes = carried.recording, carried.record, tuple(carried.notes)
     timings = {"open": time.perf_counter() - started}
     calibrated = measurement_run.calibrate_measurement(
         recording,
@@ -479,10 +479,12 @@ def _calibrate_measured(
         free_columns=setup.free_columns,
         covariance_index=list(setup.covariance_index),
     )
+    if corrections is not None:
+        result = result.model_copy(update={"model_corrections": corrections})
     return CalibrationRun(
         result,
         measurement_run.measurement_residuals(calibrated),
-        (),
+        notes,
         "in memory (measurement model)",
         timings,
     )

@@ -20,7 +20,7 @@ from service.api.deps import API_PREFIX, PrincipalDep, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, problem_responses
-from service.measurement_run import refuse_file_measurement
+from service.measurement_run import check_sensor_joint, refuse_file_measurement
 from service.robots import RobotDescription
 from service.storage.models import Job
 from service.tasks import DiscoveryJobParams
@@ -56,8 +56,9 @@ RESOURCE = JobResource(
 def _checked(robot: RobotDescription, options: DiscoveryOptions) -> KinematicChain:
     """The user's chain; measurements the service cannot read from one dataset refused."""
     refuse_file_measurement(options.measurement, "discover")
-    discovery.check_measurement(options)
-    return discovery.chain_for(robot, options)
+    chain = discovery.chain_for(robot, options)
+    check_sensor_joint(options.measurement, chain)
+    return chain
 
 
 @router.post(

@@ -42,7 +42,7 @@ from solver.discovery.library import Term, drift_feature
 from solver.errors import CalibrationError
 from solver.kinematics import ChainParameters, evaluate_chain, pose_residuals
 from solver.measurement.models import ModelParameters as MeasuredParameters
-from solver.measurement.models import chain_column_count
+from solver.measurement.models import chain_column_count, seen_from_sensor
 from solver.model import ComplianceAxis, KinematicChain
 from solver.simulate import depth_direction
 
@@ -146,8 +146,14 @@ def evaluate(
     rows: IndexArray,
     candidates: tuple[Term, ...] = (),
     unit_axes: tuple[tuple[int, str], ...] = (),
+    *,
+    from_sensor: bool = True,
 ) -> Design:
-    """Residuals and all columns (see module docstring) in one chain sweep."""
+    """Residuals and all columns (see module docstring) in one chain sweep. A measurement
+    whose sensor rides on the chain (:attr:`~solver.measurement.models.MeasurementModel.
+    sensor_joint_index`) sees the tip from there (:func:`seen_from_sensor`), columns included;
+    ``from_sensor=False`` gives the columns as a sensor fixed in the measurement frame would
+    see them (the reference of :func:`unseen_terms`)."""
     data, bank, chain = ctx.data, ctx.bank, ctx.chain
     d = data.rows if data.is_pose else 6  # rows of the columns before the measurement map
     gravity, extra_payload = _globals(terms, params.theta, data)
@@ -192,9 +198,11 @@ def evaluate(
     augmented = replace(chain, compliance_axes=tuple(axes))
     q = data.joint_positions[rows]
     loads = np.column_stack(features) if features else np.zeros((rows.size, 0))
-    evaluation = evaluate_chain(
-        augmented, ChainParameters(params.links, np.array(coefficients)), q, loads
-    )
+    chain_params = ChainParameters(params.links, np.array(coefficients))
+    evaluation = evaluate_chain(augmented, chain_params, q, loads)
+    sensor = None if data.is_pose or not from_sensor else data.model.sensor_joint_index
+    if sensor is not None:  # a sensor on the chain: the tip as it sees it, every column too
+        evaluation = seen_from_sensor(augmented, chain_params, q, loads, sensor, evaluation)
     comp = evaluation.compliance_jacobians[:, :, :d]  # (n, n_axes, d)
     pose = evaluation.pose
 
@@ -273,6 +281,67 @@ def evaluate(
         candidates={k: mapped(v) for k, v in candidate_cols.items()},
         unit={u: mapped(v[:, :, None])[:, :, 0] for u, v in unit.items()},
     )
+
+
+UNSEEN_FRACTION = 1e-9
+"""A library term is unseen by a measurement when at most this fraction of each of its columns
+is left once the model's own columns are projected out: rounding of a cancellation (a sensor
+on the chain and a term before it cancel to ~1e-15), not a small effect."""
+
+
+@dataclass(frozen=True)
+class Unseen:
+    """A library term the rows cannot see (:func:`unseen_terms`): the largest fraction of one
+    of its columns left after the model's own columns (``left``) and before them
+    (``cancelled``: at most :data:`UNSEEN_FRACTION` when the measurement itself cancels it,
+    e.g. a term before a sensor on the chain; larger when the model's own columns absorb it
+    on these rows)."""
+
+    term: Term
+    left: float
+    before_own_columns: float
+
+    @property
+    def cancelled(self) -> bool:
+        return self.before_own_columns <= UNSEEN_FRACTION
+
+
+def unseen_terms(ctx: Context, fit: ModelFit, library: list[Term]) -> dict[str, Unseen]:
+    """Library terms the rows cannot see at all, by key.
+
+    For each column ``c`` of a term: ``|P⊥ W c| / |W c₀|``, with ``W`` the fit's whitening,
+    ``P⊥`` the projection off the fit's nuisance columns (link corrections the rows identify
+    and the measurement's own unknowns: sensor mount, sockets, marker offsets) and ``c₀`` the
+    same column as a sensor fixed in the measurement frame would see it
+    (:func:`evaluate` with ``from_sensor=False``; ``c₀ = c`` for every measurement whose
+    sensor does not ride on the chain). A term is unseen when that is at most
+    :data:`UNSEEN_FRACTION` for every column: a term at or before a chain-borne sensor moves
+    the sensor and the tip alike, so its ``c`` cancels — decided here by its columns, not by
+    where it sits. Columns with ``c₀ = 0`` (not excited) are not judged; a term none of whose
+    columns is excited is left to the library's own rules. Pose and position rows see every
+    term's effect on the end effector (``M = I``): nothing is judged for them ({})."""
+    if ctx.data.is_pose or not library:
+        return {}
+    candidates = tuple(library)
+    seen = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates)
+    fixed = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates, from_sensor=False)
+    n, d = fit.rows.size, ctx.data.rows
+    basis = orthonormal_basis(whitened(fit.nuisance(seen.links), fit.weights).reshape(n * d, -1))
+    out: dict[str, Unseen] = {}
+    for term in library:
+        columns = whitened(seen.candidates[term.key], fit.weights).reshape(n * d, -1)
+        left = np.linalg.norm(columns - basis @ (basis.T @ columns), axis=0)
+        scale = np.linalg.norm(
+            whitened(fixed.candidates[term.key], fit.weights).reshape(n * d, -1), axis=0
+        )
+        excited = scale > 0.0
+        if not np.any(excited):
+            continue
+        fraction = float(np.max(left[excited] / scale[excited]))
+        if fraction <= UNSEEN_FRACTION:
+            before = np.linalg.norm(columns, axis=0)
+            out[term.key] = Unseen(term, fraction, float(np.max(before[excited] / scale[excited])))
+    return out
 
 
 def _weighted_sum(comp: FloatArray, pairs: list[tuple[int, float]]) -> FloatArray:

@@ -41,12 +41,14 @@ from solver.discovery.features import DiscoveryData, probe_chain
 from solver.discovery.fitting import (
     Context,
     ModelFit,
+    Unseen,
     evaluate,
     extend,
     fit_with_noise,
     orthonormal_basis,
     slices,
     start_parameters,
+    unseen_terms,
     whitened,
 )
 from solver.discovery.health import health_report
@@ -190,6 +192,8 @@ class _Search:
         self.misfits: dict[tuple[str, int], Misfit] = {}
         self.steps: list[Step] = []
         self.n_candidates = 0
+        self.judged: set[str] = set()
+        self.unseen: dict[str, Unseen] = {}
         self.declared_notes = self._declared_checks()
 
     def run(self) -> DiscoveryResult:
@@ -262,14 +266,18 @@ class _Search:
 
     # --- one step -------------------------------------------------------------------------
 
+    def _library(self) -> list[Term]:
+        """The candidate library for the current model without the terms the measurement
+        cannot see (:func:`unseen_terms`, judged once per term at the fit it first appears
+        in; they are reported in ``unseen``, not tested)."""
+        library = candidate_library(self.ctx.chain, self.ctx.bank, self.terms, self.options.effects)
+        fresh = [t for t in library if t.key not in self.judged]
+        self.judged |= {t.key for t in fresh}
+        self.unseen.update(unseen_terms(self.ctx, self.fit, fresh))
+        return [t for t in library if t.key not in self.unseen]
+
     def _candidates(self) -> _Candidates:
-        library = [
-            t
-            for t in candidate_library(
-                self.ctx.chain, self.ctx.bank, self.terms, self.options.effects
-            )
-            if t.key not in self.excluded
-        ]
+        library = [t for t in self._library() if t.key not in self.excluded]
         design = evaluate(
             self.ctx, self.fit.terms, self.fit.params, self.fit.rows, candidates=tuple(library)
         )
@@ -627,10 +635,10 @@ class _Search:
             else None,
             detection_level=level,
             detection_power=DETECTION_POWER,
+            unseen=list(self.unseen.values()),
         )
 
     def _untested_library(self) -> list[Term]:
         """Library terms not in the final model, one per mechanism and joint (a load-sign
         backlash's floating zones are refinements of the plain one)."""
-        library = candidate_library(self.ctx.chain, self.ctx.bank, self.terms, self.options.effects)
-        return [t for t in library if not t.deadzone()]
+        return [t for t in self._library() if not t.deadzone()]

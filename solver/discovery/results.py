@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from solver.discovery.design import SeparatingPoses
 from solver.discovery.detectability import DetectableSize
-from solver.discovery.fitting import ModelParameters
+from solver.discovery.fitting import ModelParameters, Unseen
 from solver.discovery.health import HealthReport
 from solver.discovery.library import Term
 
@@ -152,3 +152,5 @@ class DiscoveryResult:
     detectable: list[DetectableSize] | None = field(default_factory=list)  # None: not computed
     detection_level: float = float("nan")  # per-test level of the detectable sizes
     detection_power: float = float("nan")
+    # library terms the measurement cannot see (not tested, no detectable size)
+    unseen: list[Unseen] = field(default_factory=list)

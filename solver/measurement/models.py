@@ -39,6 +39,7 @@ from solver.alignment import align_full_pose, align_position_only
 from solver.errors import CalibrationError
 from solver.kinematics import (
     TWIST_COMPONENTS,
+    ChainEvaluation,
     ChainParameters,
     evaluate_chain,
     forward_kinematics,
@@ -169,6 +170,13 @@ class MeasurementModel(ABC):
     def visible_columns(self, chain: KinematicChain) -> BoolArray:
         """Chain columns (P,) the measurement depends on at all (others stay at the start)."""
         return np.ones(chain_column_count(chain), dtype=bool)
+
+    @property
+    def sensor_joint_index(self) -> int | None:
+        """The joint (0-based) after which the measuring sensor rides on the chain
+        (:class:`EyeOnHead`); None: the sensor is fixed in the measurement frame, and
+        :meth:`at_tip` takes the end effector's pose in that frame."""
+        return None
 
     @abstractmethod
     def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
@@ -749,6 +757,46 @@ class RelativeBase(FullPose):
         return self.measure_position_only
 
 
+def seen_from_sensor(
+    chain: KinematicChain,
+    params: ChainParameters,
+    joint_positions: FloatArray,
+    loads_nm: FloatArray,
+    sensor_joint: int,
+    tip: ChainEvaluation,
+) -> ChainEvaluation:
+    """The end effector seen from a sensor riding on the body after joint ``sensor_joint``
+    (0-based), from :func:`~solver.kinematics.evaluate_chain` of the whole chain ``tip`` at the
+    same ``params``, joint positions (N, k) rad and loads (N, n_axes) N·m.
+
+    Pose ``X_S = X_0j⁻¹ X_0E`` (N, 4, 4) (the sensor mount S⁻¹ is part of ``L_{j+1}``, as in
+    :class:`EyeOnHead`). Every parameter moves both ends by its tip-local twist (paper Eq. 9):
+    ``X_0E ← X_0E·Exp(J_tip δ)``, ``X_0j ← X_0j·Exp(J_j δ)``, so
+    ``X_S ← X_S·Exp((J_tip − Ad(X_S)⁻¹ J_j) δ)`` to first order, with ``J_j`` the body
+    Jacobian of the sensor's body (zero for links, joints and axes after the sensor: they do
+    not move it). Link columns (N, k+1, 6, 6) and compliance columns (N, n_axes, 6) are those
+    differences; for everything at or before the sensor both ends move alike and they cancel
+    to rounding, which is how discovery finds what a sensor on the chain cannot see."""
+    j = sensor_joint
+    links = params.links.copy()
+    links[j + 1 :] = np.eye(4)
+    q = np.array(joint_positions, dtype=float)
+    q[:, j + 1 :] = 0.0
+    loads = np.array(loads_nm, dtype=float)
+    after = [a for a, axis in enumerate(chain.compliance_axes) if axis.joint_index > j]
+    loads[:, after] = 0.0
+    body = evaluate_chain(chain, ChainParameters(links, params.compliance_rad_per_nm), q, loads)
+    body_links = body.link_jacobians.copy()
+    body_links[:, j + 1 :] = 0.0
+    relative = lie.inverse(body.pose) @ tip.pose
+    to_tip = lie.adjoint_inverse(relative)  # (N, 6, 6): Ad(X_S)⁻¹
+    return ChainEvaluation(
+        relative,
+        tip.link_jacobians - to_tip[:, None] @ body_links,
+        tip.compliance_jacobians - np.einsum("nij,naj->nai", to_tip, body.compliance_jacobians),
+    )
+
+
 @dataclass(frozen=True)
 class EyeOnHead(MeasurementModel):
     """A sensor carried by the chain's body after joint ``sensor_joint`` (0-based): it measures
@@ -764,6 +812,10 @@ class EyeOnHead(MeasurementModel):
     @property
     def inner(self) -> FullPose:
         return Position() if self.measure_position_only else FullPose()
+
+    @property
+    def sensor_joint_index(self) -> int:
+        return self.sensor_joint
 
     @property
     def dim(self) -> int:
@@ -801,16 +853,19 @@ class EyeOnHead(MeasurementModel):
         visible[6 * chain.n_links + self._hidden_axes(chain)] = False
         return visible
 
-    def _suffix(
-        self, chain: KinematicChain, params: ChainParameters, rows: MeasurementRows
-    ) -> tuple[ModelParameters, MeasurementRows]:
-        """Parameters and rows whose forward kinematics is the chain after the sensor: links
-        and joints up to the sensor made identity, compliances there unloaded."""
+    def _check_sensor(self, chain: KinematicChain) -> None:
         if not 0 <= self.sensor_joint < chain.n_joints - 1:
             raise CalibrationError(
                 f"measurement 'eye-on-head': sensor joint {self.sensor_joint} must be a joint "
                 f"of the chain before its last (0..{chain.n_joints - 2})"
             )
+
+    def _suffix(
+        self, chain: KinematicChain, params: ChainParameters, rows: MeasurementRows
+    ) -> tuple[ModelParameters, MeasurementRows]:
+        """Parameters and rows whose forward kinematics is the chain after the sensor: links
+        and joints up to the sensor made identity, compliances there unloaded."""
+        self._check_sensor(chain)
         links = params.links.copy()
         links[: self.sensor_joint + 1] = np.eye(4)
         q = rows.joint_positions.copy()
@@ -829,9 +884,11 @@ class EyeOnHead(MeasurementModel):
 
     def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
         """Nominal chain, with the sensor frame (closed-form alignment of the chain after the
-        sensor to the measurements) folded into the link after the sensor."""
+        sensor to the measurements) folded into the link after the sensor (rigid: the loads
+        of ``rows`` are not used)."""
         nominal = ChainParameters.nominal(chain)
-        suffix, moved = self._suffix(chain, nominal, rows)
+        rigid = replace(rows, loads_nm=np.zeros((rows.n, len(chain.compliance_axes))))
+        suffix, moved = self._suffix(chain, nominal, rigid)
         pose = forward_kinematics(chain, suffix, moved.joint_positions, moved.loads_nm)
         if self.measure_position_only:
             world, tool = align_position_only(pose, rows.measured[:, :3, 3])
@@ -847,10 +904,19 @@ class EyeOnHead(MeasurementModel):
         *,
         jacobian: bool = True,
     ) -> tuple[FloatArray, FloatArray | None]:
-        suffix, moved = self._suffix(chain, params, rows)
-        residual, a = self.inner.linearise(chain, suffix, moved, jacobian=jacobian)
-        if a is not None:
-            a[:, :, : chain_column_count(chain)] *= self.visible_columns(chain)
+        """Residual of the tip in the sensor frame; ``A`` the inner model's map ``M`` chained
+        onto :func:`seen_from_sensor`'s columns (those at or before the sensor cancel: they
+        are left at zero, not fitted)."""
+        if not jacobian:
+            pose = self.predicted_pose(chain, params, rows)
+            return self.inner.at_tip(pose, params.extra, rows)[0], None
+        self._check_sensor(chain)
+        q, loads = rows.joint_positions, rows.loads_nm
+        tip = evaluate_chain(chain, params, q, loads)
+        seen = seen_from_sensor(chain, params, q, loads, self.sensor_joint, tip)
+        residual, tip_map, columns = self.inner.at_tip(seen.pose, params.extra, rows)
+        a = np.concatenate([tip_map @ stacked_jacobian(seen), columns], axis=2)
+        a[:, :, : chain_column_count(chain)] *= self.visible_columns(chain)
         return residual, a
 
     def at_tip(

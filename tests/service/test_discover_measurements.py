@@ -20,6 +20,7 @@ import pytest
 
 from solver import lie
 from solver.kinematics import ChainParameters, forward_kinematics
+from solver.measurement import EyeOnHead, MeasurementRows
 from solver.measurement.simulate import configurations_at_points
 from solver.model import KinematicChain, build_chain, gravity_loads, sample_configurations
 from tests.conftest import robot
@@ -62,9 +63,10 @@ def write_socket_folder(folder: Path, compliance: float, seed: int = 3) -> int:
     return int(ok.sum())
 
 
-def write_marker_file(path: Path, compliance: float, seed: int = 4) -> None:
+def write_marker_file(path: Path, compliance: float, seed: int = 4, gear_rad: float = 0.0) -> None:
     """A FIGAROH-style CSV: joint columns and x1,y1,z1,…,z3 of three markers on the flange,
-    in a measurement frame away from the base."""
+    in a measurement frame away from the base; with ``gear_rad`` panda_joint4 stands at its
+    reading plus ``gear_rad·sin(q)`` (a periodic transmission error hidden in the reading)."""
     _, soft = _chains()
     rng = np.random.default_rng(seed)
     n = 200
@@ -76,10 +78,25 @@ def write_marker_file(path: Path, compliance: float, seed: int = 4) -> None:
     offsets = np.array([[0.05, 0.0, 0.02], [-0.03, 0.04, 0.03], [0.0, -0.05, 0.06]])
     points = pose[:, None, :3, 3] + np.einsum("nij,mj->nmi", pose[:, :3, :3], offsets)
     points += NOISE_M * rng.standard_normal(points.shape)
-    table = {name: q[:, j] for j, name in enumerate(soft.joint_names)}
+    recorded = q.copy()
+    recorded[:, 3] -= gear_rad * np.sin(q[:, 3])
+    table = {name: recorded[:, j] for j, name in enumerate(soft.joint_names)}
     for m in range(3):
         for a, axis in enumerate("xyz"):
             table[f"{axis}{m + 1}"] = points[:, m, a]
+    pd.DataFrame(table).to_csv(path, index=False)
+
+
+def _write_noisy_poses(
+    path: Path, c: KinematicChain, q: np.ndarray, pose: np.ndarray, rng: np.random.Generator
+) -> None:
+    """A pose CSV (joint columns, x,y,z, quaternion) of ``pose`` (N, 4, 4) with NOISE_M m / rad
+    of noise per component (tip frame)."""
+    pose = pose @ lie.se3_exp(NOISE_M * rng.standard_normal((q.shape[0], 6)))
+    table = {name: q[:, j] for j, name in enumerate(c.joint_names)}
+    table.update({axis: pose[:, a, 3] for a, axis in enumerate("xyz")})
+    quaternion = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
+    table.update({name: quaternion[:, a] for a, name in enumerate(("qx", "qy", "qz", "qw"))})
     pd.DataFrame(table).to_csv(path, index=False)
 
 
@@ -95,12 +112,7 @@ def write_pose_file(path: Path, compliance: float, seed: int = 6) -> None:
     frame = lie.se3_exp(np.array([2e-3, -3e-3, 4e-3, 1e-3, -2e-3, 3e-3]))
     params.links[0] = frame @ params.links[0]
     pose = forward_kinematics(soft, params, q, loads)
-    pose = pose @ lie.se3_exp(NOISE_M * rng.standard_normal((n, 6)))
-    table = {name: q[:, j] for j, name in enumerate(soft.joint_names)}
-    table.update({axis: pose[:, a, 3] for a, axis in enumerate("xyz")})
-    quaternion = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
-    table.update({name: quaternion[:, a] for a, name in enumerate(("qx", "qy", "qz", "qw"))})
-    pd.DataFrame(table).to_csv(path, index=False)
+    _write_noisy_poses(path, soft, q, pose, rng)
 
 
 def _discover(
@@ -197,29 +209,106 @@ def test_plane_contact_discovery_names_a_concealed_compliance(
     assert abs(value / compliance - 1.0) < 0.2, value
 
 
-def test_eye_on_head_discovery_is_refused_with_the_reason(
+def write_eye_on_head_file(
+    path: Path, joint: str, compliance: float, seed: int = 7, backlash_rad: float = 0.0
+) -> None:
+    """A pose CSV of the tip seen by a sensor riding on the body after panda_joint2 (mounted
+    0.23 m and 37° away from that body's frame), 300 rows, 0.05 mm / 0.05 mrad of noise, from
+    a chain carrying a compliance on ``joint`` under the full gravity load (the simulator of
+    the eye-on-head calibration tests: :meth:`EyeOnHead.predicted_pose`); with
+    ``backlash_rad`` the link of ``joint`` stands at its reading + ½·backlash·sign(its load)."""
+    d = robot("panda")
+    soft = build_chain(d.urdf_xml, d.base_frame, d.tip_frame, compliant_joints=[joint])
+    rng = np.random.default_rng(seed)
+    n = 300
+    q = sample_configurations(soft, n, rng)
+    loads = gravity_loads(soft, q)
+    params = ChainParameters(soft.nominal_links.copy(), np.array([compliance]))
+    mount = lie.se3_exp(np.array([0.05, -0.1, 0.2, 0.3, -0.2, 0.5]))
+    params.links[2] = lie.inverse(mount) @ params.links[2]
+    rows = MeasurementRows.of(q, loads, np.zeros((n, 4, 4)))
+    pose = EyeOnHead(sensor_joint=1).predicted_pose(soft, params, rows)
+    recorded = q.copy()
+    recorded[:, soft.joint_names.index(joint)] -= 0.5 * backlash_rad * np.sign(loads[:, 0])
+    _write_noisy_poses(path, soft, recorded, pose, rng)
+
+
+BACKLASH_RAD = 3e-4
+
+
+@pytest.mark.parametrize(
+    ("joint", "compliance", "backlash"),
+    [
+        ("panda_joint4", COMPLIANCE_RAD_PER_NM, 0.0),
+        ("panda_joint4", 0.0, BACKLASH_RAD),
+        ("panda_joint4", 0.0, 0.0),
+        ("panda_joint2", 3e-4, 0.0),
+    ],
+    ids=["compliance-after-sensor", "backlash-after-sensor", "rigid", "at-sensor"],
+)
+def test_eye_on_head_discovery_names_a_term_after_the_sensor(
+    joint: str,
+    compliance: float,
+    backlash: float,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Sensor after panda_joint2: a compliance or a load-sign backlash of panda_joint4 is named
+    with its size; nothing is named on rigid rows, nor for a tenfold compliance of panda_joint2
+    itself, which moves the sensor and the tip alike — that joint's terms are listed as not
+    candidates, with the reason, and so is every term of panda_joint1 (decided by their
+    columns)."""
+    write_eye_on_head_file(tmp_path / "eye.csv", joint, compliance, backlash_rad=backlash)
+    findings = _discover(
+        [tmp_path / "eye.csv", "--measurement", "eye-on-head:panda_joint2"],
+        tmp_path / "f.json",
+        capsys,
+        monkeypatch,
+    )
+    measurement = findings["measurement"]
+    assert measurement["type"] == "eye-on-head:panda_joint2"
+    unseen = measurement["not_candidates"]
+    assert {u["joint"] for u in unseen} == {"panda_joint1", "panda_joint2"}
+    by_term = {(u["effect"], u["joint"]): u for u in unseen}
+    before = by_term[("joint_compliance", "panda_joint2")]
+    assert before["remaining_fraction"] < 1e-12
+    assert "moves the sensor and the tip alike" in before["reason"]
+    assert ("gear_periodic", "panda_joint1") in by_term and (
+        "joint_scale",
+        "panda_joint2",
+    ) in by_term
+    sized = {(s["effect"], s["joint"]) for s in findings["detectability"]["sizes"]}
+    assert ("joint_compliance", "panda_joint3") in sized and not sized & set(by_term)
+    if joint == "panda_joint2" or compliance == backlash == 0.0:
+        assert findings["findings"] == [] and findings["ambiguous"] == [], findings["findings"]
+        return
+    named = [(f["effect"], f["joint"], f["variant"]) for f in findings["findings"]]
+    effect, truth = ("joint_compliance", compliance) if compliance else ("backlash", backlash)
+    assert named == [(effect, "panda_joint4", "" if compliance else "load")], named
+    (value,) = findings["findings"][0]["parameters"].values()
+    assert abs(value / truth - 1.0) < 0.2, value
+
+
+def test_eye_on_head_discovery_refuses_a_joint_off_the_chain(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    data = tmp_path / "d.csv"
-    write_marker_file(data, 0.0)
-    frame = pd.read_csv(data)
-    frame = frame.rename(columns={"x1": "x", "y1": "y", "z1": "z"})
-    frame.drop(columns=["x2", "y2", "z2", "x3", "y3", "z3"]).to_csv(data, index=False)
+    write_eye_on_head_file(tmp_path / "eye.csv", "panda_joint4", 0.0)
     code, _, stderr = run(
         [
-            *("discover", data, "--robot", "panda"),
-            *("--measurement", "eye-on-head:panda_joint2", "-o", tmp_path / "f.json"),
+            *("discover", tmp_path / "eye.csv", "--robot", "panda"),
+            *("--measurement", "eye-on-head:panda_joint7", "-o", tmp_path / "f.json"),
         ],
         capsys,
         monkeypatch,
     )
     assert code == 2
-    assert "'eye-on-head' is not available" in stderr and "kincal calibrate" in stderr
+    assert "eye-on-head:panda_joint7: not a joint of the chain before its last" in stderr
 
 
 def test_http_discovery_refuses_measurements_of_a_folder_or_every_marker(tmp_path: Path) -> None:
     """The service discovers on one uploaded dataset: 'point' gets a 422 problem naming
-    ``kincal discover``; 'eye-on-head' a 422 with the reason."""
+    ``kincal discover``; 'eye-on-head' with a joint off the chain a 422 naming the joints."""
     from fastapi.testclient import TestClient
 
     from service.api.app import create_app
@@ -235,9 +324,9 @@ def test_http_discovery_refuses_measurements_of_a_folder_or_every_marker(tmp_pat
                 "/api/v1/discoveries",
                 json={"dataset_id": dataset["id"], "options": {"measurement": measurement}},
             )
-            for measurement in ("point", "eye-on-head:shoulder_lift_joint")
+            for measurement in ("point", "eye-on-head:tool0")
         ]
-    expected = ("kincal discover", "'eye-on-head' is not available")
+    expected = ("kincal discover", "not a joint of the chain before its last")
     for response, text in zip(responses, expected, strict=True):
         assert response.status_code == 422, response.text
         assert response.headers["content-type"].startswith("application/problem+json")

@@ -11,7 +11,13 @@ from hypothesis import strategies as st
 from solver import lie
 from solver.calibration import FitOptions
 from solver.errors import CalibrationError
-from solver.kinematics import ChainParameters, forward_kinematics, parameter_names
+from solver.kinematics import (
+    ChainParameters,
+    evaluate_chain,
+    forward_kinematics,
+    parameter_names,
+    stacked_jacobian,
+)
 from solver.measurement import (
     EyeOnHead,
     FixedPoints,
@@ -27,7 +33,7 @@ from solver.measurement import (
     fit_measurement,
     heldout_errors,
 )
-from solver.measurement.models import chain_column_count
+from solver.measurement.models import chain_column_count, seen_from_sensor
 from solver.measurement.simulate import configurations_at_points
 from solver.model import KinematicChain, gravity_loads, sample_configurations
 from tests.conftest import chain
@@ -252,6 +258,47 @@ def test_jacobians_match_finite_differences(which: int, seed: int) -> None:
         plus = model.constraints(c, model.apply(c, params, delta, columns))[0]
         minus = model.constraints(c, model.apply(c, params, -delta, columns))[0]
         np.testing.assert_allclose(ja[:, column], -(plus - minus) / (2 * step), atol=2e-6)
+
+
+@settings(max_examples=6, deadline=None)
+@given(sensor=st.integers(0, 5), seed=st.integers(0, 2**16))
+def test_columns_seen_from_a_sensor_on_the_chain_match_finite_differences(
+    sensor: int, seed: int
+) -> None:
+    """:func:`seen_from_sensor`: the pose is the tip in the sensor frame, and every column —
+    those at or before the sensor too, which must cancel — is the tip-local twist of that
+    pose (central differences of the suffix product :meth:`EyeOnHead.predicted_pose`, a
+    computation that never forms ``X_0j``)."""
+    c = chain("panda")
+    rng = np.random.default_rng(seed)
+    model = EyeOnHead(sensor_joint=sensor)
+    params = ChainParameters(
+        c.nominal_links @ lie.se3_exp(0.01 * rng.standard_normal((c.n_links, 6))),
+        1e-3 * rng.random(len(c.compliance_axes)),
+    )
+    q = sample_configurations(c, 5, rng)
+    loads = gravity_loads(c, q)
+    rows = MeasurementRows.of(q, loads, np.zeros((5, 4, 4)))
+    seen = seen_from_sensor(c, params, q, loads, sensor, evaluate_chain(c, params, q, loads))
+    pose = model.predicted_pose(c, params, rows)
+    np.testing.assert_allclose(seen.pose, pose, atol=1e-12)
+    columns = stacked_jacobian(seen)
+    step = 1e-6
+    for column in range(columns.shape[2]):
+        delta = np.zeros(columns.shape[2])
+        delta[column] = step
+        moved = [
+            model.predicted_pose(
+                c, model.apply(c, params, sign * delta, np.arange(delta.size)), rows
+            )
+            for sign in (1.0, -1.0)
+        ]
+        numeric = (
+            lie.se3_log(lie.inverse(pose) @ moved[0]) - lie.se3_log(lie.inverse(pose) @ moved[1])
+        ) / (2 * step)
+        np.testing.assert_allclose(columns[:, :, column], numeric, atol=1e-6, err_msg=str(column))
+    hidden = ~model.visible_columns(c)
+    assert np.abs(columns[:, :, hidden]).max() < 1e-12 * np.abs(columns).max()
 
 
 def test_bad_measurement_settings_are_refused_with_the_fix() -> None:
