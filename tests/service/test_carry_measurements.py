@@ -31,7 +31,9 @@ def test_three_marker_calibration_carries_a_discovered_gear_error(
     findings_path = tmp_path / "findings.json"
     robot = ["--robot", "panda"]
     code, _, stderr = run(
-        ["discover", data, *robot, "-o", findings_path, "--no-plots"], capsys, monkeypatch
+        ["discover", data, *robot, "-o", findings_path, "--no-plots", "--no-detectability"],
+        capsys,
+        monkeypatch,
     )
     assert code == 0, stderr
     findings = json.loads(findings_path.read_text())

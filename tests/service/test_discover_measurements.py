@@ -120,12 +120,25 @@ def _discover(
     out: Path,
     capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
+    sizes: bool = True,
 ) -> dict:
+    """``kincal discover`` on ``args``; ``sizes=False``: without the detectable sizes (they
+    change nothing discovery names; the rigid runs check them)."""
+    flags = [] if sizes else ["--no-detectability"]
     code, _, stderr = run(
-        ["discover", *args, "--robot", "panda", "-o", out, "--no-plots"], capsys, monkeypatch
+        ["discover", *args, "--robot", "panda", "-o", out, "--no-plots", *flags],
+        capsys,
+        monkeypatch,
     )
     assert code == 0, stderr
     return dict(json.loads(out.read_text()))
+
+
+def _sized(findings: dict) -> list[dict]:
+    """The finite detectable sizes of a findings document (the rows state some)."""
+    sizes = [s for s in findings["detectability"]["sizes"] if s["smallest"] is not None]
+    assert sizes and all(s["smallest"] > 0.0 for s in sizes)
+    return sizes
 
 
 def _compliance_named(findings: dict) -> float:
@@ -145,7 +158,11 @@ def test_ball_in_socket_discovery_names_a_concealed_compliance(
     n = write_socket_folder(tmp_path / "arm", compliance)
     assert n >= 250
     findings = _discover(
-        [tmp_path / "arm", "--point-distance", "0.05"], tmp_path / "f.json", capsys, monkeypatch
+        [tmp_path / "arm", "--point-distance", "0.05"],
+        tmp_path / "f.json",
+        capsys,
+        monkeypatch,
+        sizes=compliance == 0.0,
     )
     measurement = findings["measurement"]
     assert measurement["type"] == "point"
@@ -156,6 +173,7 @@ def test_ball_in_socket_discovery_names_a_concealed_compliance(
     assert findings["dataset"]["n_samples"] == n
     if compliance == 0.0:
         assert findings["findings"] == [] and findings["ambiguous"] == []
+        _sized(findings)
         return
     value = _compliance_named(findings)
     assert abs(value / compliance - 1.0) < 0.2, value
@@ -173,7 +191,9 @@ def test_three_marker_discovery_names_a_concealed_compliance(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     write_marker_file(tmp_path / "markers.csv", compliance)
-    findings = _discover([tmp_path / "markers.csv"], tmp_path / "f.json", capsys, monkeypatch)
+    findings = _discover(
+        [tmp_path / "markers.csv"], tmp_path / "f.json", capsys, monkeypatch, compliance == 0.0
+    )
     measurement = findings["measurement"]
     assert measurement["type"] == "markers"
     assert len(measurement["components"]) == 9
@@ -181,6 +201,7 @@ def test_three_marker_discovery_names_a_concealed_compliance(
     assert offsets.shape == (3,)
     if compliance == 0.0:
         assert findings["findings"] == [] and findings["ambiguous"] == []
+        _sized(findings)
         return
     value = _compliance_named(findings)
     assert abs(value / compliance - 1.0) < 0.2, value
@@ -199,11 +220,13 @@ def test_plane_contact_discovery_names_a_concealed_compliance(
         tmp_path / "f.json",
         capsys,
         monkeypatch,
+        sizes=compliance == 0.0,
     )
     assert findings["measurement"]["components"] == ["tz", "rx", "ry"]
     assert findings["measurement"]["frame"] == "measurement frame"
     if compliance == 0.0:
         assert findings["findings"] == [] and findings["ambiguous"] == []
+        _sized(findings)
         return
     value = _compliance_named(findings)
     assert abs(value / compliance - 1.0) < 0.2, value

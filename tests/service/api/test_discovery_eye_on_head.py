@@ -31,7 +31,8 @@ def test_eye_on_head_discovery_and_its_carried_calibration_over_http(tmp_path: P
         api = client_api(client)
         dataset = api.upload_dataset(data, robot="panda")
         discovery = api.start_discovery(
-            dataset["id"], DiscoveryOptions(measurement=MEASUREMENT, bootstrap=10)
+            dataset["id"],
+            DiscoveryOptions(measurement=MEASUREMENT, bootstrap=10, detectability=False),
         )
         api.wait_discovery(discovery["id"], poll_s=0.05)
         findings = api.findings(discovery["id"])
