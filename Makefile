@@ -16,12 +16,10 @@ $(STAMP): requirements.lock pyproject.toml
 demo: $(STAMP)
 	$(BIN)/kincal demo
 
-# --dist loadfile: a file's tests run on one worker, so its module fixtures and caches (a
-# discovery, a study, a live server) are computed once, not once per worker.
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/mypy solver schemas service benchmarks
-	$(BIN)/pytest -q -n 2 --dist loadfile
+	$(BIN)/pytest -q -n 2
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
