@@ -162,9 +162,10 @@ def fit_measurement(
             at_optimum=(keep, run.normal) if run.converged else None,
             apply=apply,
         )
-        restart = _lower_cost(restart, without_columns(chain, params, negative), evaluate)
-        keep = np.setdiff1d(keep, negative)
-        run = levenberg_marquardt(chain, restart, keep, evaluate(restart), evaluate, options, apply)
+        fresh = without_columns(chain, params, np.asarray(pruned, dtype=np.intp))
+        keep = np.setdiff1d(keep, negative)  # before evaluating: its columns are ``keep``'s
+        restart, at_restart = _lower_cost(restart, fresh, evaluate)
+        run = levenberg_marquardt(chain, restart, keep, at_restart, evaluate, options, apply)
         iterations, costs = iterations + run.iterations, costs + run.cost_history
     final = run.params
     assert isinstance(final, ModelParameters)
@@ -279,14 +280,16 @@ def _lower_cost(
     restart: ChainParameters,
     fresh: ChainParameters,
     evaluate: Callable[[ChainParameters], tuple[NormalEquations, FloatArray]],
-) -> ChainParameters:
-    """Where a fit restarts once implausible columns are fixed: at its last iterate with them
-    reset (``restart``), or at its start with them reset (``fresh``), whichever has the lower
-    cost. A fit whose link columns are implausible has moved along a flat valley of the cost,
-    its other parameters with those; resetting only those can land far up the valley's side
-    (on a two-socket recording 400× the cost, and the refit then stays in a minimum 90× above
-    the optimum), while the start never followed the drift."""
-    return fresh if evaluate(fresh)[0].cost < evaluate(restart)[0].cost else restart
+) -> tuple[ChainParameters, tuple[NormalEquations, FloatArray]]:
+    """Where a fit restarts once implausible columns are fixed, with its normal equations
+    there: at its last iterate with them reset (``restart``), or at its start with every
+    column fixed so far reset (``fresh``), whichever has the lower cost. A fit whose link
+    columns are implausible has moved along a flat valley of the cost, its other parameters
+    with those; resetting only those can land far up the valley's side (on a two-socket
+    recording 400× the cost, and the refit then stays in a minimum 90× above the optimum),
+    while the start never followed the drift."""
+    at_fresh, at_restart = evaluate(fresh), evaluate(restart)
+    return (fresh, at_fresh) if at_fresh[0].cost < at_restart[0].cost else (restart, at_restart)
 
 
 def heldout_errors(
