@@ -32,7 +32,14 @@ import scipy.stats
 from numpy.typing import NDArray
 
 from solver.discovery.features import angle_basis, legendre_basis, load_basis
-from solver.discovery.fitting import Context, ModelFit, evaluate, orthonormal_basis, whitened
+from solver.discovery.fitting import (
+    Context,
+    ModelFit,
+    evaluate,
+    orthonormal_basis,
+    slices,
+    whitened,
+)
 from solver.discovery.library import Term
 from solver.discovery.scoring import NullModel, ScoreTest, holm, score_test
 
@@ -108,6 +115,28 @@ def reweighted(
     model_basis = orthonormal_basis(a)
     r = fit.residual_w * scale
     return NullModel(r - model_basis @ (model_basis.T @ r), model_basis, d), scale
+
+
+def absorbed_in_fit(fit: ModelFit, term: Term) -> float:
+    """Share of ``term``'s fitted signature (its whitened columns times its fitted
+    coefficients, (R,)) that the rest of ``fit``'s model — geometry, measurement unknowns,
+    other terms — reproduces, at the fit's own parameters.
+
+    The model before the term is the other point where this share is judged (the score
+    test's ``absorbed_fraction``): there a missing effect has bent the geometry to take up
+    what it can, and the geometry's columns move with it (``DiscoveryOptions.absorbed_limit``).
+    """
+    index = fit.terms.index(term)
+    part = slices(fit.terms)[index]
+    first = fit.n_nuisance + part.start
+    columns = fit.jacobian[:, first : first + term.size]
+    rest = np.delete(fit.jacobian, np.arange(first, first + term.size), axis=1)
+    value = np.asarray(fit.values()[term.key], dtype=float)
+    signature = columns @ value if np.any(value) else columns[:, 0]
+    basis = orthonormal_basis(rest)
+    left = signature - basis @ (basis.T @ signature)
+    share = 1.0 - float(left @ left) / max(float(signature @ signature), 1e-300)
+    return float(np.clip(share, 0.0, 1.0))
 
 
 def conditional_test(

@@ -97,6 +97,13 @@ def test_no_term_is_driven_by_a_moment_the_geometry_makes_zero(
         # stated size included the separation from the hardest rival
         ("fr3", "joint_compliance", "joint_compliance", "", "panda_joint3", 0),
         ("fr3", "joint_scale", "joint_scale", "", "panda_joint7", 5),
+        # named as a gear error on the same joint until each step was decided on the samples
+        # its own model keeps (the screen under the rigid model dropped the ones that tell
+        # the two apart)
+        ("fr3", "backlash_load", "backlash", "load", "panda_joint5", 0),
+        # reported ambiguous with the geometry (97.0 % absorbed at the geometry the effect had
+        # bent) until the absorbed share was judged at the fit that models it
+        ("ur10e", "joint_scale", "joint_scale", "", "shoulder_lift_joint", 1),
     ],
 )
 def test_effect_concealed_at_twice_the_stated_detectability_is_named(
@@ -134,4 +141,4 @@ def test_effect_concealed_at_twice_the_stated_detectability_is_named(
     ]
     assert named, [(f.effect, f.joint, f.variant) for f in result.findings]
     size = named[0].parameters[SIZE_PARAMETER[effect]]
-    assert size == pytest.approx(truth, rel=0.25)
+    assert abs(size) == pytest.approx(truth, rel=0.25)  # a scale error has either sign
