@@ -33,8 +33,9 @@ from service import discovery as service_discovery
 from service.robots import RobotDescription, load_robot
 from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, discover
 from solver.discovery.features import probe_chain
-from solver.discovery.fitting import Context, fit_with_noise, start_parameters
-from solver.discovery.loop import _Search
+from solver.discovery.fitting import Context, fit_model, fit_with_noise, start_parameters
+from solver.discovery.library import Term
+from solver.errors import CalibrationError
 from solver.mechanisms import (
     Bending,
     CameraWarmup,
@@ -131,7 +132,6 @@ class Baseline:
     detectable: dict[tuple[str, str, int | None, str], float]  # (effect, variant, joint, param)
     measurement_frame: np.ndarray
     heldout_mm: float
-    background: dict[str, np.ndarray]  # one-step estimate of every term on the recording as is
 
 
 def _discovery(
@@ -172,8 +172,6 @@ def baseline(name: str) -> Baseline:
         for d in result.detectable
     }
     names = [f.explanation for f in result.findings]
-    first = _Search(chain, data, DiscoveryOptions(seed=0, bootstrap=0))._candidates()
-    background = {key: test.estimate for key, test in first.tests.items()}
     return Baseline(
         name,
         chain,
@@ -182,7 +180,6 @@ def baseline(name: str) -> Baseline:
         detectable,
         frame,
         result.heldout_before.translation_mm,
-        background,
     )
 
 
@@ -283,23 +280,57 @@ def _torques(chain: KinematicChain, data: DiscoveryData, joint: int) -> np.ndarr
 
 
 def estimate_of(
-    result: DiscoveryResult, effect: Effect, joint: int | None, background: dict[str, np.ndarray]
+    result: DiscoveryResult, effect: Effect, joint: int | None, base: Baseline
 ) -> tuple[float, float] | None:
     """(size as named, concealed part of it) of the named term, None when it is not named.
 
-    The concealed part subtracts the term's estimate on the unmodified recording (its own
-    structure along that term, :attr:`Baseline.background`): the recording's background adds
-    to whatever is concealed in it.
+    The concealed part subtracts the recording's own structure along that term: the same final
+    model (every term of the run, on the samples it kept) fitted to the unmodified recording,
+    linearised at the run's own parameters (:func:`background_in`), so the difference is the
+    run's estimator applied to the concealed effect alone. The background along a term depends
+    on what else is fitted with it — e.g. the FR3's own tilt, named alongside a concealed base
+    flex, changes the flex's — and a pair that acts through each other (a gravity tilt moves
+    the flex's moment) is not identified on the unmodified recording, where there is no flex
+    for the tilt to act through: hence one Gauss–Newton step from the run's parameters rather
+    than a fit from scratch.
     """
     for f in result.findings:
         term = f.estimate.term
         if not is_concealed(term.effect, term.joint_index, term.variant, effect, joint):
             continue
         values = np.array([f.estimate.parameters.get(p, np.nan) for p in term.parameters])
-        plain = f"{term.effect}:{'-' if joint is None else joint}:{effect.variant}"
-        own = background.get(plain, np.zeros_like(values))
+        own = values + background_step(base.recording, result, term)
         return _size_of(values, effect), _size_of(values - own, effect)
     return None
+
+
+def background_step(name: str, result: DiscoveryResult, term: Term) -> np.ndarray:
+    """Change of ``term``'s coefficients (reported units) in one Gauss–Newton step of the run's
+    final model (its terms, parameters and samples) on the unmodified recording ``name``,
+    weighted like its rigid fit; zeros when the step cannot be taken."""
+    ctx, weights = _unmodified_context(name)
+    rows = np.setdiff1d(ctx.all_rows, result.outlier_rows)
+    try:
+        step = fit_model(ctx, result.terms, result.params, rows, weights, max_iterations=1)
+    except CalibrationError:
+        return np.zeros(term.size)
+    before = dict(zip((t.key for t in result.terms), _split(result), strict=True))
+    return np.asarray(step.values()[term.key] - before[term.key], dtype=float)
+
+
+def _split(result: DiscoveryResult) -> list[np.ndarray]:
+    """The run's θ split per term (model order)."""
+    sizes = np.cumsum([t.size for t in result.terms])[:-1]
+    return np.split(result.params.theta, sizes)
+
+
+@cache
+def _unmodified_context(name: str) -> tuple[Context, np.ndarray]:
+    """Discovery context of the unmodified recording and its rigid fit's noise weights."""
+    chain, data, _ = recording(name)
+    ctx = Context.build(probe_chain(chain), data)
+    fit = fit_with_noise(ctx, (), start_parameters(ctx), ctx.all_rows)
+    return ctx, fit.weights
 
 
 def is_concealed(
@@ -345,7 +376,7 @@ def run_one(job: tuple[str, str, float, int]) -> Run:
     concealed = dataclasses.replace(data, joint_positions=readings, measured_pose=poses)
     started = time.perf_counter()
     result = _discovery(base.chain, concealed, seed)
-    sizes = estimate_of(result, effect, joint, base.background)
+    sizes = estimate_of(result, effect, joint, base)
     return Run(
         recording=name,
         effect=effect_name,
