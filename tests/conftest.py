@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import fcntl
 import functools
 import math
 import os
+import pickle
+import shutil
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import pytest
 from hypothesis import settings
@@ -15,6 +19,8 @@ import solver  # noqa: F401  (BLAS threading defaults before numpy loads)
 from schemas.calibration import CalibrationResult
 from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
 from solver.model import KinematicChain, build_chain
+
+T = TypeVar("T")
 
 REPO = Path(__file__).resolve().parents[1]
 REAL_DATA = REPO / "data" / "real"
@@ -76,6 +82,31 @@ def assert_documents_close(got: Any, want: Any, where: str = "", rel: float = 1e
         assert math.isclose(got, want, rel_tol=rel, abs_tol=1e-15), (where, got, want)
     else:
         assert got == want, (where, got, want)
+
+
+def computed_once(
+    tmp_path_factory: pytest.TempPathFactory, name: str, compute: Callable[[Path], T]
+) -> T:
+    """``compute(folder)`` once per test run, however many xdist workers need it: the first
+    worker computes it (writing its files into ``folder``) under an exclusive lock and pickles
+    the value next to the folder; the others wait for the lock and unpickle it (the file-lock
+    pattern of the pytest-xdist docs). For an expensive module fixture whose tests land on
+    both workers; the value must pickle, and its tests must not change ``folder``."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's folder, shared by its workers
+    folder, pickled = root / f"once-{name}", root / f"once-{name}.pickle"
+    with (root / f"once-{name}.lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if pickled.is_file():
+            value: T = pickle.loads(pickled.read_bytes())
+            return value
+        shutil.rmtree(folder, ignore_errors=True)  # what a failed attempt left
+        folder.mkdir()
+        value = compute(folder)
+        pickled.with_suffix(".part").write_bytes(pickle.dumps(value))
+        pickled.with_suffix(".part").rename(pickled)
+        return value
 
 
 # --- every collected test ran -------------------------------------------------------------

@@ -15,16 +15,20 @@ from schemas.calibration import CalibrationResult
 from schemas.ranking import RankingOptions, RankingResult
 from service import ranking as ranking_pipeline
 from service.demo import run_demo
-from tests.conftest import assert_documents_close, comparable_result
+from tests.conftest import assert_documents_close, comparable_result, computed_once
 from tests.service.cli_support import run_ok
+
+
+def _run_demo(folder: Path) -> tuple[Path, dict[str, float], list[str]]:
+    lines: list[str] = []
+    numbers = run_demo(folder, echo=lines.append)
+    return folder, numbers, lines
 
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, float], list[str]]:
-    folder = tmp_path_factory.mktemp("demo")
-    lines: list[str] = []
-    numbers = run_demo(folder, echo=lines.append)
-    return folder, numbers, lines
+    """The demo, run once for both xdist workers (its tests may land on both)."""
+    return computed_once(tmp_path_factory, "demo", _run_demo)
 
 
 def test_demo_runs_and_calibration_beats_nominal(

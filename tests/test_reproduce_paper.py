@@ -16,16 +16,21 @@ import pytest
 
 from benchmarks import reproduce_paper
 from benchmarks.reproduce_paper import ApproachRun, StudyResult, StudySettings, cli
+from tests.conftest import computed_once
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
-@pytest.fixture(scope="module")
-def quick(tmp_path_factory: pytest.TempPathFactory) -> tuple[StudyResult, Path, list[str]]:
-    out = tmp_path_factory.mktemp("reproduce_paper")
+def _quick_study(out: Path) -> tuple[StudyResult, Path, list[str]]:
     lines: list[str] = []
     study = reproduce_paper.main(StudySettings.quick(), out, echo=lines.append)
     return study, out, lines
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory: pytest.TempPathFactory) -> tuple[StudyResult, Path, list[str]]:
+    """The quick study, run once for both xdist workers (its tests land on both)."""
+    return computed_once(tmp_path_factory, "reproduce_paper", _quick_study)
 
 
 def test_quick_study_writes_the_report_and_figures(

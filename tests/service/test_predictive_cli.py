@@ -4,6 +4,7 @@ coverage, ``predict --part``, ``rank --uncertainty total``, the summary and the 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,8 +24,8 @@ from service.report_html import render_report
 from service.robots import example_robot_data_dir
 from solver import lie
 from solver.predictive import coverage
-from tests.conftest import REAL_DATA
-from tests.service.cli_support import run, run_ok
+from tests.conftest import computed_once
+from tests.service.cli_support import real_calibration, run, run_ok
 
 N_TRAIN = 200
 N_FRESH = 600
@@ -38,6 +39,7 @@ class Calibrated:
     result: CalibrationResult
     fresh: pd.DataFrame
     configs: Path
+    scratch: Path  # where its tests write (the rest is shared by the xdist workers)
 
 
 def _calibrate_simulated(folder: Path, seed: int) -> Calibrated:
@@ -60,16 +62,18 @@ def _calibrate_simulated(folder: Path, seed: int) -> Calibrated:
     train = folder / "train.csv"
     run_ok(["calibrate", train, "--robot", "kinova", "-o", result_path])
     result = CalibrationResult.model_validate_json(result_path.read_text(encoding="utf-8"))
-    return Calibrated(folder, result_path, result, fresh, configs)
+    return Calibrated(folder, result_path, result, fresh, configs, folder)
 
 
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory: pytest.TempPathFactory) -> Calibrated:
-    return _calibrate_simulated(tmp_path_factory.mktemp("predictive"), 3)
+    """Seed 3, calibrated once for both xdist workers; each writes in a folder of its own."""
+    shared = computed_once(tmp_path_factory, "predictive", lambda f: _calibrate_simulated(f, 3))
+    return dataclasses.replace(shared, scratch=tmp_path_factory.mktemp("predictive"))
 
 
 def _predict(calibrated: Calibrated, *args: object) -> pd.DataFrame:
-    output = calibrated.folder / f"predicted{len(args)}{'_'.join(map(str, args))}.csv"
+    output = calibrated.scratch / f"predicted{len(args)}{'_'.join(map(str, args))}.csv"
     run_ok(["predict", calibrated.result_path, calibrated.configs, "-o", output, *args])
     return pd.read_csv(output)
 
@@ -162,7 +166,7 @@ def test_rank_scores_the_total_on_request_and_the_paper_score_by_default(
 ) -> None:
     outputs = {}
     for name, extra in (("default", []), ("total", ["--uncertainty", "total"])):
-        path = calibrated.folder / f"ranking_{name}.json"
+        path = calibrated.scratch / f"ranking_{name}.json"
         run_ok(["rank", calibrated.result_path, calibrated.configs, "-o", path, *extra])
         outputs[name] = RankingResult.model_validate_json(path.read_text(encoding="utf-8"))
     default, total = outputs["default"], outputs["total"]
@@ -196,9 +200,9 @@ def test_a_result_without_the_predictive_block_still_predicts_its_random_effects
     rank --uncertainty total refuses with the reason."""
     document = json.loads(calibrated.result_path.read_text(encoding="utf-8"))
     document.pop("predictive")
-    old_path = calibrated.folder / "old_result.json"
+    old_path = calibrated.scratch / "old_result.json"
     old_path.write_text(json.dumps(document), encoding="utf-8")
-    output = calibrated.folder / "old_predicted.csv"
+    output = calibrated.scratch / "old_predicted.csv"
     run_ok(["predict", old_path, calibrated.configs, "-o", output])
     assert "has no predictive covariance" in capsys.readouterr().err
     written = pd.read_csv(output)[COV_COLUMNS].to_numpy()
@@ -210,16 +214,13 @@ def test_a_result_without_the_predictive_block_still_predicts_its_random_effects
 
 
 def test_real_fr3_recording_heldout_coverage_is_within_the_acceptance_band(
-    tmp_path: Path,
+    tmp_path_factory: pytest.TempPathFactory,
 ) -> None:
     """Acceptance (issue 13) on the real FR3 recording, 10 held-out splits through ``kincal
     calibrate`` with its defaults (the model-based outlier rule keeps the clean rows; the 2σ rule
     truncated the residuals and the test rows): 90-98 % of held-out poses inside the predicted
     95 % ellipsoid, mean Mahalanobis² within 25 % of its χ² mean."""
-    output = tmp_path / "fr3.json"
-    recording = REAL_DATA / "philnad_fr3_eye_in_hand" / "fr3_poses.csv"
-    run_ok(["calibrate", recording, "--robot", "panda", "-o", output])
-    result = CalibrationResult.model_validate_json(output.read_text(encoding="utf-8"))
+    result = real_calibration(tmp_path_factory, "fr3")  # kincal calibrate with its defaults
     assert result.predictive is not None and result.predictive.coverage is not None
     found = result.predictive.coverage
     assert found.n_heldout == 110 and found.dimension == 6

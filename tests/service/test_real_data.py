@@ -9,6 +9,7 @@ from schemas.calibration import CalibrationOptions
 from schemas.dataset import read_dataset
 from service import pipeline, result_json
 from tests.conftest import REAL_DATA, robot
+from tests.service.cli_support import real_calibration
 
 REAL_SETS = {
     "fr3": ("panda", "philnad_fr3_eye_in_hand/fr3_poses.csv"),
@@ -17,15 +18,11 @@ REAL_SETS = {
 
 
 @pytest.mark.parametrize("name", sorted(REAL_SETS))
-def test_real_recording_calibrates_and_heldout_error_drops(name: str) -> None:
-    robot_name, relative = REAL_SETS[name]
-    description = robot(robot_name)
-    options = CalibrationOptions()
-    chain = result_json.chain_for(description, options)
-    dataset = read_dataset(
-        REAL_DATA / relative, chain.joint_names, other_joint_names=chain.other_joint_names
-    )
-    result = pipeline.calibrate(dataset, description, options)
+def test_real_recording_calibrates_and_heldout_error_drops(
+    name: str, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """``kincal calibrate`` with its defaults (the run other tests of it share)."""
+    result = real_calibration(tmp_path_factory, name)
     assert result.solver.status == "optimal"
     before, after = result.fit.before.heldout, result.fit.after.heldout
     assert before is not None and after is not None
@@ -34,9 +31,9 @@ def test_real_recording_calibrates_and_heldout_error_drops(name: str) -> None:
     assert after.rotation_mean_deg < before.rotation_mean_deg
     assert result.evaluation is not None
     splits = {(s.method, s.seed): s.translation_mm for s in result.evaluation.splits}
-    improved = sum(
-        splits[("calibrated", seed)] < splits[("before", seed)] for seed in options.seeds
-    )
+    seeds = CalibrationOptions().seeds
+    assert result.options.seeds == seeds
+    improved = sum(splits[("calibrated", seed)] < splits[("before", seed)] for seed in seeds)
     assert improved >= 8  # the paper saw 9 of 10
 
 
