@@ -57,6 +57,7 @@ from solver.model import KinematicChain
 DATA = Path(__file__).resolve().parents[1] / "data" / "real"
 SIZES = (1.0, 2.0, 4.0)
 GEAR_RADIUS_M = 0.05
+GEAR_LOBE_LIMIT = 0.5  # a gear harmonic's lobe, in pitch radii, the simulator builds
 
 
 ERD = "erd:"
@@ -470,15 +471,36 @@ def _size_of(values: np.ndarray, effect: Effect) -> float:
     return float(abs(values[0]))
 
 
+def placed(job: tuple[str, str, float, int]) -> tuple[int | None, float]:
+    """(joint, reported size) of a job: the seed cycles the joints where a size is stated."""
+    name, effect_name, multiple, seed = job
+    base = baseline(name)
+    effect = EFFECTS[effect_name]
+    joints = candidate_joints(base, effect)
+    joint = joints[seed % len(joints)]
+    return joint, multiple * float(stated(base, effect, joint) or math.nan)
+
+
+def beyond_mechanism(effect_name: str, size: float) -> str:
+    """Why the mechanism simulator cannot build ``effect_name`` at ``size`` ('' when it can):
+    a gear harmonic needs its lobe (size × harmonic × pitch radius) below half the pitch radius
+    (beyond it the pitch curve folds: an eccentricity past the radius is no gear)."""
+    if effect_name.startswith("gear_h") and size * int(effect_name[-1]) >= GEAR_LOBE_LIMIT:
+        return (
+            f"{size * 1e3:.0f} mrad × harmonic {effect_name[-1]} is a lobe of "
+            f"{size * int(effect_name[-1]):.2f} pitch radii, beyond the gear mechanism's "
+            f"{GEAR_LOBE_LIMIT:g}"
+        )
+    return ""
+
+
 def run_one(job: tuple[str, str, float, int]) -> Run:
     """One concealed effect in one real recording, one seed."""
     name, effect_name, multiple, seed = job
     base = baseline(name)
     effect = EFFECTS[effect_name]
-    joints = candidate_joints(base, effect)
+    joint, size = placed(job)
     rng = np.random.default_rng([seed, len(effect_name)])
-    joint = joints[seed % len(joints)]
-    size = multiple * float(stated(base, effect, joint) or math.nan)
     mechanisms, truth = concealment(name, effect_name, joint, size, rng)
     data = base.data
     clock = data.clock()[0]
@@ -586,7 +608,7 @@ def main(
     chosen = recordings or list(RECORDINGS)
     wanted = effects or list(EFFECTS)
     started = time.perf_counter()
-    jobs = [
+    planned = [
         (name, e, m, seed)
         for name in chosen
         for e in wanted
@@ -594,6 +616,8 @@ def main(
         for m in sizes
         for seed in range(seeds)
     ]
+    beyond = {job: beyond_mechanism(job[1], placed(job)[1]) for job in planned}
+    jobs = [job for job in planned if not beyond[job]]
     if workers <= 1:
         runs = [run_one(job) for job in jobs]
     else:
@@ -639,6 +663,14 @@ def main(
         ]
         if skipped:
             notes.append(f"- {RECORDINGS[n].label}, not concealed: " + "; ".join(skipped))
+        for job, why in beyond.items():
+            if job[0] == n and why:
+                joint = placed(job)[0]
+                where = "" if joint is None else f" on {baseline(n).chain.joint_names[joint]}"
+                notes.append(
+                    f"- {RECORDINGS[n].label}, {job[1]} {job[2]:g}× seed {job[3]}{where} "
+                    f"not run: {why}"
+                )
     at_two = [r for (n, e, m), r in rows.items() if m == 2.0]
     if at_two:
         notes.append(
