@@ -306,7 +306,16 @@ def no_size(base: Baseline, effect: Effect) -> str:
     reasons = sorted(
         {r for (e, v), r in base.unsized.items() if e == effect.effect and v.startswith(variant)}
     )
-    return "; ".join(r for r in reasons if r) or "no detectable size stated on any joint"
+    if any(reasons):
+        return "; ".join(r for r in reasons if r)
+    offered = sorted({v for e, v, _, _ in base.detectable if e == effect.effect})
+    if not offered:
+        return f"the library builds no {effect.effect} term on this recording"
+    return (
+        f"the library builds no {effect.effect} ({variant}) term on this recording (offered: "
+        + ", ".join(v or "plain" for v in offered)
+        + ")"
+    )
 
 
 def stated(base: Baseline, effect: Effect, joint: int | None) -> float | None:
