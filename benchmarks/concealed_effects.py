@@ -37,11 +37,12 @@ Usage::
     python benchmarks/concealed_effects.py [--seeds 50] [--n 200] [--workers 2]
         [--scenarios null,compliance,...] [--out out/concealed_effects] [--timing-n 500]
     python benchmarks/concealed_effects.py --real [--seeds 10] [--workers 2]
-        [--recordings fr3,ur10e] [--scenarios backlash_load,...] [--out out/concealed_real]
+        [--recordings fr3,ur10e,talos,tiago,positioner,platonics] [--scenarios backlash_load,...]
+        [--sizes 1,2,4] [--out out/concealed_real]
 
 ``--real`` runs the semi-real benchmark instead (:mod:`benchmarks.concealed_real`): the
 mechanism simulator conceals each library effect in the shipped real recordings at 1, 2 and 4
-times the detectability their discovery report states.
+(``--sizes``) times the detectability their discovery report states.
 """
 
 from __future__ import annotations
@@ -681,6 +682,9 @@ if __name__ == "__main__":
     parser.add_argument("--timing-seeds", type=int, default=5)
     parser.add_argument("--real", action="store_true", help="Semi-real benchmark (data/real).")
     parser.add_argument("--recordings", default=None, help="--real: comma-separated subset.")
+    parser.add_argument(
+        "--sizes", default="1,2,4", help="--real: multiples of the stated detectability."
+    )
     arguments = parser.parse_args()
     if arguments.real:
         from benchmarks import concealed_real
@@ -690,6 +694,7 @@ if __name__ == "__main__":
             workers=arguments.workers,
             recordings=arguments.recordings.split(",") if arguments.recordings else None,
             effects=arguments.scenarios.split(",") if arguments.scenarios else None,
+            sizes=tuple(float(m) for m in arguments.sizes.split(",")),
         )[0]
         arguments.out.mkdir(parents=True, exist_ok=True)
         (arguments.out / "real_table.md").write_text(real_text, encoding="utf-8")

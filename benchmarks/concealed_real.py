@@ -2,10 +2,13 @@
 
 Each library effect (and a floating backlash, which the library only approximates) is put by
 the mechanism simulator (:mod:`solver.mechanisms`, no library formula) into the real
-recordings shipped in ``data/real`` — the FR3 eye-in-hand camera (114 samples) and the UR10e
-(23 samples) — keeping their real noise and unmodelled structure. Sizes are multiples of the
-smallest size discovery states it could detect on the *unmodified* recording (its
-``detectable`` report), so "2×" is twice the stated detectability. Seeds cycle the joint the
+recordings shipped in ``data/real`` — the FR3 eye-in-hand camera (114 samples), the UR10e (23
+samples), the TALOS torso and left arm (mocap positions), the TIAGo arm (Vicon, relative to a
+base marker), the two-axis positioner (DH table, 6-D poses) and a platonics Panda (ball in two
+sockets 50 mm apart) — each read and discovered as ``kincal discover`` reads it (same robot,
+frames and ``--measurement``), keeping their real noise and unmodelled structure. Sizes are
+multiples of the smallest size discovery states it could detect on the *unmodified* recording
+(its ``detectable`` report), so "2×" is twice the stated detectability. Seeds cycle the joint the
 effect sits on, its phase or direction, and the discovery seed.
 
 Per recording, effect and size: detection with the right joint (and variant), the share of
@@ -27,10 +30,10 @@ from typing import Any
 
 import numpy as np
 
-from schemas.dataset import read_dataset
 from schemas.discovery import DiscoveryOptions as SchemaOptions
 from service import discovery as service_discovery
-from service.robots import RobotDescription, load_robot
+from service import measurement_run
+from service.robots import RobotDescription, example_robot_data_dir, load_robot
 from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, discover
 from solver.discovery.features import probe_chain
 from solver.discovery.fitting import Context, fit_model, fit_with_noise, start_parameters
@@ -54,12 +57,21 @@ from solver.model import KinematicChain
 DATA = Path(__file__).resolve().parents[1] / "data" / "real"
 SIZES = (1.0, 2.0, 4.0)
 GEAR_RADIUS_M = 0.05
+GEAR_LOBE_LIMIT = 0.5  # a gear harmonic's lobe, in pitch radii, the simulator builds
+
+
+ERD = "erd:"
+"""Marks a URDF path under example-robot-data (resolved on this machine)."""
 
 
 @dataclasses.dataclass(frozen=True)
 class RealRecording:
-    """A shipped recording: robot (built-in name, or URDF path with frames), file, and whether
-    the camera rides on the flange (its depth is then the marker's z)."""
+    """A shipped recording as a user discovers it: robot (built-in name, URDF with frames —
+    under ``data/real`` or, prefixed ``erd:``, example-robot-data — or a DH table), the file or
+    folder, ``--measurement`` and ``--point-distance``; whether the camera rides on the flange
+    (its depth is then the marker's z). ``pose_side``: why the mechanisms acting on the
+    measured pose (bending, base flex, camera warm-up, depth scale) are not concealed here,
+    empty when they are."""
 
     label: str
     relative: str
@@ -68,13 +80,27 @@ class RealRecording:
     urdf: str | None = None
     base_frame: str | None = None
     tip_frame: str | None = None
+    dh: str | None = None
+    measurement: str = "auto"
+    point_distance_m: float | None = None
+    pose_side: str = ""
 
     def robot(self) -> RobotDescription:
         if self.robot_name is not None:
             return load_robot(self.robot_name)
-        return load_robot(
-            urdf_path=DATA / str(self.urdf), base_frame=self.base_frame, tip_frame=self.tip_frame
+        if self.dh is not None:
+            return load_robot(dh_path=DATA / self.dh)
+        assert self.urdf is not None
+        urdf = (
+            example_robot_data_dir() / self.urdf.removeprefix(ERD)
+            if self.urdf.startswith(ERD)
+            else DATA / self.urdf
         )
+        return load_robot(urdf_path=urdf, base_frame=self.base_frame, tip_frame=self.tip_frame)
+
+    def options(self) -> SchemaOptions:
+        """The discovery options a user gives for it (``--measurement``, ``--point-distance``)."""
+        return SchemaOptions(measurement=self.measurement, point_distance_m=self.point_distance_m)
 
 
 RECORDINGS = {
@@ -87,18 +113,57 @@ RECORDINGS = {
         base_frame="base_link",
         tip_frame="wrist_3_link",
     ),
+    "talos": RealRecording(
+        "TALOS torso + left arm (positions)",
+        "figaroh_talos_left_arm_contact/talos_left_arm_02_10_contact.csv",
+        False,
+        urdf=f"{ERD}robots/talos_data/robots/talos_full_v2.urdf",
+        base_frame="base_link",
+        tip_frame="gripper_left_base_link",
+    ),
+    "tiago": RealRecording(
+        "TIAGo Vicon gripper3/base1 (relative-base)",
+        "figaroh_tiago_mocap/vicon/relative_encoder/vicon_calibration_fc10_gripper3_base1.csv",
+        False,
+        urdf=f"{ERD}robots/tiago_description/robots/tiago.urdf",
+        base_frame="base_footprint",
+        tip_frame="arm_tool_link",
+        measurement="relative-base",
+    ),
+    "positioner": RealRecording(
+        "2-axis positioner (DH, poses)",
+        "industrial_calibration_2axis_positioner/measurements.yaml",
+        False,
+        dh="industrial_calibration_2axis_positioner/positioner_dh.yaml",
+    ),
+    "platonics": RealRecording(
+        "platonics Panda panda_right (ball in socket)",
+        "platonics_ball_socket/panda_right",
+        False,
+        "panda",
+        measurement="point",
+        point_distance_m=0.05,
+        pose_side="the ball is held in a socket fixed to the base: a bending or a sensor effect "
+        "would change the joint angles that reach the socket (inverse kinematics), not a "
+        "measured value; not simulated",
+    ),
 }
+"""Recording name -> how ``kincal discover`` reads it: the flags of benchmarks/evaluate_real.py
+and docs/measurements.md (TIAGo: the relative-base file the calibration and discovery tests
+use; platonics: the placement with both sockets and their known 50 mm)."""
 
 
 @dataclasses.dataclass(frozen=True)
 class Effect:
     """An effect to conceal: the library term it should be named as (effect, variant prefix),
-    whether it sits on a joint, and the reported size it is judged by."""
+    whether it sits on a joint, the reported size it is judged by, and whether the mechanism
+    simulator puts it into the measured pose (the others act on the joint readings)."""
 
     effect: str
     variant: str
     on_joint: bool
     parameter: str  # detectability parameter (DetectableSize.parameter)
+    pose_side: bool = False
 
 
 EFFECTS = {
@@ -110,12 +175,12 @@ EFFECTS = {
     "gear_h3": Effect("gear_periodic", "h3", True, "amplitude_rad"),
     "joint_scale": Effect("joint_scale", "", True, "scale_error"),
     "joint_drift": Effect("thermal_drift", "linear", True, "drift_rad_per_sample"),
-    "link_bending": Effect("link_bending", "", True, "flex_rad_per_nm"),
-    "base_flex": Effect("base_flex", "", True, "flex_rad_per_nm"),
+    "link_bending": Effect("link_bending", "", True, "flex_rad_per_nm", True),
+    "base_flex": Effect("base_flex", "", True, "flex_rad_per_nm", True),
     "camera_drift": Effect(
-        "thermal_drift", "measurement_frame:linear", False, "translation_m_per_sample"
+        "thermal_drift", "measurement_frame:linear", False, "translation_m_per_sample", True
     ),
-    "depth_scale": Effect("depth_scale", "", False, "scale"),
+    "depth_scale": Effect("depth_scale", "", False, "scale", True),
     "floating_backlash": Effect("backlash", "load", True, "backlash_rad"),
 }
 
@@ -132,29 +197,44 @@ class Baseline:
     detectable: dict[tuple[str, str, int | None, str], float]  # (effect, variant, joint, param)
     measurement_frame: np.ndarray
     heldout_mm: float
+    unsized: dict[tuple[str, str], str]  # (effect, variant) -> why no size is stated
 
 
-def _discovery(
-    chain: KinematicChain, data: DiscoveryData, seed: int, sizes: bool = False
-) -> DiscoveryResult:
-    """Discovery as the benchmark runs it; ``sizes``: also the detectable sizes (only the
-    unmodified recording's are used: they set the concealed sizes)."""
+def _discovery(name: str, data: DiscoveryData, seed: int, sizes: bool = False) -> DiscoveryResult:
+    """Discovery as the benchmark runs it on recording ``name`` (the library effects its
+    measurement can see); ``sizes``: also the detectable sizes (only the unmodified
+    recording's are used: they set the concealed sizes)."""
+    chain, _, effects = read(name)
     options = DiscoveryOptions(seed=seed, bootstrap=0, detectability=sizes)
+    if effects is not None:
+        options = dataclasses.replace(options, effects=tuple(effects))
     return discover(chain, data, options)
+
+
+@cache
+def read(name: str) -> tuple[KinematicChain, DiscoveryData, tuple[str, ...] | None]:
+    """The shipped recording ``name`` as ``kincal discover`` reads it
+    (:func:`service.discovery.discover_source`): chain, data, and the library effects its
+    measurement can see (None: all)."""
+    recording = RECORDINGS[name]
+    options = recording.options()
+    chain = service_discovery.chain_for(recording.robot(), options)
+    source = DATA / recording.relative
+    reading = service_discovery.measurement_options(options)
+    model = measurement_run.measurement_for(reading, chain, source, None)
+    if model is None:
+        dataset = measurement_run.read_chain_dataset(source, chain)
+        return chain, service_discovery.solver_data(dataset, options), None
+    measured = measurement_run.read_measured(source, chain, reading, model)
+    data, _, effects = service_discovery.measured_data(measured, options)
+    return chain, data, None if effects is None else tuple(effects)
 
 
 @cache
 def recording(name: str) -> tuple[KinematicChain, DiscoveryData, np.ndarray]:
     """The shipped recording ``name``: chain, data, measurement frame (base in the measurement
     frame, from a rigid fit)."""
-    recording = RECORDINGS[name]
-    robot = recording.robot()
-    options = SchemaOptions()
-    chain = service_discovery.chain_for(robot, options)
-    dataset = read_dataset(
-        DATA / recording.relative, chain.joint_names, other_joint_names=chain.other_joint_names
-    )
-    data = service_discovery.solver_data(dataset, options)
+    chain, data, _ = read(name)
     ctx = Context.build(probe_chain(chain), data)
     fit = fit_with_noise(ctx, (), start_parameters(ctx), ctx.all_rows)
     frame = fit.params.links[0] @ np.linalg.inv(chain.nominal_links[0])
@@ -165,12 +245,20 @@ def recording(name: str) -> tuple[KinematicChain, DiscoveryData, np.ndarray]:
 def baseline(name: str) -> Baseline:
     """Discovery on the unmodified recording (seed 0) and its rigid measurement frame."""
     chain, data, frame = recording(name)
-    result = _discovery(chain, data, 0, sizes=True)
+    result = _discovery(name, data, 0, sizes=True)
     assert result.detectable is not None
     detectable = {
         (d.term.effect, d.term.variant, d.term.joint_index, d.parameter): d.smallest
         for d in result.detectable
     }
+    unsized: dict[tuple[str, str], str] = {}
+    for d in result.detectable:
+        if not math.isfinite(d.smallest):
+            unsized.setdefault((d.term.effect, d.term.variant), d.reason)
+    for u in result.unseen:
+        unsized.setdefault(
+            (u.term.effect, u.term.variant), "not a candidate: its column cancels in the residual"
+        )
     names = [f.explanation for f in result.findings]
     return Baseline(
         name,
@@ -180,11 +268,15 @@ def baseline(name: str) -> Baseline:
         detectable,
         frame,
         result.heldout_before.translation_mm,
+        unsized,
     )
 
 
 def candidate_joints(base: Baseline, effect: Effect) -> list[int | None]:
-    """Joints where the effect's term is testable on the unmodified recording."""
+    """Joints where the effect's term is testable on the unmodified recording (none for a
+    pose-side effect the recording leaves out, see :attr:`RealRecording.pose_side`)."""
+    if effect.pose_side and RECORDINGS[base.recording].pose_side:
+        return []
     joints: list[int | None] | range = [None]
     if effect.on_joint:
         joints = [0] if effect.effect == "base_flex" else range(base.chain.n_joints)
@@ -196,12 +288,47 @@ def candidate_joints(base: Baseline, effect: Effect) -> list[int | None]:
     return found
 
 
+def no_size(base: Baseline, effect: Effect) -> str:
+    """Why ``effect`` is not concealed in the recording at all ('' when it is): a pose-side
+    effect the recording leaves out, an effect its measurement cannot see, or the unmodified
+    recording's reason for stating no detectable size on any joint."""
+    if candidate_joints(base, effect):
+        return ""
+    recording = RECORDINGS[base.recording]
+    if effect.pose_side and recording.pose_side:
+        return recording.pose_side
+    _, _, searched = read(base.recording)
+    if searched is not None and effect.effect not in searched:
+        kind = recording.measurement
+        reason = service_discovery.LEFT_OUT.get(kind, {}).get(effect.effect, "")
+        return f"not searched for measurement {kind}: {reason}"
+    variant = _variant(base, effect)
+    reasons = sorted(
+        {r for (e, v), r in base.unsized.items() if e == effect.effect and v.startswith(variant)}
+    )
+    if any(reasons):
+        return "; ".join(r for r in reasons if r)
+    offered = sorted({v for e, v, _, _ in base.detectable if e == effect.effect})
+    if not offered:
+        return f"the library builds no {effect.effect} term on this recording"
+    return (
+        f"the library builds no {effect.effect} ({variant}) term on this recording (offered: "
+        + ", ".join(v or "plain" for v in offered)
+        + ")"
+    )
+
+
 def stated(base: Baseline, effect: Effect, joint: int | None) -> float | None:
     """The unmodified recording's stated detectability of ``effect`` on ``joint``."""
-    variant = effect.variant
+    return base.detectable.get((effect.effect, _variant(base, effect), joint, effect.parameter))
+
+
+def _variant(base: Baseline, effect: Effect) -> str:
+    """The library variant ``effect`` is named as in the recording (a depth scale: along the
+    marker's z for a camera on the flange, else along the measurement frame's)."""
     if effect.effect == "depth_scale":
-        variant = "marker_z" if RECORDINGS[base.recording].camera_on_flange else "measurement_z"
-    return base.detectable.get((effect.effect, variant, joint, effect.parameter))
+        return "marker_z" if RECORDINGS[base.recording].camera_on_flange else "measurement_z"
+    return effect.variant
 
 
 @dataclasses.dataclass(frozen=True)
@@ -353,15 +480,36 @@ def _size_of(values: np.ndarray, effect: Effect) -> float:
     return float(abs(values[0]))
 
 
+def placed(job: tuple[str, str, float, int]) -> tuple[int | None, float]:
+    """(joint, reported size) of a job: the seed cycles the joints where a size is stated."""
+    name, effect_name, multiple, seed = job
+    base = baseline(name)
+    effect = EFFECTS[effect_name]
+    joints = candidate_joints(base, effect)
+    joint = joints[seed % len(joints)]
+    return joint, multiple * float(stated(base, effect, joint) or math.nan)
+
+
+def beyond_mechanism(effect_name: str, size: float) -> str:
+    """Why the mechanism simulator cannot build ``effect_name`` at ``size`` ('' when it can):
+    a gear harmonic needs its lobe (size × harmonic × pitch radius) below half the pitch radius
+    (beyond it the pitch curve folds: an eccentricity past the radius is no gear)."""
+    if effect_name.startswith("gear_h") and size * int(effect_name[-1]) >= GEAR_LOBE_LIMIT:
+        return (
+            f"{size * 1e3:.0f} mrad × harmonic {effect_name[-1]} is a lobe of "
+            f"{size * int(effect_name[-1]):.2f} pitch radii, beyond the gear mechanism's "
+            f"{GEAR_LOBE_LIMIT:g}"
+        )
+    return ""
+
+
 def run_one(job: tuple[str, str, float, int]) -> Run:
     """One concealed effect in one real recording, one seed."""
     name, effect_name, multiple, seed = job
     base = baseline(name)
     effect = EFFECTS[effect_name]
-    joints = candidate_joints(base, effect)
+    joint, size = placed(job)
     rng = np.random.default_rng([seed, len(effect_name)])
-    joint = joints[seed % len(joints)]
-    size = multiple * float(stated(base, effect, joint) or math.nan)
     mechanisms, truth = concealment(name, effect_name, joint, size, rng)
     data = base.data
     clock = data.clock()[0]
@@ -375,7 +523,7 @@ def run_one(job: tuple[str, str, float, int]) -> Run:
     )
     concealed = dataclasses.replace(data, joint_positions=readings, measured_pose=poses)
     started = time.perf_counter()
-    result = _discovery(base.chain, concealed, seed)
+    result = _discovery(name, concealed, seed)
     sizes = estimate_of(result, effect, joint, base)
     return Run(
         recording=name,
@@ -469,7 +617,7 @@ def main(
     chosen = recordings or list(RECORDINGS)
     wanted = effects or list(EFFECTS)
     started = time.perf_counter()
-    jobs = [
+    planned = [
         (name, e, m, seed)
         for name in chosen
         for e in wanted
@@ -477,6 +625,8 @@ def main(
         for m in sizes
         for seed in range(seeds)
     ]
+    beyond = {job: beyond_mechanism(job[1], placed(job)[1]) for job in planned}
+    jobs = [job for job in planned if not beyond[job]]
     if workers <= 1:
         runs = [run_one(job) for job in jobs]
     else:
@@ -516,6 +666,20 @@ def main(
         + ("nothing named" if not baseline(n).named else "named " + "; ".join(baseline(n).named))
         for n in chosen
     ]
+    for n in chosen:
+        skipped = [
+            f"{e} ({reason})" for e in wanted if (reason := no_size(baseline(n), EFFECTS[e]))
+        ]
+        if skipped:
+            notes.append(f"- {RECORDINGS[n].label}, not concealed: " + "; ".join(skipped))
+        for job, why in beyond.items():
+            if job[0] == n and why:
+                joint = placed(job)[0]
+                where = "" if joint is None else f" on {baseline(n).chain.joint_names[joint]}"
+                notes.append(
+                    f"- {RECORDINGS[n].label}, {job[1]} {job[2]:g}× seed {job[3]}{where} "
+                    f"not run: {why}"
+                )
     at_two = [r for (n, e, m), r in rows.items() if m == 2.0]
     if at_two:
         notes.append(

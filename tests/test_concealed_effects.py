@@ -82,3 +82,31 @@ def test_real_benchmark_runs_on_a_shipped_recording_and_prints_its_table() -> No
     assert {run.recording for run in runs} == {"ur10e"}
     assert all(run.truth > 0 and run.joint is not None for run in runs)
     assert any("unmodified UR10e: nothing named" in line for line in lines)
+
+
+def test_real_benchmark_runs_on_a_ball_in_socket_recording_and_names_what_it_leaves_out() -> None:
+    """``concealed_effects.py --real --recordings platonics``: the platonics Panda read as
+    ``kincal discover --measurement point --point-distance 0.05`` reads it; a direction
+    backlash at its stated detectability is concealed in the joint readings and the run is
+    tabled; the pose-side link bending is not concealed and the note says why."""
+    from benchmarks import concealed_real
+
+    lines: list[str] = []
+    text, rows, runs = concealed_real.main(
+        seeds=1,
+        workers=1,
+        recordings=["platonics"],
+        effects=["backlash_direction", "link_bending"],
+        sizes=(1.0,),
+        echo=lines.append,
+    )
+    assert text.startswith("| Recording |") and list(rows) == [
+        ("platonics", "backlash_direction", 1.0)
+    ]
+    (run,) = runs
+    assert run.joint is not None and run.truth > 0
+    base = concealed_real.baseline("platonics")
+    assert base.data.measurement is not None and base.data.measurement.name == "point"
+    label = concealed_real.RECORDINGS["platonics"].label
+    assert f"unmodified {label}: nothing named" in text
+    assert f"{label}, not concealed: link_bending (the ball is held in a socket" in text
