@@ -205,6 +205,8 @@ class _Search:
         self.judged: set[str] = set()
         self.unseen: dict[str, Unseen] = {}
         self.declared_notes = self._declared_checks()
+        # (candidate key, the fit it was added to, the refit with it) of the last row check
+        self.tentative: tuple[str, ModelFit, ModelFit] = ("", self.fit, self.fit)
 
     def run(self) -> DiscoveryResult:
         options = self.options
@@ -331,6 +333,7 @@ class _Search:
                 ).rows
                 back = np.setdiff1d(kept, self.fit.rows)
                 if back.size == 0:
+                    self.tentative = (key, self.fit, tentative)  # the step's refit (:meth:`_add`)
                     return candidates
                 rows = np.union1d(self.fit.rows, back)
                 self.fit = fit_with_noise(
@@ -430,10 +433,15 @@ class _Search:
     def _add(self, best: Term, test: ScoreTest) -> tuple[Term, tuple[Term, ...], ModelFit] | None:
         """Refit with ``best`` added (shape refined); None if the fit cannot be done."""
         new_terms, start = extend(self.fit.params, self.terms, best, test.estimate)
+        key, fit, tentative = self.tentative
+        self.tentative = ("", self.fit, self.fit)
         try:
-            new_fit = fit_with_noise(
-                self.ctx, new_terms, start, self.fit.rows, self.fit.weights, rounds=1
-            )
+            if (key, fit) == (best.key, self.fit):  # refit already done by the row check
+                new_fit = tentative
+            else:
+                new_fit = fit_with_noise(
+                    self.ctx, new_terms, start, self.fit.rows, self.fit.weights, rounds=1
+                )
             if best.time_constant() is not None:
                 best, new_terms, new_fit = refine_time_constant(self.ctx, new_terms, new_fit)
             if best.deadzone() is not None:
