@@ -309,8 +309,9 @@ class _Search:
         """The step decided on the samples that the model it leads to keeps.
 
         Screening under a model that lacks an effect drops the samples where that effect is
-        largest — often the ones that tell two mechanisms apart (a load backlash from a gear
-        error on the same joint). So the best candidate is added tentatively (one refit) and
+        largest (on the FR3, a concealed dead band on panda_joint5 makes three samples look
+        gross under the rigid model; the backlash's model keeps them). So the best candidate
+        is added tentatively (one refit) and
         every sample re-judged against that model; if that brings samples back, the current
         model is refit on the rows it keeps, unscreened, and the candidates tested again
         (at most ``rounds`` times; the rows only grow back, never shrink).
