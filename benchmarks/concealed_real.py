@@ -36,7 +36,13 @@ from service import measurement_run
 from service.robots import RobotDescription, example_robot_data_dir, load_robot
 from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, discover
 from solver.discovery.features import probe_chain
-from solver.discovery.fitting import Context, fit_model, fit_with_noise, start_parameters
+from solver.discovery.fitting import (
+    Context,
+    by_key,
+    fit_model,
+    fit_with_noise,
+    start_parameters,
+)
 from solver.discovery.library import Term
 from solver.errors import CalibrationError
 from solver.mechanisms import (
@@ -441,14 +447,8 @@ def background_step(name: str, result: DiscoveryResult, term: Term) -> np.ndarra
         step = fit_model(ctx, result.terms, result.params, rows, weights, max_iterations=1)
     except CalibrationError:
         return np.zeros(term.size)
-    before = dict(zip((t.key for t in result.terms), _split(result), strict=True))
+    before = by_key(result.terms, result.params.theta)
     return np.asarray(step.values()[term.key] - before[term.key], dtype=float)
-
-
-def _split(result: DiscoveryResult) -> list[np.ndarray]:
-    """The run's θ split per term (model order)."""
-    sizes = np.cumsum([t.size for t in result.terms])[:-1]
-    return np.split(result.params.theta, sizes)
 
 
 @cache
