@@ -38,6 +38,7 @@ from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, d
 from solver.discovery.features import probe_chain
 from solver.discovery.fitting import (
     Context,
+    ModelFit,
     by_key,
     fit_model,
     fit_with_noise,
@@ -237,13 +238,20 @@ def read(name: str) -> tuple[KinematicChain, DiscoveryData, tuple[str, ...] | No
 
 
 @cache
-def recording(name: str) -> tuple[KinematicChain, DiscoveryData, np.ndarray]:
-    """The shipped recording ``name``: chain, data, measurement frame (base in the measurement
-    frame, from a rigid fit)."""
+def rigid_fit(name: str) -> tuple[Context, ModelFit]:
+    """Discovery context of the unmodified recording ``name`` and its rigid fit (every
+    sample, per-block noise scale)."""
     chain, data, _ = read(name)
     ctx = Context.build(probe_chain(chain), data)
-    fit = fit_with_noise(ctx, (), start_parameters(ctx), ctx.all_rows)
-    frame = fit.params.links[0] @ np.linalg.inv(chain.nominal_links[0])
+    return ctx, fit_with_noise(ctx, (), start_parameters(ctx), ctx.all_rows)
+
+
+@cache
+def recording(name: str) -> tuple[KinematicChain, DiscoveryData, np.ndarray]:
+    """The shipped recording ``name``: chain, data, measurement frame (base in the measurement
+    frame, from the rigid fit)."""
+    chain, data, _ = read(name)
+    frame = rigid_fit(name)[1].params.links[0] @ np.linalg.inv(chain.nominal_links[0])
     return chain, data, frame
 
 
@@ -419,8 +427,10 @@ def estimate_of(
 
     The concealed part subtracts the recording's own structure along that term: the same final
     model (every term of the run, on the samples it kept) fitted to the unmodified recording,
-    linearised at the run's own parameters (:func:`background_in`), so the difference is the
-    run's estimator applied to the concealed effect alone. The background along a term depends
+    linearised at the run's own parameters. The run's parameters are its optimum, so that
+    background is the named value plus one Gauss–Newton step on the unmodified recording
+    (:func:`background_step`), and the concealed part is minus that step — the run's
+    estimator applied to the concealed effect alone. The background along a term depends
     on what else is fitted with it — e.g. the FR3's own tilt, named alongside a concealed base
     flex, changes the flex's — and a pair that acts through each other (a gravity tilt moves
     the flex's moment) is not identified on the unmodified recording, where there is no flex
@@ -432,8 +442,8 @@ def estimate_of(
         if not is_concealed(term.effect, term.joint_index, term.variant, effect, joint):
             continue
         values = np.array([f.estimate.parameters.get(p, np.nan) for p in term.parameters])
-        own = values + background_step(base.recording, result, term)
-        return _size_of(values, effect), _size_of(values - own, effect)
+        concealed = -background_step(base.recording, result, term)
+        return _size_of(values, effect), _size_of(concealed, effect)
     return None
 
 
@@ -441,23 +451,14 @@ def background_step(name: str, result: DiscoveryResult, term: Term) -> np.ndarra
     """Change of ``term``'s coefficients (reported units) in one Gauss–Newton step of the run's
     final model (its terms, parameters and samples) on the unmodified recording ``name``,
     weighted like its rigid fit; zeros when the step cannot be taken."""
-    ctx, weights = _unmodified_context(name)
+    ctx, rigid = rigid_fit(name)
     rows = np.setdiff1d(ctx.all_rows, result.outlier_rows)
     try:
-        step = fit_model(ctx, result.terms, result.params, rows, weights, max_iterations=1)
+        step = fit_model(ctx, result.terms, result.params, rows, rigid.weights, max_iterations=1)
     except CalibrationError:
         return np.zeros(term.size)
     before = by_key(result.terms, result.params.theta)
     return np.asarray(step.values()[term.key] - before[term.key], dtype=float)
-
-
-@cache
-def _unmodified_context(name: str) -> tuple[Context, np.ndarray]:
-    """Discovery context of the unmodified recording and its rigid fit's noise weights."""
-    chain, data, _ = recording(name)
-    ctx = Context.build(probe_chain(chain), data)
-    fit = fit_with_noise(ctx, (), start_parameters(ctx), ctx.all_rows)
-    return ctx, fit.weights
 
 
 def is_concealed(
