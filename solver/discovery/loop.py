@@ -3,9 +3,10 @@
 1. Fit the user's model (rigid geometry + declared terms, measurement frame and tool always
    estimated) with the per-block noise scale; screen gross outliers; residual health report.
 2. Score-test every library candidate against the fit (no refit per candidate); Holm at
-   ``alpha`` over the family. Nothing significant → stop. If the best candidate's model keeps
-   samples the screen dropped, test again with them (the step is decided on the samples the
-   model it leads to keeps).
+   ``alpha`` over the family. If the best candidate's model keeps samples the screen dropped,
+   or any candidate's model keeps dropped samples that vouch for one another, test again with
+   them (the step is decided on the samples the model it leads to keeps). Nothing
+   significant → stop.
 3. For the strongest candidate (smallest p): if it is a joint-angle or load term, check that
    joint's lack of fit beyond the whole library family, and that its sign is physical — if not,
    the joint's structure is reported as unexplained (kept in the model as an unnamed function)
@@ -92,7 +93,7 @@ from solver.discovery.scoring import (
     holm,
     score_test,
 )
-from solver.discovery.validation import cross_validate, kfold, screen_outliers
+from solver.discovery.validation import corroborated, cross_validate, kfold, screen_outliers
 from solver.errors import CalibrationError
 from solver.model import KinematicChain
 
@@ -310,31 +311,17 @@ class _Search:
 
         Screening under a model that lacks an effect drops the samples where that effect is
         largest (on the FR3, a concealed dead band on panda_joint5 makes three samples look
-        gross under the rigid model; the backlash's model keeps them). So the best candidate
-        is added tentatively (one refit) and
-        every sample re-judged against that model; if that brings samples back, the current
-        model is refit on the rows it keeps, unscreened, and the candidates tested again
-        (at most ``rounds`` times; the rows only grow back, never shrink).
+        gross under the rigid model; the backlash's model keeps them). So samples come back
+        (:meth:`_brought_back`), the current model is refit on the rows it then keeps,
+        unscreened, and the candidates are tested again (at most ``rounds`` times; the rows
+        only grow back, never shrink).
         """
         if self.options.outlier_level is None:
             return candidates
         for _ in range(rounds):
-            if not candidates.ranked:
-                return candidates
-            key = candidates.ranked[0]
-            new_terms, start = extend(
-                self.fit.params, self.terms, candidates.by_key[key], candidates.tests[key].estimate
-            )
             try:
-                tentative = fit_with_noise(
-                    self.ctx, new_terms, start, self.fit.rows, self.fit.weights, rounds=1
-                )
-                kept = screen_outliers(
-                    self.ctx, new_terms, tentative, self.options.outlier_level
-                ).rows
-                back = np.setdiff1d(kept, self.fit.rows)
+                back = self._brought_back(candidates, self.options.outlier_level)
                 if back.size == 0:
-                    self.tentative = (key, self.fit, tentative)  # the step's refit (:meth:`_add`)
                     return candidates
                 rows = np.union1d(self.fit.rows, back)
                 self.fit = fit_with_noise(
@@ -344,6 +331,28 @@ class _Search:
                 return candidates
             candidates = self._candidates()
         return candidates
+
+    def _brought_back(self, candidates: _Candidates, level: float) -> IndexArray:
+        """Screened-out samples that a candidate's model keeps: first the best candidate's
+        (added tentatively, one refit, every sample re-judged; that refit is kept for the
+        step, :meth:`_add`), else any library candidate's that the other samples corroborate
+        (:func:`~solver.discovery.validation.corroborated`: a large enough effect pushes out
+        every sample on one side of it, so its column is constant on the samples kept and it
+        is not even tested there)."""
+        if candidates.ranked:
+            key = candidates.ranked[0]
+            new_terms, start = extend(
+                self.fit.params, self.terms, candidates.by_key[key], candidates.tests[key].estimate
+            )
+            tentative = fit_with_noise(
+                self.ctx, new_terms, start, self.fit.rows, self.fit.weights, rounds=1
+            )
+            kept = screen_outliers(self.ctx, new_terms, tentative, level).rows
+            back = np.setdiff1d(kept, self.fit.rows)
+            if back.size:
+                return back
+            self.tentative = (key, self.fit, tentative)
+        return corroborated(self.ctx, self.fit, candidates.library, level)[1]
 
     def _step(self, step: int, candidates: _Candidates) -> None:
         key = candidates.ranked[0]

@@ -22,6 +22,7 @@ from solver.measurement.fit import row_errors
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
 
 
 def kfold(n: int, folds: int, rng: np.random.Generator) -> list[tuple[IndexArray, IndexArray]]:
@@ -82,6 +83,22 @@ def cross_validate(
     )
 
 
+def _screen_limit(ctx: Context, level: float) -> tuple[float, float]:
+    """(χ²_d quantile at ``level / N``, χ²_d median) of :func:`screen_outliers`."""
+    d = ctx.data.rows
+    return (
+        float(scipy.stats.chi2.isf(level / ctx.data.n_samples, d)),
+        float(scipy.stats.chi2.median(d)),
+    )
+
+
+def _passing(norm2: FloatArray, kept: IndexArray, limit: float, median: float) -> BoolArray:
+    """Samples whose whitened squared residual norm ``norm2`` (N,) passes the screen, the
+    scale taken as the median over the ``kept`` samples."""
+    scale = float(np.median(norm2[kept])) / median
+    return norm2 <= limit * scale
+
+
 def screen_outliers(
     ctx: Context, terms: tuple[Term, ...], fit: ModelFit, level: float | None
 ) -> ModelFit:
@@ -94,16 +111,73 @@ def screen_outliers(
     """
     if level is None:
         return fit
-    d = ctx.data.rows
     all_rows = ctx.all_rows
-    limit = float(scipy.stats.chi2.isf(level / all_rows.size, d))
-    median = float(scipy.stats.chi2.median(d))
+    limit, median = _screen_limit(ctx, level)
     for _ in range(4):
         design = evaluate(ctx, terms, fit.params, all_rows)
         norm2 = np.sum(whitened(design.residual, fit.weights) ** 2, axis=1)
-        scale = float(np.median(norm2[fit.rows])) / median
-        rows = all_rows[norm2 <= limit * scale]
+        rows = all_rows[_passing(norm2, fit.rows, limit, median)]
         if np.array_equal(rows, fit.rows):
             break
         fit = fit_with_noise(ctx, terms, fit.params, rows, fit.weights, rounds=1)
     return fit
+
+
+def corroborated(
+    ctx: Context, fit: ModelFit, library: list[Term], level: float
+) -> tuple[str, IndexArray]:
+    """The library candidate whose model brings back the most screened-out samples that vouch
+    for each other, and those samples (``("", [])`` when there is none).
+
+    Linearised at ``fit`` over the whole recording: each candidate's columns join the fit's
+    (nuisance, then θ) and one least-squares step is taken on every sample. A screened-out
+    sample comes back when, after that step, it passes the screen of :func:`screen_outliers`
+    while every kept sample still passes — and when it also passes after the step taken
+    without it (leave one out), i.e. when the other samples predict it. A gross outlier (a
+    misread marker) has nothing that predicts it and stays out; samples that an unmodelled
+    effect pushed out have one another: on the FR3 recording a 28 mrad load backlash on
+    panda_joint5 pushes out all six samples on one side of that joint's load sign, so its
+    column is constant on the samples kept and the term cannot even be tested there, while
+    the UR10e's two screened samples, which a measurement-frame drift would bring back, are
+    each predicted by no step fitted without it.
+    """
+    all_rows = ctx.all_rows
+    out = np.setdiff1d(all_rows, fit.rows)
+    if out.size == 0 or not library:
+        return "", out
+    n, d = ctx.data.n_samples, ctx.data.rows
+    limit, median = _screen_limit(ctx, level)
+    design = evaluate(ctx, fit.terms, fit.params, all_rows, candidates=tuple(library))
+    residual = whitened(design.residual, fit.weights).reshape(-1)
+    present = np.concatenate(
+        [
+            fit.nuisance(whitened(design.links, fit.weights)).reshape(n * d, -1),
+            whitened(design.terms, fit.weights).reshape(n * d, -1),
+        ],
+        axis=1,
+    )
+
+    def passing(columns: FloatArray, samples: IndexArray) -> BoolArray:
+        """The screen after the step fitted on ``samples``."""
+        on = np.zeros((n, d), dtype=bool)
+        on[samples] = True
+        on = on.reshape(-1)
+        step, *_ = np.linalg.lstsq(columns[on], residual[on], rcond=None)
+        norm2 = np.sum((residual - columns @ step).reshape(n, d) ** 2, axis=1)
+        return _passing(norm2, fit.rows, limit, median)
+
+    best_key, best = "", out[:0]
+    for term in library:
+        columns = np.concatenate(
+            [present, whitened(design.candidates[term.key], fit.weights).reshape(n * d, -1)],
+            axis=1,
+        )
+        ok = passing(columns, all_rows)
+        back = out[ok[out]]
+        if back.size <= best.size or not ok[fit.rows].all():
+            continue
+        both = np.union1d(fit.rows, back)
+        vouched = np.array([i for i in back if passing(columns, both[both != i])[i]], dtype=np.intp)
+        if vouched.size > best.size:
+            best_key, best = term.key, vouched
+    return best_key, best

@@ -92,26 +92,30 @@ def test_no_term_is_driven_by_a_moment_the_geometry_makes_zero(
 
 
 @pytest.mark.parametrize(
-    ("name", "effect_name", "effect", "variant", "joint", "seed"),
+    ("name", "effect_name", "effect", "variant", "joint", "seed", "multiple"),
     [
-        ("fr3", "backlash_direction", "backlash", "direction", "panda_joint4", 0),
-        ("ur10e", "backlash_load", "backlash", "load", "wrist_1_joint", 1),
-        ("ur10e", "backlash_direction", "backlash", "direction", "elbow_joint", 3),
+        ("fr3", "backlash_direction", "backlash", "direction", "panda_joint4", 0, 2.0),
+        ("ur10e", "backlash_load", "backlash", "load", "wrist_1_joint", 1, 2.0),
+        ("ur10e", "backlash_direction", "backlash", "direction", "elbow_joint", 3, 2.0),
         # reported ambiguous (held-out ties with 0.97–0.99-correlated candidates) until the
         # stated size included the separation from the hardest rival
-        ("fr3", "joint_compliance", "joint_compliance", "", "panda_joint3", 0),
-        ("fr3", "joint_scale", "joint_scale", "", "panda_joint7", 5),
+        ("fr3", "joint_compliance", "joint_compliance", "", "panda_joint3", 0, 2.0),
+        ("fr3", "joint_scale", "joint_scale", "", "panda_joint7", 5, 2.0),
         # named as a gear error on the same joint at twice the third round's stated size
         # (5.8 mrad); the unmodified report now states 7.0 mrad (its final fit keeps one more
-        # sample), and at twice that the backlash is named. Between 1.6x and 2x gear h1
-        # still wins there: docs/discovery_real_benchmark.md, fourth round.
-        ("fr3", "backlash_load", "backlash", "load", "panda_joint5", 0),
+        # sample), and at twice that the backlash is named.
+        ("fr3", "backlash_load", "backlash", "load", "panda_joint5", 0, 2.0),
+        # "nothing larger went unseen": at four times, 28 mrad, nothing was named — the first
+        # screen dropped all six samples on one side of the joint's load sign, so the term was
+        # not testable on the samples kept, until samples that a candidate's model brings back
+        # and that vouch for one another came back (solver.discovery.validation.corroborated)
+        ("fr3", "backlash_load", "backlash", "load", "panda_joint5", 0, 4.0),
         # reported ambiguous with the geometry (97.0 % absorbed at the geometry the effect had
         # bent) until the absorbed share was judged at the fit that models it
-        ("ur10e", "joint_scale", "joint_scale", "", "shoulder_lift_joint", 1),
+        ("ur10e", "joint_scale", "joint_scale", "", "shoulder_lift_joint", 1, 2.0),
     ],
 )
-def test_effect_concealed_at_twice_the_stated_detectability_is_named(
+def test_effect_concealed_at_twice_the_stated_detectability_or_more_is_named(
     unmodified: dict[str, FindingsResult],
     tmp_path: Path,
     name: str,
@@ -120,6 +124,7 @@ def test_effect_concealed_at_twice_the_stated_detectability_is_named(
     variant: str,
     joint: str,
     seed: int,
+    multiple: float,
 ) -> None:
     detectability = unmodified[name].detectability
     assert detectability is not None
@@ -132,7 +137,7 @@ def test_effect_concealed_at_twice_the_stated_detectability_is_named(
     chain, data, frame = concealed_real.recording(name)
     index = chain.joint_names.index(joint)
     rng = np.random.default_rng(seed)
-    mechanism, truth = concealed_real.concealment(name, effect_name, index, 2.0 * stated, rng)
+    mechanism, truth = concealed_real.concealment(name, effect_name, index, multiple * stated, rng)
     readings, poses = conceal(
         chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
     )
