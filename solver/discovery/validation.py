@@ -159,9 +159,9 @@ def corroborated(
 
     def passing(columns: FloatArray, samples: IndexArray) -> BoolArray:
         """The screen after the step fitted on ``samples``."""
-        on = np.zeros((n, d), dtype=bool)
-        on[samples] = True
-        on = on.reshape(-1)
+        chosen = np.zeros((n, d), dtype=bool)
+        chosen[samples] = True
+        on = chosen.reshape(-1)
         step, *_ = np.linalg.lstsq(columns[on], residual[on], rcond=None)
         norm2 = np.sum((residual - columns @ step).reshape(n, d) ** 2, axis=1)
         return _passing(norm2, fit.rows, limit, median)
