@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from schemas.calibration import CalibrationResult
+from schemas.discovery import FindingsResult
 from service import cli
 from tests.conftest import REAL_DATA, computed_once
 
@@ -35,6 +40,32 @@ def run_ok(args: list[object]) -> None:
             cli.main()
         except SystemExit as exc:
             assert exc.code in (0, None), f"kincal {' '.join(map(str, args))} exited {exc.code}"
+
+
+def write_recording(
+    path: Path,
+    joint_positions: np.ndarray,
+    poses: np.ndarray,
+    time_s: np.ndarray | None = None,
+) -> None:
+    """A recording as a kincal dataset CSV (q1…qk, x y z, qx qy qz qw, and t when given),
+    rows in order."""
+    quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
+    joints = [f"q{i + 1}" for i in range(joint_positions.shape[1])]
+    clock = ["t"] if time_s is not None else []
+    rows = [",".join(["sample_id", *joints, "x", "y", "z", "qx", "qy", "qz", "qw", *clock])]
+    for i, (q, pose, quat) in enumerate(zip(joint_positions, poses, quaternions, strict=True)):
+        values = [*q, *pose[:3, 3], *quat] + ([time_s[i]] if time_s is not None else [])
+        rows.append(",".join([str(i)] + [f"{v:.17g}" for v in values]))
+    path.write_text("\n".join(rows) + "\n")
+
+
+def discover_ok(path: Path, flags: list[object]) -> FindingsResult:
+    """``kincal discover PATH *flags -o PATH.json`` (exit 0), its JSON read back."""
+    output = path.with_suffix(".json")
+    with contextlib.redirect_stdout(io.StringIO()):
+        run_ok(["discover", path, *flags, "-o", output])
+    return FindingsResult.model_validate_json(output.read_bytes())
 
 
 REAL_RECORDINGS: dict[str, list[object]] = {

@@ -5,18 +5,15 @@ unmodified recording's report states (named, right joint, size within 25 %)."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from benchmarks import concealed_real
 from schemas.discovery import FindingsResult
 from solver.mechanisms import conceal
-from tests.service.cli_support import run_ok
+from tests.service.cli_support import discover_ok, write_recording
 
 ROBOT_FLAGS: dict[str, list[object]] = {
     "fr3": ["--robot", "panda"],
@@ -38,25 +35,11 @@ SIZE_PARAMETER = {
 }
 
 
-def _write(path: Path, joint_positions: np.ndarray, poses: np.ndarray) -> None:
-    """A recording as a kincal dataset CSV (q1…qk, x y z, qx qy qz qw), rows in order."""
-    quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
-    joints = [f"q{i + 1}" for i in range(joint_positions.shape[1])]
-    rows = [",".join(["sample_id", *joints, "x", "y", "z", "qx", "qy", "qz", "qw"])]
-    for i, (q, pose, quat) in enumerate(zip(joint_positions, poses, quaternions, strict=True)):
-        rows.append(",".join([str(i)] + [f"{v:.17g}" for v in [*q, *pose[:3, 3], *quat]]))
-    path.write_text("\n".join(rows) + "\n")
-
-
 def _discover(path: Path, name: str, sizes: bool = True) -> FindingsResult:
     """``kincal discover`` with its defaults; ``sizes=False`` adds ``--no-detectability``
     (most of a run's time; the sizes change nothing discovery names:
     test_discovery_is_deterministic_given_a_seed)."""
-    output = path.with_suffix(".json")
-    flags = [] if sizes else ["--no-detectability"]
-    with contextlib.redirect_stdout(io.StringIO()):
-        run_ok(["discover", path, *ROBOT_FLAGS[name], "-o", output, *flags])
-    return FindingsResult.model_validate_json(output.read_bytes())
+    return discover_ok(path, [*ROBOT_FLAGS[name], *([] if sizes else ["--no-detectability"])])
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +50,7 @@ def unmodified(tmp_path_factory: pytest.TempPathFactory) -> dict[str, FindingsRe
     for name in ROBOT_FLAGS:
         _, data, _ = concealed_real.recording(name)
         path = folder / f"{name}.csv"
-        _write(path, data.joint_positions, data.measured_pose)
+        write_recording(path, data.joint_positions, data.measured_pose)
         out[name] = _discover(path, name)
     return out
 
@@ -142,7 +125,7 @@ def test_effect_concealed_at_twice_the_stated_detectability_or_more_is_named(
         chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
     )
     path = tmp_path / f"{name}_{effect_name}.csv"
-    _write(path, readings, poses)
+    write_recording(path, readings, poses)
     result = _discover(path, name, sizes=False)  # the sizes stated are the unmodified ones
     named = [
         f

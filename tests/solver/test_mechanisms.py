@@ -6,36 +6,26 @@ evidence that the library's signs and shapes are the mechanisms' own.
 
 from __future__ import annotations
 
-import dataclasses
-import functools
-
 import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from service.scenarios import marker_offset
-from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, discover
 from solver.mechanisms import (
     Concealment,
     DeadBand,
     ElasticJoint,
     GearTrain,
-    MechanismSpec,
     Robot,
     _JointSide,
     conceal,
     gear_harmonic_amplitude,
-    simulate_mechanisms,
 )
 from solver.model import gravity_loads, sample_configurations
-from solver.simulate import JointEffect, SimulationSpec, look_at, simulate_recording
 from tests.conftest import chain
 
 KINOVA = chain("kinova")
 J = KINOVA.joint_names
-CAMERA = look_at(np.array([0.9, -0.6, 0.5]), np.array([0.0, 0.0, 0.25]))
-NOISE = np.r_[[5e-5] * 3, [np.radians(0.003)] * 3]
 
 
 def test_gravity_torque_from_the_masses_equals_the_calibration_model_torque() -> None:
@@ -107,67 +97,3 @@ def test_conceal_inverts_the_joint_mechanisms_sample_by_sample() -> None:
         for c in (1, 2, 3):
             link = side.link_angle(c, float(readings[n, c]), float(n), robot.joint_torque(c), True)
             assert link == pytest.approx(links[n, c], abs=1e-10)
-
-
-# --- acceptance: motor-side backlash on both simulators (issue 14) -------------------------
-
-N = 300
-BACKLASH = {
-    # name: (joint, size, fast-simulator effect kind, dead band holding friction)
-    "direction": (3, 1e-3, "backlash_direction", np.inf),
-    "load": (1, 2e-3, "backlash_load", 0.0),
-}
-
-
-@functools.cache
-def _backlash_run(simulator: str, name: str, seed: int) -> DiscoveryResult:
-    joint, size, kind, holding = BACKLASH[name]
-    if simulator == "fast":
-        spec = SimulationSpec(
-            N,
-            seed,
-            noise_sigma=NOISE,
-            measurement_frame=CAMERA,
-            tool_offset=marker_offset(),
-            joint_effects=(JointEffect(J[joint], kind, size),),  # type: ignore[arg-type]
-        )
-        recording = simulate_recording(KINOVA, spec)
-        q, pose, t = recording.joint_positions, recording.measured_pose, recording.time_s
-    else:
-        mechanism = MechanismSpec(
-            N,
-            seed,
-            joints=(DeadBand(J[joint], size, holding_nm=holding),),
-            measurement_frame=CAMERA,
-            tool_offset=marker_offset(),
-            noise_sigma=NOISE,
-        )
-        simulated = simulate_mechanisms(KINOVA, mechanism)
-        q, pose, t = simulated.joint_positions, simulated.measured_pose, simulated.time_s
-    rigid = dataclasses.replace(KINOVA, compliance_axes=())
-    return discover(
-        rigid,
-        DiscoveryData(q, pose, False, t),
-        DiscoveryOptions(seed=seed, bootstrap=10, detectability=False),
-    )
-
-
-@pytest.mark.parametrize("simulator", ["fast", "mechanism"])
-@pytest.mark.parametrize("name", sorted(BACKLASH))
-def test_motor_side_backlash_is_named_with_its_joint_and_size(simulator: str, name: str) -> None:
-    """Motor-side backlash (the link lags the reading against the motion; gravity pushes it
-    ahead along its torque) of 1 mrad by approach direction and 2 mrad by load, N = 300: named
-    on the right joint, size within 20 %, on both simulators."""
-    joint, size, _, _ = BACKLASH[name]
-    result = _backlash_run(simulator, name, 0)
-    named = [
-        (f.estimate.term.effect, f.estimate.term.joint_index, f.estimate.term.variant)
-        for f in result.findings
-    ]
-    assert [n[:2] for n in named] == [("backlash", joint)], [f.explanation for f in result.findings]
-    assert named[0][2].startswith(name)
-    value = result.findings[0].estimate.parameters["backlash_rad"]
-    assert abs(value - size) <= 0.2 * size, value
-    assert not result.ambiguous and not any(
-        "wrong sign" in u.explanation for u in result.unexplained
-    )
