@@ -307,9 +307,13 @@ class Unseen:
 
 
 def unseen_terms(ctx: Context, fit: ModelFit, library: list[Term]) -> dict[str, Unseen]:
-    """Library terms the rows cannot see at all, by key.
+    """Library terms the recording cannot see at all, by key.
 
-    For each column ``c`` of a term: ``|P⊥ W c| / |W c₀|``, with ``W`` the fit's whitening,
+    Judged on every sample of the recording, not only on the fit's rows: what the
+    measurement can see is a property of the measurement, and a term the screen's rows
+    cannot see may be what pushed the other samples out (a 2 mrad load backlash on the
+    platonics Panda's panda_joint4 pushes out the three samples whose load has the other sign;
+    on the rest its column is a constant offset). For each column ``c`` of a term: ``|P⊥ W c| / |W c₀|``, with ``W`` the fit's whitening,
     ``P⊥`` the projection off the fit's nuisance columns (link corrections the rows identify
     and the measurement's own unknowns: sensor mount, sockets, marker offsets) and ``c₀`` the
     same column as a sensor fixed in the measurement frame would see it
@@ -323,9 +327,10 @@ def unseen_terms(ctx: Context, fit: ModelFit, library: list[Term]) -> dict[str, 
     if ctx.data.is_pose or not library:
         return {}
     candidates = tuple(library)
-    seen = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates)
-    fixed = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates, from_sensor=False)
-    n, d = fit.rows.size, ctx.data.rows
+    rows = ctx.all_rows
+    seen = evaluate(ctx, fit.terms, fit.params, rows, candidates)
+    fixed = evaluate(ctx, fit.terms, fit.params, rows, candidates, from_sensor=False)
+    n, d = rows.size, ctx.data.rows
     basis = orthonormal_basis(whitened(fit.nuisance(seen.links), fit.weights).reshape(n * d, -1))
     out: dict[str, Unseen] = {}
     for term in library:

@@ -60,9 +60,10 @@ def write_recording(
     path.write_text("\n".join(rows) + "\n")
 
 
-def discover_ok(path: Path, flags: list[object]) -> FindingsResult:
-    """``kincal discover PATH *flags -o PATH.json`` (exit 0), its JSON read back."""
-    output = path.with_suffix(".json")
+def discover_ok(path: Path, flags: list[object], output: Path | None = None) -> FindingsResult:
+    """``kincal discover PATH *flags -o OUTPUT`` (exit 0; default PATH.json), its JSON read
+    back."""
+    output = output or path.with_suffix(".json")
     with contextlib.redirect_stdout(io.StringIO()):
         run_ok(["discover", path, *flags, "-o", output])
     return FindingsResult.model_validate_json(output.read_bytes())
