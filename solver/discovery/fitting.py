@@ -313,7 +313,9 @@ def unseen_terms(ctx: Context, fit: ModelFit, library: list[Term]) -> dict[str, 
     measurement can see is a property of the measurement, and a term the screen's rows
     cannot see may be what pushed the other samples out (a 2 mrad load backlash on the
     platonics Panda's panda_joint4 pushes out the three samples whose load has the other sign;
-    on the rest its column is a constant offset). For each column ``c`` of a term: ``|P⊥ W c| / |W c₀|``, with ``W`` the fit's whitening,
+    on the rest its column is a constant offset).
+
+    For each column ``c`` of a term: ``|P⊥ W c| / |W c₀|``, with ``W`` the fit's whitening,
     ``P⊥`` the projection off the fit's nuisance columns (link corrections the rows identify
     and the measurement's own unknowns: sensor mount, sockets, marker offsets) and ``c₀`` the
     same column as a sensor fixed in the measurement frame would see it
