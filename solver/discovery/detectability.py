@@ -40,6 +40,11 @@ is stated (infinite, with the reason) when the model absorbs the weakest directi
 ``absorbed_limit`` (the step would be ambiguous with the geometry: e.g. a depth scale along a
 flange camera's axis) or when no trial size up to :data:`MAX_SIZE_FACTOR` times the classical
 size is found (few samples: the sign-flip test's smallest p-value is ~2^{−(N−1)}).
+
+A joint compliance is stated only where the library's spring is still the mechanism at twice
+the size (:func:`first_order_spring`): the library deflects a joint by c·τ at the reading, a
+real spring by c·τ where the link stands, and the two differ by about the loop gain c·|∂τ/∂q|
+of the joint's own gravity torque.
 """
 
 from __future__ import annotations
@@ -66,6 +71,7 @@ from solver.discovery.scoring import (
     tie_threshold,
     unexplained_basis,
 )
+from solver.model import gravity_loads
 
 FloatArray = NDArray[np.float64]
 
@@ -74,6 +80,13 @@ DETECTION_REPLICATES = 10
 SIZE_STEP = 1.25
 BISECTIONS = 2
 MAX_SIZE_FACTOR = 64.0
+SPRING_GAIN_LIMIT = 0.1
+"""Largest loop gain c·max|∂τ_j/∂q_j| at twice a stated joint compliance c (dimensionless):
+beyond it the first-order spring (deflection c·τ at the reading) misses more than about 10 %
+of the real one's (c·τ where the link stands). On the TALOS wrist (stated 0.077–0.093
+rad/N·m, |∂τ/∂q| ≈ 1 N·m/rad: gain 0.16–0.19 at twice it) a concealed spring was never named
+at 1×, 2× or 4×; the FR3's and UR10e's stated springs (gain ≤ 0.042 at twice them) are named
+in every run."""
 
 
 @dataclass(frozen=True)
@@ -174,8 +187,48 @@ def smallest_detectable(
                 separated(null, s, columns[term.key], rivals, replicates, joint_level, power, names)
                 for s in sizes
             ]
+        if term.effect == "joint_compliance":
+            sizes = [first_order_spring(ctx, s) for s in sizes]
         out += sizes
     return out
+
+
+def own_torque_slope(ctx: Context, term: Term) -> float:
+    """max over the recording of |∂τ_j/∂q_j| (N·m/rad): how fast the gravity torque about a
+    compliance term's joint changes with that joint's own angle (central differences of
+    :func:`~solver.model.gravity_loads` at the readings, the user's gravity and payload)."""
+    (axis,) = term.axes
+    probe = ctx.bank.probe
+    column = [a.name for a in probe.compliance_axes].index(axis.feature.removeprefix("tau:"))
+    step_rad = 1e-5
+    q = ctx.data.joint_positions
+
+    def torque(shift_rad: float) -> FloatArray:
+        moved = q.copy()
+        moved[:, axis.joint_index] += shift_rad
+        loads = gravity_loads(
+            probe, moved, gravity_base=ctx.data.gravity_base, payload_kg=ctx.data.payload()
+        )
+        return loads[:, column]
+
+    return float(np.max(np.abs(torque(step_rad) - torque(-step_rad))) / (2.0 * step_rad))
+
+
+def first_order_spring(ctx: Context, size: DetectableSize) -> DetectableSize:
+    """``size`` of a joint compliance, or no size when at twice it the loop gain
+    c·max|∂τ/∂q| exceeds :data:`SPRING_GAIN_LIMIT` (the first-order spring is not the
+    mechanism there, so "nothing larger went unseen" cannot be claimed)."""
+    if not np.isfinite(size.smallest):
+        return size
+    gain = 2.0 * size.smallest * own_torque_slope(ctx, size.term)
+    if gain <= SPRING_GAIN_LIMIT:
+        return size
+    reason = (
+        f"beyond the first-order spring: at twice the size it would be found at "
+        f"({2.0 * size.smallest:.3g} rad/N·m) the joint's own gravity stiffness changes its "
+        f"deflection by {gain:.0%} (limit {SPRING_GAIN_LIMIT:.0%})"
+    )
+    return replace(size, smallest=np.inf, reason=reason, separated_from=None)
 
 
 def collinear_twins(
