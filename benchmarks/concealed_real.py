@@ -32,7 +32,6 @@ import numpy as np
 
 from schemas.discovery import DiscoveryOptions as SchemaOptions
 from service import discovery as service_discovery
-from service import measurement_run
 from service.robots import RobotDescription, example_robot_data_dir, load_robot
 from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, discover
 from solver.discovery.features import probe_chain
@@ -221,20 +220,13 @@ def _discovery(name: str, data: DiscoveryData, seed: int, sizes: bool = False) -
 @cache
 def read(name: str) -> tuple[KinematicChain, DiscoveryData, tuple[str, ...] | None]:
     """The shipped recording ``name`` as ``kincal discover`` reads it
-    (:func:`service.discovery.discover_source`): chain, data, and the library effects its
+    (:func:`service.discovery.read_source`): chain, data, and the library effects its
     measurement can see (None: all)."""
     recording = RECORDINGS[name]
-    options = recording.options()
-    chain = service_discovery.chain_for(recording.robot(), options)
-    source = DATA / recording.relative
-    reading = service_discovery.measurement_options(options)
-    model = measurement_run.measurement_for(reading, chain, source, None)
-    if model is None:
-        dataset = measurement_run.read_chain_dataset(source, chain)
-        return chain, service_discovery.solver_data(dataset, options), None
-    measured = measurement_run.read_measured(source, chain, reading, model)
-    data, _, effects = service_discovery.measured_data(measured, options)
-    return chain, data, None if effects is None else tuple(effects)
+    options, robot = recording.options(), recording.robot()
+    read = service_discovery.read_source(DATA / recording.relative, robot, options)
+    chain = service_discovery.chain_for(robot, options)
+    return chain, read.data, None if read.effects is None else tuple(read.effects)
 
 
 @cache

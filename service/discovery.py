@@ -142,27 +142,55 @@ def discover_source(
     ``options.measurement`` (:mod:`service.measurement_run`: a platonics ball-in-socket folder,
     a FIGAROH file with all its markers, chosen pose components, ...)."""
     started = time.perf_counter()
+    read = read_source(source, robot, options, marker=marker, name=name)
+    return _discover(
+        read.data,
+        read.source,
+        robot,
+        options.model_copy(update={"effects": read.effects})
+        if read.effects is not None
+        else options,
+        plot_dir,
+        plot_stem,
+        started,
+        read.measurement,
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class SourceData:
+    """A recording as discovery reads it: its rows, where they came from, the library
+    effects its measurement can see (None: as asked) and what the findings say about the
+    measurement (None for pose and position rows)."""
+
+    data: solver_discovery.DiscoveryData
+    source: str
+    effects: list[Effect] | None
+    measurement: DiscoveryMeasurement | None
+
+
+def read_source(
+    source: Path,
+    robot: RobotDescription,
+    options: DiscoveryOptions,
+    *,
+    marker: int | None = None,
+    name: str | None = None,
+) -> SourceData:
+    """Read a recording file or folder as ``kincal calibrate`` reads it for
+    ``options.measurement`` (:mod:`service.measurement_run`)."""
     chain = chain_for(robot, options)
     measurement_run.check_sensor_joint(options.measurement, chain)
     reading = measurement_options(options)
     model = measurement_run.measurement_for(reading, chain, source, marker)
     if model is None:
         dataset = measurement_run.read_chain_dataset(source, chain, marker, name)
-        return discover(dataset, robot, options, plot_dir, plot_stem)
+        return SourceData(solver_data(dataset, options), dataset.source, None, None)
     recording = measurement_run.read_measured(
         source, chain, reading, model, marker=marker, name=name
     )
     data, described, effects = measured_data(recording, options)
-    return _discover(
-        data,
-        recording.source,
-        robot,
-        options.model_copy(update={"effects": effects}) if effects is not None else options,
-        plot_dir,
-        plot_stem,
-        started,
-        described,
-    )
+    return SourceData(data, recording.source, effects, described)
 
 
 def measurement_options(options: DiscoveryOptions) -> CalibrationOptions:

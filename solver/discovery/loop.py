@@ -352,7 +352,7 @@ class _Search:
             if back.size:
                 return back
             self.tentative = (key, self.fit, tentative)
-        return corroborated(self.ctx, self.fit, candidates.library, level)[1]
+        return corroborated(self.ctx, self.fit, candidates.library, level)
 
     def _step(self, step: int, candidates: _Candidates) -> None:
         key = candidates.ranked[0]

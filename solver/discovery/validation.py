@@ -123,11 +123,9 @@ def screen_outliers(
     return fit
 
 
-def corroborated(
-    ctx: Context, fit: ModelFit, library: list[Term], level: float
-) -> tuple[str, IndexArray]:
-    """The library candidate whose model brings back the most screened-out samples that vouch
-    for each other, and those samples (``("", [])`` when there is none).
+def corroborated(ctx: Context, fit: ModelFit, library: list[Term], level: float) -> IndexArray:
+    """The screened-out samples that vouch for each other under the library candidate whose
+    model brings back the most of them (none: empty).
 
     Linearised at ``fit`` over the whole recording: each candidate's columns join the fit's
     (nuisance, then θ) and one least-squares step is taken on every sample. A screened-out
@@ -144,7 +142,7 @@ def corroborated(
     all_rows = ctx.all_rows
     out = np.setdiff1d(all_rows, fit.rows)
     if out.size == 0 or not library:
-        return "", out
+        return out[:0]
     n, d = ctx.data.n_samples, ctx.data.rows
     limit, median = _screen_limit(ctx, level)
     design = evaluate(ctx, fit.terms, fit.params, all_rows, candidates=tuple(library))
@@ -166,7 +164,7 @@ def corroborated(
         norm2 = np.sum((residual - columns @ step).reshape(n, d) ** 2, axis=1)
         return _passing(norm2, fit.rows, limit, median)
 
-    best_key, best = "", out[:0]
+    best = out[:0]
     for term in library:
         columns = np.concatenate(
             [present, whitened(design.candidates[term.key], fit.weights).reshape(n * d, -1)],
@@ -179,5 +177,5 @@ def corroborated(
         both = np.union1d(fit.rows, back)
         vouched = np.array([i for i in back if passing(columns, both[both != i])[i]], dtype=np.intp)
         if vouched.size > best.size:
-            best_key, best = term.key, vouched
-    return best_key, best
+            best = vouched
+    return best
