@@ -1,6 +1,6 @@
 """Covariance calibration (paper §IV-C): solvers × estimators on simulated Jaco2 data.
 
-Data, per N and seed: the paper-like Jaco2 of :func:`service.scenarios.scenario` (geometric
+Data, per N and seed: the paper-like Jaco2 of :func:`service.app.simulate.scenario` (geometric
 errors, compliant 2nd and 3rd joints, unknown camera and marker, random rotations ξ_j with σ
 0.3 → 2 mrad on every joint frame, noise 0.05 mm / 0.05 mrad), simulated by
 :func:`solver.simulate.simulate_recording`, so the truth is known. The deterministic fit
@@ -47,8 +47,8 @@ from numpy.typing import NDArray
 
 import solver  # noqa: F401  (BLAS defaults before numpy work)
 from schemas.calibration import CalibrationOptions
-from service.robots import load_robot
-from service.scenarios import scenario
+from schemas.robots import load_robot
+from service.app.simulate import scenario
 from solver.calibration import fit_deterministic
 from solver.covariance import (
     KKT_TOLERANCE,

@@ -67,8 +67,8 @@ import solver  # noqa: F401
 import numpy as np
 import scipy.stats
 
-from service.robots import load_robot
-from service.scenarios import marker_offset
+from schemas.robots import load_robot
+from service.app.simulate import marker_offset
 from solver import lie
 from solver.calibration import pose_errors
 from solver.discovery import DiscoveryData, DiscoveryOptions, discover

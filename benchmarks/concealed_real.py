@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 
 from schemas.discovery import DiscoveryOptions as SchemaOptions
-from service import discovery as service_discovery
-from service.robots import RobotDescription, example_robot_data_dir, load_robot
+from schemas.robots import RobotDescription, example_robot_data_dir, load_robot
+from service.app import discover as service_discovery
 from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, discover
 from solver.discovery.features import probe_chain
 from solver.discovery.fitting import (
@@ -220,7 +220,7 @@ def _discovery(name: str, data: DiscoveryData, seed: int, sizes: bool = False) -
 @cache
 def read(name: str) -> tuple[KinematicChain, DiscoveryData, tuple[str, ...] | None]:
     """The shipped recording ``name`` as ``kincal discover`` reads it
-    (:func:`service.discovery.read_source`): chain, data, and the library effects its
+    (:func:`service.app.discover.read_source`): chain, data, and the library effects its
     measurement can see (None: all)."""
     recording = RECORDINGS[name]
     options, robot = recording.options(), recording.robot()

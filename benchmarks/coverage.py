@@ -33,8 +33,10 @@ import solver  # noqa: F401  (BLAS defaults)
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import PoseDataset
 from schemas.dataset.readers import read_dataset
-from service import pipeline, ranking, result_json
-from service.robots import RobotDescription, example_robot_data_dir, load_robot
+from schemas.robots import RobotDescription, example_robot_data_dir, load_robot
+from service.app import calibrate as pipeline
+from service.app import rank as ranking
+from service.render import result_json
 from solver import lie
 from solver.errors import KincalError
 from solver.kinematics import pose_residuals

@@ -26,8 +26,8 @@ from pathlib import Path
 
 from benchmarks.scale import ROBOT, write_recording
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from service.result_json import chain_for
-from service.robots import load_robot
+from schemas.robots import load_robot
+from service.render.result_json import chain_for
 
 SIZES = (100_000, 1_000_000)
 TARGET_S = {100_000: 10.0, 1_000_000: 15.0}

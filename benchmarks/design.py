@@ -41,10 +41,10 @@ from numpy.typing import NDArray
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import PoseDataset
 from schemas.design import DesignOptions
-from service import pipeline
-from service.design import run_design, volume_of
-from service.result_json import predict_poses
-from service.robots import RobotDescription, load_robot
+from schemas.robots import RobotDescription, load_robot
+from service.app import calibrate as pipeline
+from service.app.design import run_design, volume_of
+from service.render.result_json import predict_poses
 from solver import lie
 from solver.design.candidates import Volume, WorkspaceBox, sample_candidates, tip_poses
 from solver.design.criteria import DesignProblem

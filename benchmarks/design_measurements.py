@@ -1,6 +1,6 @@
 """Designs for the measurement types other than pose and position (issue 16, deliverable 4).
 
-For each case it runs the user's path (:func:`service.design.run_design`, the defaults of
+For each case it runs the user's path (:func:`service.app.design.run_design`, the defaults of
 ``kincal design --measurement TYPE``: D, method auto) and prints one row: candidates, the
 columns of the information (chain parameters p + the measurement's own unknowns e, profiled
 out), the method auto chose and its time, the design's criterion, the relaxation's certified
@@ -28,8 +28,8 @@ import numpy as np
 
 from schemas.calibration import CalibrationOptions
 from schemas.design import DesignOptions
-from service import design
-from service.robots import load_robot
+from schemas.robots import load_robot
+from service.app import design
 from solver.design.criteria import DesignProblem
 from solver.design.relaxation import solve_clarabel, solve_first_order
 

@@ -19,10 +19,10 @@ from pathlib import Path
 import solver  # noqa: F401  (BLAS defaults)
 from schemas.calibration import CalibrationResult
 from schemas.dataset import read_dataset
-from service import result_json
-from service.plots import residual_histograms
-from service.report import table_ii
-from service.robots import example_robot_data_dir
+from schemas.robots import example_robot_data_dir
+from service.render import result_json
+from service.render.plots import residual_histograms
+from service.render.text import table_ii
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "real"
 ERD = "erd:"

@@ -32,8 +32,8 @@ import numpy as np
 import solver  # noqa: F401  (BLAS defaults)
 from benchmarks.design import figaroh_urdf
 from schemas.calibration import CalibrationOptions
-from service import pipeline
-from service.robots import RobotDescription, example_robot_data_dir, load_robot
+from schemas.robots import RobotDescription, example_robot_data_dir, load_robot
+from service.app import calibrate as pipeline
 from solver.evaluation import split_indices
 
 REPO = Path(__file__).resolve().parents[1]

@@ -40,7 +40,7 @@ from benchmarks.pinocchio_sim import (
     write_dataset,
 )
 from schemas.calibration import CalibrationResult
-from service.robots import load_robot
+from schemas.robots import load_robot
 
 PAPER_W = np.diag([0.4, 0.4, 0.0, 0.1, 0.1, 0.0])
 N_CONFIGURATIONS = 40

@@ -6,7 +6,7 @@ What it does:
 1. starts ``kincal serve`` on 127.0.0.1 (free port, temporary data folder, SQLite, API keys
    required, one worker process, ``--web-processes`` request processes: default the
    service's, one per CPU up to 4) and creates a key;
-2. uploads a simulated UR10 recording with :class:`service.client.KincalClient` and calibrates
+2. uploads a simulated UR10 recording with :class:`service.api.client.KincalClient` and calibrates
    it (the calibration the planners rank with);
 3. keeps a long calibration job (many held-out splits) running in the worker process for the
    whole measurement, starting the next one as soon as one ends;
@@ -52,9 +52,10 @@ import numpy as np
 
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import write_dataset
-from service import result_json, scenarios
-from service.client import KincalClient
-from service.robots import load_robot
+from schemas.robots import load_robot
+from service.api.client import KincalClient
+from service.app import simulate as scenarios
+from service.render import result_json
 from service.security import create_api_key
 from service.storage.db import Database
 

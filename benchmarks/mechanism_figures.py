@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from service.robots import load_robot
+from schemas.robots import load_robot
 from solver.discovery.features import approach_lag, deadzone_sign
 from solver.mechanisms import (
     DeadBand,

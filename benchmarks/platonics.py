@@ -20,8 +20,8 @@ from pathlib import Path
 
 import solver  # noqa: F401  (BLAS defaults)
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from service import pipeline
-from service.robots import load_robot
+from schemas.robots import load_robot
+from service.app import calibrate as pipeline
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "real" / "platonics_ball_socket"
 SOCKET_DISTANCE_M = 0.05

@@ -23,7 +23,7 @@ import pinocchio as pin
 from numpy.typing import NDArray
 
 import solver  # noqa: F401  (BLAS defaults)
-from service.robots import load_robot
+from schemas.robots import load_robot
 from solver import lie
 from solver.kinematics import ChainParameters
 from solver.model import build_chain, pin_configuration, sample_configurations

@@ -50,8 +50,10 @@ import pyarrow.parquet as pq
 import solver  # noqa: F401  (BLAS defaults)
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import PoseDataset, dataset_to_frame, write_dataset
-from service import pipeline, result_json, scenarios
-from service.robots import load_robot
+from schemas.robots import load_robot
+from service.app import calibrate as pipeline
+from service.app import simulate as scenarios
+from service.render import result_json
 from solver import lie
 from solver.executors import make_executor, peak_rss_bytes
 from solver.gravity import StaticGravityModel, static_gravity_loads
@@ -294,7 +296,7 @@ def write_fleet(folder: Path, chain: KinematicChain, n_robots: int, n_poses: int
 
 
 def run_fleet(folder: Path, backend: str, workers: int) -> FleetRun:
-    from service.fleet import calibrate_fleet, fleet_datasets
+    from service.app.fleet import calibrate_fleet, fleet_datasets
 
     robot = load_robot(ROBOT)
     options = CalibrationOptions(covariance_estimator="moment", heldout=False)

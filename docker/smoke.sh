@@ -153,7 +153,7 @@ echo "GET /api/v1/datasets with a key from 'kincal keys create' -> $code $(cat "
 step "round trip with the Python client inside the image"
 E2E=$(cat <<'PY'
 import subprocess, sys, time
-from service.client import KincalClient
+from service.api.client import KincalClient
 
 port, key = sys.argv[1], sys.argv[2]
 path = "/tmp/smoke-recording.csv"

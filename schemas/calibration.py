@@ -46,9 +46,9 @@ def known_measurement(value: str) -> str:
 
 class CalibrationOptions(_Model):
     """Everything a calibration run can be told: the HTTP body, the CLI flags
-    (:data:`service.flags.CALIBRATION_FLAGS`) and a ``--config`` TOML file share this model, so
+    (:data:`service.cli.flags.CALIBRATION_FLAGS`) and a ``--config`` TOML file share this model, so
     each field is checked here once (and against the robot by
-    :func:`service.pipeline.check_calibration`)."""
+    :func:`service.app.calibrate.check_calibration`)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 

@@ -17,7 +17,7 @@ from typing import Literal
 from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from service.urdf_outline import DEFAULT_MAX_URDF_JOINTS
+from schemas.urdf_outline import DEFAULT_MAX_URDF_JOINTS
 from solver.errors import KincalError
 
 MiB = 1024 * 1024

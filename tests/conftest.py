@@ -17,7 +17,7 @@ from hypothesis import settings
 
 import solver  # noqa: F401  (BLAS threading defaults before numpy loads)
 from schemas.calibration import CalibrationResult
-from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
+from schemas.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
 from solver.model import KinematicChain, build_chain
 
 T = TypeVar("T")

@@ -13,8 +13,8 @@ import pytest
 from benchmarks import evaluate_real
 from schemas.calibration import CalibrationResult
 from schemas.ranking import RankingOptions, RankingResult
-from service import ranking as ranking_pipeline
-from service.demo import run_demo
+from service.app import rank as ranking_pipeline
+from service.cli.demo import run_demo
 from tests.conftest import assert_documents_close, comparable_result, computed_once
 from tests.service.cli_support import run_ok
 

@@ -2,7 +2,7 @@
 
 The study, with everything random seeded:
 
-* **True robot.** Kinova Jaco2 (j2s6s200) of :func:`service.scenarios.scenario` with the paper's
+* **True robot.** Kinova Jaco2 (j2s6s200) of :func:`service.app.simulate.scenario` with the paper's
   effects: per-link geometric errors, elastic joints 2 and 3, a flexing base plate (two virtual
   compliant axes at joint 1), an unknown camera frame, an unknown marker, 0.3 mm / 0.2 deg camera
   noise and 10 % gross outliers. Random perturbations ξ_i ~ N(0, Σ_i) in every joint frame
@@ -10,7 +10,7 @@ The study, with everything random seeded:
   growing from 0.3 mrad (joint 1) to 1.5 mrad (joint 6), plus bearing play about the two other
   axes at 30 % of that (:func:`true_perturbation_std`).
 * **Recording.** 154 configurations seen by the camera (paper §V-A). "Ours" is
-  :func:`service.pipeline.calibrate` on this recording alone: 2-sigma outlier removal, the
+  :func:`service.app.calibrate.calibrate` on this recording alone: 2-sigma outlier removal, the
   deterministic fit (Eq. 8–10), the diagonal covariance calibration (§IV-C, the product's
   default estimator) and 10 held-out 90/10 splits with seeds 1..10.
 * **Table II.** Mean held-out error per split before calibration (nominal robot with fitted
@@ -21,7 +21,7 @@ The study, with everything random seeded:
 * **Manipulation experiment (§V-C).** In each run a pre-grasp pose is drawn in the calibrated
   workspace (a reachable pose: the calibrated model's pose at a random configuration; a new one
   is drawn if fewer than 10 approach configurations exist, as the rover would re-position);
-  :func:`service.ranking.rank_target` finds 10 distinct configurations that reach it on the
+  :func:`service.app.rank.rank_target` finds 10 distinct configurations that reach it on the
   calibrated model (IK branches and rotations about the end-effector z axis, which the paper's
   weights W = diag(0.4, 0.4, 0, 0.1, 0.1, 0) ignore) and scores them (Eq. 22–23). Each is
   executed many times on the true robot with fresh ξ draws; the docking error of an execution is

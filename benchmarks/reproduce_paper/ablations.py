@@ -10,8 +10,8 @@ from benchmarks.reproduce_paper.manipulation import RecordingStudy
 from benchmarks.reproduce_paper.selection import Comparison
 from benchmarks.reproduce_paper.settings import StudySettings
 from benchmarks.reproduce_paper.simulation import calibration_options, simulate_study_recording
-from service import pipeline
-from service import ranking as service_ranking
+from service.app import calibrate as pipeline
+from service.app import rank as service_ranking
 from solver.ranking import UncertaintyModel
 
 

@@ -10,7 +10,8 @@ from numpy.typing import NDArray
 
 from benchmarks.reproduce_paper.simulation import Recording, kept_rows
 from schemas.calibration import CalibrationResult
-from service import pipeline, result_json
+from service.app import calibrate as pipeline
+from service.render import result_json
 from solver.evaluation import cross_validate, split_indices
 from solver.gp_baseline import gp_calibration_method
 

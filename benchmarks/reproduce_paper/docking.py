@@ -12,7 +12,7 @@ from benchmarks.reproduce_paper.manipulation import ApproachRun, RecordingStudy
 from benchmarks.reproduce_paper.selection import Comparison, compare
 from benchmarks.reproduce_paper.settings import StudySettings
 from schemas.ranking import RankingOptions, TaskPointWeights
-from service import ranking as service_ranking
+from service.app import rank as service_ranking
 from solver.ranking import UncertaintyModel, score_configurations
 
 DOCKING_TASK = RankingOptions(

@@ -14,8 +14,8 @@ from benchmarks.reproduce_paper.selection import Comparison, compare
 from benchmarks.reproduce_paper.settings import StudySettings
 from benchmarks.reproduce_paper.simulation import Recording, TrueRobot, calibration_options
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from service import pipeline
-from service import ranking as service_ranking
+from service.app import calibrate as pipeline
+from service.app import rank as service_ranking
 from solver import lie
 from solver.model import sample_configurations
 from solver.ranking import TaskMetric

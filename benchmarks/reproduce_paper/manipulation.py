@@ -19,8 +19,9 @@ from benchmarks.reproduce_paper.simulation import (
 )
 from schemas.calibration import CalibrationResult
 from schemas.ranking import RankingOptions, RankingResult, TargetPose, TargetRankingRequest
-from service import pipeline, result_json
-from service import ranking as service_ranking
+from service.app import calibrate as pipeline
+from service.app import rank as service_ranking
+from service.render import result_json
 from solver import lie
 from solver.errors import KincalError
 from solver.gp_baseline import GPErrorModel, fit_gp_error_model, gp_scores

@@ -36,7 +36,7 @@ from benchmarks.reproduce_paper.tables import (
     table_iii_markdown,
 )
 from schemas.ranking import TaskPointWeights
-from service import result_json
+from service.render import result_json
 
 
 def known_noise_section(study: StudyResult) -> list[str]:

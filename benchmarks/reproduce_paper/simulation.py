@@ -11,8 +11,8 @@ from numpy.typing import NDArray
 from benchmarks.reproduce_paper.settings import StudySettings
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import PoseDataset
-from service import scenarios
-from service.robots import RobotDescription, load_robot
+from schemas.robots import RobotDescription, load_robot
+from service.app import simulate as scenarios
 from solver import lie
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import KinematicChain, gravity_loads

@@ -29,7 +29,7 @@ from benchmarks.reproduce_paper.paper import PAPER_RUNS
 from benchmarks.reproduce_paper.selection import Comparison, compare
 from benchmarks.reproduce_paper.settings import StudySettings
 from schemas.ranking import RankingOptions
-from service import ranking as service_ranking
+from service.app import rank as service_ranking
 
 FloatArray = NDArray[np.float64]
 

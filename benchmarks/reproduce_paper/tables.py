@@ -24,7 +24,7 @@ from benchmarks.reproduce_paper.selection import (
     picked_errors,
 )
 from benchmarks.reproduce_paper.study import StudyResult
-from service.report import METHOD_LABELS
+from service.render.text import METHOD_LABELS
 
 FloatArray = NDArray[np.float64]
 

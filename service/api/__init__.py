@@ -1,7 +1,7 @@
 """The HTTP service (FastAPI): ``create_app(settings)`` builds it; ``kincal serve`` runs it.
 
 ``create_app`` is imported on first use (PEP 562): the ``kincal serve`` supervisor
-(:mod:`service.api.supervisor`) lives in this package and must not import the web app and the
+(:mod:`service.jobs.supervisor`) lives in this package and must not import the web app and the
 solver (≈ 350 MB and seconds) just to start its children."""
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 ``create_app(settings)`` builds the app (it only creates the data folder); starting it (the
 ASGI lifespan) migrates the database, creates tenant 'local' in keyless mode and starts the
 job runner; stopping it lets running jobs finish for ``shutdown_grace_s`` and re-queues the
-rest. Under ``kincal serve`` (:mod:`service.api.supervisor`) the runner is a process of its
+rest. Under ``kincal serve`` (:mod:`service.jobs.supervisor`) the runner is a process of its
 own: each request process gets ``runner=RemoteRunner(...)``, which starts and stops nothing.
 """
 
@@ -26,8 +26,8 @@ from service.api.metrics import Metrics
 from service.api.middleware import BodyLimits, RequestContextMiddleware
 from service.api.problems import install_problem_handlers
 from service.api.results import ResultCache
-from service.jobs import JobRegistry, JobRunner, RunnerHandle, default_registry
-from service.result_json import kincal_version
+from service.jobs.runner import JobRegistry, JobRunner, RunnerHandle, default_registry
+from service.render.result_json import kincal_version
 from service.security import LOCAL_TENANT, KeyVerifier, Principal
 from service.settings import Settings
 from service.storage import repository

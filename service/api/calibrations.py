@@ -1,4 +1,5 @@
-"""Calibrations: jobs of kind ``calibration`` (see :func:`service.tasks.calibration_job`).
+"""Calibrations: jobs of kind ``calibration``
+(see :func:`service.app.job_functions.calibration_job`).
 
 POST creates one; :func:`service.api.jobs_common.add_job_routes` adds list, status, result,
 report, URDF and cancel.
@@ -19,7 +20,7 @@ from schemas.api import (
 )
 from schemas.calibration import CalibrationOptions, CalibrationResult, Verdict
 from schemas.discovery import FindingsResult
-from service import discovery, exports, pipeline
+from schemas.robots import RobotDescription
 from service.api import jobs_common
 from service.api.deps import API_PREFIX, PrincipalDep, ServiceState, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS
@@ -27,12 +28,14 @@ from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.results import CachedResult
 from service.api.robots import one_line
-from service.measurement_run import refuse_file_measurement
-from service.robots import RobotDescription
+from service.app import calibrate as pipeline
+from service.app import discover as discovery
+from service.app.calibrate_measurement import refuse_file_measurement
+from service.app.job_functions import CalibrationJobParams, DiscoveryRef
+from service.render import exports
+from service.render.urdf_export import refusal as urdf_refusal
 from service.storage import repository
 from service.storage.models import Job
-from service.tasks import CalibrationJobParams, DiscoveryRef
-from service.urdf_export import refusal as urdf_refusal
 from solver.errors import KincalError, ModelError
 
 PREFIX = f"{API_PREFIX}/calibrations"

@@ -1,4 +1,4 @@
-"""Entry point of the processes :mod:`service.api.supervisor` starts (not a user command).
+"""Entry point of the processes :mod:`service.jobs.supervisor` starts (not a user command).
 
 ``python -m service.api.child web --listen-fd N --wake-fd W --parent-pid P --run-dir D``
 serves HTTP on the inherited socket; ``... runner --wake-fd R ...`` runs the jobs. Settings
@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from service.lifeline import die_with_parent
+from service.jobs.lifeline import die_with_parent
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     die_with_parent(args.parent_pid)  # first: before the imports, which take seconds
 
-    from service import logs
+    from service.jobs import logs
     from service.settings import Settings
 
     settings = Settings()

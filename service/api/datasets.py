@@ -44,11 +44,11 @@ from service.api.problems import (
     validation_errors,
 )
 from service.api.robots import ResolvedRobot, resolve_robot
+from service.app.job_functions import RobotRef
 from service.security import Principal
 from service.storage import repository
 from service.storage.files import tenant_path
 from service.storage.models import Dataset
-from service.tasks import RobotRef
 from solver.errors import DatasetError
 
 router = APIRouter(prefix=f"{API_PREFIX}/datasets", tags=["datasets"])

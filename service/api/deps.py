@@ -21,7 +21,7 @@ from starlette.concurrency import run_in_threadpool
 from service.api.metrics import Metrics
 from service.api.problems import ProblemException
 from service.api.results import ResultCache
-from service.jobs import JobRegistry, RunnerHandle
+from service.jobs.runner import JobRegistry, RunnerHandle
 from service.security import KeyVerifier, Principal
 from service.settings import Settings
 from service.storage.db import Database

@@ -1,4 +1,4 @@
-"""Designs: which poses to record (``kincal design``, :func:`service.design.run_design`).
+"""Designs: which poses to record (``kincal design``, :func:`service.app.design.run_design`).
 
 Synchronous (200 with the ``kincal.design/1`` document) up to :data:`SYNC_MAX_CANDIDATES`
 candidates (with the recording of a sequential design: ``calibration_id``); larger sets become
@@ -28,7 +28,7 @@ from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.robots import resolve_robot
-from service.design import (
+from service.app.design import (
     DesignJobParams,
     RecordedRef,
     design_model,
@@ -36,9 +36,9 @@ from service.design import (
     run_design,
     socket_candidates,
 )
+from service.app.job_functions import DatasetRef, robot_description
 from service.storage import repository
 from service.storage.models import Job
-from service.tasks import DatasetRef, robot_description
 
 PREFIX = f"{API_PREFIX}/designs"
 CALIBRATIONS = f"{API_PREFIX}/calibrations"

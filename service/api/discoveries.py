@@ -1,5 +1,6 @@
-"""Discoveries: jobs of kind ``discovery`` (see :func:`service.tasks.discovery_job`), which look
-for the physics a dataset shows and the user's model lacks (``kincal discover``).
+"""Discoveries: jobs of kind ``discovery`` (see
+:func:`service.app.job_functions.discovery_job`), which look for the physics a dataset shows
+and the user's model lacks (``kincal discover``).
 
 POST creates one; :func:`service.api.jobs_common.add_job_routes` adds list, status, result
 (the findings JSON, ``kincal.findings/1``), report and cancel.
@@ -13,17 +14,17 @@ from fastapi import APIRouter, Header, Response
 
 from schemas.api import DiscoveriesPublic, DiscoveryCreate, DiscoveryLinks, DiscoveryPublic
 from schemas.discovery import DiscoveryOptions
-from service import discovery
+from schemas.robots import RobotDescription
 from service.api import jobs_common
 from service.api.calibrations import REPORT_HEADERS
 from service.api.deps import API_PREFIX, PrincipalDep, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, problem_responses
-from service.measurement_run import check_sensor_joint, refuse_file_measurement
-from service.robots import RobotDescription
+from service.app import discover as discovery
+from service.app.calibrate_measurement import check_sensor_joint, refuse_file_measurement
+from service.app.job_functions import DiscoveryJobParams
 from service.storage.models import Job
-from service.tasks import DiscoveryJobParams
 from solver.model import KinematicChain
 
 PREFIX = f"{API_PREFIX}/discoveries"

@@ -15,14 +15,14 @@ from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from schemas.api import JobStatus
+from schemas.robots import RobotDescription
 from service.api.deps import PrincipalDep, ServiceState, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.robots import ResolvedRobot, one_line, resolve_robot
-from service.robots import RobotDescription
+from service.app.job_functions import DatasetRef, RobotRef
 from service.storage import repository
 from service.storage.models import Job
-from service.tasks import DatasetRef, RobotRef
 from solver.errors import ModelError
 
 RETRY_AFTER_S = "1"

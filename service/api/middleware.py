@@ -14,9 +14,9 @@ from typing import Any
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service import logs
 from service.api.metrics import Metrics
 from service.api.problems import PROBLEM_MEDIA_TYPE, problem_bytes
+from service.jobs import logs
 from service.settings import Settings
 
 log = logging.getLogger("kincal.http")

@@ -20,7 +20,7 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from schemas.api import Problem
-from service import logs
+from service.jobs import logs
 from solver.errors import CalibrationError, DatasetError, KincalError, ModelError, SolverError
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"

@@ -7,7 +7,7 @@ Synchronous, and the planners' hot path. A calibration's result and the
 does no database query, file read or JSON parsing of the result. Scoring a few hundred
 configurations takes well under a millisecond of numpy, less than a thread hop under load
 costs, so it runs in the event loop; larger batches and inverse kinematics run in a worker
-thread. The answer is serialised from plain data (:func:`service.ranking.rank_configurations_json`:
+thread. The answer is serialised from plain data (:func:`service.app.rank.rank_configurations_json`:
 the RankingResult's exact JSON without a pydantic model per entry).
 
 Rankings change nothing, so a repeated request (with or without ``Idempotency-Key``) gets
@@ -28,7 +28,6 @@ from starlette.concurrency import run_in_threadpool
 from schemas.api import RankingCreate
 from schemas.calibration import CalibrationResult
 from schemas.ranking import CalibrationReference, RankingResult, TargetRankingRequest
-from service import ranking
 from service.api.calibrations import cached_calibration
 from service.api.deps import API_PREFIX, PrincipalDep, ServiceState, StateDep
 from service.api.problems import (
@@ -39,6 +38,7 @@ from service.api.problems import (
     validation_errors,
 )
 from service.api.results import CachedResult
+from service.app import rank as ranking
 from solver.ranking import UncertaintyModel
 
 PREFIX = f"{API_PREFIX}/rankings"

@@ -11,17 +11,17 @@ from fastapi import APIRouter, Header, Response
 from sqlalchemy.orm import Session
 
 from schemas.api import RobotCreate, RobotPublic, RobotsPublic
+from schemas.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
+from schemas.urdf_outline import UrdfLimitError, check_urdf_limits
 from service.api.deps import API_PREFIX, PrincipalDep, SessionDep, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
-from service.isolated import IsolatedFailure, run_isolated
-from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
+from service.app.job_functions import RobotRef
+from service.jobs.isolated import IsolatedFailure, run_isolated
 from service.settings import Settings
 from service.storage import repository
 from service.storage.files import tenant_path
 from service.storage.models import Robot
-from service.tasks import RobotRef
-from service.urdf_outline import UrdfLimitError, check_urdf_limits
 from solver.errors import ModelError
 from solver.model import KinematicChain, build_chain
 

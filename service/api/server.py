@@ -1,5 +1,5 @@
 """Running the service: ``kincal serve`` (a supervisor, request processes and a job runner;
-:mod:`service.api.supervisor`) and ``kincal keys`` (API key admin)."""
+:mod:`service.jobs.supervisor`) and ``kincal keys`` (API key admin)."""
 
 from __future__ import annotations
 
@@ -13,11 +13,10 @@ from types import FrameType
 
 import uvicorn
 
-from service import logs
 from service.api.app import create_app
 from service.api.metrics import Metrics
-from service.jobs import JobRunner, default_registry
-from service.runner_link import STATUS_INTERVAL_S, RemoteRunner, listen_for_wakes, write_status
+from service.jobs.runner import JobRunner, default_registry, logs
+from service.jobs.runner_link import STATUS_INTERVAL_S, RemoteRunner, listen_for_wakes, write_status
 from service.security import create_api_key, revoke_api_key
 from service.settings import Settings, load_settings
 from service.storage.db import Database
@@ -28,7 +27,7 @@ log = logging.getLogger("kincal.jobs")
 
 def run_server(host: str | None = None, port: int | None = None) -> int:
     """Serve until SIGINT/SIGTERM; then finish or re-queue running jobs. The exit status."""
-    from service.api.supervisor import Supervisor
+    from service.jobs.supervisor import Supervisor
 
     overrides = {name: value for name, value in (("host", host), ("port", port)) if value}
     settings = load_settings(**overrides)

@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import write_dataset
 from service.api.app import create_app
-from service.flags import CALIBRATION_FLAGS
+from service.cli.flags import CALIBRATION_FLAGS
 from tests.service.api.conftest import fresh_database_url, make_settings, recording, upload_csv
 from tests.service.cli_support import run
 

@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 
 from schemas.calibration import CalibrationResult
-from service import result_json
+from service.render import result_json
 from solver import lie
 from tests.service.cli_support import run
 
@@ -207,7 +207,7 @@ def test_bad_dataset_gives_one_line_and_exit_2(
 def test_bad_robot_or_option_gives_one_line_and_exit_2(
     args: list[str], expected: str, recording: Path, tmp_path: Path, capsys, monkeypatch
 ) -> None:  # type: ignore[no-untyped-def]
-    from service.robots import example_robot_data_dir
+    from schemas.robots import example_robot_data_dir
 
     urdf = example_robot_data_dir() / "robots/ur_description/urdf/ur10_robot.urdf"
     args = [a.replace("{urdf}", str(urdf)) for a in args]

@@ -15,7 +15,11 @@ import pytest
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import write_dataset
-from service import cli, pipeline, ranking, result_json, scenarios
+from service import cli
+from service.app import calibrate as pipeline
+from service.app import rank as ranking
+from service.app import simulate as scenarios
+from service.render import result_json
 from solver.errors import KincalError
 from solver.kinematics import evaluate_chain
 from solver.model import sample_configurations

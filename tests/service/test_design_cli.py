@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.robots import load_robot
+from schemas.robots import load_robot
 from solver.design.candidates import Volume, WorkspaceBox, sample_candidates, tip_poses
 from solver.design.criteria import DesignProblem
 from solver.design.prediction import Yardstick, task_root

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from schemas.dataset import read_dataset
-from service.robots import load_robot
+from schemas.robots import load_robot
 from solver.errors import DatasetError, ModelError
 from tests.conftest import REAL_DATA
 from tests.service.cli_support import run

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from schemas.discovery import FindingsResult
-from service.scenarios import marker_offset
+from service.app.simulate import marker_offset
 from solver.mechanisms import DeadBand, MechanismSpec, simulate_mechanisms
 from solver.simulate import JointEffect, SimulationSpec, look_at, simulate_recording
 from tests.conftest import chain

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from schemas.discovery import EFFECTS, DiscoveryOptions, FindingsResult
-from service import discovery, scenarios
+from service.app import discover as discovery
+from service.app import simulate as scenarios
 from tests.conftest import chain, robot
 from tests.service.cli_support import run, run_ok
 
@@ -270,7 +271,7 @@ def test_findings_state_the_smallest_detectable_size_in_json_cli_and_html(
     """Issue 14: every library term left out gets the smallest size the recording would have
     detected, in the JSON, the CLI summary and the HTML report; the gear's harmonic (a fixed
     integer) is shown without an error."""
-    from service.discovery_html import render_discovery_report
+    from service.app.discovery_html import render_discovery_report
 
     result = FindingsResult.model_validate_json(findings_path.read_bytes())
     detectability = result.detectability

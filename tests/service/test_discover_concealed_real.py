@@ -13,7 +13,7 @@ import pytest
 
 from benchmarks import concealed_real
 from schemas.discovery import FindingsResult
-from service.robots import example_robot_data_dir
+from schemas.robots import example_robot_data_dir
 from solver.mechanisms import conceal
 from tests.service.cli_support import discover_ok, write_recording
 

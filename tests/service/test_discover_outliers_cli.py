@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.scenarios import marker_offset
+from service.app.simulate import marker_offset
 from solver import lie
 from solver.simulate import SimulationSpec, look_at, simulate_recording
 from tests.conftest import chain

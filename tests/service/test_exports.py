@@ -16,8 +16,10 @@ import yaml
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dh import parse_dh_robot
-from service import exports, pipeline, result_json, scenarios
-from service.urdf_export import MARKER_LINK, MEASUREMENT_LINK
+from service.app import calibrate as pipeline
+from service.app import simulate as scenarios
+from service.render import exports, result_json
+from service.render.urdf_export import MARKER_LINK, MEASUREMENT_LINK
 from solver import lie
 from solver.calibration import nominal_pose
 from solver.kinematics import ChainParameters, forward_kinematics

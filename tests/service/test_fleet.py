@@ -11,15 +11,16 @@ import pytest
 
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import write_dataset
-from service import cli, scenarios
-from service.fleet import (
+from schemas.robots import load_robot
+from service import cli
+from service.app import simulate as scenarios
+from service.app.fleet import (
     calibrate_fleet,
     family_wise_z,
     fleet_datasets,
     robot_parameters,
     robust_z,
 )
-from service.robots import load_robot
 from solver.errors import KincalError
 from solver.simulate import SimulationSpec, look_at, simulate_recording
 from tests.conftest import chain

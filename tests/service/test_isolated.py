@@ -1,4 +1,4 @@
-"""service.isolated: a function that crashes, hangs or eats memory in its child process is
+"""service.jobs.isolated: a function that crashes, hangs or eats memory in its child process is
 refused with a one-line reason; the caller lives on."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from service.isolated import IsolatedFailure, run_isolated
+from service.jobs.isolated import IsolatedFailure, run_isolated
 from solver.errors import ModelError
 
 

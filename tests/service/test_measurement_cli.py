@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from benchmarks import platonics
-from service.robots import example_robot_data_dir
+from schemas.robots import example_robot_data_dir
 from tests.conftest import REAL_DATA
 from tests.service.cli_support import run
 

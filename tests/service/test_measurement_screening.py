@@ -1,5 +1,5 @@
 """The model outlier rule's Σ_E step for measurement types other than pose/position
-(service.measurement_run.screen_by_covariance): each row judged against its own predicted
+(service.app.calibrate_measurement.screen_by_covariance): each row judged against its own predicted
 covariance of Eq. 12, with the type's noise layout."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from schemas.calibration import CalibrationOptions
-from service.measurement_run import screen, screen_by_covariance
+from service.app.calibrate_measurement import screen, screen_by_covariance
 from solver.calibration import FitOptions
 from solver.covariance.estimate import estimate_from_samples
 from solver.measurement import MeasurementRows, MultiMarker, fit_measurement

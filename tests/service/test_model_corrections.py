@@ -13,8 +13,11 @@ from schemas.calibration import CalibrationOptions, CalibrationResult, ModelCorr
 from schemas.dataset import read_dataset
 from schemas.discovery import FindingsResult
 from schemas.ranking import RankingOptions
-from service import corrections, discovery, ranking, result_json, scenarios
-from service.urdf_export import export_urdf
+from service.app import discover as discovery
+from service.app import rank as ranking
+from service.app import simulate as scenarios
+from service.render import corrections, result_json
+from service.render.urdf_export import export_urdf
 from solver import lie
 from solver.discovery.features import probe_chain
 from solver.discovery.library import drift_term
@@ -178,7 +181,7 @@ def test_rank_target_reports_the_raw_readings_that_reach_the_target(
 ) -> None:
     """IK finds where the robot must stand; the entries give the readings to send, which the
     correction maps back onto that configuration."""
-    from service import corrections
+    from service.render import corrections
 
     chain, _ = result_json.result_chain(result)
     q_true = sample_configurations(chain, 20, np.random.default_rng(7))

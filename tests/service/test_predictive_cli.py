@@ -18,10 +18,11 @@ from benchmarks import coverage as coverage_benchmark
 from schemas.calibration import CalibrationResult
 from schemas.dataset import read_dataset
 from schemas.ranking import RankingResult
-from service import ranking, result_json
-from service.report import summary
-from service.report_html import render_report
-from service.robots import example_robot_data_dir
+from schemas.robots import example_robot_data_dir
+from service.app import rank as ranking
+from service.render import result_json
+from service.render.report_html import render_report
+from service.render.text import summary
 from solver import lie
 from solver.predictive import coverage
 from tests.conftest import computed_once

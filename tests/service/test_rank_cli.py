@@ -19,8 +19,11 @@ from schemas.calibration import (
     CovarianceResult,
     SolverReport,
 )
-from service import pipeline, ranking, result_json, scenarios
-from service.robots import load_robot
+from schemas.robots import load_robot
+from service.app import calibrate as pipeline
+from service.app import rank as ranking
+from service.app import simulate as scenarios
+from service.render import result_json
 from solver import lie
 from solver.evaluation import cross_validate
 from solver.executors import InProcessExecutor

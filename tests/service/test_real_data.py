@@ -7,7 +7,8 @@ import pytest
 
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import read_dataset
-from service import pipeline, result_json
+from service.app import calibrate as pipeline
+from service.render import result_json
 from tests.conftest import REAL_DATA, robot
 from tests.service.cli_support import real_calibration
 

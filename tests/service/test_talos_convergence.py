@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from service.robots import example_robot_data_dir
+from schemas.robots import example_robot_data_dir
 from tests.service.cli_support import run
 
 TALOS = (

@@ -9,8 +9,10 @@ import pinocchio as pin
 import pytest
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from service import pipeline, result_json, scenarios
-from service.urdf_export import MARKER_LINK, MEASUREMENT_LINK, export_urdf
+from service.app import calibrate as pipeline
+from service.app import simulate as scenarios
+from service.render import result_json
+from service.render.urdf_export import MARKER_LINK, MEASUREMENT_LINK, export_urdf
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import sample_configurations
 from tests.conftest import robot

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from schemas.calibration import CalibrationResult
-from service.robots import example_robot_data_dir
+from schemas.robots import example_robot_data_dir
 from solver.verdict import FitEvidence, check_fit, verdict_status
 from tests.service.cli_support import run, run_ok
 

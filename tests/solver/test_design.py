@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.robots import load_robot
+from schemas.robots import load_robot
 from solver import lie
 from solver.calibration import FitOptions, fit_deterministic
 from solver.covariance.likelihood import fisher_information_ml

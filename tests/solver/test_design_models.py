@@ -10,7 +10,7 @@ import functools
 import numpy as np
 import pytest
 
-from service.robots import load_robot
+from schemas.robots import load_robot
 from solver import lie
 from solver.calibration import FitOptions
 from solver.design import optimal_design

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from service.scenarios import marker_offset
+from service.app.simulate import marker_offset
 from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, discover
 from solver.discovery.detectability import (
     DETECTION_POWER,

@@ -24,10 +24,10 @@ from fastapi.testclient import TestClient
 from sqlalchemy.engine import make_url
 
 from schemas.dataset import PoseDataset, write_dataset
-from service import scenarios
 from service.api import create_app
-from service.client import KincalClient
-from service.jobs import JobRegistry
+from service.api.client import KincalClient
+from service.app import simulate as scenarios
+from service.jobs.runner import JobRegistry
 from service.security import create_api_key
 from service.settings import Settings
 from service.storage.db import Database

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import os
 
-from service.worker import JobContext
+from service.jobs.worker import JobContext
 
 
 def crash(ctx: JobContext) -> None:

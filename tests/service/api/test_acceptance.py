@@ -17,8 +17,9 @@ import pytest
 from schemas.calibration import CalibrationOptions
 from schemas.discovery import DiscoveryOptions
 from schemas.ranking import RankingOptions, TargetPose
-from service import ranking, result_json
-from service.client import KincalAPIError, KincalClient
+from service.api.client import KincalAPIError, KincalClient
+from service.app import rank as ranking
+from service.render import result_json
 from service.security import create_api_key
 from service.storage.db import Database
 from solver import lie

@@ -18,8 +18,9 @@ from fastapi.testclient import TestClient
 from schemas.calibration import CalibrationResult
 from schemas.discovery import DiscoveryOptions
 from schemas.ranking import RankingOptions
-from service import ranking, result_json
 from service.api import create_app
+from service.app import rank as ranking
+from service.render import result_json
 from solver.model import sample_configurations
 from tests.conftest import assert_documents_close, comparable_result
 from tests.service.api.conftest import (

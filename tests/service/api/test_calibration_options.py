@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from schemas.calibration import CalibrationOptions
-from service.flags import CALIBRATION_FLAGS
+from service.cli.flags import CALIBRATION_FLAGS
 from tests.service.api.conftest import assert_problem, upload_csv
 
 URL = "/api/v1/calibrations"

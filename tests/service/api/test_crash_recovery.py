@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from schemas.calibration import CalibrationOptions
-from service import pipeline
-from service.client import KincalClient
+from service.api.client import KincalClient
+from service.app import calibrate as pipeline
 from service.storage.db import Database
 from service.storage.models import Job
 from tests.conftest import comparable_result, robot

@@ -10,10 +10,10 @@ import pytest
 from distributed import LocalCluster
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from service import tasks
+from service.app import job_functions as tasks
+from service.jobs.worker import JobContext
 from service.storage.files import FileStore
 from service.storage.models import Job
-from service.worker import JobContext
 from tests.conftest import assert_documents_close, comparable_result
 from tests.service.api.conftest import (
     AppFactory,

@@ -20,9 +20,9 @@ from fastapi.testclient import TestClient
 
 from schemas.calibration import CalibrationOptions
 from schemas.design import DesignOptions
-from service import pipeline
-from service.design import volume_of
-from service.robots import load_robot
+from schemas.robots import load_robot
+from service.app import calibrate as pipeline
+from service.app.design import volume_of
 from solver.design.candidates import Volume, sample_candidates, tip_poses
 from solver.design.criteria import DesignProblem
 from solver.design.information import InformationBlock, model_information, model_noise_std

@@ -12,9 +12,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from schemas.design import DesignOptions
+from schemas.robots import load_robot
 from service.api import designs
-from service.design import run_design
-from service.robots import load_robot
+from service.app.design import run_design
 from tests.service.api.conftest import (
     assert_problem,
     client_api,

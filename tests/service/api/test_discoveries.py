@@ -13,11 +13,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from schemas.discovery import DiscoveryOptions, FindingsResult
-from service import discovery
 from service.api import create_app
-from service.client import KincalClient
-from service.discovery_html import render_discovery_report
-from service.worker import WORKER_NICENESS
+from service.api.client import KincalClient
+from service.app import discover as discovery
+from service.app.discovery_html import render_discovery_report
+from service.jobs.worker import WORKER_NICENESS
 from tests.conftest import robot
 from tests.service.api.conftest import (
     AppFactory,

@@ -26,8 +26,8 @@ from schemathesis.specs.openapi.checks import (
 
 from schemas.ranking import RankingResult
 from service.api import create_app
+from service.jobs.worker import JobContext
 from service.storage import repository
-from service.worker import JobContext
 from tests.service.api.conftest import fresh_database_url, make_settings, upload_csv
 
 JSON = st.recursive(

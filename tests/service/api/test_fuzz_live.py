@@ -21,7 +21,7 @@ import schemathesis
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
-from service.client import KincalClient
+from service.api.client import KincalClient
 from service.security import create_api_key
 from service.storage.db import Database
 from tests.service.api.conftest import fresh_database_url, recording_bytes

@@ -20,7 +20,7 @@ from service.api.jobs_common import (
     json_response,
     submit_job,
 )
-from service.jobs import default_registry
+from service.jobs.runner import default_registry
 from service.storage.models import Job
 from tests.service.api.conftest import assert_problem
 

@@ -13,14 +13,14 @@ import pytest
 from fastapi.testclient import TestClient
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from service import pipeline
 from service.api import calibrations, create_app
 from service.api.jobs_common import submit_job
 from service.api.problems import ProblemException
-from service.jobs import JobRegistry
+from service.app import calibrate as pipeline
+from service.jobs.runner import JobRegistry
+from service.render.urdf_export import MARKER_LINK
 from service.storage import repository
 from service.storage.models import Job
-from service.urdf_export import MARKER_LINK
 from tests.conftest import comparable_result, robot
 from tests.service.api.conftest import (
     assert_problem,

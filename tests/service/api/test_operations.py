@@ -11,7 +11,7 @@ import pytest
 from alembic import command
 from fastapi.testclient import TestClient
 
-from service import logs
+from service.jobs import logs
 from service.storage.db import alembic_config
 from tests.service.api.conftest import database_of, upload_csv
 
@@ -94,7 +94,7 @@ def test_every_line_python_writes_to_stderr_is_json_in_a_json_log() -> None:
     text lines in the JSON log."""
     script = (
         "import threading, warnings\n"
-        "from service.logs import configure_logging\n"
+        "from service.jobs.logs import configure_logging\n"
         "configure_logging('INFO', 'json')\n"
         "warnings.warn('something odd', RuntimeWarning)\n"
         "thread = threading.Thread(target=lambda: 1 / 0, name='t1')\n"

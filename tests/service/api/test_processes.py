@@ -19,7 +19,7 @@ import httpx
 import pytest
 
 from schemas.calibration import CalibrationOptions
-from service.client import KincalClient
+from service.api.client import KincalClient
 from service.security import create_api_key
 from service.storage.db import Database
 from service.storage.models import Job

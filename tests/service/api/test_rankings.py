@@ -18,9 +18,11 @@ from fastapi.testclient import TestClient
 
 from schemas.calibration import CalibrationResult
 from schemas.ranking import RankingOptions, RankingResult, TargetPose, TargetRankingRequest
-from service import cli, ranking, result_json
+from service import cli
 from service.api import create_app
-from service.client import KincalAPIError, KincalClient
+from service.api.client import KincalAPIError, KincalClient
+from service.app import rank as ranking
+from service.render import result_json
 from solver import lie
 from solver.model import sample_configurations
 from tests.service.api.conftest import (

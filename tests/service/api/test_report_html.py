@@ -16,9 +16,9 @@ from schemas.calibration import (
     CovarianceResult,
     SolverReport,
 )
-from service import pipeline
-from service.report_html import render_report
-from service.result_json import dataset_residuals
+from service.app import calibrate as pipeline
+from service.render.report_html import render_report
+from service.render.result_json import dataset_residuals
 from tests.conftest import robot
 from tests.service.api.conftest import recording
 

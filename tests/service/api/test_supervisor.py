@@ -15,10 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from service import runner_link
-from service.api import supervisor
-from service.api.supervisor import Child, Supervisor
-from service.runner_link import RemoteRunner, read_status, send_wake, write_status
+from service.jobs import runner_link, supervisor
+from service.jobs.runner_link import RemoteRunner, read_status, send_wake, write_status
+from service.jobs.supervisor import Child, Supervisor
 from service.settings import Settings
 from solver.errors import KincalError
 from tests.service import cli_support
@@ -110,14 +109,14 @@ def test_a_taken_port_is_a_clear_error_and_exit_2(
             supervisor.listen("127.0.0.1", port)
         monkeypatch.setenv("KINCAL_DATA_DIR", str(tmp_path))
         monkeypatch.setenv("KINCAL_DATABASE_URL", f"sqlite:///{tmp_path / 'kincal.db'}")
-        monkeypatch.setattr("service.logs.configure_logging", lambda *args: None)
+        monkeypatch.setattr("service.jobs.logs.configure_logging", lambda *args: None)
         code, _, err = cli_support.run(["serve", "--port", port], capsys, monkeypatch)
     assert code == 2 and f"cannot listen on 127.0.0.1:{port}" in err
 
 
 def _orphan_script() -> str:
     """A parent that starts a child calling die_with_parent, prints its pid and sleeps."""
-    child = "from service.lifeline import die_with_parent; import time; die_with_parent(); "
+    child = "from service.jobs.lifeline import die_with_parent; import time; die_with_parent(); "
     child += "time.sleep(60)"
     return (
         "import subprocess, sys, time\n"
@@ -180,7 +179,7 @@ def test_the_supervisor_imports_no_web_or_solver_code() -> None:
     start take seconds longer)."""
     heavy = ("fastapi", "numpy", "pinocchio", "service.api.app", "solver.stream")
     code = (
-        "import sys; import service.api.supervisor; "
+        "import sys; import service.jobs.supervisor; "
         f"print([m for m in {heavy!r} if m in sys.modules])"
     )
     loaded = subprocess.run(

@@ -10,8 +10,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from schemas.calibration import CalibrationOptions
+from schemas.robots import example_robot_data_dir
 from service.api.app import create_app
-from service.robots import example_robot_data_dir
 from tests.service.api.conftest import (
     assert_problem,
     client_api,

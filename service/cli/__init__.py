@@ -18,8 +18,10 @@ import typer
 from schemas.calibration import CalibrationResult
 from schemas.dataset import read_configurations, write_dataset
 from schemas.design import DesignOptions, DesignResult
-from service import pipeline, result_json, scenarios
-from service.flags import (
+from schemas.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
+from service.app import calibrate as pipeline
+from service.app import simulate as scenarios
+from service.cli.flags import (
     CALIBRATION_FLAGS,
     calibration_options,
     numbers,
@@ -28,8 +30,8 @@ from service.flags import (
     read_config,
     target_request,
 )
-from service.report import ranking_summary, summary, verdict_text
-from service.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
+from service.render import result_json
+from service.render.text import ranking_summary, summary, verdict_text
 from solver import lie
 from solver.errors import KincalError
 from solver.executors import Executor
@@ -355,7 +357,7 @@ def calibrate(
     )
     findings = None
     if model is not None:
-        from service import discovery
+        from service.app import discover as discovery
 
         given = [
             "--rigid" if rigid and name == "compliant_joints" else CALIBRATION_FLAGS[name]
@@ -429,7 +431,7 @@ def _prediction_note(result: CalibrationResult) -> None:
     """Say once (stderr) which carried corrections a prediction cannot apply."""
     if result.model_corrections is None:
         return
-    from service.corrections import prediction_note
+    from service.render.corrections import prediction_note
 
     note = prediction_note(result)
     if note is not None:
@@ -477,7 +479,7 @@ def export_command(
     """Write a calibration in a format a robot controller uses (docs/exports.md). Each
     reproduces kincal's calibrated forward kinematics where the format can express it; what it
     cannot (gravity-dependent compliance; link geometry in an offsets table) is printed."""
-    from service import exports
+    from service.render import exports
 
     if format not in exports.FORMATS:
         raise KincalError(f"--format {format!r}: choose one of {', '.join(exports.FORMATS)}")
@@ -534,7 +536,7 @@ def predict(
     frame[["qx", "qy", "qz", "qw"]] = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
     chosen = part.replace("-", "_")
     if result.covariance is not None:
-        from service import ranking  # lazy: pulls in scikit-learn
+        from service.app import rank as ranking  # lazy: pulls in scikit-learn
 
         if chosen not in ranking.PREDICTION_PARTS:
             raise KincalError(
@@ -609,7 +611,7 @@ def rank(
     ] = "random-effects",
 ) -> None:
     """Rank configurations by predicted task uncertainty tr(W Σ_E Wᵀ), best first (Eq. 22–23)."""
-    from service import ranking
+    from service.app import rank as ranking
 
     result = read_result(result_path)
     if result.covariance is None:
@@ -703,7 +705,7 @@ def discover(
 ) -> None:
     """Find what the model leaves out, name the physics, model it, show the held-out gain."""
     from schemas.discovery import DiscoveryOptions
-    from service import discovery
+    from service.app import discover as discovery
 
     description = _robot(robot, urdf, base, tip)
     try:
@@ -743,7 +745,7 @@ def discover(
     for name in figures:
         typer.echo(f"figure written to {output.parent / name}")
     if report is not None:
-        from service.discovery_html import render_discovery_report
+        from service.app.discovery_html import render_discovery_report
 
         assert plot_dir is not None or not figures
         embedded = {name: (output.parent / name).read_bytes() for name in figures}
@@ -758,7 +760,7 @@ def demo(
     ),
 ) -> None:
     """Simulate a Jaco2 recording like the paper's, calibrate it, print Table II."""
-    from service.demo import run_demo
+    from service.cli.demo import run_demo
 
     run_demo(output_dir, echo=typer.echo)
 
@@ -892,7 +894,7 @@ def fleet(
     """Calibrate every robot of a fleet (one dataset per serial) in parallel; summarise the
     population spread of each parameter and flag robots that are outliers (e.g. a worn
     joint)."""
-    from service import fleet as fleet_mode
+    from service.app import fleet as fleet_mode
 
     description = _robot(robot, urdf, base, tip)
     if rigid and compliant_joints is not None:
@@ -1092,7 +1094,7 @@ def design(
 ) -> None:
     """Choose the K poses to record that tell the calibration most (D-, A-, E- or I-optimal
     design as a convex relaxation, rounded; the relaxation's bound is reported)."""
-    from service import design as designs
+    from service.app import design as designs
 
     if (result is None) != (recording is None):
         raise KincalError("a sequential design needs both --result and --recording")

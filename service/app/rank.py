@@ -26,7 +26,7 @@ from schemas.ranking import (
     TargetRankingRequest,
     TaskWeights,
 )
-from service import corrections, result_json
+from service.render import corrections, result_json
 from solver import lie
 from solver.errors import KincalError, SolverError
 from solver.ik import IKCandidate, IKOptions, ik_candidates

@@ -4,7 +4,7 @@ Simulates 154 camera measurements of a Kinova Jaco2 with geometric errors, elast
 flexing base plate, random joint perturbations and outliers (paper §V-A) and writes them in the
 dataset contract. Then, like a lab tool would: starts the service on the embedded defaults
 (SQLite and data under ``<output>/service``, one worker process, 127.0.0.1, no network
-services), uploads the recording over HTTP with :class:`service.client.KincalClient`, runs a
+services), uploads the recording over HTTP with :class:`service.api.client.KincalClient`, runs a
 calibration job printing its progress, fetches the result, URDF and HTML report, ranks candidate
 configurations by their calibrated uncertainty, and compares everything with the truth.
 """
@@ -28,12 +28,13 @@ import uvicorn
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import PoseDataset, read_dataset, write_dataset
 from schemas.ranking import RankingResult
-from service import result_json, scenarios
+from schemas.robots import load_robot
 from service.api.app import create_app
-from service.client import KincalClient
-from service.plots import residual_histograms
-from service.report import summary
-from service.robots import load_robot
+from service.api.client import KincalClient
+from service.app import simulate as scenarios
+from service.render import result_json
+from service.render.plots import residual_histograms
+from service.render.text import summary
 from service.settings import Settings
 from solver.calibration import pose_errors
 from solver.model import sample_configurations

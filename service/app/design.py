@@ -3,8 +3,8 @@ the HTTP service call. Robot + :class:`DesignOptions` (+ candidates, task config
 recording and its calibration for a sequential design) -> :class:`DesignResult`.
 
 The chain and its identifiable parameters are the calibration's: the options are checked by
-:func:`service.pipeline.check_calibration`, a sequential design rebuilds the calibrated chain
-from the result JSON (:func:`service.result_json.result_chain`). The maths is
+:func:`service.app.calibrate.check_calibration`, a sequential design rebuilds the calibrated chain
+from the result JSON (:func:`service.render.result_json.result_chain`). The maths is
 :mod:`solver.design`.
 """
 
@@ -33,11 +33,13 @@ from schemas.design import (
     ParameterError,
     SequentialReport,
 )
-from service import measurement_run, pipeline, result_json
-from service.robots import RobotDescription
+from schemas.robots import RobotDescription
+from service.app import calibrate as pipeline
+from service.app import calibrate_measurement as measurement_run
+from service.app.job_functions import DatasetRef, RobotRef
+from service.jobs.worker import JobContext
+from service.render import result_json
 from service.storage.files import FileStore
-from service.tasks import DatasetRef, RobotRef
-from service.worker import JobContext
 from solver.covariance.identifiability import IdentifiabilityReport, analyse_identifiability
 from solver.covariance.layout import CovarianceLayout
 from solver.covariance.statistics import design_gram
@@ -195,7 +197,7 @@ def design_model(
 ) -> DesignModel:
     """The chain (checked calibration options, or a result's calibrated chain), the sensor
     noise (options, or the result's noise covariance) and the covariance prior; for the other
-    measurement types their model (:func:`service.measurement_run.measurement_model`, the
+    measurement types their model (:func:`service.app.calibrate_measurement.measurement_model`, the
     options checked against the robot as a calibration's are)."""
     d = 3 if options.measurement == "position" else 6
     noise_std = np.r_[[options.noise_mm * 1e-3] * 3, [np.radians(options.noise_deg)] * 3]

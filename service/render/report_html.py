@@ -25,9 +25,9 @@ from schemas.calibration import (
     OutlierReport,
     PredictiveCovariance,
 )
-from service.plots import coverage_figure, residual_histograms
-from service.report import AXES, predictive_lines, table_ii
-from service.result_json import ResidualSample
+from service.render.plots import coverage_figure, residual_histograms
+from service.render.result_json import ResidualSample
+from service.render.text import AXES, predictive_lines, table_ii
 
 _STYLE = """
 body { font: 14px/1.45 system-ui, sans-serif; margin: 2rem auto; max-width: 72rem; color: #222; }

@@ -40,8 +40,8 @@ from schemas.calibration import (
     VerdictReason,
 )
 from schemas.dataset import PoseDataset
-from service import corrections
-from service.robots import RobotDescription
+from schemas.robots import RobotDescription
+from service.render import corrections
 from service.version import kincal_version
 from solver import lie
 from solver.covariance.estimate import CovarianceEstimate, FrameCovariance

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from schemas.dataset import PoseDataset
-from service.robots import RobotDescription
+from schemas.robots import RobotDescription
 from solver import lie
 from solver.errors import ModelError
 from solver.model import (

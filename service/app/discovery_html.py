@@ -1,7 +1,7 @@
 """The discovery report as one self-contained HTML page (figures embedded as PNG data URIs).
 
 Sections: held-out error of the user's model and of the discovered one, each finding with its
-residuals-before/after figure (:func:`service.discovery.finding_figure`), ambiguous effects
+residuals-before/after figure (:func:`service.app.discover.finding_figure`), ambiguous effects
 with the poses that would separate them, unexplained structure, random effects, the smallest
 detectable size of every library term left out, the search
 steps and the ``kincal calibrate`` options that carry the discovered model.
@@ -14,8 +14,8 @@ import math
 from collections.abc import Mapping
 
 from schemas.discovery import ErrorPair, FindingsResult, Health
-from service.discovery import detectability_groups, display_size
-from service.report_html import html_page, png_img
+from service.app.discover import detectability_groups, display_size
+from service.render.report_html import html_page, png_img
 
 
 def render_discovery_report(findings: FindingsResult, plots: Mapping[str, bytes]) -> str:

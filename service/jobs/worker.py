@@ -1,4 +1,4 @@
-"""The worker-process side of :mod:`service.jobs`: runs job functions, reports over a pipe.
+"""The worker-process side of :mod:`service.jobs.runner`: runs job functions, reports over a pipe.
 
 A worker never touches the database (it does not even import it): it reads input files, writes
 artifact files atomically, and sends ``("progress", stage, fraction, iteration)`` messages and
@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from service import logs
-from service.lifeline import die_with_parent
+from service.jobs import logs
+from service.jobs.lifeline import die_with_parent
 from service.storage.files import FileStore, tenant_path
 from solver.errors import KincalError
 

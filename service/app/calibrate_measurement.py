@@ -3,7 +3,7 @@ several markers at once, chosen pose components, a frame on the base, a sensor o
 
 :func:`measurement_for` reads the ``measurement`` option (and, for 'auto', the source) into a
 :class:`~solver.measurement.models.MeasurementModel`, or None for the streamed pose/position
-calibration of :mod:`service.pipeline`. :func:`calibrate_measurement` reads the recording into
+calibration of :mod:`service.app.calibrate`. :func:`calibrate_measurement` reads the recording into
 memory, fits it (:func:`solver.measurement.fit_measurement`, Eq. 8–10), screens gross errors,
 runs the held-out splits of DESIGN.md §4 and assembles the same result JSON, with the model's
 own unknowns in ``measurement``, and the covariance calibration (Eq. 12–17) of every type with
@@ -47,7 +47,7 @@ from schemas.dataset.constraints import (
     read_all_markers,
     read_socket_folder,
 )
-from service.result_json import (
+from service.render.result_json import (
     ResidualSample,
     _error_stats,
     chain_fields,
@@ -97,7 +97,7 @@ from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, v
 BoolArray = NDArray[np.bool_]
 
 IN_MEMORY_MODELS = ("point", "markers", "components", "relative-base", "eye-on-head")
-"""Measurements calibrated in memory here; 'pose' and 'position' stream (service.pipeline)."""
+"""Measurements calibrated in memory here; 'pose' and 'position' stream (service.app.calibrate)."""
 
 
 def refuse_file_measurement(measurement: str, command: str) -> None:
@@ -208,7 +208,8 @@ def with_rows(
     measured: np.ndarray,
 ) -> MeasuredRecording:
     """``recording`` with new joint positions (N, k) rad (their loads swept again) and
-    measurements (a carried discovery's corrections, :func:`service.discovery.carry_measured`)."""
+    measurements (a carried discovery's corrections,
+    :func:`service.app.discover.carry_measured`)."""
     rows = recording.rows
     loads = _loads(chain, options, joint_positions)
     return dataclasses.replace(

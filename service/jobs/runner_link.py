@@ -89,7 +89,8 @@ def read_status(run_dir: Path) -> RunnerStatus | None:
 
 
 class RemoteRunner:
-    """The request side's handle on the runner process (see :class:`service.jobs.RunnerHandle`).
+    """The request side's handle on the runner process
+    (see :class:`service.jobs.runner.RunnerHandle`).
 
     ``start``/``stop`` do nothing: the supervisor owns the runner's life.
     """

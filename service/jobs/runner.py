@@ -8,12 +8,12 @@ Design
 * **CPU work never runs in the request loop.** Each of ``settings.workers`` slots owns one
   long-lived worker *process* (``forkserver`` context by default, ``spawn`` optional: no
   inherited threads or locks; the job code is imported once by the fork server, so starting
-  or replacing a worker takes milliseconds; code in :mod:`service.worker`) and one thread in
+  or replacing a worker takes milliseconds; code in :mod:`service.jobs.worker`) and one thread in
   the service that feeds it jobs over a pipe and writes its progress to the database. Workers
   only read input files and write artifact files; they never open the database.
 * **One runner per service.** Under ``kincal serve`` the :class:`JobRunner` lives in a process
-  of its own beside the request processes (:mod:`service.api.supervisor`); they hold a
-  :class:`RunnerHandle` (:class:`service.runner_link.RemoteRunner`) that wakes it and reads its
+  of its own beside the request processes (:mod:`service.jobs.supervisor`); they hold a
+  :class:`RunnerHandle` (:class:`service.jobs.runner_link.RemoteRunner`) that wakes it and reads its
   status. An app built by ``create_app()`` alone (tests, the demo) runs its runner inside.
 * **Claiming** is a conditional UPDATE (queued -> running, owner = ``settings.instance_name``),
   exclusive across threads, processes and service instances sharing a database.
@@ -30,7 +30,7 @@ Design
 Adding a kind of job: write ``def my_job(ctx: JobContext) -> None`` in an importable module
 (it reads ``ctx.params``, reports ``ctx.progress(...)``, writes ``ctx.write_artifact(...)``,
 raises :class:`~solver.errors.KincalError` for problems the user caused) and register it:
-``registry.register("discovery", "service.tasks:discovery_job", id_prefix="dis")``.
+``registry.register("discovery", "service.app.job_functions:discovery_job", id_prefix="dis")``.
 """
 
 from __future__ import annotations
@@ -48,13 +48,13 @@ from multiprocessing.context import ForkServerContext, SpawnContext
 from multiprocessing.process import BaseProcess
 from typing import Any, Protocol
 
-from service import logs
+from service.jobs import logs
+from service.jobs.worker import JobContext, worker_main
 from service.settings import Settings
 from service.storage import repository
 from service.storage.db import Database
 from service.storage.files import FileStore
 from service.storage.models import Job
-from service.worker import JobContext, worker_main
 
 __all__ = [
     "JobContext",
@@ -120,9 +120,9 @@ class JobRegistry:
 def default_registry() -> JobRegistry:
     """The job kinds the service ships with."""
     registry = JobRegistry()
-    registry.register("calibration", "service.tasks:calibration_job", id_prefix="cal")
-    registry.register("discovery", "service.tasks:discovery_job", id_prefix="dis")
-    registry.register("design", "service.design:design_job", id_prefix="des")
+    registry.register("calibration", "service.app.job_functions:calibration_job", id_prefix="cal")
+    registry.register("discovery", "service.app.job_functions:discovery_job", id_prefix="dis")
+    registry.register("design", "service.app.design:design_job", id_prefix="des")
     return registry
 
 
@@ -165,7 +165,7 @@ FinishedHook = Callable[[Job], None]
 
 class RunnerHandle(Protocol):
     """What the request side needs of the job runner, whether it runs in the same process
-    (:class:`JobRunner`) or in its own (:class:`service.runner_link.RemoteRunner`)."""
+    (:class:`JobRunner`) or in its own (:class:`service.jobs.runner_link.RemoteRunner`)."""
 
     def start(self) -> None: ...
 
@@ -205,7 +205,7 @@ class JobRunner:
             # The fork server imports the job code once; every worker (and every replacement
             # after a crash or cancel) then starts in milliseconds.
             self._context = multiprocessing.get_context("forkserver")
-            self._context.set_forkserver_preload(["service.worker", *registry.modules()])
+            self._context.set_forkserver_preload(["service.jobs.worker", *registry.modules()])
         else:
             self._context = multiprocessing.get_context("spawn")
         self._slots = [_Slot(i) for i in range(settings.workers)]

@@ -4,7 +4,7 @@
 Formats, each reproducing kincal's calibrated prediction (zero gravity load) where it can
 express it — tested by reloading the file and comparing forward kinematics to 1e-9:
 
-* ``urdf`` — the robot's URDF with calibrated joint origins (:mod:`service.urdf_export`);
+* ``urdf`` — the robot's URDF with calibrated joint origins (:mod:`service.render.urdf_export`);
 * ``offsets-yaml`` / ``offsets-csv`` — one offset per joint, added to the joint reading before
   the nominal URDF's forward kinematics (``q_urdf = q_reading + offset``); the YAML also holds
   the measurement frame and marker, and says whether the table is exact (only when the
@@ -37,8 +37,8 @@ import yaml
 
 from schemas.calibration import CalibrationResult
 from schemas.dh import DhJoint, DhRobot, Placement
-from service.result_json import result_chain
-from service.urdf_export import export_urdf, refusal
+from service.render.result_json import result_chain
+from service.render.urdf_export import export_urdf, refusal
 from solver import lie
 from solver.dh import DhConvention, dh_table_of_links
 from solver.errors import KincalError

@@ -2,11 +2,11 @@
 
 * The supervisor migrates the database, creates tenant 'local' in keyless mode, binds the
   listening socket once and starts its children from its main thread (see
-  :mod:`service.lifeline`: they die with it, even after ``kill -9``). It imports no web or
+  :mod:`service.jobs.lifeline`: they die with it, even after ``kill -9``). It imports no web or
   solver code and serves nothing itself.
 * Request processes (``service.api.child web``) share the socket: the kernel hands each new
   connection to whichever process accepts it first. Each runs uvicorn with the whole app; their
-  job runner is a :class:`~service.runner_link.RemoteRunner` (wake pipe + status file).
+  job runner is a :class:`~service.jobs.runner_link.RemoteRunner` (wake pipe + status file).
 * The job-runner process (``service.api.child runner``, only when ``workers > 0``) claims jobs
   and feeds them to its worker processes. There is exactly one per ``kincal serve``, so a job
   runs once.
@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 
-from service.lifeline import pid_alive
+from service.jobs.lifeline import pid_alive
 from service.security import LOCAL_TENANT
 from service.settings import Settings
 from service.storage import repository

@@ -8,7 +8,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from service.urdf_outline import check_urdf_limits
+from schemas.urdf_outline import check_urdf_limits
 from solver.errors import ModelError
 
 

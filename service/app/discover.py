@@ -48,9 +48,9 @@ from schemas.discovery import (
     Step,
     Unexplained,
 )
-from service import measurement_run
-from service.result_json import kincal_version
-from service.robots import RobotDescription
+from schemas.robots import RobotDescription
+from service.app import calibrate_measurement as measurement_run
+from service.render.result_json import kincal_version
 from solver import discovery as solver_discovery
 from solver import lie
 from solver.discovery.carry import (
@@ -139,8 +139,8 @@ def discover_source(
     name: str | None = None,
 ) -> FindingsResult:
     """Run discovery on a recording file or folder, read as ``kincal calibrate`` reads it for
-    ``options.measurement`` (:mod:`service.measurement_run`: a platonics ball-in-socket folder,
-    a FIGAROH file with all its markers, chosen pose components, ...)."""
+    ``options.measurement`` (:mod:`service.app.calibrate_measurement`: a platonics
+    ball-in-socket folder, a FIGAROH file with all its markers, chosen pose components, ...)."""
     started = time.perf_counter()
     read = read_source(source, robot, options, marker=marker, name=name)
     return _discover(
@@ -178,7 +178,7 @@ def read_source(
     name: str | None = None,
 ) -> SourceData:
     """Read a recording file or folder as ``kincal calibrate`` reads it for
-    ``options.measurement`` (:mod:`service.measurement_run`)."""
+    ``options.measurement`` (:mod:`service.app.calibrate_measurement`)."""
     chain = chain_for(robot, options)
     measurement_run.check_sensor_joint(options.measurement, chain)
     reading = measurement_options(options)
@@ -194,7 +194,7 @@ def read_source(
 
 
 def measurement_options(options: DiscoveryOptions) -> CalibrationOptions:
-    """The calibration options :mod:`service.measurement_run` reads a recording with."""
+    """The calibration options :mod:`service.app.calibrate_measurement` reads a recording with."""
     return CalibrationOptions(
         measurement=options.measurement,
         point_distance_m=options.point_distance_m,

@@ -1,6 +1,6 @@
 """Fleet mode: calibrate one dataset per robot serial in parallel and compare the robots.
 
-Each robot is calibrated by :func:`service.pipeline.calibrate_source` (in the worker that
+Each robot is calibrated by :func:`service.app.calibrate.calibrate_source` (in the worker that
 takes it: the fleet is parallel over robots, not within one), robots spread over an executor
 (:mod:`solver.executors`: in-process, local processes, Dask). The summary compares what is
 comparable between robots of one model:
@@ -49,8 +49,8 @@ import numpy as np
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import SUFFIXES
 from schemas.dataset.constraints import is_socket_folder
-from service import pipeline
-from service.robots import RobotDescription
+from schemas.robots import RobotDescription
+from service.app import calibrate as pipeline
 from solver.errors import KincalError
 from solver.executors import Executor, InProcessExecutor
 from solver.kinematics import TWIST_COMPONENTS

@@ -8,7 +8,7 @@ plans its chunks), carries a discovery's model, chooses where the passes over th
 the recording's size and the machine's cores, and runs
 :func:`solver.stream.calibrate.calibrate_recording`: the same stages for 100 poses in memory
 and for 10⁶ poses streamed from a Parquet file on several processes, so the path never changes
-the numbers beyond rounding. The result JSON is assembled by :mod:`service.result_json`.
+the numbers beyond rounding. The result JSON is assembled by :mod:`service.render.result_json`.
 """
 
 from __future__ import annotations
@@ -31,11 +31,11 @@ from schemas.calibration import (
 )
 from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_chunks
 from schemas.discovery import FindingsResult
-from service import measurement_run
-from service.result_json import ResidualSample, assemble_result, chain_for, sample_residuals
-from service.robots import RobotDescription
-from service.urdf_export import export_urdf
-from service.urdf_export import refusal as urdf_refusal
+from schemas.robots import RobotDescription
+from service.app import calibrate_measurement as measurement_run
+from service.render.result_json import ResidualSample, assemble_result, chain_for, sample_residuals
+from service.render.urdf_export import export_urdf
+from service.render.urdf_export import refusal as urdf_refusal
 from solver.calibration import FitOptions, pose_measurement
 from solver.covariance.layout import ROTATION_AXIS_NAMES
 from solver.errors import KincalError, ModelError
@@ -111,7 +111,8 @@ def check_calibration(
     discovery must be of this robot's joints and the options it sets must be left at their
     defaults."""
     if findings is not None:
-        from service import discovery  # only with a carried discovery: it imports scipy.stats
+        # only with a carried discovery: it imports scipy.stats
+        from service.app import discover as discovery
 
         discovery.findings_chain(findings, robot)
         options = discovery.carried_options(options, findings)
@@ -268,7 +269,7 @@ def open_recording(
     corrections: ModelCorrections | None = None
     notes: tuple[str, ...] = ()
     if setup.findings is not None:
-        from service import discovery
+        from service.app import discover as discovery
 
         carried = discovery.carry_model(setup.findings, dataset, setup.robot)
         dataset, corrections, notes = carried.dataset, carried.record, tuple(carried.notes)
@@ -349,7 +350,7 @@ class CalibrationRun:
         return urdf_refusal(self.result.model_corrections)
 
     def report_html(self) -> str:
-        from service.report_html import render_report
+        from service.render.report_html import render_report
 
         return render_report(self.result, self.residuals)
 
@@ -439,7 +440,7 @@ def _calibrate_measured(
 ) -> CalibrationRun:
     """A recording whose rows are not marker poses or positions (ball in socket, several
     markers, pose components, a frame on the base, a sensor on the chain): read into memory
-    and calibrated by :mod:`service.measurement_run`."""
+    and calibrated by :mod:`service.app.calibrate_measurement`."""
     started = time.perf_counter()
     recording = measurement_run.read_measured(
         source, setup.chain, setup.options, model, marker=marker, name=name
@@ -447,7 +448,7 @@ def _calibrate_measured(
     corrections: ModelCorrections | None = None
     notes: tuple[str, ...] = ()
     if setup.findings is not None:
-        from service import discovery
+        from service.app import discover as discovery
 
         carried = discovery.carry_measured(
             setup.findings, recording, setup.robot, setup.chain, setup.options

@@ -29,7 +29,7 @@ import pinocchio as pin
 from numpy.typing import NDArray
 
 from schemas.calibration import CalibrationResult, ModelCorrections
-from service.result_json import result_chain
+from service.render.result_json import result_chain
 from solver import lie
 from solver.errors import ModelError
 

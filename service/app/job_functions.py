@@ -1,9 +1,9 @@
-"""Job functions run by the worker processes of :mod:`service.jobs` (no HTTP, no database).
+"""Job functions run by the worker processes of :mod:`service.jobs.runner` (no HTTP, no database).
 
 A job function reads its inputs from ``ctx.params`` and the data folder, calls the pipeline
 (the same one as the CLI), reports progress and writes its outputs as artifacts.
 
-Calibrations go through :func:`service.pipeline.calibrate_source`, the CLI's entry point; their
+Calibrations go through :func:`service.app.calibrate.calibrate_source`, the CLI's entry point; their
 passes run in the worker process, or — when the worker's environment names a Dask scheduler
 (``KINCAL_DASK_ADDRESS``, see :class:`service.settings.Settings`) — on that cluster (the same
 call as ``kincal calibrate --executor dask``): for a large dataset the cluster's workers read
@@ -20,12 +20,13 @@ from pydantic import BaseModel, ConfigDict
 
 from schemas.calibration import CalibrationOptions
 from schemas.discovery import DiscoveryOptions, FindingsResult
-from service import discovery, pipeline
-from service.discovery_html import render_discovery_report
-from service.robots import RobotDescription, load_robot
+from schemas.robots import RobotDescription, load_robot
+from service.app import calibrate as pipeline
+from service.app import discover as discovery
+from service.app.discovery_html import render_discovery_report
+from service.jobs.worker import JobContext
 from service.settings import load_settings
 from service.storage.files import FileStore
-from service.worker import JobContext
 from solver.executors import DaskExecutor, Executor, InProcessExecutor
 
 
@@ -122,11 +123,11 @@ def _progress(ctx: JobContext, heldout: bool) -> pipeline.Progress:
 
 
 def calibration_job(ctx: JobContext) -> None:
-    """Calibrate a stored dataset through :func:`service.pipeline.calibrate_source` (its
+    """Calibrate a stored dataset through :func:`service.app.calibrate.calibrate_source` (its
     passes on the Dask cluster of ``KINCAL_DASK_ADDRESS`` if set, else in this worker),
     carrying a discovery's findings if the job names one (as ``kincal calibrate --model``);
     artifacts: result JSON, HTML report, calibrated URDF (none when the result corrects the
-    joint readings, which a URDF cannot express: see :func:`service.urdf_export.refusal`);
+    joint readings, which a URDF cannot express: see :func:`service.render.urdf_export.refusal`);
     the verdict goes in the job's summary, which its status shows."""
     ctx.progress("loading", 0.0)
     params = CalibrationJobParams.model_validate(ctx.params)
