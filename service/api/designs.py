@@ -14,7 +14,6 @@ import numpy as np
 from fastapi import APIRouter, Header, Response
 from starlette.concurrency import run_in_threadpool
 
-from schemas.calibration import CalibrationResult
 from schemas.design import (
     DesignCreate,
     DesignJobPublic,
@@ -28,15 +27,7 @@ from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.robots import resolve_robot
-from service.app.design import (
-    DesignJobParams,
-    RecordedRef,
-    design_model,
-    recorded_design,
-    run_design,
-    socket_candidates,
-)
-from service.app.job_functions import DatasetRef, robot_description
+from service.app.job_functions import DatasetRef, DesignJobParams, RecordedRef, design_now
 from service.storage import repository
 from service.storage.models import Job
 
@@ -182,34 +173,6 @@ def _matrix(rows: list[list[float]] | None, field: str, k: int) -> np.ndarray | 
     return np.array(rows, dtype=float).reshape(-1, k)
 
 
-def design_now(state: ServiceState, params: DesignJobParams) -> DesignResult:
-    """The design of a request, in the calling thread."""
-    body = params.request
-    recorded = None
-    if params.recorded is not None:
-        result = CalibrationResult.model_validate_json(
-            state.files.read(params.recorded.result_path)
-        )
-        dataset = params.recorded.dataset
-        robot, recorded = recorded_design(
-            result, state.files.path(dataset.data_path), source=dataset.name
-        )
-    else:
-        assert params.robot is not None
-        robot = robot_description(params.robot, state.files)
-    model = design_model(robot, body.options, recorded)
-    k = model.chain.n_joints
-    return run_design(
-        robot,
-        body.options,
-        candidates=_matrix(body.candidates_rad, "candidates_rad", k),
-        task=_matrix(body.task_rad, "task_rad", k),
-        recorded=recorded,
-        model=model,
-        sockets=socket_candidates(body.candidate_sockets),
-    )
-
-
 @router.post(
     "",
     response_model=DesignResult,
@@ -231,7 +194,7 @@ async def create_design(
     recordings), a job (202 + Location) otherwise."""
     params, recorded_rows = await run_in_threadpool(_params, state, principal.tenant_id, body)
     if _work(body, params, recorded_rows) <= SYNC_MAX_CANDIDATES:
-        result = await run_in_threadpool(design_now, state, params)
+        result = await run_in_threadpool(design_now, state.files, params, _matrix)
         return Response(result.model_dump_json(), media_type="application/json")
 
     def submit() -> Response:

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import configurations_from_frame, read_configurations
@@ -25,7 +24,6 @@ from schemas.design import (
     ConeVolume,
     CovarianceDesignReport,
     CriterionReport,
-    DesignCreate,
     DesignOptions,
     DesignPose,
     DesignResult,
@@ -36,10 +34,7 @@ from schemas.design import (
 from schemas.robots import RobotDescription
 from service.app import calibrate as pipeline
 from service.app import calibrate_measurement as measurement_run
-from service.app.job_functions import DatasetRef, RobotRef
-from service.jobs.worker import JobContext
 from service.render import result_json
-from service.storage.files import FileStore
 from solver.covariance.identifiability import IdentifiabilityReport, analyse_identifiability
 from solver.covariance.layout import CovarianceLayout
 from solver.covariance.statistics import design_gram
@@ -90,47 +85,6 @@ ROUNDING_RULE = (
     "one; then the best single exchange against the 50 candidates of largest directional "
     "derivative while the criterion improves"
 )
-
-
-class RecordedRef(BaseModel):
-    """A sequential design's prior in the service: a succeeded calibration's result file and
-    the dataset it calibrated."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    calibration_id: str
-    result_path: str
-    dataset: DatasetRef
-
-
-class DesignJobParams(BaseModel):
-    """``jobs.params`` of a design: the robot resolved when the job was accepted (none for a
-    sequential design: the calibration's), the recording and its calibration for a
-    sequential design, and the request as sent."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    robot: RobotRef | None = None
-    recorded: RecordedRef | None = None
-    request: DesignCreate
-
-
-def design_job(ctx: JobContext) -> None:
-    """A large design (``POST /api/v1/designs`` beyond the synchronous limit); artifact: the
-    design document."""
-    from service.api.designs import design_now
-
-    ctx.progress("design", 0.0)
-    params = DesignJobParams.model_validate(ctx.params)
-    result = design_now(_JobState(ctx.files), params)  # type: ignore[arg-type]
-    ctx.write_artifact("result", "design.json", result.model_dump_json(indent=1).encode())
-
-
-@dataclass(frozen=True)
-class _JobState:
-    """What :func:`service.api.designs.design_now` reads of the service state: the files."""
-
-    files: FileStore
 
 
 @dataclass(frozen=True)

@@ -14,20 +14,42 @@ from __future__ import annotations
 
 import functools
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any, Protocol
 
+import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
-from schemas.calibration import CalibrationOptions
+from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.design import DesignCreate, DesignResult
 from schemas.discovery import DiscoveryOptions, FindingsResult
 from schemas.robots import RobotDescription, load_robot
 from service.app import calibrate as pipeline
 from service.app import discover as discovery
+from service.app.design import design_model, recorded_design, run_design, socket_candidates
 from service.app.discovery_html import render_discovery_report
-from service.jobs.worker import JobContext
 from service.settings import load_settings
 from service.storage.files import FileStore
+from solver.errors import KincalError
 from solver.executors import DaskExecutor, Executor, InProcessExecutor
+
+
+class JobContext(Protocol):
+    """What a job function needs of the worker process running it: its parameters, the data
+    folder, progress and artifacts (:class:`service.jobs.worker.JobContext` is the one the
+    worker passes; declared here so the use cases do not import the job runner)."""
+
+    params: dict[str, Any]
+    files: FileStore
+    summary: dict[str, Any]
+
+    def progress(
+        self, stage: str, fraction: float | None = None, iteration: int | None = None
+    ) -> None: ...
+
+    def write_artifact(self, name: str, filename: str, data: bytes) -> str: ...
 
 
 class RobotRef(BaseModel):
@@ -184,3 +206,80 @@ def discovery_job(ctx: JobContext) -> None:
         plots = {name: (plot_dir / name).read_bytes() for name in findings.plots}
     ctx.write_artifact("result", "findings.json", findings.model_dump_json(indent=1).encode())
     ctx.write_artifact("report", "report.html", render_discovery_report(findings, plots).encode())
+
+
+class RecordedRef(BaseModel):
+    """A sequential design's prior in the service: a succeeded calibration's result file and
+    the dataset it calibrated."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    calibration_id: str
+    result_path: str
+    dataset: DatasetRef
+
+
+class DesignJobParams(BaseModel):
+    """``jobs.params`` of a design: the robot resolved when the job was accepted (none for a
+    sequential design: the calibration's), the recording and its calibration for a
+    sequential design, and the request as sent."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    robot: RobotRef | None = None
+    recorded: RecordedRef | None = None
+    request: DesignCreate
+
+
+JointRows = Callable[[list[list[float]] | None, str, int], NDArray[np.float64] | None]
+"""Joint positions of a request field (rows of k numbers, field name, k) as an (N, k) array;
+raises naming the field when a row does not have k numbers."""
+
+
+def joint_rows(rows: list[list[float]] | None, field: str, k: int) -> NDArray[np.float64] | None:
+    """:data:`JointRows` raising a :class:`KincalError` (a job's error message)."""
+    if rows is None:
+        return None
+    for i, row in enumerate(rows):
+        if len(row) != k:
+            raise KincalError(f"{field}.{i}: {len(row)} joint positions; the chain has {k}")
+    return np.array(rows, dtype=float).reshape(-1, k)
+
+
+def design_now(
+    files: FileStore, params: DesignJobParams, rows: JointRows = joint_rows
+) -> DesignResult:
+    """The design of a stored request (``POST /api/v1/designs``), in the calling thread: the
+    HTTP route for small candidate sets (``rows`` its 422 problem per field), the design job
+    otherwise."""
+    body = params.request
+    recorded = None
+    if params.recorded is not None:
+        result = CalibrationResult.model_validate_json(files.read(params.recorded.result_path))
+        dataset = params.recorded.dataset
+        robot, recorded = recorded_design(
+            result, files.path(dataset.data_path), source=dataset.name
+        )
+    else:
+        assert params.robot is not None
+        robot = robot_description(params.robot, files)
+    model = design_model(robot, body.options, recorded)
+    k = model.chain.n_joints
+    return run_design(
+        robot,
+        body.options,
+        candidates=rows(body.candidates_rad, "candidates_rad", k),
+        task=rows(body.task_rad, "task_rad", k),
+        recorded=recorded,
+        model=model,
+        sockets=socket_candidates(body.candidate_sockets),
+    )
+
+
+def design_job(ctx: JobContext) -> None:
+    """A large design (``POST /api/v1/designs`` beyond the synchronous limit); artifact: the
+    design document."""
+    ctx.progress("design", 0.0)
+    params = DesignJobParams.model_validate(ctx.params)
+    result = design_now(ctx.files, params)
+    ctx.write_artifact("result", "design.json", result.model_dump_json(indent=1).encode())

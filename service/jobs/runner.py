@@ -122,7 +122,7 @@ def default_registry() -> JobRegistry:
     registry = JobRegistry()
     registry.register("calibration", "service.app.job_functions:calibration_job", id_prefix="cal")
     registry.register("discovery", "service.app.job_functions:discovery_job", id_prefix="dis")
-    registry.register("design", "service.app.design:design_job", id_prefix="des")
+    registry.register("design", "service.app.job_functions:design_job", id_prefix="des")
     return registry
 
 
