@@ -19,13 +19,13 @@ import threading
 import time
 from dataclasses import dataclass
 
+from service.settings import load_settings
 from service.storage import repository
 from service.storage.db import Database
 from service.storage.models import ApiKey, Tenant, utcnow
 from solver.errors import KincalError
 
 KEY_PREFIX = "kc"
-LOCAL_TENANT = "local"
 TENANT_NAME = re.compile(r"^[a-z0-9][a-z0-9_.-]{0,63}$")
 _KEY_FORMAT = re.compile(r"^kc_([0-9a-f]{12})_([A-Za-z0-9_-]{43})$")
 
@@ -134,3 +134,22 @@ class KeyVerifier:
         with self._lock:
             self._cache[key_id] = entry
         return entry
+
+
+def create_key(tenant: str) -> tuple[str, str]:
+    """Migrate the configured database if needed, then create a key: (key id, full key)."""
+    database = Database(load_settings().resolved_database_url)
+    try:
+        database.migrate()
+        return create_api_key(database, tenant)
+    finally:
+        database.dispose()
+
+
+def revoke_key(key_id: str) -> bool:
+    database = Database(load_settings().resolved_database_url)
+    try:
+        database.migrate()
+        return revoke_api_key(database, key_id)
+    finally:
+        database.dispose()

@@ -28,11 +28,12 @@ from service.api.problems import install_problem_handlers
 from service.api.results import ResultCache
 from service.jobs.runner import JobRegistry, JobRunner, RunnerHandle, default_registry
 from service.render.result_json import kincal_version
-from service.security import LOCAL_TENANT, KeyVerifier, Principal
+from service.security import KeyVerifier, Principal
 from service.settings import Settings
 from service.storage import repository
 from service.storage.db import Database
 from service.storage.files import FileStore
+from service.storage.repository import LOCAL_TENANT
 
 log = logging.getLogger("kincal.service")
 

@@ -1,5 +1,6 @@
-"""Running the service: ``kincal serve`` (a supervisor, request processes and a job runner;
-:mod:`service.jobs.supervisor`) and ``kincal keys`` (API key admin)."""
+"""The two kinds of child process of ``kincal serve`` (:mod:`service.jobs.supervisor` starts
+them through :mod:`service.api.child`): a request process serving the app, and the job
+runner."""
 
 from __future__ import annotations
 
@@ -15,25 +16,13 @@ import uvicorn
 
 from service.api.app import create_app
 from service.api.metrics import Metrics
-from service.jobs.runner import JobRunner, default_registry, logs
+from service.jobs.runner import JobRunner, default_registry
 from service.jobs.runner_link import STATUS_INTERVAL_S, RemoteRunner, listen_for_wakes, write_status
-from service.security import create_api_key, revoke_api_key
-from service.settings import Settings, load_settings
+from service.settings import Settings
 from service.storage.db import Database
 from service.storage.files import FileStore
 
 log = logging.getLogger("kincal.jobs")
-
-
-def run_server(host: str | None = None, port: int | None = None) -> int:
-    """Serve until SIGINT/SIGTERM; then finish or re-queue running jobs. The exit status."""
-    from service.jobs.supervisor import Supervisor
-
-    overrides = {name: value for name, value in (("host", host), ("port", port)) if value}
-    settings = load_settings(**overrides)
-    logs.process_name = "supervisor"
-    logs.configure_logging(settings.log_level, settings.log_format)
-    return Supervisor(settings).run()
 
 
 def serve_requests(settings: Settings, listen_fd: int, run_dir: Path, wake_fd: int) -> None:
@@ -104,22 +93,3 @@ def freeze_startup_heap() -> None:
     since (startup garbage is collected first, and nothing frozen is ever freed)."""
     gc.collect()
     gc.freeze()
-
-
-def create_key(tenant: str) -> tuple[str, str]:
-    """Migrate the configured database if needed, then create a key: (key id, full key)."""
-    database = Database(load_settings().resolved_database_url)
-    try:
-        database.migrate()
-        return create_api_key(database, tenant)
-    finally:
-        database.dispose()
-
-
-def revoke_key(key_id: str) -> bool:
-    database = Database(load_settings().resolved_database_url)
-    try:
-        database.migrate()
-        return revoke_api_key(database, key_id)
-    finally:
-        database.dispose()

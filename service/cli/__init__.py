@@ -786,7 +786,7 @@ def serve(
     port: Annotated[int | None, typer.Option(min=1, max=65535, help="Port [8000].")] = None,
 ) -> None:
     """Run the HTTP service (other settings: the KINCAL_* environment variables below)."""
-    from service.api.server import run_server
+    from service.jobs.supervisor import run_server
 
     raise typer.Exit(run_server(host=host, port=port))
 
@@ -800,7 +800,7 @@ def keys_create(
     tenant: Annotated[str, typer.Option(help="Tenant the key acts for (created if new).")],
 ) -> None:
     """Create an API key: printed once, only its SHA-256 is stored."""
-    from service.api.server import create_key
+    from service.security import create_key
 
     key_id, key = create_key(tenant)
     typer.echo(key)
@@ -810,7 +810,7 @@ def keys_create(
 @keys_app.command("revoke")
 def keys_revoke(key_id: Annotated[str, typer.Argument(help="The key id (kc_<id>_...).")]) -> None:
     """Revoke an API key (services stop accepting it within KINCAL_API_KEY_CACHE_S)."""
-    from service.api.server import revoke_key
+    from service.security import revoke_key
 
     if not revoke_key(key_id):
         raise KincalError(f"no active key with id {key_id!r}")

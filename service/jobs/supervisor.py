@@ -40,12 +40,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 
+from service import kincal_version
+from service.jobs import logs
 from service.jobs.lifeline import pid_alive
-from service.security import LOCAL_TENANT
-from service.settings import Settings
+from service.settings import Settings, load_settings
 from service.storage import repository
 from service.storage.db import Database
-from service.version import kincal_version
+from service.storage.repository import LOCAL_TENANT
 from solver.errors import KincalError
 
 log = logging.getLogger("kincal.service")
@@ -271,3 +272,12 @@ class Supervisor:
             shutil.rmtree(self.run_dir, ignore_errors=True)
         log.info("kincal service stopped")
         return status
+
+
+def run_server(host: str | None = None, port: int | None = None) -> int:
+    """Serve until SIGINT/SIGTERM; then finish or re-queue running jobs. The exit status."""
+    overrides = {name: value for name, value in (("host", host), ("port", port)) if value}
+    settings = load_settings(**overrides)
+    logs.process_name = "supervisor"
+    logs.configure_logging(settings.log_level, settings.log_format)
+    return Supervisor(settings).run()

@@ -41,8 +41,8 @@ from schemas.calibration import (
 )
 from schemas.dataset import PoseDataset
 from schemas.robots import RobotDescription
+from service import kincal_version
 from service.render import corrections
-from service.version import kincal_version
 from solver import lie
 from solver.covariance.estimate import CovarianceEstimate, FrameCovariance
 from solver.evaluation import SplitError

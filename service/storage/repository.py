@@ -23,6 +23,9 @@ from service.storage.models import (
     utcnow,
 )
 
+LOCAL_TENANT = "local"
+"""The tenant of requests without a key in keyless mode (service bound to a loopback address)."""
+
 QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELLED = (
     "queued",
     "running",
