@@ -10,9 +10,9 @@ import pytest
 
 from schemas.calibration import CalibrationResult
 from schemas.dataset import write_dataset
-from service import cli
 from service.app import calibrate as pipeline
 from service.app import simulate as scenarios
+from service.cli import common as cli
 from solver.simulate import SimulationSpec, look_at, simulate_recording
 from tests.conftest import assert_documents_close, chain, comparable_result
 from tests.service.cli_support import run
