@@ -4,7 +4,7 @@ Data, per N and seed: the paper-like Jaco2 of :func:`service.app.simulate.scenar
 errors, compliant 2nd and 3rd joints, unknown camera and marker, random rotations ξ_j with σ
 0.3 → 2 mrad on every joint frame, noise 0.05 mm / 0.05 mrad), simulated by
 :func:`solver.simulate.simulate_recording`, so the truth is known. The deterministic fit
-(:func:`solver.calibration.fit_deterministic`, Eq. 10) leaves end-effector-frame residuals; the
+(:func:`solver.measurement.pose.fit_deterministic`, Eq. 10) leaves end-effector-frame residuals; the
 frame Jacobians J_j = Ad_{B_j}⁻¹ are taken at the fitted geometry, exactly as the pipeline's
 covariance stage does. Σ_n is estimated with the rest (product default) unless
 ``--known-noise``.
@@ -49,7 +49,6 @@ import solver  # noqa: F401  (BLAS defaults before numpy work)
 from schemas.calibration import CalibrationOptions
 from schemas.robots import load_robot
 from service.app.simulate import scenario
-from solver.calibration import fit_deterministic
 from solver.covariance import (
     KKT_TOLERANCE,
     PGD_PUBLISHED,
@@ -63,6 +62,7 @@ from solver.covariance import (
 from solver.covariance.estimate import CovarianceEstimate, EstimatorName
 from solver.covariance.solvers import ConcreteSolver, concrete_solver
 from solver.kinematics import ChainParameters, evaluate_chain
+from solver.measurement.pose import fit_deterministic
 from solver.model import KinematicChain, gravity_loads, sample_configurations
 from solver.ranking import (
     PAPER_WEIGHTS,

@@ -40,8 +40,8 @@ from service.render import result_json
 from solver import lie
 from solver.errors import KincalError
 from solver.kinematics import pose_residuals
-from solver.predictive import COVERAGE_LEVELS, Coverage, coverage, mahalanobis_squared
-from solver.stream.coverage import PredictiveCalibration, ScoredRows, fold_indices
+from solver.predictive import COVERAGE_LEVELS, Coverage, ScoredRows, coverage, mahalanobis_squared
+from solver.stream.coverage import PredictiveCalibration, fold_indices
 from solver.stream.screening import family_wise_t2
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "real"

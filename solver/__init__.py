@@ -14,7 +14,7 @@ Eq. 8  residual Log(X⁻¹X_meas)  :func:`solver.kinematics.pose_residuals`
 Eq. 9  stacked Jacobian        :func:`solver.kinematics.stacked_jacobian`
 Eq. 10 damped (Lev.–Marquardt) :func:`solver.calibration.levenberg_marquardt_iteration` (one
                                iteration, in memory and streamed),
-                               :func:`solver.calibration.fit_deterministic`
+                               :func:`solver.measurement.pose.fit_deterministic`
 §V-A   2σ outlier rule         :func:`solver.calibration.within_spread`
 Eq. 12 Σ_E(q)                  :func:`solver.covariance.likelihood.ee_covariance_batch` (the one
                                kernel: likelihoods, predictions, rankings' reference); its

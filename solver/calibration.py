@@ -6,7 +6,9 @@ and tool offset. Columns that the data cannot identify are removed once, up fron
 column-pivoted QR and reported by name; the same columns stay fixed through the iterations.
 
 Every step reduces to sums over samples, so the same code serves in-memory arrays
-(:func:`fit_deterministic`) and data streamed in chunks (:mod:`solver.stream`):
+(:func:`solver.measurement.fit.fit_measurement`, for poses
+:func:`solver.measurement.pose.fit_deterministic`) and data streamed in chunks
+(:mod:`solver.stream`):
 
 - the (damped) Gauss–Newton step (Eq. 10) is solved from the normal equations
   :class:`NormalEquations` (``JᵀJ``, ``Jᵀr``, ``rᵀr``), which add over chunks;
@@ -39,7 +41,6 @@ from solver.kinematics import (
     evaluate_chain,
     stacked_jacobian,
 )
-from solver.measurement import models as measurement_models
 from solver.model import KinematicChain, gravity_loads, sample_configurations
 
 FloatArray = NDArray[np.float64]
@@ -79,7 +80,7 @@ class FitOptions:
 
 @dataclass(frozen=True)
 class DeterministicFit:
-    """Result of :func:`fit_deterministic`.
+    """Result of :func:`solver.measurement.pose.fit_deterministic`.
 
     ``estimated``/``removed``: parameter names kept / dropped as unidentifiable (or not free).
     ``standard_errors``: of the estimated parameters at the solution (same order as
@@ -104,76 +105,12 @@ class DeterministicFit:
     notes: list[str] = field(default_factory=list)
 
 
-def nominal_pose(chain: KinematicChain, joint_positions: FloatArray) -> FloatArray:
-    """URDF forward kinematics base -> tip, rigid; (N, 4, 4)."""
-    return measurement_models.nominal_pose(chain, joint_positions)
-
-
-def pose_measurement(*, position_only: bool) -> measurement_models.FullPose:
-    """The measurement model of a pose recording: :class:`~solver.measurement.Position` when
-    only positions were measured, else :class:`~solver.measurement.FullPose`."""
-    return measurement_models.Position() if position_only else measurement_models.FullPose()
-
-
-def initial_parameters(
-    chain: KinematicChain,
-    joint_positions: FloatArray,
-    measured_pose: FloatArray,
-    *,
-    position_only: bool,
-) -> ChainParameters:
-    """Nominal geometry; closed-form measurement frame folded into L_1, tool into L_{k+1}
-    (:meth:`solver.measurement.FullPose.start`)."""
-    rows = measurement_models.MeasurementRows.of(
-        joint_positions, np.zeros((joint_positions.shape[0], 0)), measured_pose
-    )
-    start = pose_measurement(position_only=position_only).start(chain, rows)
-    return ChainParameters(start.links, start.compliance_rad_per_nm)
-
-
 def weighted(values: FloatArray, *, position_only: bool, rotation_weight: float) -> FloatArray:
     """Multiply the rotation rows (axis 1, entries 3..5) by the weight (full pose only)."""
     if position_only or rotation_weight == 1.0:
         return values
     scale = np.r_[1.0, 1.0, 1.0, rotation_weight, rotation_weight, rotation_weight]
     return values * scale.reshape((1, 6) + (1,) * (values.ndim - 2))
-
-
-def fit_deterministic(
-    chain: KinematicChain,
-    joint_positions: FloatArray,
-    measured_pose: FloatArray,
-    loads_nm: FloatArray,
-    *,
-    position_only: bool,
-    options: FitOptions = FitOptions(),
-    start: ChainParameters | None = None,
-) -> DeterministicFit:
-    """Paper Eq. (10): iterate ``x_w = A_w^+ y_w`` and re-linearise until the cost settles.
-
-    ``measured_pose`` (N, 4, 4) in the measurement frame (rotation ignored if position-only);
-    ``loads_nm`` (N, n_axes) from :func:`solver.model.gravity_loads`. The fit of the pose
-    measurement model (:func:`solver.measurement.fit_measurement` with
-    :func:`pose_measurement`), after the sample count is checked against the chain.
-    """
-    from solver.measurement.fit import fit_measurement  # it builds on this module
-
-    check_sample_count(
-        chain, joint_positions.shape[0], position_only=position_only, options=options
-    )
-    rows = measurement_models.MeasurementRows.of(joint_positions, loads_nm, measured_pose)
-    fit = fit_measurement(
-        chain,
-        pose_measurement(position_only=position_only),
-        rows,
-        options,
-        start=None
-        if start is None
-        else measurement_models.ModelParameters(start.links, start.compliance_rad_per_nm),
-    )
-    shared = {f.name: getattr(fit, f.name) for f in dataclasses.fields(DeterministicFit)}
-    params = ChainParameters(fit.params.links, fit.params.compliance_rad_per_nm)
-    return DeterministicFit(**{**shared, "params": params})
 
 
 PLAUSIBLE_COMPLIANCE_RAD_PER_NM = 0.01

@@ -33,10 +33,11 @@ from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
 
 from solver import lie
-from solver.calibration import FitOptions, fit_deterministic
+from solver.calibration import FitOptions
 from solver.errors import CalibrationError
 from solver.evaluation import Method
 from solver.kinematics import ChainParameters, forward_kinematics, pose_residuals
+from solver.measurement.pose import fit_deterministic
 from solver.model import KinematicChain
 from solver.ranking import ConfigurationScores, TaskMetric
 

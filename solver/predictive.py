@@ -386,3 +386,39 @@ class PredictiveModel:
                 self.model_error_variance,
             ),
         )
+
+
+INNER_FOLDS = 3
+"""Folds of the cross-validation inside a split's training rows that gives the split its own
+model-error part."""
+
+
+@dataclass(frozen=True)
+class ScoredRows:
+    """Rows scored by a predictor: residuals (n, d) in the covariance's space (the end-effector
+    frame for poses; :mod:`solver.measurement.predictive` for the other types), the covariance of
+    every part but the model error (``base``, (n, d, d)), Σ_E + Σ_n alone (``random``) and
+    the measurement axes T (n, d, d) of :func:`~solver.predictive.measurement_axes`."""
+
+    residuals: FloatArray
+    base: FloatArray
+    random: FloatArray
+    axes: FloatArray
+
+    @classmethod
+    def join(cls, parts: list[ScoredRows], d: int) -> ScoredRows:
+        if not parts:
+            empty = np.zeros((0, d, d))
+            return cls(np.zeros((0, d)), empty, empty, empty)
+        return cls(
+            np.concatenate([p.residuals for p in parts]),
+            np.concatenate([p.base for p in parts]),
+            np.concatenate([p.random for p in parts]),
+            np.concatenate([p.axes for p in parts]),
+        )
+
+    def distances_squared(self, model_error: FloatArray) -> FloatArray:
+        """Squared Mahalanobis distances (n,) under the total with these model-error
+        variances (d,)."""
+        total = self.base + model_error_part(self.axes, model_error)
+        return mahalanobis_squared(self.residuals, total)

@@ -2,7 +2,7 @@
 columns of the stacked Jacobian (:func:`solver.kinematics.parameter_names` order) that the fit
 may move (``FitOptions.free_columns``). Fixed columns keep their starting value: the nominal
 geometry, compliance 0, and for the base and tool links the closed-form alignment of the
-measurement frame and marker (:func:`solver.calibration.initial_parameters`).
+measurement frame and marker (:func:`solver.measurement.pose.initial_parameters`).
 
 Selectors (docs/calibration-options.md):
 

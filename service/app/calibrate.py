@@ -36,11 +36,12 @@ from service.app import calibrate_measurement as measurement_run
 from service.render.result_json import ResidualSample, assemble_result, chain_for, sample_residuals
 from service.render.urdf_export import export_urdf
 from service.render.urdf_export import refusal as urdf_refusal
-from solver.calibration import FitOptions, pose_measurement
+from solver.calibration import FitOptions
 from solver.covariance.layout import ROTATION_AXIS_NAMES
 from solver.errors import KincalError, ModelError
 from solver.executors import Executor, InProcessExecutor, ProcessExecutor, preload_in_workers
 from solver.measurement import MeasurementModel
+from solver.measurement.pose import pose_measurement
 from solver.model import KinematicChain
 from solver.selection import free_columns
 from solver.stream.calibrate import (

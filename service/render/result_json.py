@@ -53,10 +53,10 @@ from solver.kinematics import (
     pose_residuals,
 )
 from solver.model import KinematicChain, build_chain, gravity_loads
-from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS, Coverage, ModelErrorFit
+from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS, INNER_FOLDS, Coverage, ModelErrorFit
 from solver.selection import fixed_names
 from solver.stream.calibrate import BEFORE, CALIBRATED, RecordingCalibration
-from solver.stream.coverage import INNER_CV_ROWS, INNER_FOLDS, PredictiveCalibration
+from solver.stream.coverage import INNER_CV_ROWS, PredictiveCalibration
 from solver.stream.sums import ErrorSums
 from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, verdict_status
 

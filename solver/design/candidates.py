@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.calibration import nominal_pose
 from solver.errors import SolverError
+from solver.measurement.models import nominal_pose
 from solver.model import KinematicChain, sample_configurations
 
 FloatArray = NDArray[np.float64]

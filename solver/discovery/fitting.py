@@ -36,13 +36,13 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from solver import lie
-from solver.calibration import initial_parameters
 from solver.discovery.features import DiscoveryData, FeatureBank, axis_of
 from solver.discovery.library import Term, drift_feature
 from solver.errors import CalibrationError
 from solver.kinematics import ChainParameters, evaluate_chain, pose_residuals
 from solver.measurement.models import ModelParameters as MeasuredParameters
 from solver.measurement.models import chain_column_count, seen_from_sensor
+from solver.measurement.pose import initial_parameters
 from solver.model import ComplianceAxis, KinematicChain
 from solver.simulate import depth_direction
 

@@ -1,7 +1,8 @@
 """Measurement models (issue 15): what a recorded row measures, its residual, Jacobian,
 dimension and frame (:mod:`solver.measurement.models`), and the fit, outlier rule and held-out
 evaluation for any of them (:mod:`solver.measurement.fit`, imported on first use: it builds on
-:mod:`solver.calibration`, which builds on the models)."""
+the least-squares machinery of :mod:`solver.calibration`), the pose and position rows'
+deterministic fit among them (:mod:`solver.measurement.pose`)."""
 
 from __future__ import annotations
 

@@ -48,8 +48,10 @@ from solver.measurement.fit import MeasurementFit, covariance_samples
 from solver.measurement.models import MeasurementRows
 from solver.model import KinematicChain
 from solver.predictive import (
+    INNER_FOLDS,
     Coverage,
     ModelErrorFit,
+    ScoredRows,
     coverage,
     estimate_model_error,
     gram_inverse,
@@ -57,7 +59,6 @@ from solver.predictive import (
     model_error_part,
     parameter_part,
 )
-from solver.stream.coverage import INNER_FOLDS, ScoredRows  # as the pose protocol's
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]

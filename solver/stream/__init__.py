@@ -28,12 +28,12 @@ What differs from the in-memory pipeline, and why:
 
 - **Warm start and pruning.** The closed-form alignment pairs samples across the whole
   recording, and the column-pivoted QR needs the stacked Jacobian; neither streams. Both run,
-  unchanged, on the first ``warm_start_rows`` rows (:func:`solver.calibration.fit_deterministic`
-  there), whose fitted parameters start the streamed iteration and whose kept columns are the
-  streamed fit's. More data only adds to the Gram, so every kept column stays identifiable;
-  a column the first rows cannot see is reported as removed. The condition number is the
-  full recording's (from its normal equations). With at most ``warm_start_rows`` rows the
-  start and the pruning are exactly the in-memory ones.
+  unchanged, on the first ``warm_start_rows`` rows
+  (:func:`solver.measurement.pose.fit_deterministic` there), whose fitted parameters start the
+  streamed iteration and whose kept columns are the streamed fit's. More data only adds to the
+  Gram, so every kept column stays identifiable; a column the first rows cannot see is reported
+  as removed. The condition number is the full recording's (from its normal equations). With at
+  most ``warm_start_rows`` rows the start and the pruning are exactly the in-memory ones.
 - **Outliers (2σ rule).** The first fit's final pass also sums the residual spread
   (mean, M2 per component, merged exactly) and leaves each chunk's residuals in its worker;
   the rule (first fit's parameters, mean, σ) is applied to them (or, without the chunk cache,

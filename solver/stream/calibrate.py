@@ -15,7 +15,6 @@ from numpy.typing import NDArray
 from solver.calibration import (
     FitOptions,
     check_sample_count,
-    fit_deterministic,
     identifiable_parameter_count,
     implausible_columns,
     without_columns,
@@ -38,6 +37,7 @@ from solver.covariance.solvers import SolverName
 from solver.evaluation import SplitError, score_splits, split_indices
 from solver.executors import Executor
 from solver.kinematics import ChainParameters, forward_kinematics, parameter_names
+from solver.measurement.pose import fit_deterministic
 from solver.model import KinematicChain
 from solver.stream.chunks import StreamProblem, count_chunk_rows
 from solver.stream.covariance import (
@@ -306,7 +306,7 @@ def non_negative_fit(
     """``fit`` with every parameter the data do not place in a physical range fixed
     (:func:`solver.calibration.implausible_columns`: a compliance negative or unidentified at
     0, an inner link's twist component unidentified at its nominal value) and the fit repeated
-    from there, as :func:`solver.calibration.fit_deterministic` does in memory; the fixed ones
+    from there, as :func:`solver.measurement.pose.fit_deterministic` does in memory; the fixed ones
     are listed in ``pruned``."""
     if not request.options.non_negative_compliance:
         return fit

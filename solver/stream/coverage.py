@@ -25,29 +25,25 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.calibration import (
-    DeterministicFit,
-    FitOptions,
-    fit_deterministic,
-    identifiable_parameter_count,
-)
+from solver.calibration import DeterministicFit, FitOptions, identifiable_parameter_count
 from solver.covariance.estimate import CovarianceEstimate, EstimatorName, estimate_from_samples
 from solver.covariance.likelihood import ee_covariance_batch
 from solver.covariance.samples import ArraySamples
 from solver.covariance.solvers import SolverName
 from solver.errors import CalibrationError, KincalError
 from solver.kinematics import ChainParameters, parameter_names, pose_residuals
+from solver.measurement.pose import fit_deterministic
 from solver.model import KinematicChain
 from solver.predictive import (
+    INNER_FOLDS,
     Coverage,
     ModelErrorFit,
     PredictionPoint,
+    ScoredRows,
     coverage,
     estimate_model_error,
     leave_one_out_residuals,
-    mahalanobis_squared,
     measurement_axes,
-    model_error_part,
     parameter_covariance,
     parameter_part,
     prediction_point,
@@ -60,9 +56,6 @@ from solver.stream.sums import CovarianceSpec
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
-INNER_FOLDS = 3
-"""Folds of the cross-validation inside a split's training rows that gives the split its own
-model-error part."""
 
 INNER_CV_ROWS = 500
 """Up to this many training rows a split's model-error part comes from the nested
@@ -235,37 +228,6 @@ def train_predictor(
     except ZeroDivisionError as exc:  # the rows' rank reached their equations: no residual dof
         raise CalibrationError(f"{rows.n} rows leave no residual degrees of freedom") from exc
     return predictor_from_fit(chain, fit, rows, position_only, options, settings, start_theta)
-
-
-@dataclass(frozen=True)
-class ScoredRows:
-    """Rows scored by a predictor: residuals (n, d) in the covariance's space (the end-effector
-    frame for poses; :mod:`solver.measurement.predictive` for the other types), the covariance of
-    every part but the model error (``base``, (n, d, d)), Σ_E + Σ_n alone (``random``) and
-    the measurement axes T (n, d, d) of :func:`~solver.predictive.measurement_axes`."""
-
-    residuals: FloatArray
-    base: FloatArray
-    random: FloatArray
-    axes: FloatArray
-
-    @classmethod
-    def join(cls, parts: list[ScoredRows], d: int) -> ScoredRows:
-        if not parts:
-            empty = np.zeros((0, d, d))
-            return cls(np.zeros((0, d)), empty, empty, empty)
-        return cls(
-            np.concatenate([p.residuals for p in parts]),
-            np.concatenate([p.base for p in parts]),
-            np.concatenate([p.random for p in parts]),
-            np.concatenate([p.axes for p in parts]),
-        )
-
-    def distances_squared(self, model_error: FloatArray) -> FloatArray:
-        """Squared Mahalanobis distances (n,) under the total with these model-error
-        variances (d,)."""
-        total = self.base + model_error_part(self.axes, model_error)
-        return mahalanobis_squared(self.residuals, total)
 
 
 def score_rows(

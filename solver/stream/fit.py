@@ -30,7 +30,6 @@ from solver.calibration import (
     LeastSquaresRun,
     NormalEquations,
     ResidualSpread,
-    fit_deterministic,
     implausible_link_columns,
     levenberg_marquardt_iteration,
     parameter_standard_errors,
@@ -40,6 +39,7 @@ from solver.calibration import (
 from solver.executors import Executor
 from solver.gravity import static_gravity_loads
 from solver.kinematics import ChainParameters, parameter_names
+from solver.measurement.pose import fit_deterministic
 from solver.model import KinematicChain
 from solver.stream.chunks import (
     Block,

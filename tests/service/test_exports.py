@@ -21,8 +21,8 @@ from service.app import simulate as scenarios
 from service.render import exports, result_json
 from service.render.urdf_export import MARKER_LINK, MEASUREMENT_LINK
 from solver import lie
-from solver.calibration import nominal_pose
 from solver.kinematics import ChainParameters, forward_kinematics
+from solver.measurement.models import nominal_pose
 from solver.model import build_chain, sample_configurations
 from tests.conftest import robot
 from tests.service.cli_support import run

@@ -7,16 +7,12 @@ import pytest
 
 from solver import lie
 from solver.alignment import align_full_pose, align_position_only
-from solver.calibration import (
-    FitOptions,
-    fit_deterministic,
-    nominal_pose,
-    outlier_mask,
-    pose_errors,
-)
+from solver.calibration import FitOptions, outlier_mask, pose_errors
 from solver.errors import CalibrationError
 from solver.evaluation import PAPER_SEEDS, split_indices
 from solver.kinematics import forward_kinematics
+from solver.measurement.models import nominal_pose
+from solver.measurement.pose import fit_deterministic
 from solver.simulate import SimulationSpec, look_at, simulate_recording
 from tests.conftest import chain
 

@@ -10,12 +10,11 @@ from solver.calibration import (
     FitOptions,
     NormalEquations,
     damped_step,
-    fit_deterministic,
-    initial_parameters,
     normal_equations,
     predicted_decrease,
 )
 from solver.kinematics import ChainParameters, forward_kinematics
+from solver.measurement.pose import fit_deterministic, initial_parameters
 from solver.model import gravity_loads, sample_configurations
 from tests.conftest import chain
 

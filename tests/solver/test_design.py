@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from schemas.robots import load_robot
 from solver import lie
-from solver.calibration import FitOptions, fit_deterministic
+from solver.calibration import FitOptions
 from solver.covariance.likelihood import fisher_information_ml
 from solver.design import optimal_design
 from solver.design.candidates import ViewCone, Volume, WorkspaceBox, sample_candidates, tip_poses
@@ -33,6 +33,7 @@ from solver.design.relaxation import (
 )
 from solver.design.rounding import round_design
 from solver.kinematics import ChainParameters, forward_kinematics
+from solver.measurement.pose import fit_deterministic
 from solver.model import build_chain, gravity_loads
 
 NOISE = np.r_[[5e-5] * 3, [np.radians(0.003)] * 3]

@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from solver.calibration import nominal_pose
 from solver.dh import DhRow, dh_forward_kinematics, dh_table_of_links, dh_urdf
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.lie import se3_exp
+from solver.measurement.models import nominal_pose
 from solver.model import build_chain, sample_configurations
 
 angles = st.floats(-np.pi, np.pi, allow_nan=False)

@@ -12,10 +12,8 @@ from solver.calibration import (
     FitOptions,
     NormalEquations,
     ResidualSpread,
-    fit_deterministic,
     normal_equations,
     outlier_mask,
-    pose_measurement,
 )
 from solver.covariance.estimate import estimate_covariances
 from solver.covariance.layout import make_layout
@@ -24,6 +22,7 @@ from solver.executors import InProcessExecutor, blocks, make_executor
 from solver.gravity import StaticGravityModel, static_gravity_loads
 from solver.kinematics import evaluate_chain, parameter_names
 from solver.measurement import FullPose
+from solver.measurement.pose import fit_deterministic, pose_measurement
 from solver.simulate import SimulatedRecording, SimulationSpec, look_at, simulate_recording
 from solver.stream.calibrate import (
     CovarianceSettings,

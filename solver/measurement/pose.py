@@ -1,0 +1,76 @@
+"""Pose and position rows (DESIGN.md §2: the marker pose, or its position alone, in the
+measurement frame): their measurement model, the closed-form start and the deterministic
+calibration of paper Eq. (8)–(10) as :func:`solver.measurement.fit.fit_measurement` of these
+models — the in-memory fit; :mod:`solver.stream` streams the same iteration."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.calibration import DeterministicFit, FitOptions, check_sample_count
+from solver.kinematics import ChainParameters
+from solver.measurement import models as measurement_models
+from solver.measurement.fit import fit_measurement
+from solver.model import KinematicChain
+
+FloatArray = NDArray[np.float64]
+
+
+def pose_measurement(*, position_only: bool) -> measurement_models.FullPose:
+    """The measurement model of a pose recording: :class:`~solver.measurement.Position` when
+    only positions were measured, else :class:`~solver.measurement.FullPose`."""
+    return measurement_models.Position() if position_only else measurement_models.FullPose()
+
+
+def initial_parameters(
+    chain: KinematicChain,
+    joint_positions: FloatArray,
+    measured_pose: FloatArray,
+    *,
+    position_only: bool,
+) -> ChainParameters:
+    """Nominal geometry; closed-form measurement frame folded into L_1, tool into L_{k+1}
+    (:meth:`solver.measurement.FullPose.start`)."""
+    rows = measurement_models.MeasurementRows.of(
+        joint_positions, np.zeros((joint_positions.shape[0], 0)), measured_pose
+    )
+    start = pose_measurement(position_only=position_only).start(chain, rows)
+    return ChainParameters(start.links, start.compliance_rad_per_nm)
+
+
+def fit_deterministic(
+    chain: KinematicChain,
+    joint_positions: FloatArray,
+    measured_pose: FloatArray,
+    loads_nm: FloatArray,
+    *,
+    position_only: bool,
+    options: FitOptions = FitOptions(),
+    start: ChainParameters | None = None,
+) -> DeterministicFit:
+    """Paper Eq. (10): iterate ``x_w = A_w^+ y_w`` and re-linearise until the cost settles.
+
+    ``measured_pose`` (N, 4, 4) in the measurement frame (rotation ignored if position-only);
+    ``loads_nm`` (N, n_axes) from :func:`solver.model.gravity_loads`. The fit of the pose
+    measurement model (:func:`solver.measurement.fit_measurement` with
+    :func:`pose_measurement`), after the sample count is checked against the chain.
+    """
+    check_sample_count(
+        chain, joint_positions.shape[0], position_only=position_only, options=options
+    )
+    rows = measurement_models.MeasurementRows.of(joint_positions, loads_nm, measured_pose)
+    fit = fit_measurement(
+        chain,
+        pose_measurement(position_only=position_only),
+        rows,
+        options,
+        start=None
+        if start is None
+        else measurement_models.ModelParameters(start.links, start.compliance_rad_per_nm),
+    )
+    shared = {f.name: getattr(fit, f.name) for f in dataclasses.fields(DeterministicFit)}
+    params = ChainParameters(fit.params.links, fit.params.compliance_rad_per_nm)
+    return DeterministicFit(**{**shared, "params": params})
