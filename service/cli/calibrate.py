@@ -28,6 +28,7 @@ from service.cli.common import (
     BaseOpt,
     ChunkRowsOpt,
     DaskOpt,
+    DataArg,
     DhOpt,
     ExecutorOpt,
     MeasurementOpt,
@@ -91,13 +92,7 @@ def simulate(
 
 
 def calibrate(
-    data: Annotated[
-        Path,
-        typer.Argument(
-            help="Dataset: CSV, Parquet, JSON or industrial_calibration YAML; or a folder of "
-            "ball-in-socket hole_<k>.csv files."
-        ),
-    ],
+    data: DataArg,
     output: OutputOpt,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,

@@ -12,10 +12,7 @@ import typer
 
 from schemas.calibration import CalibrationResult
 from schemas.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
-from service.cli.flags import (
-    numbers,
-    option_help,
-)
+from service.cli.flags import numbers, option_help
 from solver.errors import KincalError
 from solver.executors import Executor
 
@@ -44,6 +41,13 @@ DhOpt = Annotated[
         "--dh",
         help="A DH or modified-DH table (YAML, docs/dh.md) instead of --robot/--urdf, for "
         "devices without a URDF.",
+    ),
+]
+DataArg = Annotated[
+    Path,
+    typer.Argument(
+        help="Dataset: CSV, Parquet, JSON or industrial_calibration YAML; or a folder of "
+        "ball-in-socket hole_<k>.csv files."
     ),
 ]
 OutputOpt = Annotated[Path, typer.Option("-o", "--output", help="Output file.")]

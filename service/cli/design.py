@@ -11,11 +11,7 @@ import typer
 
 from schemas.dataset import read_configurations
 from schemas.design import DesignOptions, DesignResult
-from service.cli.flags import (
-    calibration_options,
-    numbers,
-    read_config,
-)
+from service.cli.flags import calibration_options, numbers, read_config
 from solver.errors import KincalError
 
 if TYPE_CHECKING:

@@ -8,15 +8,14 @@ from typing import TYPE_CHECKING, Annotated
 import pydantic
 import typer
 
-from service.cli.flags import (
-    CALIBRATION_FLAGS,
-)
+from service.cli.flags import CALIBRATION_FLAGS
 from solver.errors import KincalError
 
 if TYPE_CHECKING:
     pass
 from service.cli.common import (
     BaseOpt,
+    DataArg,
     MeasurementOpt,
     OutputOpt,
     PointDistanceOpt,
@@ -32,13 +31,7 @@ from service.cli.common import (
 
 
 def discover(
-    data: Annotated[
-        Path,
-        typer.Argument(
-            help="Dataset: CSV, Parquet, JSON or industrial_calibration YAML; or a folder of "
-            "ball-in-socket hole_<k>.csv files."
-        ),
-    ],
+    data: DataArg,
     output: OutputOpt,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,

@@ -13,11 +13,7 @@ from solver.errors import KincalError
 
 if TYPE_CHECKING:
     pass
-from service.cli.common import (
-    OutputOpt,
-    _write_text,
-    read_result,
-)
+from service.cli.common import OutputOpt, _write_text, read_result
 
 
 def dh_urdf_command(

@@ -8,11 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from service.cli.flags import (
-    calibration_options,
-    option_help,
-    read_config,
-)
+from service.cli.flags import calibration_options, option_help, read_config
 from solver.errors import KincalError
 
 if TYPE_CHECKING:

@@ -10,10 +10,7 @@ import pandas as pd
 import typer
 
 from schemas.dataset import read_configurations
-from service.cli.flags import (
-    ranking_options_from_flags,
-    target_request,
-)
+from service.cli.flags import ranking_options_from_flags, target_request
 from service.render import result_json
 from service.render.text import ranking_summary
 from solver import lie
@@ -21,12 +18,7 @@ from solver.errors import KincalError
 
 if TYPE_CHECKING:
     pass
-from service.cli.common import (
-    OutputOpt,
-    _prediction_note,
-    _write_json,
-    read_result,
-)
+from service.cli.common import OutputOpt, _prediction_note, _write_json, read_result
 
 
 def predict(
