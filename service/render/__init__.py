@@ -1,0 +1,2 @@
+"""Results out: the result document, text, HTML, plots and controller exports
+(docs/architecture.md)."""
