@@ -408,6 +408,11 @@ class SolverReport(_Model):
     iterations: int
     time_s: float
     objective: float
+    message: str | None = Field(
+        None,
+        description="How the solver got there, in words: its own status, a refinement, the "
+        "starts of a likelihood fit, or why a fallback estimate is carried.",
+    )
 
 
 class CovarianceFrame(_Model):

@@ -42,6 +42,7 @@ from solver.kinematics import (
     stacked_jacobian,
 )
 from solver.model import KinematicChain, gravity_loads, sample_configurations
+from solver.pivoting import pivoted_qr
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -543,15 +544,15 @@ def pivoted_columns(
     design: FloatArray, free: BoolArray, rank_tolerance: float
 ) -> tuple[NDArray[np.intp], int, float]:
     """The ``free`` columns of ``design`` (m, P) that survive column-pivoted QR of the
-    unit-norm-scaled columns (a pivot below ``rank_tolerance`` of the first is dependent):
+    unit-norm-scaled columns (:func:`~solver.pivoting.pivoted_qr`, ties by column order; a pivot
+    below ``rank_tolerance`` of the first is dependent):
     kept indices (sorted), rank, condition number of the kept scaled columns."""
     candidates = np.flatnonzero(free)
     a = design[:, candidates]
     norms = np.linalg.norm(a, axis=0)
     nonzero = norms > 1e-12 * max(norms.max(), 1e-300)
     candidates, a, norms = candidates[nonzero], a[:, nonzero], norms[nonzero]
-    _, upper, pivots = scipy.linalg.qr(a / norms, mode="economic", pivoting=True)
-    diagonal = np.abs(np.diag(upper))
+    diagonal, pivots = pivoted_qr(a / norms)
     rank = int(np.sum(diagonal > rank_tolerance * diagonal[0]))
     keep = np.sort(candidates[pivots[:rank]])
     singular = np.linalg.svd(

@@ -264,6 +264,7 @@ def covariance_result(estimate: CovarianceEstimate, joint_index: list[int]) -> C
             iterations=moment.iterations + (solution.iterations if solution is not moment else 0),
             time_s=solution.wall_time_s + extra_time,
             objective=solution.objective,
+            message=solution.message or None,
         ),
         noise=_covariance_frame(estimate.noise, None),
         frames=[

@@ -9,7 +9,7 @@ unidentifiable part fixed by the rule of :mod:`identifiability` → standard err
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -332,25 +332,37 @@ def estimate_from_samples(
         transform = fit_basis_transform(sub if large and sub is not None else samples)
     if estimator != "moment":
         assert sub is not None
-        solution = fit_likelihood(
-            estimator,
-            theta if start_theta is None else start_theta,
-            samples,
-            stats,
-            report.scaling,
-            every_kth(sub, METRIC_SAMPLES),
-            transform=transform,
-            restriction_samples=sub if large else None,
-            known_covariance=known,
-            max_iterations=max_likelihood_iterations,
-            one_step=large,
-            tolerance=likelihood_tolerance,
-        )
-        if not solution.converged:
-            notes.append(
-                f"{estimator} fit ended with status {solution.status!r}: {solution.message}"
+        try:
+            solution = fit_likelihood(
+                estimator,
+                theta if start_theta is None else start_theta,
+                samples,
+                stats,
+                report.scaling,
+                every_kth(sub, METRIC_SAMPLES),
+                transform=transform,
+                restriction_samples=sub if large else None,
+                known_covariance=known,
+                max_iterations=max_likelihood_iterations,
+                one_step=large,
+                tolerance=likelihood_tolerance,
+                null_basis=report.null_basis,
             )
-        theta = resolve_null_space(solution.theta, report, layout)
+        except CalibrationError as exc:  # Σ_E singular from every start
+            solution = replace(moment, status="error", objective=np.nan, message=str(exc))
+        if solution.status == "error" or not np.isfinite(solution.objective):
+            notes.append(
+                f"{estimator} fit failed ({solution.status}: {solution.message}); the moment "
+                "estimate (Eq. 14) is carried instead"
+            )
+            estimator, solution = "moment", moment
+            theta = resolve_null_space(moment.theta, report, layout)
+        else:
+            if not solution.converged:
+                notes.append(
+                    f"{estimator} fit ended with status {solution.status!r}: {solution.message}"
+                )
+            theta = resolve_null_space(solution.theta, report, layout)
     cov, unc = None, None
     if sub is not None and standard_errors:
         try:

@@ -291,6 +291,74 @@ def _reml_psi(
     return _psi_from_omega(chunk, omega, model.layout)
 
 
+def average_information(
+    theta: FloatArray,
+    samples: ArraySamples,
+    layout: CovarianceLayout,
+    *,
+    transform: FloatArray | None = None,
+    known_covariance: FloatArray | None = None,
+) -> FloatArray:
+    """Average information of the NLL (ML, or REML with ``transform``): ``H_pq = u_pᵀ P u_q``,
+    (Q, Q), with ``u_p = V_p P r`` (V_p = ∂V/∂θ_p, blockdiag over the samples; P = V⁻¹ for
+    ML, the REML projection of :func:`restricted_nll` otherwise), on ``samples`` (in memory:
+    at most :data:`~.fitting.METRIC_SAMPLES` of them).
+
+    It is the mean of the observed and the expected information of ``NLL = −2 log L`` at any
+    θ where ``E[rrᵀ] = V`` (the "AI" of Gilmour, Thompson & Cullis 1995, the metric of REML
+    software). Unlike the expected information it sees the data: Fisher scoring crawls towards
+    a variance whose optimum is on the boundary θ_p = 0 (its expected curvature grows as the
+    variance shrinks), the AI step reaches it (TIAGo's 21-pose REML: 200 steps, now ~20).
+
+    Computed as the Gram of ``Z⊥``, the whitened ``L⁻¹u`` with the whitened fit Jacobian
+    ``L⁻¹X`` projected out by an orthonormal basis (V = LLᵀ): PSD by construction, where
+    ``Σ uᵀV⁻¹u − (XᵀV⁻¹u)ᵀ(XᵀV⁻¹X)⁻¹(XᵀV⁻¹u)`` loses its small eigenvalues to cancellation
+    (−1e-6 of the largest on the TIAGo file). A tied layout is computed untied and folded.
+    """
+    if layout.is_tied:
+        tie = layout.tie_matrix
+        untied = average_information(
+            tie @ theta,
+            samples,
+            layout.untied(),
+            transform=transform,
+            known_covariance=known_covariance,
+        )
+        return tie.T @ untied @ tie
+    model = _EECovariance(layout, layout.column_covariances(theta), known_covariance, transform)
+    whole = SampleChunk(
+        samples.residuals, samples.frame_jacobians, samples.fit_jacobian, samples.sample_rows
+    )
+    chunk = model.chunk(whole)
+    cov = ee_covariance_batch(_frame_view(chunk.columns), model.covariances, model.known)
+    factors = spd_factors(0.5 * (cov + cov.transpose(0, 2, 1)))
+    if not np.all(factors.positive_definite):
+        raise CalibrationError("Σ_E(q) is not positive definite: no average information")
+    white_r = factors.whiten(chunk.residuals)  # L⁻¹r, (n, d)
+    n, d = white_r.shape
+    left = factors.inverse_factor.transpose(2, 0, 1)  # L⁻¹, (n, d, d)
+    basis = None
+    if chunk.basis is not None:
+        white_x = (left @ chunk.basis).reshape(n * d, -1)
+        basis = np.linalg.qr(white_x)[0]  # orthonormal, (n·d, k)
+        flat = white_r.reshape(-1)
+        white_r = (flat - basis @ (basis.T @ flat)).reshape(n, d)  # (I − QQᵀ) L⁻¹r
+    s = np.einsum("nji,nj->ni", left, white_r)  # P r, block n: L⁻ᵀ (projected L⁻¹r)
+    cols = chunk.columns
+    beta = np.einsum("ndc,nd->nc", cols, s)  # a_cᵀ s_n per column c
+    ci, cj = layout.column_i, layout.column_j
+    half = np.where(layout.is_variance, 0.5, 1.0)
+    # S_p s = half_p (a_i (a_jᵀ s) + a_j (a_iᵀ s)), as (n, d, Q)
+    u = half * (cols[:, :, ci] * beta[:, None, cj] + cols[:, :, cj] * beta[:, None, ci])
+    white_u = (left @ u).reshape(n * d, -1)
+    if basis is not None:
+        white_u = white_u - basis @ (basis.T @ white_u)
+    norms = np.linalg.norm(white_u, axis=0)
+    unit = np.where(norms > 0.0, norms, 1.0)
+    gram = gram_tn(white_u / unit)
+    return np.asarray(0.5 * (gram + gram.T) * np.outer(unit, unit), dtype=float)
+
+
 def whitening(
     theta: FloatArray,
     frame_jacobians: FloatArray,

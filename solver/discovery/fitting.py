@@ -44,6 +44,7 @@ from solver.measurement.models import ModelParameters as MeasuredParameters
 from solver.measurement.models import chain_column_count, seen_from_sensor
 from solver.measurement.pose import initial_parameters
 from solver.model import ComplianceAxis, KinematicChain
+from solver.pivoting import pivoted_qr
 from solver.simulate import depth_direction
 
 FloatArray = NDArray[np.float64]
@@ -451,8 +452,7 @@ def _kept_links(
     if terms_w.shape[1]:
         basis = orthonormal_basis(terms_w)
         a = a - basis @ (basis.T @ a)
-    _, r, pivots = scipy.linalg.qr(a, mode="economic", pivoting=True)
-    diagonal = np.abs(np.diag(r))
+    diagonal, pivots = pivoted_qr(a)
     rank = int(np.sum(diagonal > RANK_TOLERANCE * max(diagonal[0], 1e-300)))
     scatter = np.sqrt(float(residual_w @ residual_w) / max(residual_w.size, 1))
     pinned = diagonal[:rank] * norms[nonzero][pivots[:rank]] * NUISANCE_RANGE > scatter
