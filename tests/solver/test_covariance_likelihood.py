@@ -18,6 +18,7 @@ from solver.covariance import (
     theta_gradient,
 )
 from solver.covariance.layout import block_diagonal
+from solver.covariance.likelihood import average_information
 from solver.covariance.samples import ArraySamples
 from solver.errors import CalibrationError
 from tests.solver import covariance_support as S
@@ -132,6 +133,58 @@ def test_fisher_information_equals_half_the_trace_formula(structure, d, known):
     np.testing.assert_allclose(got_reml, reml, rtol=1e-9, atol=1e-12 * np.abs(reml).max())
 
 
+@pytest.mark.parametrize(("structure", "d", "known"), CASES)
+def test_average_information_equals_the_dense_formula(structure, d, known):
+    """``H_pq = rᵀ P V_p P V_q P r`` with P = V⁻¹ (ML) or the REML projection."""
+    layout, theta, jac, r, known_cov, fit = case(structure, d, known, seed=3, n=12)
+    v, dv = dense(layout, theta, jac, known_cov)
+    v_inv = np.linalg.inv(v)
+    x = fit.reshape(-1, fit.shape[2])
+    p = v_inv - v_inv @ x @ np.linalg.solve(x.T @ v_inv @ x, x.T @ v_inv)
+    rs = r.reshape(-1)
+    samples = ArraySamples(r, jac, fit)
+    transform = fit_basis_transform(samples)
+    for projection, fit_basis in ((v_inv, None), (p, transform)):
+        u = np.stack([a @ projection @ rs for a in dv], axis=1)  # V_p P r
+        expected = u.T @ projection @ u
+        got = average_information(
+            theta, samples, layout, transform=fit_basis, known_covariance=known_cov
+        )
+        np.testing.assert_allclose(got, expected, rtol=1e-8, atol=1e-12 * np.abs(expected).max())
+        assert np.linalg.eigvalsh(got).min() >= -1e-12 * np.linalg.eigvalsh(got).max()
+
+
+@pytest.mark.parametrize("estimator", ["ml", "reml"])
+def test_average_information_is_the_mean_of_observed_and_expected(estimator):
+    """AI = ½(H_obs + H_exp) for the NLL (= −2 log L): the observed Hessian from finite
+    differences of the analytic gradient, the expected one 2·(Fisher information)."""
+    layout, theta, jac, r, _, fit = case("diag", 6, False, seed=4, n=12)
+    samples = ArraySamples(r, jac, fit)
+    transform = fit_basis_transform(samples)
+    fit_basis = transform if estimator == "reml" else None
+
+    def gradient(t):
+        if estimator == "ml":
+            return theta_gradient(layout, gaussian_nll(t, samples, layout)[1])
+        return theta_gradient(layout, restricted_nll(t, samples, transform, layout)[1])
+
+    step = 1e-5 * np.abs(theta).max()
+    observed = np.stack(
+        [
+            (gradient(theta + step * e) - gradient(theta - step * e)) / (2 * step)
+            for e in np.eye(layout.n_params)
+        ]
+    )
+    observed = 0.5 * (observed + observed.T)
+    if estimator == "ml":
+        expected = 2 * fisher_information_ml(theta, jac, layout)
+    else:
+        expected = 2 * fisher_information_reml(theta, jac, fit @ transform, layout)
+    got = average_information(theta, samples, layout, transform=fit_basis)
+    mean = 0.5 * (observed + expected)
+    np.testing.assert_allclose(got, mean, rtol=1e-4, atol=1e-6 * np.abs(mean).max())
+
+
 def test_ee_covariance_batch_is_eq_12():
     rng = np.random.default_rng(3)
     jac = S.random_frame_jacobians(7, 3, rng)
@@ -187,3 +240,27 @@ def test_reml_without_the_fit_jacobian_is_refused():
     jac = S.random_frame_jacobians(20, 1, rng)
     with pytest.raises(CalibrationError, match="fit_jacobian"):
         estimate_covariances(rng.normal(size=(20, 6)), jac, ["a"], estimator="reml")
+
+
+def test_the_noise_floor_is_a_thousandth_of_each_axis_rms_residual():
+    """The likelihood fit bounds each noise variance below by (1e-3 · RMS residual on the rows
+    its axis reaches)²; chain frames are not bounded (fitting.noise_floor)."""
+    from solver.covariance.fitting import NOISE_FLOOR, noise_floor
+
+    rng = np.random.default_rng(5)
+    residuals = rng.normal(size=(400, 3)) * np.array([1e-3, 2e-3, 4e-3])
+    layout = make_layout(["f0", "f1"], 3)
+    floor = noise_floor(layout, residuals)
+    rms = np.sqrt(np.mean(residuals**2, axis=0))
+    noise = layout.is_noise & layout.is_variance
+    axes = layout.param_row[noise]  # the noise's rotation axes reach no row of a position
+    np.testing.assert_allclose(floor[noise][axes < 3], (NOISE_FLOOR * rms) ** 2)
+    assert np.all(floor[noise][axes >= 3] == 0.0)
+    assert np.all(floor[~layout.is_noise] == 0.0)
+    markers = make_layout(
+        ["f0"], 6, noise_rows={"noise": ((0, 1, 2, -1, -1, -1), (3, 4, 5, -1, -1, -1))}
+    )
+    pair = np.hstack([residuals, 3.0 * residuals])  # two markers: the second 3x the first
+    tied = noise_floor(markers, pair)
+    expected = NOISE_FLOOR**2 * 0.5 * (rms**2 + (3.0 * rms) ** 2)
+    np.testing.assert_allclose(tied[markers.is_noise & markers.is_variance][:3], expected)
