@@ -384,6 +384,11 @@ class OutlierReport(_Model):
     n_input: int
     n_used: int
     removed_rows: list[int] = Field(description="1-based data rows dropped as outliers.")
+    note: str | None = Field(
+        None,
+        description="Model rule: a step that judged no row, and why (e.g. its Σ_E step, when "
+        "the covariances rest on too few equations per entry to judge rows by).",
+    )
 
     def kept_indices(self) -> list[int]:
         """0-based indices of the samples the calibration used: all but ``removed_rows``."""

@@ -485,6 +485,9 @@ def assemble_result(
             n_input=fits.n_rows,
             n_used=fit.sums.errors.n,
             removed_rows=[int(i) + 1 for i in fits.removed_rows],
+            note=None
+            if fits.screening_skipped is None
+            else f"model rule, Σ_E step: skipped, {fits.screening_skipped}",
         ),
         solver=SolverReport(
             name="levenberg_marquardt",

@@ -67,6 +67,7 @@ from solver.stream.screening import (
     OutlierRule,
     RowRule,
     Rule,
+    covariance_too_uncertain,
     family_wise_t2,
     family_wise_z,
     model_rule_refusal,
@@ -119,6 +120,8 @@ class StreamedCalibration:
     covariance: CovarianceSums | None = None
     screening_refused: Literal["not_converged", "model_misfit"] | None = None
     screening_refused_rows: int = 0
+    screening_skipped: str | None = None
+    """Why the model rule's Σ_E step judged no row (None: it ran, or the rule is not "model")."""
 
 
 def calibrate_streamed_fits(
@@ -540,8 +543,17 @@ def screen_by_model(
     residuals are not truncated in any way that biases the covariance (the lost tail mass is
     below ``outlier_level / N`` of the distribution): no correction is needed, unlike after the
     2σ rule, which cuts ~4.6 % of every component.
+
+    Skipped, the reason in :attr:`StreamedCalibration.screening_skipped`, when Σ_E rests on too
+    few residual equations per identifiable covariance entry
+    (:func:`~solver.stream.screening.covariance_too_uncertain`), as for a measurement model.
     """
     d = problem.residual_dim
+    too_uncertain = covariance_too_uncertain(
+        run.fit.sums.errors.n * d, estimate.identifiability.rank
+    )
+    if too_uncertain is not None:
+        return replace(run, screening_skipped=too_uncertain), estimate
     frames = covariance.spec.frames
     required = identifiable_parameter_count(
         problem.chain, position_only=problem.position_only, options=options
