@@ -9,7 +9,7 @@ chain's columns and the model's own unknowns together.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +23,7 @@ from solver.calibration import (
     free_columns,
     implausible_columns,
     levenberg_marquardt,
+    lower_cost_restart,
     normal_equations,
     outlier_mask,
     parameter_standard_errors,
@@ -164,7 +165,9 @@ def fit_measurement(
         )
         fresh = without_columns(chain, params, np.asarray(pruned, dtype=np.intp))
         keep = np.setdiff1d(keep, negative)  # before evaluating: its columns are ``keep``'s
-        restart, at_restart = _lower_cost(restart, fresh, evaluate)
+        restart, at_restart = lower_cost_restart(
+            restart, fresh, lambda starts: [evaluate(start) for start in starts]
+        )
         run = levenberg_marquardt(chain, restart, keep, at_restart, evaluate, options, apply)
         iterations, costs = iterations + run.iterations, costs + run.cost_history
     final = run.params
@@ -274,22 +277,6 @@ class HeldoutError:
     rotation_deg: float
     component_rms: tuple[float, ...]
     """RMS of each residual component over the test rows (d,), m and rad."""
-
-
-def _lower_cost(
-    restart: ChainParameters,
-    fresh: ChainParameters,
-    evaluate: Callable[[ChainParameters], tuple[NormalEquations, FloatArray]],
-) -> tuple[ChainParameters, tuple[NormalEquations, FloatArray]]:
-    """Where a fit restarts once implausible columns are fixed, with its normal equations
-    there: at its last iterate with them reset (``restart``), or at its start with every
-    column fixed so far reset (``fresh``), whichever has the lower cost. A fit whose link
-    columns are implausible has moved along a flat valley of the cost, its other parameters
-    with those; resetting only those can land far up the valley's side (on a two-socket
-    recording 400× the cost, and the refit then stays in a minimum 90× above the optimum),
-    while the start never followed the drift."""
-    at_fresh, at_restart = evaluate(fresh), evaluate(restart)
-    return (fresh, at_fresh) if at_fresh[0].cost < at_restart[0].cost else (restart, at_restart)
 
 
 def heldout_errors(

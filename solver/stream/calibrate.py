@@ -17,6 +17,7 @@ from solver.calibration import (
     check_sample_count,
     identifiable_parameter_count,
     implausible_columns,
+    lower_cost_restart,
     without_columns,
 )
 from solver.covariance.estimate import (
@@ -57,6 +58,7 @@ from solver.stream.fit import (
     PassCount,
     RowSample,
     StreamedFit,
+    evaluate_starts,
     fit_streamed_together,
     gather_rows,
     read_head,
@@ -308,32 +310,47 @@ def non_negative_fit(
 ) -> StreamedFit:
     """``fit`` with every parameter the data do not place in a physical range fixed
     (:func:`solver.calibration.implausible_columns`: a compliance negative or unidentified at
-    0, an inner link's twist component unidentified at its nominal value) and the fit repeated
-    from there, as :func:`solver.measurement.pose.fit_deterministic` does in memory; the fixed ones
-    are listed in ``pruned``."""
+    0, an inner link's twist component unidentified at its nominal value) and the fit repeated,
+    as :func:`solver.measurement.pose.fit_deterministic` does in memory: from the last iterate
+    with those reset or from ``request.start`` with every parameter fixed so far reset,
+    whichever has the lower cost (:func:`~solver.calibration.lower_cost_restart`; both
+    evaluated in one pass, which is the repeated fit's first). The fixed ones are listed in
+    ``pruned``."""
     if not request.options.non_negative_compliance:
         return fit
-    names = parameter_names(problem.chain)
+    chain = problem.chain
+    names = parameter_names(chain)
     keep = np.array([names.index(n) for n in fit.estimated], dtype=np.intp)
     pruned: list[str] = list(fit.pruned)
     before = fit  # the iterations, costs, passes and time of every fit so far are reported
     while (negative := _implausible(problem, fit)).size:
         pruned += [names[c] for c in negative]
-        only_compliance = bool(np.all(negative >= 6 * problem.chain.n_links))
-        close = fit.converged and only_compliance
-        start = without_columns(
-            problem.chain,
+        only_compliance = bool(np.all(negative >= 6 * chain.n_links))
+        at_last = without_columns(
+            chain,
             fit.params,
             negative,
             at_optimum=(keep, fit.sums.normal) if fit.converged else None,
         )
+        fixed = np.array([names.index(n) for n in pruned], dtype=np.intp)
         keep = np.setdiff1d(keep, negative)
-        (fit,) = fit_streamed_together(
-            problem,
-            executor,
-            [replace(request, start=start, keep=keep, start_is_close=close)],
-            count,
+        restart = replace(
+            request, start=at_last, keep=keep, start_is_close=fit.converged and only_compliance
         )
+        fresh = replace(
+            request,
+            start=without_columns(chain, request.start, fixed),
+            keep=keep,
+            start_is_close=False,
+        )
+        chosen, (_, first) = lower_cost_restart(
+            restart,
+            fresh,
+            lambda starts: [
+                (sums.normal, sums) for sums in evaluate_starts(problem, executor, starts, count)
+            ],
+        )
+        (fit,) = fit_streamed_together(problem, executor, [replace(chosen, first=first)], count)
         fit = replace(
             fit,
             iterations=before.iterations + fit.iterations,

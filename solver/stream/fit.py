@@ -335,6 +335,9 @@ class FitRequest:
     pruned: tuple[str, ...] = ()
     """Parameters outside ``keep`` fixed by the physical-range rule (:func:`warm_start`):
     listed as pruned, not as unidentifiable."""
+    first: FitSums | None = None
+    """The sums at ``start`` from a pass that evaluated it as this fit's first pass would
+    (:func:`evaluate_starts`): the fit takes its first step from them, without a pass."""
 
 
 @dataclass
@@ -342,6 +345,35 @@ class PassCount:
     """Passes over the data so far (a pass may serve several fits)."""
 
     passes: int = 0
+
+
+def _evaluation(request: FitRequest, point: ChainParameters, passes: int) -> _Evaluation:
+    """What the pass after ``passes`` passes of ``request``'s fit evaluates at ``point``: the
+    first lists the rows its rule drops, the later ones (or, with ``start_is_close``, every
+    one) take the covariance statistics along."""
+    return _Evaluation(
+        point,
+        request.keep,
+        request.options.rotation_weight_m_per_rad,
+        request.rule,
+        collect_removed=request.rule is not None and passes == 0,
+        keep_residuals=request.keep_residuals,
+        covariance=request.covariance if passes > 0 or request.start_is_close else None,
+    )
+
+
+def evaluate_starts(
+    problem: StreamProblem,
+    executor: Executor,
+    requests: Sequence[FitRequest],
+    count: PassCount | None = None,
+) -> list[FitSums]:
+    """One pass: the sums at each request's start, as the first pass of its fit takes them
+    (give them back as :attr:`FitRequest.first`), e.g. to choose between starts by their cost."""
+    sums = _run_pass(problem, executor, [_evaluation(r, r.start, 0) for r in requests])
+    if count is not None:
+        count.passes += 1
+    return sums
 
 
 def fit_streamed_together(
@@ -364,35 +396,30 @@ def fit_streamed_together(
     runs: list[LeastSquaresRun[FitSums] | None] = [None] * len(requests)
     first_sums: list[FitSums | None] = [None] * len(requests)
     passes = [0] * len(requests)
+
+    def take(i: int, sums: FitSums) -> None:
+        passes[i] += 1
+        if first_sums[i] is None:
+            first_sums[i] = sums
+        try:
+            pending[i] = iterations[i].send((sums.normal, sums))
+        except StopIteration as done:
+            runs[i], pending[i] = done.value, None
+
+    for i, request in enumerate(requests):
+        if request.first is not None:  # its pass was counted where it ran
+            take(i, request.first)
     while any(p is not None for p in pending):
         active = [i for i, p in enumerate(pending) if p is not None]
         evaluations = []
         for i in active:
-            request, point = requests[i], pending[i]
+            point = pending[i]
             assert point is not None
-            evaluations.append(
-                _Evaluation(
-                    point,
-                    request.keep,
-                    request.options.rotation_weight_m_per_rad,
-                    request.rule,
-                    collect_removed=request.rule is not None and passes[i] == 0,
-                    keep_residuals=request.keep_residuals,
-                    covariance=(
-                        request.covariance if passes[i] > 0 or request.start_is_close else None
-                    ),
-                )
-            )
+            evaluations.append(_evaluation(requests[i], point, passes[i]))
         results = _run_pass(problem, executor, evaluations)
         count.passes += 1
         for i, sums in zip(active, results, strict=True):
-            passes[i] += 1
-            if first_sums[i] is None:
-                first_sums[i] = sums
-            try:
-                pending[i] = iterations[i].send((sums.normal, sums))
-            except StopIteration as done:
-                runs[i], pending[i] = done.value, None
+            take(i, sums)
     names = parameter_names(chain)
     fits = []
     for request, run, first, n_passes in zip(requests, runs, first_sums, passes, strict=True):

@@ -4,7 +4,7 @@ Two sockets constrain the chain weakly: a fit of the training rows of one split 
 default ten) ran out of iterations along a flat valley of the cost, its implausible link
 columns were reset at that last iterate, and the refit settled 90x above the optimum — a
 0.63 mm split against a 0.08 mm noise floor. A restart now also considers the fit's start
-(``solver.measurement.fit._lower_cost``)."""
+(``solver.calibration.lower_cost_restart``)."""
 
 from __future__ import annotations
 
