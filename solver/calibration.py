@@ -541,7 +541,10 @@ def identifiable_columns(
     (sorted), the rank and the condition number of the kept, scaled columns.
     """
     free = free_columns(chain, options, jacobian.shape[2])
-    return pivoted_columns(jacobian.reshape(-1, jacobian.shape[2]), free, options.rank_tolerance)
+    first = frame_columns(chain, jacobian.shape[2])
+    return pivoted_columns(
+        jacobian.reshape(-1, jacobian.shape[2]), free, options.rank_tolerance, first
+    )
 
 
 def free_columns(chain: KinematicChain, options: FitOptions, n_columns: int) -> BoolArray:
@@ -562,24 +565,61 @@ def free_columns(chain: KinematicChain, options: FitOptions, n_columns: int) -> 
 
 
 def pivoted_columns(
-    design: FloatArray, free: BoolArray, rank_tolerance: float
+    design: FloatArray,
+    free: BoolArray,
+    rank_tolerance: float,
+    first: BoolArray | None = None,
 ) -> tuple[NDArray[np.intp], int, float]:
     """The ``free`` columns of ``design`` (m, P) that survive column-pivoted QR of the
     unit-norm-scaled columns (:func:`~solver.pivoting.pivoted_qr`, ties by column order; a pivot
     below ``rank_tolerance`` of the first is dependent):
-    kept indices (sorted), rank, condition number of the kept scaled columns."""
+    kept indices (sorted), rank, condition number of the kept scaled columns.
+
+    ``first`` (P,): columns pivoted before the others (:func:`frame_columns`), the others then
+    orthogonal to the ones kept: a direction both can produce is carried by a ``first`` column.
+    The kept columns span the same space either way; which of them carry it matters to the
+    physical-range rule (:func:`implausible_columns`), which fixes inner-link columns but never
+    the frames: an inner column that carried a frame's direction was fixed with it (a TIAGo
+    wrist rotation standing for the marker offset: the refit then settled 15× above the
+    cost of the fit without it)."""
     candidates = np.flatnonzero(free)
     a = design[:, candidates]
     norms = np.linalg.norm(a, axis=0)
     nonzero = norms > 1e-12 * max(norms.max(), 1e-300)
     candidates, a, norms = candidates[nonzero], a[:, nonzero], norms[nonzero]
-    diagonal, pivots = pivoted_qr(a / norms)
-    rank = int(np.sum(diagonal > rank_tolerance * diagonal[0]))
-    keep = np.sort(candidates[pivots[:rank]])
-    singular = np.linalg.svd(
-        a[:, np.isin(candidates, keep)] / norms[np.isin(candidates, keep)], compute_uv=False
-    )
-    return keep, rank, float(singular[0] / singular[-1])
+    unit = a / norms
+    tiers = [np.ones(candidates.size, dtype=bool)]
+    if first is not None and np.any(first[candidates]) and not np.all(first[candidates]):
+        tiers = [first[candidates], ~first[candidates]]
+    taken = np.zeros(0, dtype=np.intp)  # positions in ``candidates``, in pivot order
+    basis = np.zeros((unit.shape[0], 0))  # orthonormal basis of the taken columns
+    largest = None  # the first pivot, which the others are compared with
+    for tier in tiers:
+        members = np.flatnonzero(tier)
+        left = unit[:, members]
+        for _ in range(2):  # orthogonal to the columns taken (twice: Kahan–Parlett)
+            left = left - basis @ (basis.T @ left)
+        diagonal, pivots = pivoted_qr(left)
+        largest = diagonal[0] if largest is None else largest
+        rank = int(np.sum(diagonal > rank_tolerance * largest))
+        taken = np.concatenate([taken, members[pivots[:rank]]])
+        basis = np.linalg.qr(unit[:, taken])[0] if taken.size else basis
+    keep = np.sort(candidates[taken])
+    kept = np.isin(candidates, keep)
+    singular = np.linalg.svd(unit[:, kept], compute_uv=False)
+    return keep, int(taken.size), float(singular[0] / singular[-1])
+
+
+def frame_columns(chain: KinematicChain, n_columns: int) -> BoolArray:
+    """The columns a fit may move anywhere (n_columns,): the measurement frame ``L_1``, the
+    tool ``L_{k+1}`` and a measurement model's own unknowns (after the chain's) — those the
+    physical-range rule exempts (:func:`implausible_columns`); for ``first`` of
+    :func:`pivoted_columns`."""
+    frames = np.zeros(n_columns, dtype=bool)
+    frames[:6] = True
+    frames[6 * (chain.n_links - 1) : 6 * chain.n_links] = True
+    frames[6 * chain.n_links + len(chain.compliance_axes) :] = True
+    return frames
 
 
 # --- outlier rule (§V-A) ---------------------------------------------------------------------

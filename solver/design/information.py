@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 
 from solver.calibration import (
     FitOptions,
+    frame_columns,
     free_columns,
     identifiable_columns,
     pivoted_columns,
@@ -371,7 +372,9 @@ def model_information(
     free = free_columns(chain, options, jacobian.shape[2])
     n_chain = chain_column_count(chain)
     free[:n_chain] &= model.visible_columns(chain)
-    keep = pivoted_columns(np.concatenate([fit_rows, extra_a]), free, options.rank_tolerance)[0]
+    first = frame_columns(chain, jacobian.shape[2])
+    design = np.concatenate([fit_rows, extra_a])
+    keep = pivoted_columns(design, free, options.rank_tolerance, first)[0]
     whitened = jacobian[:, :, keep] / noise_std[None, :, None]
     scale = column_scale(whitened)
     factors = whitened / scale

@@ -20,6 +20,7 @@ from solver.calibration import (
     DeterministicFit,
     FitOptions,
     NormalEquations,
+    frame_columns,
     free_columns,
     implausible_columns,
     levenberg_marquardt,
@@ -118,7 +119,8 @@ def fit_measurement(
     design, target, jacobian = _stacked(chain, model, params, rows, weights)
     free = free_columns(chain, options, len(names))
     free[: chain_column_count(chain)] &= model.visible_columns(chain)
-    keep, rank, condition = pivoted_columns(design, free, options.rank_tolerance)
+    frames = frame_columns(chain, len(names))
+    keep, rank, condition = pivoted_columns(design, free, options.rank_tolerance, frames)
     if columns is not None:
         keep, rank = np.sort(np.asarray(columns, dtype=np.intp)), len(columns)
     if target.size <= keep.size:

@@ -19,18 +19,18 @@ from tests.conftest import chain
 
 
 def test_a_drifted_streamed_fit_restarts_where_the_in_memory_fit_does(monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    """60 Jaco2 positions with the last two joints moving by 0.3 % of their range: the wrist
+    """60 Jaco2 positions with the last two joints moving by 1 % of their range: the wrist
     links' frames are barely seen, the fit from the closed-form start drifts along the flat
     valley to the iteration limit, and their columns come out implausible. Resetting them at
     the last iterate lands up the valley's side (the streamed fit used to restart there and
-    settle 9 % above the in-memory fit); both paths now restart from the start with those
+    settle 2.6 % above the in-memory fit); both paths now restart from the start with those
     columns reset when that is lower, and end at the same point."""
     c = chain("kinova")
     joint_range = np.ones(c.n_joints)
-    joint_range[-2:] = 0.003
+    joint_range[-2:] = 0.01
     spec = SimulationSpec(
         n_samples=60,
-        seed=3,
+        seed=4,
         joint_range_fraction=joint_range,
         compliance_rad_per_nm={c.compliance_axes[1].name: 5e-4},
         measurement_frame=look_at(np.array([0.8, -0.5, 0.45]), np.array([0.0, 0.0, 0.3])),
