@@ -23,7 +23,8 @@ What runs per split is FIGAROH's own pipeline: ``BaseCalibration`` from a unifie
 between fits, so FIGAROH sees exactly the rows kincal does. The fit time is ``initialize`` +
 ``solve``. The held-out error is FIGAROH's own validation residual
 (``_compute_validation_metrics``: calibrated forward kinematics against the test rows), as the
-mean over test rows of the position error norm, in mm: kincal's held-out statistic.
+mean over test rows of the position error norm, in mm: kincal's held-out statistic. The answer
+also names the parameters FIGAROH fitted (``names``, its ``param_name``).
 """
 
 from __future__ import annotations
@@ -112,6 +113,7 @@ def main(request_path: str, answer_path: str) -> None:
                 "translation_mm": heldout_mean_mm(metrics),
                 "fit_s": fit_s,
                 "parameters": len(calibration.calib_config["param_name"]),
+                "names": list(calibration.calib_config["param_name"]),
                 "status": calibration.STATUS,
             }
         )

@@ -13,6 +13,12 @@ flags: geometry and joint compliance) and, on the same splits, those of the mode
 ``initialize`` + ``solve`` per split; kincal's deterministic fit of the same training rows
 (geometry and compliance, no covariance, no held-out), and its whole default run.
 
+A last column checks where the two differ (docs/figaroh.md): kincal's fit restricted to the
+parameters FIGAROH fitted on each split (:func:`figaroh_columns`), from kincal's closed-form
+start, without kincal's physical-range rule (FIGAROH has none). Same rows, same parameters:
+it reproduces FIGAROH's held-out errors, so the solvers, frames and residuals agree and the
+gap of the "FIGAROH's model" column is which parameters each fits.
+
 Usage (from the repository root): ``python -m benchmarks.figaroh_side_by_side
 --figaroh-python …/figaroh-venv/bin/python [--seeds 10] [--only TALOS]``.
 """
@@ -26,6 +32,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -34,7 +41,12 @@ from benchmarks.design import figaroh_urdf
 from schemas.calibration import CalibrationOptions
 from schemas.robots import RobotDescription, example_robot_data_dir, load_robot
 from service.app import calibrate as pipeline
+from solver import lie
+from solver.calibration import FitOptions
 from solver.evaluation import split_indices
+from solver.kinematics import forward_kinematics, parameter_names
+from solver.measurement.pose import fit_deterministic
+from solver.model import KinematicChain, gravity_loads
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO / "data" / "real"
@@ -105,6 +117,7 @@ class SideBySide:
     kincal_run_s: float
     figaroh_fit_s: list[float]
     figaroh_parameters: int
+    same_parameters_mm: list[float] | None = None
 
 
 def kincal_fit_seconds(recording: Recording, rows: np.ndarray) -> float:
@@ -147,6 +160,78 @@ def same_model_heldout(recording: Recording, kept: np.ndarray, seeds: list[int])
         s.seed: s.translation_mm for s in result.evaluation.splits if s.method == "calibrated"
     }
     return [by_seed[seed] for seed in seeds]
+
+
+FIGAROH_COMPONENTS = {"px": "tx", "py": "ty", "pz": "tz", "phix": "rx", "phiy": "ry", "phiz": "rz"}
+"""FIGAROH's names of a placement error's components (``d_px`` … ``d_phiz``, ``base_*``,
+``pEE*``/``phiEE*``) and kincal's: both a correction right-multiplied on the placement, in
+its own frame (translation m, rotation rad)."""
+
+
+def figaroh_columns(chain: KinematicChain, names: list[str]) -> tuple[int, ...]:
+    """kincal's columns (:func:`solver.kinematics.parameter_names`) of FIGAROH's ``full_params``
+    parameters: ``d_<c>_<joint>`` is the joint's placement ``L_i``; ``base_<c>`` the unknown
+    base frame, which kincal carries in ``L_1``; ``pEE<x>_1``/``phiEE<x>_1`` the marker in the
+    tip frame, kincal's ``L_{k+1}``."""
+    kincal = parameter_names(chain)
+    first, tip = kincal[0].split(".")[0], kincal[6 * (chain.n_links - 1)].split(".")[0]
+    columns = []
+    for name in names:
+        if name.startswith("base_"):
+            link, component = first, FIGAROH_COMPONENTS[name.removeprefix("base_")]
+        elif name.startswith(("pEE", "phiEE")):  # pEEx_1 → px, phiEEz_1 → phiz
+            link, component = tip, FIGAROH_COMPONENTS[name.split("_")[0].replace("EE", "")]
+        else:
+            _, code, joint = name.split("_", 2)
+            link, component = joint, FIGAROH_COMPONENTS[code]
+        columns.append(kincal.index(f"{link}.{component}"))
+    return tuple(sorted(columns))
+
+
+FIGAROH_ROTATION_WEIGHT_M_PER_RAD = 0.1
+"""FIGAROH's default cost divides position residuals by 1 mm and rotation residuals by 0.01 rad
+(``apply_measurement_weighting``): 1 rad counts like 0.1 m (kincal's default: 1 m)."""
+
+
+def same_parameters_heldout(
+    recording: Recording,
+    splits: list[dict[str, Any]],
+    answers: list[dict[str, Any]],
+) -> list[float]:
+    """Per split, kincal's held-out error (mm) with exactly the parameters FIGAROH fitted on it
+    (:func:`figaroh_columns`), its weighting of rotation rows, no compliance and no
+    physical-range rule: kincal's Levenberg–Marquardt from its closed-form start on the split's
+    training rows."""
+    from schemas.dataset import read_dataset
+
+    chain = pipeline.check_calibration(robot_of(recording), CalibrationOptions()).chain
+    dataset = read_dataset(
+        DATA / recording.csv, chain.joint_names, other_joint_names=chain.other_joint_names
+    )
+    q = dataset.joint_positions
+    pose = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
+    loads = gravity_loads(chain, q)
+    errors = []
+    for split, answer in zip(splits, answers, strict=True):
+        train, test = np.array(split["train"]), np.array(split["test"])
+        options = FitOptions(
+            rotation_weight_m_per_rad=FIGAROH_ROTATION_WEIGHT_M_PER_RAD,
+            free_columns=figaroh_columns(chain, answer["names"]),
+            non_negative_compliance=False,
+        )
+        fit = fit_deterministic(
+            chain,
+            q[train],
+            pose[train],
+            loads[train],
+            position_only=dataset.is_position_only,
+            options=options,
+        )
+        predicted = forward_kinematics(chain, fit.params, q[test], loads[test])
+        errors.append(
+            float(1e3 * np.linalg.norm(predicted[:, :3, 3] - pose[test, :3, 3], axis=1).mean())
+        )
+    return errors
 
 
 def compare(recording: Recording, seeds: int, figaroh_python: str) -> SideBySide:
@@ -197,6 +282,7 @@ def compare(recording: Recording, seeds: int, figaroh_python: str) -> SideBySide
         kincal_run_s,
         [a["fit_s"] for a in answer],
         int(answer[0]["parameters"]),
+        same_parameters_heldout(recording, splits, answer),
     )
 
 
@@ -217,6 +303,7 @@ def table(rows: list[SideBySide]) -> str:
         "FIGAROH fit s",
         "Speed-up",
         "kincal default run s",
+        "kincal, FIGAROH's parameters",
     ]
     lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for row in rows:
@@ -224,13 +311,16 @@ def table(rows: list[SideBySide]) -> str:
         s_mean, s_se = mean_se(row.same_model_mm)
         f_mean, f_se = mean_se(row.figaroh_mm)
         f_fit = float(np.median(row.figaroh_fit_s))
+        same = "–"
+        if row.same_parameters_mm is not None:
+            same = "{:.2f} ± {:.2f}".format(*mean_se(row.same_parameters_mm))
         holds = "yes" if k_mean <= f_mean + f_se else "no"
         holds += " / " + ("yes" if s_mean <= f_mean + f_se else "no")
         lines.append(
             f"| {row.name} | {row.n_rows} ({row.n_used}) | {k_mean:.2f} ± {k_se:.2f} "
             f"| {s_mean:.2f} ± {s_se:.2f} | {f_mean:.2f} ± {f_se:.2f} | {holds} "
             f"| {row.kincal_fit_s:.3f} | {f_fit:.2f} | {f_fit / row.kincal_fit_s:.0f}× "
-            f"| {row.kincal_run_s:.1f} |"
+            f"| {row.kincal_run_s:.1f} | {same} |"
         )
     return "\n".join(lines)
 
@@ -245,7 +335,9 @@ def main(figaroh_python: str, seeds: int = 10, only: list[str] | None = None) ->
             f"{row.name}: kincal {np.round(row.kincal_mm, 2).tolist()}\n"
             f"  kincal --fix compliance {np.round(row.same_model_mm, 2).tolist()}\n"
             f"  FIGAROH {np.round(row.figaroh_mm, 2).tolist()} "
-            f"({row.figaroh_parameters} parameters)",
+            f"({row.figaroh_parameters} parameters)\n"
+            f"  kincal, FIGAROH's parameters "
+            f"{np.round(row.same_parameters_mm or [], 2).tolist()}",
             flush=True,
         )
         rows.append(row)
