@@ -42,7 +42,7 @@ from solver.kinematics import (
     stacked_jacobian,
 )
 from solver.model import KinematicChain, gravity_loads, sample_configurations
-from solver.pivoting import pivoted_qr
+from solver.pivoting import tiered_pivoted_qr
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -571,8 +571,8 @@ def pivoted_columns(
     first: BoolArray | None = None,
 ) -> tuple[NDArray[np.intp], int, float]:
     """The ``free`` columns of ``design`` (m, P) that survive column-pivoted QR of the
-    unit-norm-scaled columns (:func:`~solver.pivoting.pivoted_qr`, ties by column order; a pivot
-    below ``rank_tolerance`` of the first is dependent):
+    unit-norm-scaled columns (:func:`~solver.pivoting.tiered_pivoted_qr`, ties by column
+    order; a pivot below ``rank_tolerance`` of the first is dependent):
     kept indices (sorted), rank, condition number of the kept scaled columns.
 
     ``first`` (P,): columns pivoted before the others (:func:`frame_columns`), the others then
@@ -588,37 +588,29 @@ def pivoted_columns(
     nonzero = norms > 1e-12 * max(norms.max(), 1e-300)
     candidates, a, norms = candidates[nonzero], a[:, nonzero], norms[nonzero]
     unit = a / norms
-    tiers = [np.ones(candidates.size, dtype=bool)]
-    if first is not None and np.any(first[candidates]) and not np.all(first[candidates]):
-        tiers = [first[candidates], ~first[candidates]]
-    taken = np.zeros(0, dtype=np.intp)  # positions in ``candidates``, in pivot order
-    basis = np.zeros((unit.shape[0], 0))  # orthonormal basis of the taken columns
-    largest = None  # the first pivot, which the others are compared with
-    for tier in tiers:
-        members = np.flatnonzero(tier)
-        left = unit[:, members]
-        for _ in range(2):  # orthogonal to the columns taken (twice: Kahan–Parlett)
-            left = left - basis @ (basis.T @ left)
-        diagonal, pivots = pivoted_qr(left)
-        largest = diagonal[0] if largest is None else largest
-        rank = int(np.sum(diagonal > rank_tolerance * largest))
-        taken = np.concatenate([taken, members[pivots[:rank]]])
-        basis = np.linalg.qr(unit[:, taken])[0] if taken.size else basis
+    subset = None if first is None else first[candidates]
+    diagonal, pivots = tiered_pivoted_qr(unit, subset, rank_tolerance)
+    taken = pivots[: int(np.sum(diagonal > rank_tolerance * diagonal[0]))]
     keep = np.sort(candidates[taken])
     kept = np.isin(candidates, keep)
     singular = np.linalg.svd(unit[:, kept], compute_uv=False)
     return keep, int(taken.size), float(singular[0] / singular[-1])
 
 
-def frame_columns(chain: KinematicChain, n_columns: int) -> BoolArray:
+def frame_columns(
+    chain: KinematicChain, n_columns: int, n_compliance: int | None = None
+) -> BoolArray:
     """The columns a fit may move anywhere (n_columns,): the measurement frame ``L_1``, the
-    tool ``L_{k+1}`` and a measurement model's own unknowns (after the chain's) — those the
+    tool ``L_{k+1}`` and a measurement model's own unknowns (after the chain's 6 per link and
+    ``n_compliance`` compliance columns, default one per compliance axis) — those the
     physical-range rule exempts (:func:`implausible_columns`); for ``first`` of
     :func:`pivoted_columns`."""
+    if n_compliance is None:
+        n_compliance = len(chain.compliance_axes)
     frames = np.zeros(n_columns, dtype=bool)
     frames[:6] = True
     frames[6 * (chain.n_links - 1) : 6 * chain.n_links] = True
-    frames[6 * chain.n_links + len(chain.compliance_axes) :] = True
+    frames[6 * chain.n_links + n_compliance :] = True
     return frames
 
 

@@ -55,3 +55,39 @@ def pivoted_qr(design: FloatArray, *, tie_rtol: float = TIE_RTOL) -> tuple[Float
                 left -= np.outer(unit, unit @ left)
         left[:, chosen] = 0.0
     return diagonal, pivots
+
+
+def tiered_pivoted_qr(
+    design: FloatArray, first: NDArray[np.bool_] | None, rank_rtol: float
+) -> tuple[FloatArray, IntArray]:
+    """:func:`pivoted_qr` of ``design`` (m, P) with the ``first`` columns (P,) pivoted before
+    the others, which are then taken orthogonal to the independent ``first`` columns: a
+    direction both can carry is carried by a ``first`` column. |R_jj| (P,) and pivots (P,):
+    the independent pivots of each tier (|R_jj| above ``rank_rtol`` of the first pivot's), then
+    every dependent one. The same as :func:`pivoted_qr` when ``first`` is None, empty or every
+    column."""
+    if first is None or not np.any(first) or np.all(first):
+        return pivoted_qr(design)
+    first = np.asarray(first, dtype=bool)
+    independent: list[IntArray] = []
+    dependent: list[IntArray] = []
+    diagonals: tuple[list[FloatArray], list[FloatArray]] = ([], [])
+    basis = np.zeros((design.shape[0], 0))
+    largest: float | None = None
+    for members in (np.flatnonzero(first), np.flatnonzero(~first)):
+        left = design[:, members]
+        for _ in range(2):  # orthogonal to the columns taken (twice: Kahan–Parlett)
+            left = left - basis @ (basis.T @ left)
+        diagonal, pivots = pivoted_qr(left)
+        largest = float(diagonal[0]) if largest is None else largest
+        rank = int(np.sum(diagonal > rank_rtol * largest))
+        independent.append(members[pivots[:rank]])
+        dependent.append(members[pivots[rank:]])
+        diagonals[0].append(diagonal[:rank])
+        diagonals[1].append(diagonal[rank:])
+        taken = np.concatenate(independent)
+        basis = np.linalg.qr(design[:, taken])[0] if taken.size else basis
+    return (
+        np.concatenate(diagonals[0] + diagonals[1]),
+        np.concatenate(independent + dependent),
+    )

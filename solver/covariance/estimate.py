@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.covariance.fitting import METRIC_SAMPLES, fit_likelihood
+from solver.covariance.fitting import METRIC_SAMPLES, fit_likelihood, noise_floor
 from solver.covariance.identifiability import (
     RANK_RTOL,
     WEAK_RTOL,
@@ -362,7 +362,7 @@ def estimate_from_samples(
                 notes.append(
                     f"{estimator} fit ended with status {solution.status!r}: {solution.message}"
                 )
-            theta = resolve_null_space(solution.theta, report, layout)
+            theta = resolve_null_space(solution.theta, report, layout, noise_floor(stats))
     cov, unc = None, None
     if sub is not None and standard_errors:
         try:

@@ -112,7 +112,7 @@ def fit_likelihood(
         )
         return value + extra, psi + extra_psi
 
-    floor = noise_floor(layout, metric.residuals)
+    floor = noise_floor(stats)
 
     def scoring(start: FloatArray) -> CovarianceSolution:
         theta, (value, psi) = _positive_start(start + floor, nll, layout, scaling)
@@ -239,9 +239,13 @@ NOISE_FLOOR = 1e-3
 residual on its axis (:func:`noise_floor`)."""
 
 
-def noise_floor(layout: CovarianceLayout, residuals: FloatArray) -> FloatArray:
+def noise_floor(stats: MomentStatistics) -> FloatArray:
     """Lower bounds (Q,) of θ: ``(NOISE_FLOOR · RMS residual)²`` on every noise variance (the
-    RMS over ``residuals`` (N, d) of the residual rows that noise axis reaches), 0 elsewhere.
+    RMS over all N samples of the residual rows that noise axis reaches), 0 elsewhere.
+
+    The mean square comes from the moment statistics (Eq. 14): a noise variance enters Σ_E as
+    ``Σ_rows e_r e_rᵀ``, so its entry of h is ``Σ_n Σ_rows r_{n,r}²``. The floor is therefore the
+    same whether the samples were read whole or streamed in chunks.
 
     A sensor's noise is not zero, and the likelihood of a small recording with many covariance
     entries has no minimum without a bound: when the chain frames can explain a residual
@@ -250,16 +254,17 @@ def noise_floor(layout: CovarianceLayout, residuals: FloatArray) -> FloatArray:
     slope along it 1e4× what its gradient predicts). With the bound every Σ_E ⪰ the floor, and
     the NLL is bounded below. A noise σ at the floor means the data put it below 0.1 % of the
     residuals."""
+    layout = stats.layout
     out = np.zeros(layout.n_params)
-    if layout.noise_frame is None or residuals.size == 0:
+    if layout.noise_frame is None or stats.n_samples == 0:
         return out
-    mean_square = np.mean(np.asarray(residuals, dtype=float) ** 2, axis=0)  # (d,)
     for p in np.flatnonzero(layout.is_noise & layout.is_variance):
         frame = layout.param_frame[p] - layout.n_chain_frames
         axis = layout.param_row[p]
-        rows = [placement[axis] for placement in layout.placements[frame] if placement[axis] >= 0]
-        if rows:
-            out[p] = NOISE_FLOOR**2 * float(np.mean(mean_square[rows]))
+        n_rows = sum(1 for placement in layout.placements[frame] if placement[axis] >= 0)
+        if n_rows:
+            mean_square = max(float(stats.cross[p]), 0.0) / (stats.n_samples * n_rows)
+            out[p] = NOISE_FLOOR**2 * mean_square
     return out
 
 

@@ -527,13 +527,20 @@ def _constant_jacobian_warnings(frame_jacobians: FloatArray, layout: CovarianceL
 
 
 def resolve_null_space(
-    theta: FloatArray, report: IdentifiabilityReport, layout: CovarianceLayout
+    theta: FloatArray,
+    report: IdentifiabilityReport,
+    layout: CovarianceLayout,
+    floor: FloatArray | None = None,
 ) -> FloatArray:
-    """Apply the rule: min ‖m∘(θ̂ + N y)‖ (Frobenius, equilibrated) s.t. every Σ_f ⪰ 0.
+    """Apply the rule: min ‖m∘(θ̂ + N y)‖ (Frobenius, equilibrated) s.t. every Σ_f ⪰ 0, or
+    ⪰ ``floor`` (Q,) where the likelihood fit bounded θ below (its noise floor,
+    :func:`~solver.covariance.fitting.noise_floor`).
 
-    ``theta`` (Q,) must be PSD already; the result has the same fit (it differs by a null
-    direction of G), hence the same Σ_E at every training configuration. Diagonal Σ: the
-    interior-point answer is polished on its active set so that bound entries are exactly 0.
+    ``theta`` (Q,) must be PSD already (⪰ ``floor``); the result has the same fit (it differs
+    by a null direction of G), hence the same Σ_E at every training configuration. Diagonal
+    Σ: the interior-point answer is polished on its active set so that bound entries are
+    exactly 0 (exactly at the floor): two fits that end at different points of a null direction
+    give the same answer.
     """
     basis = report.null_basis
     fallback = np.where(report.silent, 0.0, theta)  # each silent entry is a null direction
@@ -544,10 +551,12 @@ def resolve_null_space(
     scale = report.scaling.param_scale
     metric = layout.frobenius_weights()
     x0 = fallback / scale
+    bound = np.zeros_like(x0) if floor is None else np.where(report.silent, 0.0, floor) / scale
     y = cp.Variable(basis.shape[1])
     x = x0 + basis @ y
     problem = cp.Problem(
-        cp.Minimize(cp.sum_squares(cp.multiply(metric, x))), _cone_constraints(x, layout)
+        cp.Minimize(cp.sum_squares(cp.multiply(metric, x))),
+        _cone_constraints(x - bound, layout),
     )
     try:
         with warnings.catch_warnings():  # the status is checked below
@@ -559,7 +568,7 @@ def resolve_null_space(
         return fallback
     out = x0 + basis @ y.value
     if layout.structure == "diag":
-        out = _polish_active_set(out, x0, basis)
+        out = bound + _polish_active_set(out - bound, x0 - bound, basis)
     out = np.where(report.silent, 0.0, out) * scale
     out = layout.theta_from_covariances(clip_psd(layout.frame_covariances(out)))
     return np.where(report.silent, 0.0, out)  # exact zeros (rows of silent axes stay PSD)

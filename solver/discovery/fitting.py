@@ -36,6 +36,7 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from solver import lie
+from solver.calibration import frame_columns
 from solver.discovery.features import DiscoveryData, FeatureBank, axis_of
 from solver.discovery.library import Term, drift_feature
 from solver.errors import CalibrationError
@@ -44,11 +45,12 @@ from solver.measurement.models import ModelParameters as MeasuredParameters
 from solver.measurement.models import chain_column_count, seen_from_sensor
 from solver.measurement.pose import initial_parameters
 from solver.model import ComplianceAxis, KinematicChain
-from solver.pivoting import pivoted_qr
+from solver.pivoting import tiered_pivoted_qr
 from solver.simulate import depth_direction
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
 
 RANK_TOLERANCE = 1e-7
 # A nuisance direction (link correction, socket point, marker offset) the recording pins down
@@ -434,7 +436,11 @@ def start_parameters(ctx: Context) -> ModelParameters:
 
 
 def _kept_links(
-    links_w: FloatArray, terms_w: FloatArray, residual_w: FloatArray, pin: bool = True
+    links_w: FloatArray,
+    terms_w: FloatArray,
+    residual_w: FloatArray,
+    first: BoolArray,
+    pin: bool = True,
 ) -> IndexArray:
     """Link columns the data can identify once the term columns are in (terms take priority).
 
@@ -452,7 +458,7 @@ def _kept_links(
     if terms_w.shape[1]:
         basis = orthonormal_basis(terms_w)
         a = a - basis @ (basis.T @ a)
-    diagonal, pivots = pivoted_qr(a)
+    diagonal, pivots = tiered_pivoted_qr(a, first[nonzero], RANK_TOLERANCE)
     rank = int(np.sum(diagonal > RANK_TOLERANCE * max(diagonal[0], 1e-300)))
     scatter = np.sqrt(float(residual_w @ residual_w) / max(residual_w.size, 1))
     pinned = diagonal[:rank] * norms[nonzero][pivots[:rank]] * NUISANCE_RANGE > scatter
@@ -566,7 +572,8 @@ def fit_model(
         )
 
     r, links_w, terms_w = stacked(design)
-    kept = _kept_links(links_w, terms_w, r, pin=not ctx.data.is_pose)
+    first = frame_columns(ctx.chain, links_w.shape[1], n_compliance=0)
+    kept = _kept_links(links_w, terms_w, r, first, pin=not ctx.data.is_pose)
     constraint = constraint_rows(ctx, params, kept)
     n_pinned = 0 if constraint is None else constraint[0].size
     if r.size <= kept.size - n_pinned + p_terms:

@@ -244,13 +244,19 @@ def test_reml_without_the_fit_jacobian_is_refused():
 
 def test_the_noise_floor_is_a_thousandth_of_each_axis_rms_residual():
     """The likelihood fit bounds each noise variance below by (1e-3 · RMS residual on the rows
-    its axis reaches)²; chain frames are not bounded (fitting.noise_floor)."""
+    its axis reaches)², read from the moment statistics (so the same whether the samples were
+    read whole or streamed); chain frames are not bounded (fitting.noise_floor)."""
     from solver.covariance.fitting import NOISE_FLOOR, noise_floor
+    from solver.covariance.statistics import build_moment_statistics
+
+    def floor_of(layout, residuals):
+        jac = rng.normal(size=(residuals.shape[0], layout.n_chain_frames, layout.residual_dim, 6))
+        return noise_floor(build_moment_statistics(residuals, jac, layout))
 
     rng = np.random.default_rng(5)
     residuals = rng.normal(size=(400, 3)) * np.array([1e-3, 2e-3, 4e-3])
     layout = make_layout(["f0", "f1"], 3)
-    floor = noise_floor(layout, residuals)
+    floor = floor_of(layout, residuals)
     rms = np.sqrt(np.mean(residuals**2, axis=0))
     noise = layout.is_noise & layout.is_variance
     axes = layout.param_row[noise]  # the noise's rotation axes reach no row of a position
@@ -261,6 +267,6 @@ def test_the_noise_floor_is_a_thousandth_of_each_axis_rms_residual():
         ["f0"], 6, noise_rows={"noise": ((0, 1, 2, -1, -1, -1), (3, 4, 5, -1, -1, -1))}
     )
     pair = np.hstack([residuals, 3.0 * residuals])  # two markers: the second 3x the first
-    tied = noise_floor(markers, pair)
+    tied = floor_of(markers, pair)
     expected = NOISE_FLOOR**2 * 0.5 * (rms**2 + (3.0 * rms) ** 2)
     np.testing.assert_allclose(tied[markers.is_noise & markers.is_variance][:3], expected)
