@@ -18,7 +18,7 @@ from schemas.robots import example_robot_data_dir, load_robot
 from service.api.app import create_app
 from service.app.preflight import check_recording
 from solver.errors import DatasetError
-from solver.model import build_chain
+from solver.model import KinematicChain, build_chain
 from tests.service.api.conftest import fresh_database_url, make_settings
 from tests.service.cli_support import run
 
@@ -125,8 +125,17 @@ def test_predict_refuses_configurations_in_degrees(
 ) -> None:
     result = tmp_path / "fr3.json"
     code, _, err = run(
-        ["calibrate", FR3, "--robot", "panda", "--no-heldout", "--covariance", "none"]
-        + ["-o", result],
+        [
+            "calibrate",
+            FR3,
+            "--robot",
+            "panda",
+            "--no-heldout",
+            "--covariance",
+            "none",
+            "-o",
+            result,
+        ],
         capsys,
         monkeypatch,
     )
@@ -173,7 +182,7 @@ def test_the_http_upload_refuses_millimetres_and_degrees(tmp_path: Path) -> None
             assert word in response.json()["detail"]
 
 
-def _panda():  # noqa: ANN202
+def _panda() -> KinematicChain:
     robot = load_robot("panda")
     return build_chain(robot.urdf_xml, robot.base_frame, robot.tip_frame)
 
@@ -208,9 +217,7 @@ TIAGO = load_robot(
         ),
         (
             REAL / "industrial_calibration_2axis_positioner/measurements.yaml",
-            load_robot(
-                dh_path=REAL / "industrial_calibration_2axis_positioner/positioner_dh.yaml"
-            ),
+            load_robot(dh_path=REAL / "industrial_calibration_2axis_positioner/positioner_dh.yaml"),
         ),
         *[
             (path, TIAGO)

@@ -67,7 +67,8 @@ def test_positions_in_millimetres_are_refused_before_the_fit(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Issue 28: the pre-flight checks refuse them (exit 2, nothing written); the verdict's
-    ``position_unit`` reason stays for results computed without them (test_each_check_names_its_cause)."""
+    ``position_unit`` reason stays for results computed without them
+    (test_each_check_names_its_cause)."""
     table = pd.read_csv(simulated)
     table[["x", "y", "z"]] *= 1000.0
     mm = tmp_path / "mm.csv"
