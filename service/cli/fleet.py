@@ -142,7 +142,7 @@ def fleet(
         },
         defaults={"heldout": False},
     )
-    outputs = Outputs(out_dir_for(out_dir, directory, "fleet"))
+    outputs = Outputs(out_dir_for(out_dir, None, f"{directory.resolve().name}_fleet"))
     path = outputs.path(output, "fleet.json", fleet_mode.FLEET_FORMAT)
     datasets = fleet_mode.fleet_datasets(directory)
     preflight_fleet(datasets, description, options, marker)

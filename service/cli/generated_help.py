@@ -9,13 +9,7 @@ CALIBRATION: dict[str, tuple[str, str, tuple[str, ...]]] = {'compliant_joints': 
                      'the structure carrying them, paper §V-A).',
                      'none',
                      ()),
- 'free_parameters': ('What to calibrate: classes (all, geometry, joint_offsets, base, tool, '
-                     'compliance), links by joint or tip name, parameters '
-                     '<link>.<tx|ty|tz|rx|ry|rz> or compliance.<axis>, shell patterns of those; '
-                     'the base and tool (measurement frame and marker) are always free unless '
-                     'fixed (docs/calibration-options.md).',
-                     'all',
-                     ()),
+ 'free_parameters': ('What to calibrate.', 'all', ()),
  'fixed_parameters': ('Parameters held at their starting value (nominal geometry, compliance 0; '
                       'base and tool at the closed-form alignment), same names as free_parameters, '
                       'e.g. a whole link such as torso_2_joint, or compliance.',
@@ -27,14 +21,7 @@ CALIBRATION: dict[str, tuple[str, str, tuple[str, ...]]] = {'compliant_joints': 
  'rotation_weight_m_per_rad': ('How much 1 rad of rotation residual counts against 1 m.',
                                '1.0',
                                ()),
- 'outlier_rule': ("How gross errors (detector failures) are screened out: 'model' judges each "
-                  'sample against its own predicted covariance Σ_E(q) (Eq. 12) at the family-wise '
-                  'outlier_level, iterated with the fit, and keeps clean data (with covariance '
-                  "'none' only its first, robust per-component step runs); 'sigma' is the paper's "
-                  '§V-A rule (drop a sample with a residual component beyond outlier_sigma '
-                  'standard deviations: ~21 % of clean 6-D samples at 2σ, so its covariances come '
-                  "out too small); 'none' keeps every sample. Giving only outlier_sigma selects "
-                  "'sigma' (0 or null: 'none').",
+ 'outlier_rule': ('How gross errors (detector failures) are screened out.',
                   'model',
                   ('model', 'sigma', 'none')),
  'outlier_level': ('Model rule: probability that any clean sample of the whole recording is '
@@ -58,9 +45,7 @@ CALIBRATION: dict[str, tuple[str, str, tuple[str, ...]]] = {'compliant_joints': 
                 'skips the covariance calibration.',
                 'diag',
                 ('diag', 'full', 'none')),
- 'covariance_solver': ('Solver of the moment problem (Eq. 14): clarabel (cvxpy, PSD cones), pgd '
-                       '(paper Eq. 15, stable step), nnls (diagonal only, exact) or auto (nnls for '
-                       'diagonal, clarabel for full covariances).',
+ 'covariance_solver': ('Solver of the moment problem (Eq. 14).',
                        'auto',
                        ('auto', 'clarabel', 'pgd', 'nnls')),
  'covariance_estimator': ('moment matching (paper Eq. 14), maximum likelihood (Eq. 16-17) or '
@@ -70,11 +55,7 @@ CALIBRATION: dict[str, tuple[str, str, tuple[str, ...]]] = {'compliant_joints': 
                           'reml',
                           ('moment', 'ml', 'reml')),
  'covariance_frames': ('Joints whose frame carries a random perturbation.', 'every joint', ()),
- 'covariance_axes': ("Which axes of a joint frame's perturbation are random: all six, or "
-                     "'rotation' only (backlash, friction and bearing play rotate a joint frame; "
-                     'the paper found almost only rotational uncertainty in the chain, §V-B). '
-                     'Fewer parameters for the same residuals; the measurement noise Σ_n keeps all '
-                     'axes.',
+ 'covariance_axes': ("Which axes of a joint frame's perturbation are random.",
                      'all',
                      ('all', 'rotation')),
  'noise_std': ('Known measurement-noise standard deviations (x,y,z m; rx,ry,rz rad) in the '
@@ -83,25 +64,12 @@ CALIBRATION: dict[str, tuple[str, str, tuple[str, ...]]] = {'compliant_joints': 
                ()),
  'noise_covariance': ('Known measurement-noise covariance Σ_n (6×6, [v; w] in the end-effector '
                       'frame, m², m·rad, rad²), e.g. the sample covariance of repeated detections '
-                      'of a static marker (paper §V-B); symmetric positive semidefinite. Not '
-                      'together with noise_std.',
+                      'of a static marker (paper §V-B); symmetric positive semidefinite.',
                       'estimate Σ_n with the rest',
                       ()),
- 'measurement': ("What each row measures (docs/measurements.md): 'pose' (x,y,z and quaternion), "
-                 "'position' (x,y,z), 'components:tz,rx,ry' (chosen pose components in the "
-                 "measurement frame, e.g. a plane contact), 'point' (ball in socket: a folder of "
-                 'headerless hole_<k>.csv joint files, one unknown point per socket file), '
-                 "'markers' (every FIGAROH marker of the file at once, each with its own offset), "
-                 "'relative-base' (the marker in the frame of an unknown marker on the robot "
-                 "base), 'eye-on-head:<joint>' (the sensor rides on the body after that joint), or "
-                 "'auto' (a folder of hole files: point; a FIGAROH file with several markers and "
-                 "no --marker: markers; otherwise pose or position by the file's columns).",
-                 'auto',
-                 ()),
+ 'measurement': ('What each row measures (docs/measurements.md).', 'auto', ()),
  'point_distance_m': ("Measurement 'point': known distance between the sockets hole_0 and hole_1 "
-                      'of each placement, m (0.05 for the platonics tool). Without it the link '
-                      "lengths stay the URDF's (a robot scaled about its base fits every socket as "
-                      'well).',
+                      'of each placement, m (0.05 for the platonics tool).',
                       'none',
                       ())}
 

@@ -25,6 +25,34 @@ HEADER = (
 )
 
 _NONE_MEANS = re.compile(r";? *None = (?P<meaning>[^.;]*)\.?$")
+_SENTENCE_END = re.compile(r"(?<=[a-z0-9)\]'])\. (?=[A-Z'(])")
+MAX_HELP = 160
+"""A flag's help is its option's first sentence, cut at a clause when longer than this (the
+whole description is in the API reference, docs/reference/api.md)."""
+
+
+def _outside_brackets(text: str) -> list[int]:
+    """Positions of the characters of ``text`` outside (), [] and {}."""
+    depth, positions = 0, []
+    for i, char in enumerate(text):
+        depth += char in "([{"
+        depth -= char in ")]}"
+        if depth == 0:
+            positions.append(i)
+    return positions
+
+
+def _short(description: str) -> str:
+    """The first sentence of ``description`` (a full stop outside brackets), or its first
+    clause (up to "; " or ": " outside brackets) when that is long."""
+    outside = set(_outside_brackets(description))
+    ends = [m.start() for m in _SENTENCE_END.finditer(description) if m.start() in outside]
+    first = description[: ends[0]] if ends else description.rstrip(".")
+    if len(first) > MAX_HELP:
+        cuts = [i for i in sorted(outside) if first[i : i + 2] in ("; ", ": ") and i < MAX_HELP]
+        if cuts:
+            first = first[: cuts[0]]
+    return first.rstrip(".") + "."
 
 
 def _default_words(field: str, default: object, description: str) -> tuple[str, str]:
@@ -49,6 +77,7 @@ def calibration_help() -> dict[str, tuple[str, str, tuple[str, ...]]]:
     for field, info in CalibrationOptions.model_fields.items():
         default = info.get_default(call_default_factory=True)
         description, shown = _default_words(field, default, info.description or field)
+        description = _short(description)
         choices: tuple[str, ...] = ()
         if typing.get_origin(info.annotation) is typing.Literal:
             choices = tuple(str(c) for c in typing.get_args(info.annotation))

@@ -32,6 +32,7 @@ from service.render.text import (
     compliance_status,
     parameter_count,
     predictive_lines,
+    solver_line,
     table_ii,
     verdict_line,
 )
@@ -156,11 +157,8 @@ def _overview(result: CalibrationResult) -> str:
                 )
             ]
         ),
-        (
-            "Solver",
-            f"{solver.name}: {solver.status} after {solver.iterations} iterations "
-            f"({solver.time_s:.2f} s)",
-        ),
+        ("Solver", solver_line(solver)),
+        ("Verdict", verdict_line(result.verdict)),
         ("Created", f"{result.created_utc} by kincal {result.kincal_version}"),
     ]
     body = "".join(f"<tr><th>{e(k)}</th><td>{e(v)}</td></tr>" for k, v in rows)
