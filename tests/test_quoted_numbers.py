@@ -4,8 +4,9 @@ checked here, so a stale table fails the suite.
 Each results file ``docs/results/<name>.json`` is written by its benchmark (``--write-results``)
 together with the table ``<name>.md`` the pages include (``--8<--``). Checked: the table is the
 rendering of the JSON, the pages include it (no copy by hand), and the cheap rows re-run through
-the same code give the same numbers — counts exactly; errors within 0.005 mm (the tables show
-0.01 mm); compliances within 0.05·10⁻⁵ rad/N·m (shown to 0.1·10⁻⁵).
+the same code give the same numbers — counts exactly; errors within half the last digit the
+table shows (0.005 mm for 0.01 mm, 0.0005 mm for 0.001 mm); compliances within 0.05·10⁻⁵
+rad/N·m (shown to 0.1·10⁻⁵).
 """
 
 from __future__ import annotations
@@ -14,13 +15,21 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import evaluate_real, fleet_platonics
+from benchmarks import evaluate_real, fleet_platonics, platonics
 from benchmarks.results import RESULTS, read_results
 
 DOCS = Path(__file__).parents[1] / "docs"
 
-RENDER = {"real_robots": evaluate_real.render, "fleet_platonics": fleet_platonics.render}
-PAGES = {"real_robots": "real-robots.md", "fleet_platonics": "ball-in-socket.md"}
+RENDER = {
+    "real_robots": evaluate_real.render,
+    "fleet_platonics": fleet_platonics.render,
+    "platonics": platonics.render,
+}
+PAGES = {
+    "real_robots": "real-robots.md",
+    "fleet_platonics": "ball-in-socket.md",
+    "platonics": "ball-in-socket.md",
+}
 
 
 @pytest.mark.parametrize("name", sorted(RENDER))
@@ -68,3 +77,15 @@ def test_the_real_robot_table_holds_for_the_ur10e() -> None:
         assert row[key] == pytest.approx(want[key], abs=0.005), key
     for key in ("before_deg", "after_deg"):
         assert row[key] == pytest.approx(want[key], abs=0.0005), key
+
+
+@pytest.mark.slow
+def test_the_ball_in_socket_table_holds_for_panda_right() -> None:
+    """panda_right (60 rows) re-run with its 10 held-out splits, with and without the 50 mm."""
+    _, rows = read_results("platonics")
+    (want,) = [r for r in rows if r["robot"] == "panda_right"]
+    _, got = platonics.row("panda_right", seeds=10)
+    for key in ("rows", "used", "sockets"):
+        assert got[key] == want[key], key
+    for key in ("before_mm", "after_mm", "after_distance_mm"):
+        assert got[key] == pytest.approx(want[key], abs=0.0005), key

@@ -205,7 +205,11 @@ def file_kind(path: Path) -> str | None:
             if len(found) == 2:
                 value = found[1].split('"', 2)
                 return value[1] if len(value) == 3 else None
-            return None
+            if path.stat().st_size > 16 * 1024 * 1024:
+                return None
+            document = json.loads(path.read_bytes())  # "format" last (kincal fleet)
+            found_format = document.get("format") if isinstance(document, dict) else None
+            return found_format if isinstance(found_format, str) else None
         if path.suffix == ".csv":
             with path.open(encoding="utf-8", errors="replace") as handle:
                 header = {c.strip() for c in handle.readline().split(",")}
@@ -213,7 +217,7 @@ def file_kind(path: Path) -> str | None:
             if "cov_00" in header or (pose <= header and header <= _PREDICTION_COLUMNS):
                 return _CSV_KINDS["predictions"]
             return _CSV_KINDS["recording"] if pose <= header else "joint configurations"
-    except OSError:
+    except (OSError, ValueError):
         return None
     return None
 

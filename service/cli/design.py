@@ -210,7 +210,12 @@ def design(
     if result is not None and recording is not None:
         if config is not None:
             raise KincalError("--result carries its calibration options; drop --config")
-        description, recorded = designs.recorded_design(read_result(result), recording)
+        from service.app.preflight import check_recording
+        from service.render.result_json import result_chain
+
+        calibration = read_result(result)
+        check_recording(recording, result_chain(calibration)[0])
+        description, recorded = designs.recorded_design(calibration, recording)
     else:
         description = _robot(robot, urdf, base, tip)
     options = _design_options(

@@ -163,11 +163,12 @@ def findings_line(findings: object) -> str:
         parts.append(f"{len(findings.ambiguous)} ambiguous")
     if findings.unexplained:
         parts.append(f"{len(findings.unexplained)} unexplained")
-    advice = (
-        "calibrate with --model on the findings file to carry them"
-        if named
-        else "the model describes the recording"
-        if not findings.unexplained
-        else "read the unexplained structure above"
-    )
+    if named:
+        advice = "calibrate with --model on the findings file to carry them"
+    elif findings.unexplained:
+        advice = "read the unexplained structure above"
+    elif findings.ambiguous:
+        advice = "the data cannot tell the ambiguous terms apart (see above)"
+    else:
+        advice = "the model describes the recording"
     return f"verdict: {', '.join(parts)}: {advice} (exit code 0)"
