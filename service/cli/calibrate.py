@@ -348,18 +348,10 @@ def preflight(data: Path, description: object, options: object, marker: int | No
     from schemas.calibration import CalibrationOptions
     from schemas.robots import RobotDescription
     from service.app.preflight import check_recording
-    from solver.model import build_chain
+    from service.render.chain import chain_for
 
     assert isinstance(description, RobotDescription) and isinstance(options, CalibrationOptions)
-    chain = build_chain(
-        description.urdf_xml,
-        description.base_frame,
-        description.tip_frame,
-        compliant_joints=options.compliant_joints,
-        virtual_axes_at=options.virtual_axes_at,
-        payload_com_m=options.payload_com_m,
-    )
-    check_recording(data, chain, options, marker=marker)
+    check_recording(data, chain_for(description, options), options, marker=marker)
 
 
 def finish(run: CalibrationRun, outputs: Outputs, urdf_path: Path | None, force_urdf: bool) -> None:

@@ -174,18 +174,11 @@ def preflight_fleet(
     fleet refused halfway would have wasted the robots before it."""
     from schemas.calibration import CalibrationOptions
     from service.app.preflight import check_recording
+    from service.render.chain import chain_for
     from solver.errors import DatasetError
-    from solver.model import build_chain
 
     assert isinstance(options, CalibrationOptions)
-    chain = build_chain(
-        description.urdf_xml,
-        description.base_frame,
-        description.tip_frame,
-        compliant_joints=options.compliant_joints,
-        virtual_axes_at=options.virtual_axes_at,
-        payload_com_m=options.payload_com_m,
-    )
+    chain = chain_for(description, options)
     assert isinstance(datasets, dict)
     for serial, source in datasets.items():
         try:

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from service.cli.common import (
+    OUTPUT,
     Outputs,
     _prediction_note,
     output_option,
@@ -22,6 +23,15 @@ if TYPE_CHECKING:
     from solver.model import KinematicChain
 
 PredictionsOut = Annotated[Path | None, output_option("predictions.csv", "The predictions CSV")]
+ResultOutDirOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--out-dir",
+        help="Folder for the output [default: the folder of RESULT].",
+        rich_help_panel=OUTPUT,
+        show_default=False,
+    ),
+]
 RankingOut = Annotated[Path | None, output_option("ranking.json", "The ranking JSON")]
 
 
@@ -42,14 +52,7 @@ def predict(
     result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result JSON.")],
     configs: Annotated[Path, typer.Argument(help="Configurations: joint columns (+ payload_kg).")],
     output: PredictionsOut = None,
-    out_dir: Annotated[
-        Path | None,
-        typer.Option(
-            "--out-dir",
-            help="Folder for the output [default: the folder of RESULT].",
-            show_default=False,
-        ),
-    ] = None,
+    out_dir: ResultOutDirOpt = None,
     noise: Annotated[
         bool,
         typer.Option(
@@ -128,14 +131,7 @@ def predict(
 def rank(
     result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result with covariance.")],
     output: RankingOut = None,
-    out_dir: Annotated[
-        Path | None,
-        typer.Option(
-            "--out-dir",
-            help="Folder for the output [default: the folder of RESULT].",
-            show_default=False,
-        ),
-    ] = None,
+    out_dir: ResultOutDirOpt = None,
     configs: Annotated[
         Path | None,
         typer.Argument(metavar="CONFIGS", help="Configurations: joint columns (+ payload_kg)."),
