@@ -319,7 +319,15 @@ def calibrate(
     report_path = None if report is None else outputs.path(report, "report.html", None)
     urdf_path = None if export_urdf_to is None else outputs.path(export_urdf_to, "", None)
     if not show_options:
-        preflight(data, description, options, marker)
+        try:
+            preflight(data, description, options, marker)
+        except KincalError:
+            from service.app import calibrate as pipeline
+
+            # an option the robot refuses (a sensor joint, pose components) explains a
+            # recording read the wrong way: name it first
+            pipeline.check_calibration(description, options, findings)
+            raise
     from service.app import calibrate as pipeline
 
     setup = pipeline.check_calibration(description, options, findings)
