@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.kincal-installed
 
-.PHONY: demo test lint bench serve lock clean
+.PHONY: demo test lint docs bench serve lock clean
 
 $(STAMP): requirements.lock pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +20,7 @@ test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/mypy solver schemas service benchmarks
 	$(BIN)/lint-imports
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir build/site
 	$(BIN)/pytest -q -n 2
 
 lint: $(STAMP)
@@ -28,8 +29,12 @@ lint: $(STAMP)
 	$(BIN)/mypy solver schemas service benchmarks
 	$(BIN)/lint-imports
 
+# The documentation site (docs/, mkdocs.yml) on http://127.0.0.1:8001, rebuilt on every edit.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs serve --dev-addr 127.0.0.1:8001
+
 bench: $(STAMP)
-	$(BIN)/python benchmarks/evaluate_real.py
+	$(BIN)/python -m benchmarks.evaluate_real
 
 serve: $(STAMP)
 	$(BIN)/kincal serve
@@ -39,4 +44,4 @@ lock:
 	uv pip compile pyproject.toml --extra dev --python-version 3.11 -o requirements.lock
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis build *.egg-info
+	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis build site *.egg-info

@@ -2,8 +2,10 @@
 each through the user's path: ``kincal calibrate`` with its defaults plus the flags the recording
 needs (URDF/base/tip, measurement type, DH table); the exit code and verdict with it.
 
-Prints the paper's Table II layout per recording and a markdown summary (the README table).
-Usage: ``python benchmarks/evaluate_real.py [--seeds 10] [--figures docs]``.
+Prints the paper's Table II layout per recording and a markdown summary; with
+``--write-results`` also ``docs/results/real_robots.{json,md}``, the table docs/real-robots.md
+includes and the README quotes (its FR3 row). Usage: ``python -m benchmarks.evaluate_real
+[--seeds 10] [--figures docs] [--write-results] [--recordings NAME,...]``.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import solver  # noqa: F401  (BLAS defaults)
+from benchmarks.results import Row, dash, markdown_table, write_results
 from schemas.calibration import CalibrationResult
 from schemas.dataset import read_dataset
 from schemas.robots import example_robot_data_dir
@@ -130,24 +133,82 @@ def figure(result: CalibrationResult, name: str, path: Path) -> Path:
     )
 
 
-def _errors(translation_mm: float, rotation_deg: float | None) -> str:
-    rotation = "–" if rotation_deg is None else f"{rotation_deg:.3f}"
-    return f"{translation_mm:.2f} / {rotation}"
+HEADER = (
+    "Recording",
+    "Robot",
+    "Flags beyond the defaults",
+    "Samples (used)",
+    "Before: held-out mm / deg",
+    "Calibrated: held-out mm / deg",
+    "Splits improved",
+    "Exit",
+    "Verdict",
+)
+
+
+def result_row(name: str, result: CalibrationResult, code: int) -> Row:
+    """The numbers of one recording's calibration, as the results file keeps them."""
+    before, after = result.fit.before.heldout, result.fit.after.heldout
+    assert before is not None and after is not None and result.evaluation is not None
+    by = {(s.method, s.seed): s.translation_mm for s in result.evaluation.splits}
+    seeds_run = sorted({s.seed for s in result.evaluation.splits})
+    return {
+        "recording": name,
+        "robot": result.robot.name,
+        "flags": RECORDINGS[name].flags.replace(ERD, ""),
+        "samples": result.outliers.n_input,
+        "used": result.outliers.n_used,
+        "before_mm": before.translation_mean_mm,
+        "before_deg": before.rotation_mean_deg,
+        "after_mm": after.translation_mean_mm,
+        "after_deg": after.rotation_mean_deg,
+        "improved": sum(by[("calibrated", s)] < by[("before", s)] for s in seeds_run),
+        "splits": len(seeds_run),
+        "exit": code,
+        "verdict": _verdict(result),
+    }
+
+
+def render(rows: list[Row]) -> str:
+    """The markdown table of the rows (held-out mean errors: mm to 2 decimals, deg to 3)."""
+    return markdown_table(
+        HEADER,
+        [
+            (
+                r["recording"],
+                r["robot"],
+                f"`{r['flags']}`",
+                f"{r['samples']} ({r['used']})",
+                f"{r['before_mm']:.2f} / {dash(r['before_deg'], 3)}",
+                f"{r['after_mm']:.2f} / {dash(r['after_deg'], 3)}",
+                f"{r['improved']} of {r['splits']}",
+                r["exit"],
+                r["verdict"],
+            )
+            for r in rows
+        ],
+    )
 
 
 def _verdict(result: CalibrationResult) -> str:
     verdict = result.verdict
     if verdict is None:
         return "–"
-    failed = [r.code for r in verdict.reasons if r.severity == "failed"]
-    return verdict.status + (f" ({', '.join(failed)})" if failed else "")
+    codes = [r.code for r in verdict.reasons if r.severity == verdict.status]
+    return verdict.status + (f" ({', '.join(codes)})" if codes else "")
 
 
-def main(seeds: int = 10, figures: Path | None = None) -> str:
-    header = ["Recording", "Robot", "Samples (used)", "Before: held-out mm / deg"]
-    header += ["Calibrated: held-out mm / deg", "Splits improved", "Exit", "Verdict", "Time"]
-    rows = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+def main(
+    seeds: int = 10,
+    figures: Path | None = None,
+    *,
+    write: bool = False,
+    names: list[str] | None = None,
+) -> list[Row]:
+    rows: list[Row] = []
     for name, recording in RECORDINGS.items():
+        if names is not None and name not in names:
+            continue
         with tempfile.TemporaryDirectory() as workdir:
             result, code, elapsed = evaluate(name, seeds, Path(workdir))
         assert result.evaluation is not None
@@ -157,26 +218,28 @@ def main(seeds: int = 10, figures: Path | None = None) -> str:
             print("wrote", figure(result, name, figures / f"{stem}_residuals.png"))
         print(f"\n## {name}\n\n    " + " ".join(command(name, Path("out.json"), seeds)) + "\n")
         print(table_ii(result.evaluation.splits, position_only=result.dataset.position_only))
-        before, after = result.fit.before.heldout, result.fit.after.heldout
-        assert before is not None and after is not None
-        by = {(s.method, s.seed): s.translation_mm for s in result.evaluation.splits}
-        seeds_run = sorted({s.seed for s in result.evaluation.splits})
-        improved = sum(by[("calibrated", s)] < by[("before", s)] for s in seeds_run)
-        rows.append(
-            f"| {name} | {result.robot.name} "
-            f"| {result.outliers.n_input} ({result.outliers.n_used}) "
-            f"| {_errors(before.translation_mean_mm, before.rotation_mean_deg)} "
-            f"| {_errors(after.translation_mean_mm, after.rotation_mean_deg)} "
-            f"| {improved} of {len(seeds_run)} | {code} | {_verdict(result)} | {elapsed:.1f} s |"
-        )
-    table = "\n".join(rows)
-    print("\n" + table)
-    return table
+        print(f"wall time {elapsed:.1f} s")
+        rows.append(result_row(name, result, code))
+    print("\n" + render(rows))
+    if write:
+        line = f"python -m benchmarks.evaluate_real --seeds {seeds} --write-results"
+        for path in write_results("real_robots", line, rows, render):
+            print("wrote", path)
+    return rows
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=10, help="number of train/test splits")
     parser.add_argument("--figures", type=Path, help="write residual histograms (PNG) here")
+    parser.add_argument(
+        "--write-results", action="store_true", help="write docs/results/real_robots.{json,md}"
+    )
+    parser.add_argument("--recordings", help="comma-separated recording names (default: all)")
     arguments = parser.parse_args()
-    main(arguments.seeds, arguments.figures)
+    main(
+        arguments.seeds,
+        arguments.figures,
+        write=arguments.write_results,
+        names=None if arguments.recordings is None else arguments.recordings.split(","),
+    )

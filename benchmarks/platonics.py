@@ -9,7 +9,9 @@ distance of each held-out ball centre from its socket point. "before": nominal U
 ball offset and the socket points fitted; "after": the calibration (link rotations, compliance,
 ball offset, points); "after, 50 mm": also the link lengths, with the known socket distance.
 
-Usage: ``python benchmarks/platonics.py [--seeds 10] [--robots panda_1,panda_2]``.
+Usage: ``python -m benchmarks.platonics [--seeds 10] [--robots panda_1,panda_2]
+[--write-results]``; with ``--write-results`` also ``docs/results/platonics.{json,md}`` (the
+table docs/ball-in-socket.md includes; tests/test_quoted_numbers.py checks it).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import time
 from pathlib import Path
 
 import solver  # noqa: F401  (BLAS defaults)
+from benchmarks.results import Row, markdown_table, write_results
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.robots import load_robot
 from service.app import calibrate as pipeline
@@ -59,34 +62,53 @@ def row(folder: str, seeds: int) -> tuple[str, dict[str, float]]:
         "after_distance_mm": after_scaled.translation_mean_mm,
         "seconds": seconds,
     }
-    line = (
-        f"| {folder} | {numbers['rows']:.0f} ({numbers['used']:.0f} used) | "
-        f"{numbers['sockets']:.0f} | {numbers['before_mm']:.3f} | {numbers['after_mm']:.3f} | "
-        f"{numbers['after_distance_mm']:.3f} | {numbers['before_mm'] / numbers['after_mm']:.1f}x | "
-        f"{seconds:.1f} |"
-    )
+    line = render([{"robot": folder, **numbers}]).splitlines()[-1] + f" {seconds:.1f} s"
     return line, numbers
 
 
-HEADER = (
-    "| robot | rows | sockets | before, mm | after, mm | after with 50 mm, mm | improvement "
-    "| time, s |\n|---|---|---|---|---|---|---|---|"
-)
+HEADER = ("robot", "rows", "sockets", "before, mm", "after, mm", "after with 50 mm, mm")
+
+
+def render(rows: list[Row]) -> str:
+    """The table of the rows (held-out mean distances, mm to 3 decimals; the improvement is
+    before / after without the distance)."""
+    return markdown_table(
+        (*HEADER, "improvement"),
+        [
+            (
+                r["robot"],
+                f"{r['rows']:.0f} ({r['used']:.0f} used)",
+                f"{r['sockets']:.0f}",
+                f"{r['before_mm']:.3f}",
+                f"{r['after_mm']:.3f}",
+                f"{r['after_distance_mm']:.3f}",
+                f"{r['before_mm'] / r['after_mm']:.1f}x",
+            )
+            for r in rows
+        ],
+    )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--robots", default=None, help="comma-separated robot folders")
+    parser.add_argument("--write-results", action="store_true", help="docs/results/platonics.*")
     args = parser.parse_args()
     folders = args.robots.split(",") if args.robots else panda_folders()
     print(
         "Held-out ball-centre scatter (mean distance of held-out ball centres from the socket "
-        f"point fitted on the training rows), {args.seeds} splits 90/10"
+        f"point fitted on the training rows), {args.seeds} splits 90/10; wall time per robot"
     )
-    print(HEADER)
+    rows: list[Row] = []
     for folder in folders:
-        print(row(folder, args.seeds)[0], flush=True)
+        line, numbers = row(folder, args.seeds)
+        print(line, flush=True)
+        rows.append({"robot": folder, **{k: v for k, v in numbers.items() if k != "seconds"}})
+    if args.write_results:
+        command = f"python -m benchmarks.platonics --seeds {args.seeds} --write-results"
+        for path in write_results("platonics", command, rows, render):
+            print("wrote", path)
 
 
 if __name__ == "__main__":

@@ -6,13 +6,14 @@
 ``kincal serve`` supervisor imports no solver or web code)."""
 
 import functools
-from importlib import metadata
 
 import solver  # noqa: F401  (sets BLAS threading defaults before numpy loads)
 
 
 @functools.cache  # reading package metadata costs milliseconds; rankings stamp every answer
 def kincal_version() -> str:
+    from importlib import metadata  # 40 ms: not at import (kincal --help)
+
     try:
         return metadata.version("kincal")
     except metadata.PackageNotFoundError:

@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
@@ -36,12 +35,16 @@ def skew(vector: FloatArray) -> FloatArray:
 
 def so3_exp(rotation_vector_rad: FloatArray) -> FloatArray:
     """Rotation matrix of a rotation vector (axis * angle); (..., 3) -> (..., 3, 3)."""
+    from scipy.spatial.transform import Rotation  # lazy: 0.4 s, not for kincal --help
+
     flat = rotation_vector_rad.reshape(-1, 3)
     return Rotation.from_rotvec(flat).as_matrix().reshape(*rotation_vector_rad.shape[:-1], 3, 3)
 
 
 def so3_log(rotation: FloatArray) -> FloatArray:
     """Rotation vector (angle in [0, pi]) of a rotation matrix; (..., 3, 3) -> (..., 3)."""
+    from scipy.spatial.transform import Rotation  # lazy: 0.4 s, not for kincal --help
+
     flat = rotation.reshape(-1, 3, 3)
     return Rotation.from_matrix(flat).as_rotvec().reshape(*rotation.shape[:-2], 3)
 
@@ -504,6 +507,8 @@ def pose_matrix(position_m: FloatArray, quaternion_xyzw: FloatArray | None) -> F
 
     With ``quaternion_xyzw=None`` (position-only data) the rotation is the identity.
     """
+    from scipy.spatial.transform import Rotation  # lazy: 0.4 s, not for kincal --help
+
     out = np.zeros((*position_m.shape[:-1], 4, 4))
     if quaternion_xyzw is None:
         out[..., :3, :3] = np.eye(3)
@@ -519,6 +524,8 @@ def pose_matrix(position_m: FloatArray, quaternion_xyzw: FloatArray | None) -> F
 
 def matrix_to_quaternion_xyzw(rotation: FloatArray) -> FloatArray:
     """Unit quaternions ``(qx, qy, qz, qw)`` with ``qw >= 0``; (..., 3, 3) -> (..., 4)."""
+    from scipy.spatial.transform import Rotation  # lazy: 0.4 s, not for kincal --help
+
     flat = Rotation.from_matrix(rotation.reshape(-1, 3, 3)).as_quat()
     flat = np.where(flat[:, 3:4] < 0.0, -flat, flat)
     return flat.reshape(*rotation.shape[:-2], 4)

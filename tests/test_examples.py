@@ -101,7 +101,8 @@ def test_cli_http_fleet_and_demo_calibrate_alike(
 
 
 def test_real_data_benchmark_prints_the_readme_table(tmp_path: Path) -> None:
-    table = evaluate_real.main(seeds=2, figures=tmp_path)
+    rows = evaluate_real.main(seeds=2, figures=tmp_path)
+    table = evaluate_real.render(rows)
     assert table.count("\n") == 1 + len(evaluate_real.RECORDINGS) and "2 of 2" in table
     assert "| 0 | ok |" in table or "| 0 | warning |" in table
     figures = [r for r in evaluate_real.RECORDINGS.values() if r.figure]

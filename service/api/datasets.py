@@ -45,6 +45,7 @@ from service.api.problems import (
 )
 from service.api.robots import ResolvedRobot, resolve_robot
 from service.app.job_functions import RobotRef
+from service.app.preflight import check_dataset
 from service.security import Principal
 from service.storage import repository
 from service.storage.files import tenant_path
@@ -263,6 +264,7 @@ def _validate(upload: Upload, robot: ResolvedRobot, max_rows: int) -> PoseDatase
             raise _too_many_rows(exc.n_rows, max_rows) from exc
     if dataset.n_samples > max_rows:
         raise _too_many_rows(dataset.n_samples, max_rows)
+    check_dataset(dataset, chain)  # the CLI's pre-flight checks: units, limits, repeated rows
     return dataset
 
 

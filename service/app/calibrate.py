@@ -33,17 +33,16 @@ from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_c
 from schemas.discovery import FindingsResult
 from schemas.robots import RobotDescription
 from service.app import calibrate_measurement as measurement_run
+from service.app.preflight import chosen_columns, fit_options
 from service.render.result_json import ResidualSample, assemble_result, chain_for, sample_residuals
 from service.render.urdf_export import export_urdf
 from service.render.urdf_export import refusal as urdf_refusal
-from solver.calibration import FitOptions
 from solver.covariance.layout import ROTATION_AXIS_NAMES
 from solver.errors import KincalError, ModelError
 from solver.executors import Executor, InProcessExecutor, ProcessExecutor, preload_in_workers
 from solver.measurement import MeasurementModel
 from solver.measurement.pose import pose_measurement
 from solver.model import KinematicChain
-from solver.selection import free_columns
 from solver.stream.calibrate import (
     CovarianceSettings,
     HeldoutSettings,
@@ -144,34 +143,6 @@ def check_calibration(
         tuple(names.index(name) for name in chosen),
         findings,
         chosen_columns(chain, options),
-    )
-
-
-def chosen_columns(chain: KinematicChain, options: CalibrationOptions) -> tuple[int, ...] | None:
-    """The columns ``free_parameters`` / ``fixed_parameters`` leave free (None: all, the
-    default); :class:`ModelError` listing the valid names for an unknown one."""
-    if options.free_parameters == ["all"] and not options.fixed_parameters:
-        return None
-    return free_columns(chain, options.free_parameters, options.fixed_parameters)
-
-
-def fit_options(
-    options: CalibrationOptions,
-    *,
-    baseline: bool = False,
-    n_links: int = 0,
-    free_columns: tuple[int, ...] | None = None,
-) -> FitOptions:
-    """Solver settings; ``baseline`` fits only the measurement frame and tool (nominal robot);
-    ``free_columns`` the columns the (not baseline) fit may move."""
-    return FitOptions(
-        max_iterations=options.max_iterations,
-        tolerance=options.tolerance,
-        rotation_weight_m_per_rad=options.rotation_weight_m_per_rad,
-        rank_tolerance=options.rank_tolerance,
-        free_links=(0, n_links - 1) if baseline else None,
-        fit_compliance=not baseline,
-        free_columns=None if baseline else free_columns,
     )
 
 

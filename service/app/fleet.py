@@ -409,3 +409,20 @@ def fleet_table(report: FleetReport, *, max_parameters: int | None = None) -> st
     if max_parameters and len(report.population) > max_parameters:
         lines.append(f"... {len(report.population) - max_parameters} more in the JSON")
     return "\n".join(lines)
+
+
+def fleet_verdict_line(report: FleetReport) -> str:
+    """The one line ``kincal fleet`` ends with: how many robots calibrated, how many units are
+    flagged (and which), at the fleet's family-wise false-alarm level."""
+    flagged = sorted({o.serial for o in report.outliers})
+    failed = f", {len(report.failures)} failed ({', '.join(report.failures)})"
+    return (
+        f"verdict: {len(report.robots)} of {report.n_robots} robots calibrated"
+        f"{failed if report.failures else ''}; "
+        + (
+            f"{len(flagged)} flagged ({', '.join(flagged)}): inspect them"
+            if flagged
+            else "no robot flagged"
+        )
+        + f" (false-alarm probability {report.false_alarm:g} over the fleet; exit code 0)"
+    )

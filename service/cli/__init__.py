@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import inspect
 import os
+import re
 import sys
 import traceback
 from typing import Any
@@ -32,13 +33,38 @@ app.command()(fleet.fleet)
 app.command()(design.design)
 
 
-def _full_summaries(command: Any) -> None:  # typer's (vendored) click.Command
-    """``kincal --help`` lists each command with its docstring's whole first paragraph; click
-    would cut it at the first full stop ("(paper Eq.") or at 45 characters."""
+_MARKUP = re.compile(r"\[(?=[a-z#/@][^\[]*?\])")
+"""What rich would read as a style tag in a help text ("[default: model]", "[config: x]")."""
+
+
+def _plain(text: str | None) -> str | None:
+    """A help text shown as written: brackets that look like rich markup escaped."""
+    return None if text is None else _MARKUP.sub(r"\\[", text)
+
+
+def _prepare_help(command: Any) -> None:  # typer's (vendored) click.Command
+    """``kincal --help`` lists each command with its docstring's whole first paragraph (click
+    would cut it at the first full stop, "(paper Eq.", or at 45 characters), and every help
+    text is shown as written (rich markup off for the text, on for the panels)."""
     for sub in getattr(command, "commands", {}).values():
         if not sub.short_help and sub.help:
             sub.short_help = " ".join(inspect.cleandoc(sub.help).split("\n\n")[0].split())
-        _full_summaries(sub)
+        _prepare_help(sub)
+    if command.help:  # paragraphs of the docstring, each re-flowed by the help's width
+        paragraphs = inspect.cleandoc(command.help).split("\n\n")
+        command.help = "\n\n".join(" ".join(p.split()) for p in paragraphs)
+    for name in ("help", "short_help", "epilog"):
+        setattr(command, name, _plain(getattr(command, name, None)))
+    for param in getattr(command, "params", []):
+        if getattr(param, "help", None):
+            param.help = _plain(param.help)
+
+
+def click_command() -> Any:
+    """The ``kincal`` command as click sees it (also the docs' CLI reference, mkdocs-click)."""
+    command = typer.main.get_command(app)
+    _prepare_help(command)
+    return command
 
 
 def main() -> None:
@@ -47,9 +73,7 @@ def main() -> None:
     Usage errors (unknown option, missing argument) are typer's, also exit code 2.
     """
     try:
-        command = typer.main.get_command(app)
-        _full_summaries(command)
-        command()
+        click_command()()
     except KincalError as exc:
         typer.echo(f"kincal: error: {exc}", err=True)
         sys.exit(2)

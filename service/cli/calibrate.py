@@ -1,4 +1,8 @@
-"""``kincal simulate`` and ``kincal calibrate``: a recording in, a calibration result out."""
+"""``kincal simulate`` and ``kincal calibrate``: a recording in, a calibration result out.
+
+Heavy modules (the calibration pipeline, pandas, Pinocchio) are imported inside the commands:
+``kincal calibrate --help`` answers without them, and a recording the pre-flight checks refuse
+(:mod:`service.app.preflight`) is refused before the pipeline is loaded."""
 
 from __future__ import annotations
 
@@ -9,30 +13,23 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from schemas.dataset import write_dataset
-from service.app import calibrate as pipeline
-from service.app import simulate as scenarios
-from service.cli.flags import (
-    CALIBRATION_FLAGS,
-    calibration_options,
-    numbers,
-    option_help,
-    read_config,
-)
-from service.render.text import summary, verdict_text
-from solver.errors import KincalError
-
-if TYPE_CHECKING:
-    pass
 from service.cli.common import (
+    COVARIANCE,
+    HELDOUT,
+    MODEL,
+    OUTLIERS,
+    OUTPUT,
+    RECORDING,
     BaseOpt,
     ChunkRowsOpt,
     DaskOpt,
     DataArg,
     DhOpt,
     ExecutorOpt,
+    MarkerOpt,
     MeasurementOpt,
-    OutputOpt,
+    OutDirOpt,
+    Outputs,
     PointDistanceOpt,
     RobotOpt,
     TipOpt,
@@ -43,15 +40,38 @@ from service.cli.common import (
     _names,
     _robot,
     _vector3,
-    _write_json,
-    _write_text,
+    out_dir_for,
+    output_option,
     read_findings,
     read_noise_covariance,
 )
+from service.cli.flags import (
+    CALIBRATION_FLAGS,
+    calibration_options,
+    numbers,
+    option_choices,
+    option_help,
+    read_config,
+)
+from service.cli.generated_help import DEFAULT_EFFECTS, SIMULATE_EFFECTS
+from solver.errors import KincalError
+
+if TYPE_CHECKING:
+    from service.app.calibrate import CalibrationRun
+
+RESULT_KIND = "kincal.calibration/1"
 
 
 def simulate(
-    output: OutputOpt,
+    output: Annotated[
+        Path,
+        typer.Option(
+            "-o",
+            "--output",
+            help="The recording to write (.csv, .parquet or .json).",
+            rich_help_panel=OUTPUT,
+        ),
+    ],
     robot: RobotOpt = "kinova",
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
@@ -63,8 +83,8 @@ def simulate(
         typer.Option(
             "--effect",
             help="Repeatable. "
-            + "; ".join(f"{k}: {v}" for k, v in scenarios.EFFECTS.items())
-            + f". Default: {', '.join(scenarios.DEFAULT_EFFECTS)}.",
+            + "; ".join(f"{k}: {v}" for k, v in SIMULATE_EFFECTS.items())
+            + f". [default: {', '.join(DEFAULT_EFFECTS)}]",
         ),
     ] = None,
     noise_mm: Annotated[float, typer.Option(min=0.0, help="Measurement noise σ, mm.")] = 0.05,
@@ -73,6 +93,9 @@ def simulate(
     truth: Annotated[Path | None, typer.Option(help="Also write the ground truth JSON.")] = None,
 ) -> None:
     """Simulate a recording with known ground truth and write it in the dataset contract."""
+    from schemas.dataset import write_dataset
+    from service.app import simulate as scenarios
+
     description = _robot(robot if urdf is None else None, urdf, base, tip)
     scn, recording = scenarios.simulate(
         description,
@@ -83,17 +106,38 @@ def simulate(
         noise_rotation_deg=noise_deg,
     )
     dataset = scenarios.recording_dataset(recording, scn.chain, position_only=position_only)
-    write_dataset(dataset, output)
+    outputs = Outputs(output.parent)
+    outputs.write(
+        outputs.path(output, output.name, "a recording"),
+        f"recording, {n} samples ({', '.join(scn.effects)})",
+        lambda path: write_dataset(dataset, path),
+    )
     if truth is not None:
-        _write_json(
-            truth, json.dumps(scenarios.truth_document(scn, recording, description), indent=1)
-        )
-    typer.echo(f"wrote {n} samples ({', '.join(scn.effects)}) to {output}")
+        document = json.dumps(scenarios.truth_document(scn, recording, description), indent=1)
+        outputs.write_text(outputs.path(truth, truth.name, None), "ground truth", document + "\n")
+    typer.echo(outputs.listing())
+
+
+def _calibration_flag(
+    field: str, extra: str = "", panel: str = MODEL, *decls: str
+) -> typer.models.OptionInfo:
+    """A flag of a calibration option: its help (description, config key, default) and, for a
+    choice, its values."""
+    choices = option_choices(field)
+    return typer.Option(
+        *decls,
+        help=option_help(field, extra),
+        rich_help_panel=panel,
+        metavar=None if choices is None else "|".join(choices),
+        show_default=False,
+    )
+
+
+ResultOut = Annotated[Path | None, output_option("calibration.json", "The result JSON")]
 
 
 def calibrate(
     data: DataArg,
-    output: OutputOpt,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
@@ -102,85 +146,28 @@ def calibrate(
     config: Annotated[
         Path | None,
         typer.Option(
-            help="TOML file of calibration options (the option names in [brackets] below as "
-            "keys); flags given as well override it."
+            help="TOML file of calibration options (the config keys named below); flags given "
+            "as well override it.",
+            rich_help_panel=RECORDING,
         ),
     ] = None,
     compliant_joints: Annotated[
-        str | None, typer.Option(help=option_help("compliant_joints", "; comma-separated"))
+        str | None, _calibration_flag("compliant_joints", "; comma-separated")
     ] = None,
     rigid: Annotated[
-        bool, typer.Option(help="No joint compliance at all (compliant_joints = []).")
-    ] = False,
-    free: Annotated[
-        str | None, typer.Option(help=option_help("free_parameters", "; comma-separated"))
-    ] = None,
-    fix: Annotated[
-        str | None, typer.Option(help=option_help("fixed_parameters", "; comma-separated"))
-    ] = None,
-    virtual_axes: Annotated[
-        str | None, typer.Option(help=option_help("virtual_axes_at", "; comma-separated"))
-    ] = None,
-    gravity: Annotated[str | None, typer.Option(help=option_help("gravity_base_m_s2"))] = None,
-    payload_kg: Annotated[float | None, typer.Option(help=option_help("payload_kg"))] = None,
-    payload_com: Annotated[str | None, typer.Option(help=option_help("payload_com_m"))] = None,
-    rotation_weight: Annotated[
-        float | None, typer.Option(help=option_help("rotation_weight_m_per_rad"))
-    ] = None,
-    outlier_rule: Annotated[
-        str | None, typer.Option(help=option_help("outlier_rule", "; model|sigma|none"))
-    ] = None,
-    outlier_level: Annotated[float | None, typer.Option(help=option_help("outlier_level"))] = None,
-    outlier_sigma: Annotated[
-        float | None, typer.Option(help=option_help("outlier_sigma", "; 0 disables"))
-    ] = None,
-    max_iterations: Annotated[int | None, typer.Option(help=option_help("max_iterations"))] = None,
-    tolerance: Annotated[float | None, typer.Option(help=option_help("tolerance"))] = None,
-    rank_tolerance: Annotated[
-        float | None, typer.Option(help=option_help("rank_tolerance"))
-    ] = None,
-    heldout: Annotated[
-        bool | None, typer.Option("--heldout/--no-heldout", help=option_help("heldout"))
-    ] = None,
-    seeds: Annotated[
-        str | None, typer.Option(help=option_help("seeds", "; comma-separated"))
-    ] = None,
-    train_fraction: Annotated[
-        float | None, typer.Option(help=option_help("train_fraction"))
-    ] = None,
-    covariance: Annotated[str | None, typer.Option(help=option_help("covariance"))] = None,
-    solver: Annotated[str | None, typer.Option(help=option_help("covariance_solver"))] = None,
-    estimator: Annotated[str | None, typer.Option(help=option_help("covariance_estimator"))] = None,
-    covariance_frames: Annotated[
-        str | None, typer.Option(help=option_help("covariance_frames", "; comma-separated"))
-    ] = None,
-    covariance_axes: Annotated[
-        str | None, typer.Option(help=option_help("covariance_axes"))
-    ] = None,
-    noise_std: Annotated[
-        str | None, typer.Option(help=option_help("noise_std", "; x,y,z,rx,ry,rz"))
-    ] = None,
-    noise_covariance: Annotated[
-        Path | None,
-        typer.Option(help=option_help("noise_covariance", "; a JSON file holding the 6×6 array")),
-    ] = None,
-    measurement: MeasurementOpt = None,
-    point_distance: PointDistanceOpt = None,
-    marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
-    executor: ExecutorOpt = None,
-    dask: DaskOpt = None,
-    chunk_rows: ChunkRowsOpt = None,
-    workers: WorkersOpt = None,
-    export_urdf_to: Annotated[
-        Path | None, typer.Option("--export-urdf", help="Also write the calibrated URDF.")
-    ] = None,
-    force_urdf: Annotated[
         bool,
-        typer.Option(help="Write --export-urdf even when the calibration's verdict is failed."),
+        typer.Option(
+            help="No joint compliance at all (compliant_joints = []).", rich_help_panel=MODEL
+        ),
     ] = False,
-    report: Annotated[
-        Path | None, typer.Option(help="Also write the HTML report (figures embedded).")
+    free: Annotated[str | None, _calibration_flag("free_parameters", "; comma-separated")] = None,
+    fix: Annotated[str | None, _calibration_flag("fixed_parameters", "; comma-separated")] = None,
+    virtual_axes: Annotated[
+        str | None, _calibration_flag("virtual_axes_at", "; comma-separated")
     ] = None,
+    gravity: Annotated[str | None, _calibration_flag("gravity_base_m_s2")] = None,
+    payload_kg: Annotated[float | None, _calibration_flag("payload_kg")] = None,
+    payload_com: Annotated[str | None, _calibration_flag("payload_com_m")] = None,
     model: Annotated[
         Path | None,
         typer.Option(
@@ -190,18 +177,91 @@ def calibrate(
             "recording at their discovered values and recorded in the result, so that predict "
             "and rank apply them). Replaces --compliant-joints, --rigid, "
             "--virtual-axes, --gravity, --payload-kg and --payload-com.",
+            rich_help_panel=MODEL,
+        ),
+    ] = None,
+    rotation_weight: Annotated[float | None, _calibration_flag("rotation_weight_m_per_rad")] = None,
+    max_iterations: Annotated[int | None, _calibration_flag("max_iterations")] = None,
+    tolerance: Annotated[float | None, _calibration_flag("tolerance")] = None,
+    rank_tolerance: Annotated[float | None, _calibration_flag("rank_tolerance")] = None,
+    measurement: MeasurementOpt = None,
+    point_distance: PointDistanceOpt = None,
+    marker: MarkerOpt = None,
+    outlier_rule: Annotated[str | None, _calibration_flag("outlier_rule", "", OUTLIERS)] = None,
+    outlier_level: Annotated[float | None, _calibration_flag("outlier_level", "", OUTLIERS)] = None,
+    outlier_sigma: Annotated[
+        float | None, _calibration_flag("outlier_sigma", "; 0 disables", OUTLIERS)
+    ] = None,
+    covariance: Annotated[str | None, _calibration_flag("covariance", "", COVARIANCE)] = None,
+    solver: Annotated[str | None, _calibration_flag("covariance_solver", "", COVARIANCE)] = None,
+    estimator: Annotated[
+        str | None, _calibration_flag("covariance_estimator", "", COVARIANCE)
+    ] = None,
+    covariance_frames: Annotated[
+        str | None, _calibration_flag("covariance_frames", "; comma-separated", COVARIANCE)
+    ] = None,
+    covariance_axes: Annotated[
+        str | None, _calibration_flag("covariance_axes", "", COVARIANCE)
+    ] = None,
+    noise_std: Annotated[
+        str | None, _calibration_flag("noise_std", "; x,y,z,rx,ry,rz", COVARIANCE)
+    ] = None,
+    noise_covariance: Annotated[
+        Path | None,
+        _calibration_flag("noise_covariance", "; a JSON file holding the 6×6 array", COVARIANCE),
+    ] = None,
+    heldout: Annotated[
+        bool | None,
+        _calibration_flag("heldout", "", HELDOUT, "--heldout/--no-heldout"),
+    ] = None,
+    seeds: Annotated[str | None, _calibration_flag("seeds", "; comma-separated", HELDOUT)] = None,
+    train_fraction: Annotated[
+        float | None, _calibration_flag("train_fraction", "", HELDOUT)
+    ] = None,
+    executor: ExecutorOpt = None,
+    dask: DaskOpt = None,
+    chunk_rows: ChunkRowsOpt = None,
+    workers: WorkersOpt = None,
+    output: ResultOut = None,
+    out_dir: OutDirOpt = None,
+    export_urdf_to: Annotated[
+        Path | None,
+        typer.Option(
+            "--export-urdf",
+            help="Also write the calibrated URDF (a file name; not when the verdict is failed).",
+            rich_help_panel=OUTPUT,
+        ),
+    ] = None,
+    force_urdf: Annotated[
+        bool,
+        typer.Option(
+            help="Write --export-urdf even when the calibration's verdict is failed.",
+            rich_help_panel=OUTPUT,
+        ),
+    ] = False,
+    report: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also write the HTML report (figures embedded) to this file.",
+            rich_help_panel=OUTPUT,
         ),
     ] = None,
     show_options: Annotated[
         bool,
         typer.Option(
             help="Print the options the calibration would run with (config file, flags and "
-            "--model merged, checked against the robot) as JSON, and stop."
+            "--model merged, checked against the robot) as JSON, and stop.",
+            rich_help_panel=OUTPUT,
         ),
     ] = False,
 ) -> None:
     """Calibrate geometry, joint compliance (paper Eq. 8–10) and the covariances of the random
-    perturbations (Eq. 13–17) from recorded poses."""
+    perturbations (Eq. 13–17) from recorded poses.
+
+    Checks the recording first (units, joint limits, constant joints, repeated rows, enough
+    rows: exit code 2 with the fix), then writes the result JSON (and the files asked for) to
+    -o/--out-dir, lists every file written and ends with the verdict: exit code 0 when it is ok
+    or a warning, 3 when it failed."""
     description = _robot(robot, urdf, base, tip, dh)
     if rigid and compliant_joints is not None:
         raise KincalError("give --rigid or --compliant-joints, not both")
@@ -254,6 +314,22 @@ def calibrate(
                 "(run kincal discover with them instead)"
             )
         findings = read_findings(model)
+    outputs = Outputs(out_dir_for(out_dir, data, "calibration"))
+    result_path = outputs.path(output, "calibration.json", RESULT_KIND)
+    report_path = None if report is None else outputs.path(report, "report.html", None)
+    urdf_path = None if export_urdf_to is None else outputs.path(export_urdf_to, "", None)
+    if not show_options:
+        try:
+            preflight(data, description, options, marker)
+        except KincalError:
+            from service.app import calibrate as pipeline
+
+            # an option the robot refuses (a sensor joint, pose components) explains a
+            # recording read the wrong way: name it first
+            pipeline.check_calibration(description, options, findings)
+            raise
+    from service.app import calibrate as pipeline
+
     setup = pipeline.check_calibration(description, options, findings)
     if show_options:
         typer.echo(setup.options.model_dump_json(indent=1))
@@ -266,29 +342,48 @@ def calibrate(
         run = pipeline.calibrate_source(data, setup, executor=chosen, stream=stream, marker=marker)
     for note in run.notes:
         typer.echo(f"--model: {note}")
-    _write_json(output, run.result.model_dump_json(indent=1))
-    if report is not None:
-        _write_text(report, run.report_html())
+    outputs.write_text(
+        result_path, "calibration result", run.result.model_dump_json(indent=1) + "\n"
+    )
+    if report_path is not None:
+        outputs.write_text(report_path, "HTML report", run.report_html())
+    finish(run, outputs, urdf_path, force_urdf)
+
+
+def preflight(data: Path, description: object, options: object, marker: int | None) -> None:
+    """The pre-flight checks of :mod:`service.app.preflight` on ``data`` for the robot, before
+    the calibration pipeline is imported."""
+    from schemas.calibration import CalibrationOptions
+    from schemas.robots import RobotDescription
+    from service.app.preflight import check_recording
+    from service.render.chain import chain_for
+
+    assert isinstance(description, RobotDescription) and isinstance(options, CalibrationOptions)
+    check_recording(data, chain_for(description, options), options, marker=marker)
+
+
+def finish(run: CalibrationRun, outputs: Outputs, urdf_path: Path | None, force_urdf: bool) -> None:
+    """The summary, the URDF when asked and allowed, the files written and the one-line
+    verdict; exit code 3 when the verdict is failed."""
+    from service.render.text import summary, verdict_line, verdict_text
+
     verdict = run.result.verdict
     failed = verdict is not None and verdict.status == "failed"
-    if export_urdf_to is not None and not (failed and not force_urdf):
-        _write_text(export_urdf_to, run.urdf())
+    if urdf_path is not None and not (failed and not force_urdf):
+        outputs.write_text(urdf_path, "calibrated URDF", run.urdf())
     typer.echo(summary(run.result))
     typer.echo(f"\n{execution_summary(run)}")
-    typer.echo(f"result written to {output}")
     if verdict is not None and verdict.reasons:
         typer.echo(verdict_text(verdict), err=failed)
+    typer.echo(outputs.listing())
+    if urdf_path is not None and failed and not force_urdf:
+        typer.echo(f"not written: {urdf_path} (the verdict is failed; --force-urdf writes it)")
+    typer.echo(verdict_line(verdict), err=failed)
     if failed:
-        unwritten = " no URDF written (--force-urdf writes it);" if export_urdf_to else ""
-        typer.echo(
-            f"calibration failed: the result is written and marked (verdict);{unwritten} "
-            "exit code 3",
-            err=True,
-        )
         raise typer.Exit(3)
 
 
-def execution_summary(run: pipeline.CalibrationRun) -> str:
+def execution_summary(run: CalibrationRun) -> str:
     """Where and how long: "ran on processes (2 worker(s)) in 12.3 s, 8 passes over the data
     (read 2.4 s, ...)"."""
     stages = {k: v for k, v in run.timings.items() if k != "passes"}

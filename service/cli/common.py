@@ -4,61 +4,135 @@ several commands take, reading and writing the documents they exchange, the exec
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
-import pydantic
 import typer
 
-from schemas.calibration import CalibrationResult
 from schemas.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
 from service.cli.flags import numbers, option_help
 from solver.errors import KincalError
-from solver.executors import Executor
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # imported where used: ``kincal --help`` stays light (docs/architecture.md)
+    import pydantic
+
+    from schemas.calibration import CalibrationResult
     from schemas.discovery import FindingsResult
+    from solver.executors import Executor
 
-DocumentT = TypeVar("DocumentT", bound=pydantic.BaseModel)
+DocumentT = TypeVar("DocumentT", bound="pydantic.BaseModel")
+
+# The help panels of ``kincal <command> --help``, in the order they are shown.
+RECORDING = "Recording and robot"
+MODEL = "Model"
+MEASUREMENT = "Measurement"
+OUTLIERS = "Outliers"
+COVARIANCE = "Covariance"
+HELDOUT = "Held-out"
+EXECUTION = "Execution"
+OUTPUT = "Output"
 
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
-    rich_markup_mode=None,
+    rich_markup_mode="rich",
     help="Calibrate robot kinematics, including the randomness inside the chain.",
 )
 
+
+def _show_version(value: bool) -> None:
+    if value:
+        from service import kincal_version
+
+        typer.echo(f"kincal {kincal_version()}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _kincal(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", is_eager=True, callback=_show_version, help="Print the version and exit."
+        ),
+    ] = False,
+) -> None:
+    """Calibrate robot kinematics, including the randomness inside the chain (paper: Gerstewitz
+    et al.). Start with `kincal calibrate RECORDING --robot NAME`; docs: docs/index.md."""
+
+
 RobotOpt = Annotated[
-    str | None, typer.Option("--robot", help=f"Built-in robot: {', '.join(BUILTIN_ROBOTS)}.")
+    str | None,
+    typer.Option(
+        "--robot",
+        help=f"Built-in robot: {', '.join(BUILTIN_ROBOTS)}.",
+        rich_help_panel=RECORDING,
+    ),
 ]
-UrdfOpt = Annotated[Path | None, typer.Option("--urdf", help="A URDF file instead of --robot.")]
-BaseOpt = Annotated[str | None, typer.Option("--base", help="Base frame (with --urdf).")]
-TipOpt = Annotated[str | None, typer.Option("--tip", help="Tip frame (with --urdf).")]
+UrdfOpt = Annotated[
+    Path | None,
+    typer.Option("--urdf", help="A URDF file instead of --robot.", rich_help_panel=RECORDING),
+]
+BaseOpt = Annotated[
+    str | None, typer.Option("--base", help="Base frame (with --urdf).", rich_help_panel=RECORDING)
+]
+TipOpt = Annotated[
+    str | None, typer.Option("--tip", help="Tip frame (with --urdf).", rich_help_panel=RECORDING)
+]
 DhOpt = Annotated[
     Path | None,
     typer.Option(
         "--dh",
         help="A DH or modified-DH table (YAML, docs/dh.md) instead of --robot/--urdf, for "
         "devices without a URDF.",
+        rich_help_panel=RECORDING,
     ),
 ]
 DataArg = Annotated[
     Path,
     typer.Argument(
         help="Dataset: CSV, Parquet, JSON or industrial_calibration YAML; or a folder of "
-        "ball-in-socket hole_<k>.csv files."
+        "ball-in-socket hole_<k>.csv files.",
+        metavar="RECORDING",
+        show_default=False,
     ),
 ]
-OutputOpt = Annotated[Path, typer.Option("-o", "--output", help="Output file.")]
-MeasurementOpt = Annotated[str | None, typer.Option(help=option_help("measurement"))]
-PointDistanceOpt = Annotated[float | None, typer.Option(help=option_help("point_distance_m"))]
+OutDirOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--out-dir",
+        help="Folder for every file this command writes that has no path of its own "
+        "[default: out/<recording name>/].",
+        rich_help_panel=OUTPUT,
+        show_default=False,
+    ),
+]
+MeasurementOpt = Annotated[
+    str | None,
+    typer.Option(
+        help=option_help("measurement"),
+        metavar="auto|pose|position|point|markers|relative-base|components:…|eye-on-head:…",
+        rich_help_panel=MEASUREMENT,
+    ),
+]
+PointDistanceOpt = Annotated[
+    float | None, typer.Option(help=option_help("point_distance_m"), rich_help_panel=MEASUREMENT)
+]
+MarkerOpt = Annotated[
+    int | None,
+    typer.Option(help="FIGAROH files: which marker [default: all].", rich_help_panel=MEASUREMENT),
+]
 ExecutorOpt = Annotated[
     str | None,
     typer.Option(
         help="Where the passes over the data run: inprocess, processes (local, one per core) "
         "or dask. Default: local processes for a file of more than one chunk on a machine with "
-        "several cores, else in this process. The numbers do not depend on it."
+        "several cores, else in this process. The numbers do not depend on it.",
+        metavar="inprocess|processes|dask",
+        rich_help_panel=EXECUTION,
     ),
 ]
 DaskOpt = Annotated[
@@ -67,14 +141,141 @@ DaskOpt = Annotated[
         "--dask",
         help="Dask scheduler address (tcp://host:8786), implies --executor dask; without it "
         "--executor dask uses KINCAL_DASK_ADDRESS or starts a local cluster.",
+        rich_help_panel=EXECUTION,
     ),
 ]
 ChunkRowsOpt = Annotated[
-    int | None, typer.Option(min=1, help="Rows per streamed chunk [65536; Parquet: row groups].")
+    int | None,
+    typer.Option(
+        min=1,
+        help="Rows per streamed chunk [default: 65536; Parquet: row groups].",
+        rich_help_panel=EXECUTION,
+    ),
 ]
 WorkersOpt = Annotated[
-    int | None, typer.Option(min=1, help="Processes for --executor processes/local dask [cores].")
+    int | None,
+    typer.Option(
+        min=1,
+        help="Processes for --executor processes/local dask [default: cores].",
+        rich_help_panel=EXECUTION,
+    ),
 ]
+
+
+def output_option(default_name: str, what: str) -> Any:
+    """The ``-o/--output`` option of a command whose main file is ``default_name`` in the
+    output folder."""
+    return typer.Option(
+        "-o",
+        "--output",
+        help=f"{what} [default: <out-dir>/{default_name}].",
+        rich_help_panel=OUTPUT,
+        show_default=False,
+    )
+
+
+# --- where a command writes, and saying what it wrote -------------------------------------------
+
+OUT_ROOT = Path("out")
+"""Commands write under ``out/<recording name>/`` unless told otherwise (``make demo``:
+``out/demo``), so examples run in a checkout leave nothing in its root."""
+
+_PREDICTION_COLUMNS = {"sample_id", "x", "y", "z", "qx", "qy", "qz", "qw"} | {
+    f"cov_{i}{j}" for i in range(6) for j in range(6)
+}
+
+
+_CSV_KINDS = {"predictions": "predicted poses (kincal predict)", "recording": "a recording"}
+
+
+def default_out_dir(recording: Path) -> Path:
+    """``out/<name>/``: the recording's file name without its suffix, or its folder name."""
+    name = recording.name if recording.is_dir() else recording.stem
+    return OUT_ROOT / (name or "kincal")
+
+
+def file_kind(path: Path) -> str | None:
+    """What an existing output file holds, in words, when kincal can tell: the ``format`` of a
+    kincal JSON document, or the kind of a CSV by its header; None otherwise."""
+    try:
+        if path.suffix == ".json":
+            with path.open("rb") as handle:
+                head = handle.read(4096).decode("utf-8", "replace")
+            found = head.split('"format"', 1)
+            if len(found) == 2:
+                value = found[1].split('"', 2)
+                return value[1] if len(value) == 3 else None
+            if path.stat().st_size > 16 * 1024 * 1024:
+                return None
+            document = json.loads(path.read_bytes())  # "format" last (kincal fleet)
+            found_format = document.get("format") if isinstance(document, dict) else None
+            return found_format if isinstance(found_format, str) else None
+        if path.suffix == ".csv":
+            with path.open(encoding="utf-8", errors="replace") as handle:
+                header = {c.strip() for c in handle.readline().split(",")}
+            pose = {"x", "y", "z"}
+            if "cov_00" in header or (pose <= header and header <= _PREDICTION_COLUMNS):
+                return _CSV_KINDS["predictions"]
+            return _CSV_KINDS["recording"] if pose <= header else "joint configurations"
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+@dataclass
+class Outputs:
+    """The files of one command run: their paths are settled (and checked) before the work
+    starts, and each is listed once written, so the user sees every file a command wrote.
+
+    An existing file that holds another kind of document than the one a path will receive
+    (another command's result) is never replaced: :class:`KincalError` before any work."""
+
+    out_dir: Path
+    written: list[tuple[Path, str, bool]] = field(default_factory=list)
+
+    def path(self, given: Path | None, default_name: str, kind: str | None) -> Path:
+        """``given`` or ``<out_dir>/<default_name>``, refused when it holds another kind."""
+        path = given if given is not None else self.out_dir / default_name
+        if path.is_dir():
+            raise KincalError(f"{path} is a folder; give a file name for this output")
+        if path.exists() and kind is not None:
+            held = file_kind(path)
+            if held is not None and held != kind:
+                raise KincalError(
+                    f"{path} already holds {held}; this command would replace it with {kind}: "
+                    "give another output name (-o/--out-dir) or remove the file"
+                )
+        return path
+
+    def write(self, path: Path, what: str, write: Callable[[Path], object]) -> None:
+        """Write ``path`` atomically (a temporary file renamed) and remember it."""
+        existed = path.exists()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")  # same suffix: same format
+        write(tmp)
+        tmp.replace(path)
+        self.written.append((path, what, existed))
+
+    def write_text(self, path: Path, what: str, text: str) -> None:
+        self.write(path, what, lambda p: p.write_text(text, encoding="utf-8"))
+
+    def note(self, path: Path, what: str) -> None:
+        """A file written by someone else on this command's behalf (e.g. a figure)."""
+        self.written.append((path, what, False))
+
+    def listing(self) -> str:
+        """ "wrote:" and one line per file: path, what it holds, "(replaced)" if it existed."""
+        lines = ["wrote:"]
+        for path, what, replaced in self.written:
+            lines.append(f"  {path}  {what}{' (replaced)' if replaced else ''}")
+        return "\n".join(lines) if self.written else "wrote: nothing"
+
+
+def out_dir_for(out_dir: Path | None, recording: Path | None, fallback: str) -> Path:
+    """The output folder: ``--out-dir``, else ``out/<recording name>/``, else ``out/<fallback>``."""
+    if out_dir is not None:
+        return out_dir
+    return default_out_dir(recording) if recording is not None else OUT_ROOT / fallback
 
 
 def _robot(
@@ -96,16 +297,11 @@ def _vector3(text: str, option: str) -> tuple[float, float, float]:
     return x, y, z
 
 
-def _write_json(path: Path, document: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(document + "\n", encoding="utf-8")
-    tmp.replace(path)
-
-
 def _read_document(path: Path, model: type[DocumentT], what: str, producer: str) -> DocumentT:
     """A JSON document of ``model`` from ``path`` (what: "calibration result"; producer: the
     command that writes it), with a one-line error naming the first bad field otherwise."""
+    import pydantic
+
     try:
         return model.model_validate_json(path.read_bytes())
     except OSError as exc:
@@ -121,6 +317,8 @@ def _read_document(path: Path, model: type[DocumentT], what: str, producer: str)
 
 def read_result(path: Path) -> CalibrationResult:
     """Load a result JSON written by ``kincal calibrate``, with a one-line error otherwise."""
+    from schemas.calibration import CalibrationResult
+
     return _read_document(path, CalibrationResult, "calibration result", "calibrate")
 
 
@@ -149,11 +347,6 @@ def _integers(text: str, option: str) -> list[int]:
     if not all(v == int(v) for v in values):
         raise KincalError(f"{option} takes comma-separated integers, got {text!r}")
     return [int(v) for v in values]
-
-
-def _write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text, encoding="utf-8")
 
 
 def _prediction_note(result: CalibrationResult) -> None:

@@ -34,7 +34,7 @@ from service.api.client import KincalClient
 from service.app import simulate as scenarios
 from service.render import result_json
 from service.render.plots import residual_histograms
-from service.render.text import summary
+from service.render.text import summary, verdict_line
 from service.settings import Settings
 from solver.calibration import pose_errors
 from solver.model import sample_configurations
@@ -186,7 +186,10 @@ def run_demo(output_dir: Path, *, echo: Callable[[str], None] = print) -> dict[s
     echo("")
     _print_ranking(ranking, candidates, echo)
     echo(f"\nreport: {report_path.resolve()}")
-    echo(f"files in {output_dir}: {', '.join(sorted(p.name for p in output_dir.iterdir()))}")
+    echo("wrote:")
+    for path in sorted(p for p in output_dir.iterdir() if p.is_file()):
+        echo(f"  {path}")
+    echo(verdict_line(result.verdict))
     assert result.fit.after.heldout is not None and result.fit.before.heldout is not None
     return {
         "heldout_before_mm": result.fit.before.heldout.translation_mean_mm,

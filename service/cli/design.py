@@ -5,28 +5,29 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
-import pandas as pd
-import pydantic
 import typer
 
-from schemas.dataset import read_configurations
-from schemas.design import DesignOptions, DesignResult
-from service.cli.flags import calibration_options, numbers, read_config
-from solver.errors import KincalError
-
-if TYPE_CHECKING:
-    pass
 from service.cli.common import (
+    OUTPUT,
     BaseOpt,
-    OutputOpt,
+    OutDirOpt,
+    Outputs,
     PointDistanceOpt,
     RobotOpt,
     TipOpt,
     UrdfOpt,
     _robot,
-    _write_json,
+    out_dir_for,
+    output_option,
     read_result,
 )
+from service.cli.flags import calibration_options, numbers, read_config
+from solver.errors import KincalError
+
+if TYPE_CHECKING:
+    from schemas.design import DesignOptions, DesignResult
+
+DesignOut = Annotated[Path | None, output_option("design.json", "The design JSON")]
 
 DESIGN_FLAGS = {
     "n_poses": "--poses",
@@ -50,6 +51,10 @@ DESIGN_FLAGS = {
 
 def _design_options(values: dict[str, object]) -> DesignOptions:
     """DesignOptions from flags, with a one-line error naming the flag."""
+    import pydantic
+
+    from schemas.design import DesignOptions
+
     try:
         return DesignOptions.model_validate({k: v for k, v in values.items() if v is not None})
     except pydantic.ValidationError as exc:
@@ -94,7 +99,8 @@ def _cone(text: str) -> dict[str, object]:
 
 
 def design(
-    output: OutputOpt,
+    output: DesignOut = None,
+    out_dir: OutDirOpt = None,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
@@ -184,20 +190,32 @@ def design(
         typer.Option(help="TOML file of calibration options (as for kincal calibrate)."),
     ] = None,
     poses_csv: Annotated[
-        Path | None, typer.Option(help="Also write the chosen configurations as CSV.")
+        Path | None,
+        typer.Option(
+            help="Also write the chosen configurations as CSV (joint columns) to this file.",
+            rich_help_panel=OUTPUT,
+        ),
     ] = None,
 ) -> None:
     """Choose the K poses to record that tell the calibration most (D-, A-, E- or I-optimal
     design as a convex relaxation, rounded; the relaxation's bound is reported)."""
     from service.app import design as designs
 
+    outputs = Outputs(out_dir_for(out_dir, recording, "design"))
+    path = outputs.path(output, "design.json", "kincal.design/1")
+    csv_path = None if poses_csv is None else outputs.path(poses_csv, "", "joint configurations")
     if (result is None) != (recording is None):
         raise KincalError("a sequential design needs both --result and --recording")
     recorded = None
     if result is not None and recording is not None:
         if config is not None:
             raise KincalError("--result carries its calibration options; drop --config")
-        description, recorded = designs.recorded_design(read_result(result), recording)
+        from service.app.preflight import check_recording
+        from service.render.result_json import result_chain
+
+        calibration = read_result(result)
+        check_recording(recording, result_chain(calibration)[0])
+        description, recorded = designs.recorded_design(calibration, recording)
     else:
         description = _robot(robot, urdf, base, tip)
     options = _design_options(
@@ -232,6 +250,8 @@ def design(
         given, sockets = designs.read_candidates(candidates, model)
     task_q = None
     if task is not None:
+        from schemas.dataset import read_configurations
+
         task_q = read_configurations(
             task, chain.joint_names, other_joint_names=chain.other_joint_names
         ).joint_positions
@@ -244,13 +264,25 @@ def design(
         model=model,
         sockets=sockets,
     )
-    _write_json(output, out.model_dump_json(indent=1))
-    if poses_csv is not None:
+    outputs.write_text(
+        path, f"design of {len(out.poses)} poses", out.model_dump_json(indent=1) + "\n"
+    )
+    if csv_path is not None:
+        import pandas as pd
+
         frame = pd.DataFrame([pose.joint_positions for pose in out.poses], columns=out.joint_names)
-        poses_csv.parent.mkdir(parents=True, exist_ok=True)
-        frame.to_csv(poses_csv, index=False, float_format="%.17g")
+        outputs.write(
+            csv_path,
+            f"the {len(out.poses)} chosen configurations",
+            lambda p: frame.to_csv(p, index=False, float_format="%.17g"),
+        )
     typer.echo(design_summary(out))
-    typer.echo(f"design written to {output}")
+    typer.echo(outputs.listing())
+    c = out.criterion
+    typer.echo(
+        f"verdict: {len(out.poses)} poses chosen, {100 * c.efficiency:.1f} % of the relaxation's "
+        f"bound ({c.status}): record them, then kincal calibrate (exit code 0)"
+    )
 
 
 def design_summary(out: DesignResult) -> str:

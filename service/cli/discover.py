@@ -3,21 +3,18 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import Annotated
 
-import pydantic
 import typer
 
-from service.cli.flags import CALIBRATION_FLAGS
-from solver.errors import KincalError
-
-if TYPE_CHECKING:
-    pass
 from service.cli.common import (
+    OUTPUT,
     BaseOpt,
     DataArg,
+    MarkerOpt,
     MeasurementOpt,
-    OutputOpt,
+    OutDirOpt,
+    Outputs,
     PointDistanceOpt,
     RobotOpt,
     TipOpt,
@@ -25,14 +22,18 @@ from service.cli.common import (
     _names,
     _robot,
     _vector3,
-    _write_json,
-    _write_text,
+    out_dir_for,
+    output_option,
 )
+from service.cli.flags import CALIBRATION_FLAGS
+from service.cli.generated_help import DISCOVERY_EFFECTS
+from solver.errors import KincalError
+
+FindingsOut = Annotated[Path | None, output_option("findings.json", "The findings JSON")]
 
 
 def discover(
     data: DataArg,
-    output: OutputOpt,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
@@ -65,17 +66,29 @@ def discover(
     noise_deg: Annotated[float | None, typer.Option(help="Sensor noise σ (deg).")] = None,
     measurement: MeasurementOpt = None,
     point_distance: PointDistanceOpt = None,
-    marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
-    plots: Annotated[bool, typer.Option(help="Write a PNG per finding next to -o.")] = True,
+    marker: MarkerOpt = None,
+    output: FindingsOut = None,
+    out_dir: OutDirOpt = None,
+    plots: Annotated[
+        bool, typer.Option(help="Write a PNG per finding next to -o.", rich_help_panel=OUTPUT)
+    ] = True,
     report: Annotated[
-        Path | None, typer.Option(help="Also write the HTML report (figures embedded).")
+        Path | None,
+        typer.Option(
+            help="Also write the HTML report (figures embedded) to this file.",
+            rich_help_panel=OUTPUT,
+        ),
     ] = None,
 ) -> None:
     """Find what the model leaves out, name the physics, model it, show the held-out gain."""
+    import pydantic
+
     from schemas.discovery import DiscoveryOptions
-    from service.app import discover as discovery
 
     description = _robot(robot, urdf, base, tip)
+    outputs = Outputs(out_dir_for(out_dir, data, "discovery"))
+    output = outputs.path(output, "findings.json", "kincal.findings/1")
+    report_path = None if report is None else outputs.path(report, "findings.html", None)
     try:
         options = DiscoveryOptions(
             compliant_joints=_names(compliant_joints) or [],
@@ -86,7 +99,7 @@ def discover(
             alpha=alpha,
             seed=seed,
             max_terms=max_terms,
-            effects=_names(effects) or list(discovery.EFFECTS),  # type: ignore[arg-type]
+            effects=_names(effects) or list(DISCOVERY_EFFECTS),  # type: ignore[arg-type]
             folds=folds,
             bootstrap=bootstrap,
             detectability=detectability,
@@ -102,20 +115,60 @@ def discover(
             f"option {first['loc'][0]}{f' ({flag})' if flag else ''}: {first['msg']} "
             f"(got {first.get('input')!r})"
         ) from exc
+    preflight_discovery(data, description, options.measurement, marker)
+    from service.app import discover as discovery
+
     plot_dir = output.resolve().parent if plots else None
+    if plot_dir is not None:
+        plot_dir.mkdir(parents=True, exist_ok=True)
     findings = discovery.discover_source(
         data, description, options, plot_dir, output.stem, marker=marker
     )
-    _write_json(output, findings.model_dump_json(indent=1))
-    typer.echo(discovery.summary(findings))
-    typer.echo(f"\nfindings written to {output}")
+    outputs.write_text(output, "findings", findings.model_dump_json(indent=1) + "\n")
     figures = [f.plot for f in findings.findings if f.plot is not None and plot_dir is not None]
     for name in figures:
-        typer.echo(f"figure written to {output.parent / name}")
-    if report is not None:
+        outputs.note(output.parent / name, "figure of a finding")
+    if report_path is not None:
         from service.app.discovery_html import render_discovery_report
 
         assert plot_dir is not None or not figures
         embedded = {name: (output.parent / name).read_bytes() for name in figures}
-        _write_text(report, render_discovery_report(findings, embedded))
-        typer.echo(f"report written to {report}")
+        outputs.write_text(report_path, "HTML report", render_discovery_report(findings, embedded))
+    typer.echo(discovery.summary(findings))
+    typer.echo(outputs.listing())
+    typer.echo(findings_line(findings))
+
+
+def preflight_discovery(
+    data: Path, description: object, measurement: str, marker: int | None
+) -> None:
+    """The pre-flight checks (:mod:`service.app.preflight`) before discovery's fits."""
+    from schemas.robots import RobotDescription
+    from service.app.preflight import check_recording
+    from solver.model import build_chain
+
+    assert isinstance(description, RobotDescription)
+    chain = build_chain(description.urdf_xml, description.base_frame, description.tip_frame)
+    check_recording(data, chain, marker=marker, measurement=measurement)
+
+
+def findings_line(findings: object) -> str:
+    """The one-line verdict of a discovery: what it named, or that nothing is missing."""
+    from schemas.discovery import FindingsResult
+
+    assert isinstance(findings, FindingsResult)
+    named = len(findings.findings)
+    parts = [f"{named} effect(s) named"] if named else ["nothing named"]
+    if findings.ambiguous:
+        parts.append(f"{len(findings.ambiguous)} ambiguous")
+    if findings.unexplained:
+        parts.append(f"{len(findings.unexplained)} unexplained")
+    if named:
+        advice = "calibrate with --model on the findings file to carry them"
+    elif findings.unexplained:
+        advice = "read the unexplained structure above"
+    elif findings.ambiguous:
+        advice = "the data cannot tell the ambiguous terms apart (see above)"
+    else:
+        advice = "the model describes the recording"
+    return f"verdict: {', '.join(parts)}: {advice} (exit code 0)"

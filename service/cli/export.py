@@ -4,34 +4,38 @@ robot controller or the HTTP service reads."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import Annotated
 
 import typer
 
 from schemas.robots import load_robot
+from service.cli.common import OUTPUT, Outputs, read_result
 from solver.errors import KincalError
 
-if TYPE_CHECKING:
-    pass
-from service.cli.common import OutputOpt, _write_text, read_result
+OutputFile = Annotated[
+    Path, typer.Option("-o", "--output", help="The file to write.", rich_help_panel=OUTPUT)
+]
 
 
 def dh_urdf_command(
     table: Annotated[Path, typer.Argument(help="DH or modified-DH table (YAML, docs/dh.md).")],
-    output: OutputOpt,
+    output: OutputFile,
 ) -> None:
     """Write the URDF kincal builds from a DH table (e.g. to upload the robot to the HTTP
     service, POST /api/v1/robots, with the table's base and tip frames)."""
     description = load_robot(dh_path=table)
-    _write_text(output, description.urdf_xml)
-    typer.echo(
-        f"wrote {output} (base frame {description.base_frame}, tip frame {description.tip_frame})"
+    outputs = Outputs(output.parent)
+    outputs.write_text(
+        outputs.path(output, output.name, None),
+        f"URDF (base frame {description.base_frame}, tip frame {description.tip_frame})",
+        description.urdf_xml,
     )
+    typer.echo(outputs.listing())
 
 
 def export_command(
     result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result JSON.")],
-    output: OutputOpt,
+    output: OutputFile,
     format: Annotated[
         str,
         typer.Option(
@@ -68,7 +72,15 @@ def export_command(
             "(--force exports it anyway)"
         )
     chosen: exports.ExportFormat = format  # type: ignore[assignment]
-    _write_text(output, exports.export(result, chosen, measurement_frame=measurement_frame))
+    outputs = Outputs(output.parent)
+    outputs.write_text(
+        outputs.path(output, output.name, None),
+        f"{format} export",
+        exports.export(result, chosen, measurement_frame=measurement_frame),
+    )
     for line in exports.not_expressed(result) + exports.offsets_not_exact(result, chosen):
         typer.echo(f"not expressed: {line}", err=True)
-    typer.echo(f"wrote {format} to {output}")
+    typer.echo(outputs.listing())
+    from service.render.text import verdict_line
+
+    typer.echo(f"calibration {verdict_line(verdict)}")

@@ -8,14 +8,16 @@ import json
 import math
 import tomllib
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-import pydantic
-
-from schemas.calibration import CalibrationOptions
-from schemas.ranking import RankingOptions, TargetRankingRequest
+from service.cli.generated_help import CALIBRATION
 from solver.errors import KincalError
+
+if TYPE_CHECKING:  # imported where used: ``kincal --help`` loads no pydantic model or numpy
+    import pydantic
+
+    from schemas.calibration import CalibrationOptions
+    from schemas.ranking import RankingOptions, TargetRankingRequest
 
 
 def numbers(text: str, option: str, count: int | None = None) -> list[float]:
@@ -68,15 +70,15 @@ model and the command's flags in step."""
 
 
 def option_help(field: str, extra: str = "") -> str:
-    """A calibrate flag's help: the option's description and its default, from the model."""
-    info = CalibrationOptions.model_fields[field]
-    default = info.get_default(call_default_factory=True)
-    if isinstance(default, (tuple, list)):
-        shown = ",".join(str(v) for v in default) if default else "none"
-    else:
-        shown = "none" if default is None else str(default)
-    text = (info.description or field).rstrip(".")
-    return f"{text}{extra} [{field}; default {shown}]"
+    """A calibrate flag's help: the option's description, its config key and its default in
+    words (from the model, through :mod:`service.cli.generated_help`)."""
+    description, default, _ = CALIBRATION[field]
+    return f"{description.rstrip('.')}{extra}. [config: {field}] [default: {default}]"
+
+
+def option_choices(field: str) -> list[str] | None:
+    """The values a calibration option takes, when it is a choice (None otherwise)."""
+    return list(CALIBRATION[field][2]) or None
 
 
 def read_config(path: Path) -> dict[str, Any]:
@@ -108,6 +110,10 @@ def calibration_options(
     """The options of a config file (or none) overridden by the flags given (``None`` values
     are flags not given), on top of a command's own ``defaults`` where it differs from the
     model's; a one-line error naming the option and its flag otherwise."""
+    import pydantic
+
+    from schemas.calibration import CalibrationOptions
+
     values = {**(defaults or {}), **(config or {})}
     values.update({name: value for name, value in flags.items() if value is not None})
     try:
@@ -127,6 +133,8 @@ def calibration_options(
 
 def read_weight_matrix(path: Path) -> list[list[float]]:
     """A 6×6 W from a JSON file (nested list) or a text file of 6 rows of 6 numbers."""
+    import numpy as np
+
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -157,6 +165,10 @@ def ranking_options_from_flags(
     uncertainty: str = "random_effects",
 ) -> RankingOptions:
     """``kincal rank`` flags -> :class:`RankingOptions` (exclusive choices checked)."""
+    import pydantic
+
+    from schemas.ranking import RankingOptions
+
     if task_point is not None and (weights is not None or weight_matrix is not None):
         raise KincalError("--task-point replaces --weights/--weight-matrix; give one of them")
     if weights is not None and weight_matrix is not None:
@@ -197,6 +209,10 @@ def target_request(
     payload_kg: float,
 ) -> TargetRankingRequest:
     """``--target x,y,z,qx,qy,qz,qw`` and friends -> :class:`TargetRankingRequest`."""
+    import pydantic
+
+    from schemas.ranking import TargetRankingRequest
+
     values = numbers(target, "--target", 7)
     try:
         return TargetRankingRequest.model_validate(

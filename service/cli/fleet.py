@@ -8,15 +8,19 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from service.cli.flags import calibration_options, option_help, read_config
-from solver.errors import KincalError
-
-if TYPE_CHECKING:
-    pass
 from service.cli.common import (
+    COVARIANCE,
+    EXECUTION,
+    HELDOUT,
+    MODEL,
+    OUTLIERS,
+    OUTPUT,
+    RECORDING,
     BaseOpt,
     DaskOpt,
-    OutputOpt,
+    MarkerOpt,
+    OutDirOpt,
+    Outputs,
     RobotOpt,
     TipOpt,
     UrdfOpt,
@@ -24,8 +28,16 @@ from service.cli.common import (
     _executor,
     _names,
     _robot,
-    _write_json,
+    out_dir_for,
+    output_option,
 )
+from service.cli.flags import calibration_options, option_help, read_config
+from solver.errors import KincalError
+
+if TYPE_CHECKING:
+    from schemas.robots import RobotDescription
+
+FleetOut = Annotated[Path | None, output_option("fleet.json", "The fleet summary JSON")]
 
 
 def fleet(
@@ -36,44 +48,79 @@ def fleet(
             "ball-in-socket sub-folders (folder name = serial)."
         ),
     ],
-    output: OutputOpt,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
     tip: TipOpt = None,
     config: Annotated[
         Path | None,
-        typer.Option(help="TOML file of calibration options, as for kincal calibrate."),
+        typer.Option(
+            help="TOML file of calibration options, as for kincal calibrate.",
+            rich_help_panel=RECORDING,
+        ),
     ] = None,
     compliant_joints: Annotated[
-        str | None, typer.Option(help=option_help("compliant_joints", "; comma-separated"))
+        str | None,
+        typer.Option(
+            help=option_help("compliant_joints", "; comma-separated"), rich_help_panel=MODEL
+        ),
     ] = None,
     rigid: Annotated[
-        bool, typer.Option(help="No joint compliance at all (compliant_joints = []).")
+        bool,
+        typer.Option(
+            help="No joint compliance at all (compliant_joints = []).", rich_help_panel=MODEL
+        ),
     ] = False,
-    outlier_rule: Annotated[str | None, typer.Option(help=option_help("outlier_rule"))] = None,
-    outlier_sigma: Annotated[float | None, typer.Option(help=option_help("outlier_sigma"))] = None,
-    covariance: Annotated[str | None, typer.Option(help=option_help("covariance"))] = None,
-    estimator: Annotated[str | None, typer.Option(help=option_help("covariance_estimator"))] = None,
+    outlier_rule: Annotated[
+        str | None, typer.Option(help=option_help("outlier_rule"), rich_help_panel=OUTLIERS)
+    ] = None,
+    outlier_sigma: Annotated[
+        float | None, typer.Option(help=option_help("outlier_sigma"), rich_help_panel=OUTLIERS)
+    ] = None,
+    covariance: Annotated[
+        str | None, typer.Option(help=option_help("covariance"), rich_help_panel=COVARIANCE)
+    ] = None,
+    estimator: Annotated[
+        str | None,
+        typer.Option(help=option_help("covariance_estimator"), rich_help_panel=COVARIANCE),
+    ] = None,
     heldout: Annotated[
         bool | None,
         typer.Option(
-            "--heldout/--no-heldout", help="Held-out splits per robot (slower; off for fleets)."
+            "--heldout/--no-heldout",
+            help="Held-out splits per robot (slower) [default: off for fleets].",
+            rich_help_panel=HELDOUT,
         ),
     ] = None,
     z_threshold: Annotated[
-        float, typer.Option(min=0.0, help="Robust z-score beyond which a robot is an outlier.")
+        float,
+        typer.Option(
+            min=0.0,
+            help="Robust z-score beyond which a robot is an outlier (at least the family-wise "
+            "level of the fleet's size).",
+            rich_help_panel=OUTLIERS,
+        ),
     ] = 3.5,
-    results_dir: Annotated[
-        Path | None, typer.Option(help="Also write each robot's result JSON here.")
-    ] = None,
-    marker: Annotated[int | None, typer.Option(help="FIGAROH files: which marker.")] = None,
+    marker: MarkerOpt = None,
     executor: Annotated[
         str | None,
-        typer.Option(help="Run robots inprocess (default), on local processes or on dask."),
+        typer.Option(
+            help="Run robots inprocess (default), on local processes or on dask.",
+            metavar="inprocess|processes|dask",
+            rich_help_panel=EXECUTION,
+        ),
     ] = None,
     dask: DaskOpt = None,
     workers: WorkersOpt = None,
+    output: FleetOut = None,
+    out_dir: OutDirOpt = None,
+    results_dir: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also write each robot's result JSON (<serial>.json) in this folder.",
+            rich_help_panel=OUTPUT,
+        ),
+    ] = None,
 ) -> None:
     """Calibrate every robot of a fleet (one dataset per serial) in parallel; summarise the
     population spread of each parameter and flag robots that are outliers (e.g. a worn
@@ -95,22 +142,49 @@ def fleet(
         },
         defaults={"heldout": False},
     )
+    outputs = Outputs(out_dir_for(out_dir, None, f"{directory.resolve().name}_fleet"))
+    path = outputs.path(output, "fleet.json", fleet_mode.FLEET_FORMAT)
     datasets = fleet_mode.fleet_datasets(directory)
+    preflight_fleet(datasets, description, options, marker)
     chosen = _executor(executor, dask, workers)
     with chosen or contextlib.nullcontext():
         report, outcomes = fleet_mode.calibrate_fleet(
             datasets, description, options, chosen, marker=marker, z_threshold=z_threshold
         )
-    _write_json(output, report.to_json())
+    outputs.write_text(path, f"fleet summary of {len(outcomes)} robots", report.to_json() + "\n")
     if results_dir is not None:
         for outcome in outcomes:
             if outcome.result is not None:
-                _write_json(
-                    results_dir / f"{outcome.serial}.json",
-                    outcome.result.model_dump_json(indent=1),
+                outputs.write_text(
+                    outputs.path(
+                        results_dir / f"{outcome.serial}.json", "", "kincal.calibration/1"
+                    ),
+                    f"calibration result of {outcome.serial}",
+                    outcome.result.model_dump_json(indent=1) + "\n",
                 )
     typer.echo(fleet_mode.fleet_table(report))
-    typer.echo(f"\nfleet summary written to {output}")
+    typer.echo(outputs.listing())
+    typer.echo(fleet_mode.fleet_verdict_line(report))
+
+
+def preflight_fleet(
+    datasets: object, description: RobotDescription, options: object, marker: int | None
+) -> None:
+    """Every robot's recording through the pre-flight checks before any robot is fitted: a
+    fleet refused halfway would have wasted the robots before it."""
+    from schemas.calibration import CalibrationOptions
+    from service.app.preflight import check_recording
+    from service.render.chain import chain_for
+    from solver.errors import DatasetError
+
+    assert isinstance(options, CalibrationOptions)
+    chain = chain_for(description, options)
+    assert isinstance(datasets, dict)
+    for serial, source in datasets.items():
+        try:
+            check_recording(source, chain, options, marker=marker)
+        except DatasetError as exc:
+            raise DatasetError(f"robot {serial}: {exc}") from exc
 
 
 # --- designs (issue 16) ----------------------------------------------------------------------

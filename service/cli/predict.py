@@ -6,25 +6,53 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
-import pandas as pd
 import typer
 
-from schemas.dataset import read_configurations
+from service.cli.common import (
+    OUTPUT,
+    Outputs,
+    _prediction_note,
+    output_option,
+    read_result,
+)
 from service.cli.flags import ranking_options_from_flags, target_request
-from service.render import result_json
-from service.render.text import ranking_summary
-from solver import lie
 from solver.errors import KincalError
 
 if TYPE_CHECKING:
-    pass
-from service.cli.common import OutputOpt, _prediction_note, _write_json, read_result
+    from schemas.dataset import ConfigurationSet
+    from solver.model import KinematicChain
+
+PredictionsOut = Annotated[Path | None, output_option("predictions.csv", "The predictions CSV")]
+ResultOutDirOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--out-dir",
+        help="Folder for the output [default: the folder of RESULT].",
+        rich_help_panel=OUTPUT,
+        show_default=False,
+    ),
+]
+RankingOut = Annotated[Path | None, output_option("ranking.json", "The ranking JSON")]
+
+
+def _configurations(configs: Path, chain: KinematicChain) -> ConfigurationSet:
+    """The configurations file, read for ``chain`` and checked like a recording's joints
+    (radians, within the limits: :func:`service.app.preflight.check_configurations`)."""
+    from schemas.dataset import read_configurations
+    from service.app.preflight import check_configurations
+
+    configurations = read_configurations(
+        configs, chain.joint_names, other_joint_names=chain.other_joint_names
+    )
+    check_configurations(configurations.joint_positions, chain, configs.name)
+    return configurations
 
 
 def predict(
     result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result JSON.")],
     configs: Annotated[Path, typer.Argument(help="Configurations: joint columns (+ payload_kg).")],
-    output: OutputOpt,
+    output: PredictionsOut = None,
+    out_dir: ResultOutDirOpt = None,
     noise: Annotated[
         bool,
         typer.Option(
@@ -45,12 +73,17 @@ def predict(
     when the result has covariances, the predicted 6×6 EE covariance (cov_00..cov_55, row-major,
     EE frame, [v; w], m and rad): by default the total, Σ_E (Eq. 12) + Σ_n + the
     parameter-estimation part + the model-error part (docs/predictive.md)."""
+    import pandas as pd
+
+    from service.render import result_json
+    from solver import lie
+
+    outputs = Outputs(out_dir if out_dir is not None else result_path.parent)
+    path = outputs.path(output, "predictions.csv", "predicted poses (kincal predict)")
     result = read_result(result_path)
     _prediction_note(result)
     chain, _ = result_json.result_chain(result)
-    configurations = read_configurations(
-        configs, chain.joint_names, other_joint_names=chain.other_joint_names
-    )
+    configurations = _configurations(configs, chain)
     pose = result_json.predict_poses(
         result, configurations.joint_positions, configurations.payload_kg
     )
@@ -85,15 +118,20 @@ def predict(
         frame[names] = covariance.reshape(len(frame), 36)
     if configurations.sample_id is not None:
         frame.insert(0, "sample_id", configurations.sample_id)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    frame.to_csv(output, index=False, float_format="%.17g")
-    extra = " with covariances" if result.covariance is not None else ""
-    typer.echo(f"wrote {len(frame)} predicted poses{extra} to {output}")
+    extra = " and covariances" if result.covariance is not None else ""
+    outputs.write(
+        path,
+        f"{len(frame)} predicted poses{extra}",
+        lambda p: frame.to_csv(p, index=False, float_format="%.17g"),
+    )
+    typer.echo(outputs.listing())
+    typer.echo(_verdict_of(result))
 
 
 def rank(
     result_path: Annotated[Path, typer.Argument(metavar="RESULT", help="Result with covariance.")],
-    output: OutputOpt,
+    output: RankingOut = None,
+    out_dir: ResultOutDirOpt = None,
     configs: Annotated[
         Path | None,
         typer.Argument(metavar="CONFIGS", help="Configurations: joint columns (+ payload_kg)."),
@@ -133,7 +171,10 @@ def rank(
 ) -> None:
     """Rank configurations by predicted task uncertainty tr(W Σ_E Wᵀ), best first (Eq. 22–23)."""
     from service.app import rank as ranking
+    from service.render.text import ranking_summary
 
+    outputs = Outputs(out_dir if out_dir is not None else result_path.parent)
+    path = outputs.path(output, "ranking.json", "kincal.ranking/1")
     result = read_result(result_path)
     if result.covariance is None:
         raise KincalError(f"{result_path} {ranking.NO_COVARIANCE}")
@@ -152,10 +193,7 @@ def rank(
     _prediction_note(result)
     model = ranking.uncertainty_model(result)
     if configs is not None:
-        chain = model.chain
-        configurations = read_configurations(
-            configs, chain.joint_names, other_joint_names=chain.other_joint_names
-        )
+        configurations = _configurations(configs, model.chain)
         payload = configurations.payload_kg if payload_kg is None else payload_kg
         out = ranking.rank_configurations(
             result, configurations.joint_positions, options, payload_kg=payload, model=model
@@ -172,5 +210,18 @@ def rank(
         out = ranking.rank_target(result, request, model=model)
         if not out.ranking:
             raise KincalError(ranking.NO_IK_SOLUTION)
-    _write_json(output, out.model_dump_json(indent=1))
+    outputs.write_text(
+        path, f"ranking of {out.n_configurations}", out.model_dump_json(indent=1) + "\n"
+    )
     typer.echo(ranking_summary(out))
+    typer.echo(outputs.listing())
+    typer.echo(_verdict_of(result))
+
+
+def _verdict_of(result: object) -> str:
+    """The one-line verdict of the calibration a prediction or ranking comes from."""
+    from schemas.calibration import CalibrationResult
+    from service.render.text import verdict_line
+
+    assert isinstance(result, CalibrationResult)
+    return f"calibration {verdict_line(result.verdict)}"

@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import Annotated
 
 import typer
 
 from solver.errors import KincalError
-
-if TYPE_CHECKING:
-    pass
 
 
 def demo(
@@ -25,16 +22,11 @@ def demo(
 
 
 def settings_epilog() -> str:
-    """Every service setting as the environment variable that sets it, with its default."""
-    from service.settings import Settings
+    """Every service setting as the environment variable that sets it, with its default
+    (from :class:`service.settings.Settings`, through :mod:`service.cli.generated_help`)."""
+    from service.cli.generated_help import SERVE_SETTINGS
 
-    lines = ["Settings (environment variables, [default]):"]
-    for name, field in Settings.model_fields.items():
-        default = "computed" if field.default_factory is not None else repr(field.default)
-        lines.append(f"KINCAL_{name.upper()} [{default}]")
-        if field.description:
-            lines.append(f"    {field.description}")
-    return "\b\n" + "\n".join(lines)  # \b: click keeps these lines as they are
+    return "\n\n".join(SERVE_SETTINGS)  # one paragraph per line: each keeps its own line
 
 
 def serve(
@@ -46,7 +38,11 @@ def serve(
     """Run the HTTP service (other settings: the KINCAL_* environment variables below)."""
     from service.jobs.supervisor import run_server
 
-    raise typer.Exit(run_server(host=host, port=port))
+    raise typer.Exit(run_server(host=host, port=port, announce=_announce))
+
+
+def _announce(text: str) -> None:
+    typer.echo(text)  # stdout, flushed: a script waiting for the service reads it at once
 
 
 keys_app = typer.Typer(no_args_is_help=True, help="API keys of the HTTP service.")

@@ -36,6 +36,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -129,8 +130,11 @@ def prepare_database(settings: Settings) -> str:
 
 
 class Supervisor:
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, announce: Callable[[str], None] | None = None) -> None:
         self.settings = settings
+        self.announce = announce
+        """Told, once the service's processes are started, where it listens (``kincal serve``
+        prints it on stdout)."""
         self.children: list[Child] = []
         self._signal: int | None = None
         self._stopping = False
@@ -221,6 +225,21 @@ class Supervisor:
 
     # the whole life
 
+    def where(self) -> str:
+        """Where the service listens and where its documentation is, for a person."""
+        host, port = self.sock.getsockname()[:2]
+        shown = f"[{host}]" if ":" in host else host
+        url = f"http://{shown}:{port}"
+        keys = (
+            "keyless on loopback"
+            if self.settings.keyless
+            else "send X-API-Key (kincal keys create)"
+        )
+        return (
+            f"kincal {kincal_version()} listening on {url} ({keys}); API {url}/api/v1, "
+            f"interactive docs {url}/docs, ready when {url}/readyz answers 200; Ctrl-C stops it"
+        )
+
     def run(self) -> int:
         """Serve until SIGTERM/SIGINT (exit status 0) or a child keeps dying (1)."""
         settings = self.settings
@@ -255,6 +274,8 @@ class Supervisor:
                     "workers": settings.workers,
                 },
             )
+            if self.announce is not None:
+                self.announce(self.where())
             while self._signal is None:
                 failure = self._watch_children()
                 if failure is not None:
@@ -274,10 +295,15 @@ class Supervisor:
         return status
 
 
-def run_server(host: str | None = None, port: int | None = None) -> int:
-    """Serve until SIGINT/SIGTERM; then finish or re-queue running jobs. The exit status."""
+def run_server(
+    host: str | None = None,
+    port: int | None = None,
+    announce: Callable[[str], None] | None = None,
+) -> int:
+    """Serve until SIGINT/SIGTERM; then finish or re-queue running jobs. The exit status.
+    ``announce`` is told where the service listens once its processes are started."""
     overrides = {name: value for name, value in (("host", host), ("port", port)) if value}
     settings = load_settings(**overrides)
     logs.process_name = "supervisor"
     logs.configure_logging(settings.log_level, settings.log_format)
-    return Supervisor(settings).run()
+    return Supervisor(settings, announce).run()

@@ -27,7 +27,15 @@ from schemas.calibration import (
 )
 from service.render.plots import coverage_figure, residual_histograms
 from service.render.result_json import ResidualSample
-from service.render.text import AXES, predictive_lines, table_ii
+from service.render.text import (
+    AXES,
+    compliance_status,
+    parameter_count,
+    predictive_lines,
+    solver_line,
+    table_ii,
+    verdict_line,
+)
 
 _STYLE = """
 body { font: 14px/1.45 system-ui, sans-serif; margin: 2rem auto; max-width: 72rem; color: #222; }
@@ -43,16 +51,20 @@ code { background: #f2f2f2; padding: 0 .2rem; }
 
 
 def _verdict(result: CalibrationResult) -> list[str]:
-    """The verdict first, where a reader looks: each reason with its fix."""
+    """The verdict first, where a reader looks, also when it is ok: the one line the CLI ends
+    with (:func:`service.render.text.verdict_line`), then each reason with its fix."""
     verdict = result.verdict
-    if verdict is None or not verdict.reasons:
-        return []
     e = html.escape
     items = "".join(
         f"<li><b>{e(r.severity)}</b>: {e(r.message)}<br>fix: {e(r.fix)}</li>"
-        for r in verdict.reasons
+        for r in (verdict.reasons if verdict is not None else [])
     )
-    return [f"<h2>Verdict: {e(verdict.status)}</h2>", f"<ul>{items}</ul>"]
+    status = "none" if verdict is None else verdict.status
+    return [
+        f"<h2>Verdict: {e(status)}</h2>",
+        f'<p class="verdict">{e(verdict_line(verdict))}</p>',
+        *([f"<ul>{items}</ul>"] if items else []),
+    ]
 
 
 def render_report(result: CalibrationResult, residuals: ResidualSample) -> str:
@@ -145,11 +157,8 @@ def _overview(result: CalibrationResult) -> str:
                 )
             ]
         ),
-        (
-            "Solver",
-            f"{solver.name}: {solver.status} after {solver.iterations} iterations "
-            f"({solver.time_s:.2f} s)",
-        ),
+        ("Solver", solver_line(solver)),
+        ("Verdict", verdict_line(result.verdict)),
         ("Created", f"{result.created_utc} by kincal {result.kincal_version}"),
     ]
     body = "".join(f"<tr><th>{e(k)}</th><td>{e(v)}</td></tr>" for k, v in rows)
@@ -197,10 +206,7 @@ def _residual_figure(residuals: ResidualSample) -> str:
 def _identifiability(result: CalibrationResult) -> str:
     ident = result.identifiability
     e = html.escape
-    summary = (
-        f"<p>Rank {ident.rank} of {ident.n_parameters} parameters, condition number "
-        f"{ident.condition_number:.3g}.</p>"
-    )
+    summary = f"<p>{e(parameter_count(ident))}.</p>"
     if not ident.removed:
         return summary + '<p class="ok">Every parameter was identifiable from this data.</p>'
     names = ", ".join(f"<code>{e(name)}</code>" for name in ident.removed)
@@ -218,12 +224,9 @@ def _compliance(result: CalibrationResult) -> str:
         return "<p>No compliant axes in this model.</p>"
     rows = []
     for c in result.compliance:
-        if not c.estimated:
-            verdict = "not identifiable"
-        elif c.significant:
-            verdict = "significant"
-        else:
-            verdict = '<span class="warn">not significant (within 2σ of 0)</span>'
+        verdict = e(compliance_status(c))
+        if c.estimated and not c.significant:
+            verdict = f'<span class="warn">{verdict}</span>'
         stderr = "–" if c.stderr_rad_per_nm is None else f"{c.stderr_rad_per_nm:.2e}"
         rows.append(
             f"<tr><td>{e(c.axis)}</td><td>{c.kind}</td><td>{c.value_rad_per_nm:.3e}</td>"

@@ -43,6 +43,7 @@ from schemas.dataset import PoseDataset
 from schemas.robots import RobotDescription
 from service import kincal_version
 from service.render import corrections
+from service.render.chain import chain_for as chain_for  # its home is light (pre-flight)
 from solver import lie
 from solver.covariance.estimate import CovarianceEstimate, FrameCovariance
 from solver.evaluation import SplitError
@@ -72,17 +73,6 @@ class PreparedData:
     measured_pose: FloatArray
     loads_nm: FloatArray
     position_only: bool
-
-
-def chain_for(robot: RobotDescription, options: CalibrationOptions) -> KinematicChain:
-    return build_chain(
-        robot.urdf_xml,
-        robot.base_frame,
-        robot.tip_frame,
-        compliant_joints=options.compliant_joints,
-        virtual_axes_at=options.virtual_axes_at,
-        payload_com_m=options.payload_com_m,
-    )
 
 
 def prepare(

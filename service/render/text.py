@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from schemas.calibration import (
     CalibrationResult,
+    ComplianceCalibration,
     CovarianceResult,
     HeldoutSplit,
+    Identifiability,
     PredictiveCovariance,
+    SolverReport,
     Verdict,
 )
 from schemas.ranking import RankingResult
@@ -41,11 +44,8 @@ def summary(result: CalibrationResult) -> str:
         f"{result.outliers.n_used} of {result.outliers.n_input} samples used "
         f"({len(result.outliers.removed_rows)} outliers removed), "
         f"{'position-only' if result.dataset.position_only else 'full pose'}",
-        f"identifiable parameters: {result.identifiability.rank} of "
-        f"{result.identifiability.n_parameters} "
-        f"({len(result.identifiability.removed)} removed as unidentifiable)",
-        f"Levenberg-Marquardt: {result.solver.status} after {result.solver.iterations} iterations "
-        f"({result.solver.time_s:.2f} s)",
+        parameter_count(result.identifiability),
+        solver_line(result.solver),
     ]
     for phase_name, phase in (("before", fit.before), ("after", fit.after)):
         for split_name, stats in (("train", phase.train), ("held-out", phase.heldout)):
@@ -58,20 +58,18 @@ def summary(result: CalibrationResult) -> str:
                 f"  {phase_name:<6} {split_name:<9} mean error {stats.translation_mean_mm:.3f} mm"
                 f"{rotation}"
             )
-    estimated = [c for c in result.compliance if c.estimated]
-    if estimated:
+    if result.compliance:
         lines.append("compliance (rad/Nm, ± standard error):")
         lines += [
-            f"  {c.axis:<28} {c.value_rad_per_nm: .3e} ± {c.stderr_rad_per_nm:.1e}"
-            + ("" if c.significant else "   not significant (within 2 standard errors of 0)")
-            for c in estimated
+            f"  {c.axis:<28} "
+            + (
+                f"{c.value_rad_per_nm: .3e} ± {c.stderr_rad_per_nm:.1e}   "
+                if c.estimated and c.stderr_rad_per_nm is not None
+                else ""
+            )
+            + compliance_status(c)
+            for c in result.compliance
         ]
-    lines += [
-        f"  {c.axis:<28} fixed at 0: negative (no spring deflects against its load) or not "
-        "identified in any physical range"
-        for c in result.compliance
-        if c.pruned
-    ]
     links = [name for name in result.identifiability.pruned if not name.startswith("compliance.")]
     if links:
         lines.append(
@@ -169,11 +167,14 @@ def ranking_summary(ranking: RankingResult) -> str:
     """One line for the terminal after ``kincal rank``."""
     if not ranking.ranking:
         return "no configuration to rank"
-    best = ranking.ranking[0]
+    best, worst = ranking.ranking[0], ranking.ranking[-1]
     what = "IK candidates" if ranking.target is not None else "configurations"
     return (
-        f"ranked {ranking.n_configurations} {what}; best: index {best.index}, score "
-        f"{best.score:.4g} {ranking.score_unit} (worst {ranking.ranking[-1].score:.4g})"
+        f"ranked {ranking.n_configurations} {what}, best first, by the score tr(W Σ W^T): the "
+        f"predicted task-relevant variance of the end effector in {ranking.score_unit} (lower "
+        f"is better); best: index {best.index}, score {best.score:.4g} (RMS "
+        f"{1e3 * best.score**0.5:.3g} mm); worst: index {worst.index}, score {worst.score:.4g} "
+        f"(RMS {1e3 * worst.score**0.5:.3g} mm)"
     )
 
 
@@ -184,3 +185,65 @@ def verdict_text(verdict: Verdict) -> str:
         lines.append(f"  {reason.severity}: {reason.message}")
         lines.append(f"    fix: {reason.fix}")
     return "\n".join(lines)
+
+
+VERDICT_MEANING = {
+    "ok": "fit to use",
+    "warning": "usable; read the reasons above",
+    "failed": "do not use it; the reasons above say why and how to fix it",
+}
+"""What each verdict status means for the user, in the one-line verdict of every command."""
+
+
+def verdict_line(verdict: Verdict | None) -> str:
+    """The one-line verdict a command ends with, also when it is ok: status, the reasons'
+    codes, what it means and the exit code."""
+    if verdict is None:
+        return "verdict: none (a result written before verdicts existed)"
+    codes = ", ".join(dict.fromkeys(r.code for r in verdict.reasons))
+    exit_code = 3 if verdict.status == "failed" else 0
+    return (
+        f"verdict: {verdict.status}{f' ({codes})' if codes else ''}: "
+        f"{VERDICT_MEANING[verdict.status]} (exit code {exit_code})"
+    )
+
+
+def parameter_count(identifiability: Identifiability) -> str:
+    """How many parameters the fit estimated and where the others went, adding up to the
+    total (CLI summary and HTML report)."""
+    i = identifiability
+    other = i.n_parameters - i.rank - len(i.removed) - len(i.pruned) - len(i.fixed)
+    parts = [f"{len(i.removed)} not identifiable from these poses"]
+    if i.pruned:
+        parts.append(f"{len(i.pruned)} fixed at a physical value (see below)")
+    if i.fixed:
+        parts.append(f"{len(i.fixed)} held by --free/--fix")
+    if other:
+        parts.append(f"{other} otherwise not estimated")
+    return (
+        f"parameters: {i.rank} estimated of {i.n_parameters} ({', '.join(parts)}); "
+        f"condition number {i.condition_number:.3g}"
+    )
+
+
+def solver_line(solver: SolverReport) -> str:
+    """The deterministic fit's status: its iterations are the final fit's, which starts from
+    the warm start's solution (0 iterations: that solution was already optimal)."""
+    return (
+        f"Levenberg-Marquardt: {solver.status}; the final fit took {solver.iterations} "
+        f"iteration(s) from the warm start's solution ({solver.time_s:.2f} s)"
+    )
+
+
+def compliance_status(compliance: ComplianceCalibration) -> str:
+    """What became of a compliant axis, in the same words in the CLI and the HTML report."""
+    if compliance.pruned:
+        return (
+            "fixed at 0: estimated negative (no spring deflects against its load) or not "
+            "identifiable in any physical range (standard error > 0.01 rad/N·m)"
+        )
+    if not compliance.estimated:
+        return "not identifiable from these poses: kept at 0"
+    if compliance.significant:
+        return "significant"
+    return "not significant (within 2 standard errors of 0)"

@@ -31,6 +31,11 @@ def run(
     return code, captured.out, captured.err
 
 
+def help_text(text: str) -> str:
+    """``--help`` output as plain words: rich's panel borders removed, lines joined."""
+    return " ".join(text.translate({ord(c): " " for c in "│╭╮╰╯─"}).split())
+
+
 def run_ok(args: list[object]) -> None:
     """``kincal *args`` that must succeed (exit 0), for module-scoped fixtures that have no
     ``capsys``/``monkeypatch`` of their own; output goes to pytest's capture."""

@@ -286,7 +286,8 @@ def test_help_lists_each_command_with_its_whole_summary() -> None:
         text=True,
         check=True,
     ).stdout
-    listing = " ".join(out.split("Commands:")[1].split())
+    panel = out.split("Commands")[1]
+    listing = " ".join(panel.translate({ord(c): " " for c in "│╭╮╰╯─"}).split())
     assert "..." not in listing
     for fragment in ("(paper Eq. 8–10)", "best first (Eq. 22–23).", "show the held-out gain."):
         assert fragment in listing

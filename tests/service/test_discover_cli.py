@@ -54,8 +54,9 @@ def test_discover_writes_the_html_report_and_says_where_its_figures_went(
     assert figures
     for name in figures:
         assert (findings_path.parent / name).is_file()
-        assert f"figure written to {findings_path.parent / name}" in printed
-    assert f"report written to {findings_path.parent / 'report.html'}" in printed
+        assert f"  {findings_path.parent / name}  figure of a finding" in printed
+    assert f"  {findings_path.parent / 'report.html'}  HTML report" in printed
+    assert printed.rstrip().splitlines()[-1].startswith("verdict: ")
     report = (findings_path.parent / "report.html").read_text()
     assert "gear_periodic" in report and report.count("data:image/png;base64,") == len(figures)
     # The harmonic is a fixed integer of the term, not an estimate: no "± nan".

@@ -156,7 +156,7 @@ def test_export_cli_writes_each_format_and_refuses_unknown_ones(
             ["export", result_path, "--format", format, "-o", out], capsys, monkeypatch
         )
         assert code == 0, err
-        assert f"wrote {format}" in text
+        assert f"wrote:\n  {out}  {format} export" in text
         # the file is what the reloading tests above checked
         assert out.read_text() == exports.export(_calibrated("ur10"), format)
         assert "not expressed: joint compliance" in err

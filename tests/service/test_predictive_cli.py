@@ -209,7 +209,8 @@ def test_a_result_without_the_predictive_block_still_predicts_its_random_effects
     written = pd.read_csv(output)[COV_COLUMNS].to_numpy()
     expected = _predict(calibrated, "--part", "random-effects")[COV_COLUMNS].to_numpy()
     assert np.allclose(written, expected, rtol=1e-12)
-    args = ["rank", old_path, calibrated.configs, "-o", output, "--uncertainty", "total"]
+    ranking = calibrated.scratch / "old_ranking.json"
+    args = ["rank", old_path, calibrated.configs, "-o", ranking, "--uncertainty", "total"]
     code, _, err = run(args, capsys, monkeypatch)
     assert code == 2 and "has no predictive covariance" in err
 

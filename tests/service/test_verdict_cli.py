@@ -60,22 +60,27 @@ def test_a_sound_calibration_is_ok_and_exports(
     assert urdf.exists()
 
 
-def test_positions_in_millimetres_are_named(
+def test_positions_in_millimetres_are_refused_before_the_fit(
     simulated: Path,
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    """Issue 28: the pre-flight checks refuse them (exit 2, nothing written); the verdict's
+    ``position_unit`` reason stays for results computed without them
+    (test_each_check_names_its_cause)."""
     table = pd.read_csv(simulated)
     table[["x", "y", "z"]] *= 1000.0
     mm = tmp_path / "mm.csv"
     table.to_csv(mm, index=False)
-    code, result, text, urdf = _calibrate(
-        [mm, "--robot", "kinova", "--no-heldout"], tmp_path, capsys, monkeypatch
+    out, urdf = tmp_path / "result.json", tmp_path / "robot.urdf"
+    code, _, err = run(
+        ["calibrate", mm, "--robot", "kinova", "-o", out, "--export-urdf", urdf],
+        capsys,
+        monkeypatch,
     )
-    assert code == 3 and "position_unit" in _codes(result)
-    assert "not in metres" in text and "divide millimetres by 1000" in text
-    assert not urdf.exists()
+    assert code == 2 and "millimetres" in err and "divide by 1000" in err
+    assert not out.exists() and not urdf.exists()
 
 
 def test_a_fit_that_does_not_converge_is_named(

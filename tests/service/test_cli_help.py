@@ -1,0 +1,80 @@
+"""Issue 28: ``kincal --help`` and ``kincal calibrate --help`` answer without loading the maths
+or the web stack, list the options in panels with their choices, and ``kincal --version``
+works. The time itself is measured by ``benchmarks/cli_latency.py`` (no timed assertions)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from service import kincal_version
+from service.cli.help_text import GENERATED, generated_source
+from tests.service.cli_support import help_text, run
+
+HEAVY = ("pinocchio", "cvxpy", "fastapi", "matplotlib", "pandas", "numpy", "scipy", "sqlalchemy")
+"""Packages ``kincal --help`` must not import: each costs 0.1-2 s."""
+
+PANELS = (
+    "Recording and robot",
+    "Model",
+    "Measurement",
+    "Outliers",
+    "Covariance",
+    "Held-out",
+    "Execution",
+    "Output",
+)
+
+
+def _imported_by(*args: str) -> set[str]:
+    """Top-level packages a fresh interpreter has imported after ``kincal *args``."""
+    script = (
+        "import json, sys, contextlib, io\n"
+        f"sys.argv = ['kincal', *{list(args)!r}]\n"
+        "from service.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        "    try:\n"
+        "        main()\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "print(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True
+    )
+    return set(json.loads(done.stdout))
+
+
+@pytest.mark.parametrize("args", [("--help",), ("calibrate", "--help"), ("--version",)])
+def test_help_loads_none_of_the_heavy_packages(args: tuple[str, ...]) -> None:
+    loaded = _imported_by(*args)
+    assert "typer" in loaded and "service" in loaded
+    assert not loaded & set(HEAVY), sorted(loaded & set(HEAVY))
+
+
+def test_calibrate_help_groups_the_options_in_panels_with_their_choices(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    code, text, _ = run(["calibrate", "--help"], capsys, monkeypatch)
+    assert code == 0
+    positions = [text.index(f"─ {panel} ─") for panel in PANELS]
+    assert positions == sorted(positions), "panels in the documented order"
+    words = help_text(text)
+    for choices in ("model|sigma|none", "diag|full|none", "auto|clarabel|pgd|nnls", "all|rotation"):
+        assert choices in words, choices
+    assert "[default: every revolute joint]" in words  # not "None = ... [default none]"
+    assert "<str>" not in text.split("─ Outliers ─")[1].split("│")[2]  # a choice, not <str>
+
+
+def test_version(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    code, out, _ = run(["--version"], capsys, monkeypatch)
+    assert code == 0 and out.strip() == f"kincal {kincal_version()}"
+
+
+def test_the_generated_help_is_what_the_models_say() -> None:
+    assert GENERATED.read_text(encoding="utf-8") == generated_source(), (
+        "the options, effects or settings changed: run `python service/cli/help_text.py`"
+    )

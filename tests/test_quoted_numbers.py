@@ -1,0 +1,91 @@
+"""Issue 28: numbers the docs quote from a run come from a script in benchmarks/ and are
+checked here, so a stale table fails the suite.
+
+Each results file ``docs/results/<name>.json`` is written by its benchmark (``--write-results``)
+together with the table ``<name>.md`` the pages include (``--8<--``). Checked: the table is the
+rendering of the JSON, the pages include it (no copy by hand), and the cheap rows re-run through
+the same code give the same numbers — counts exactly; errors within half the last digit the
+table shows (0.005 mm for 0.01 mm, 0.0005 mm for 0.001 mm); compliances within 0.05·10⁻⁵
+rad/N·m (shown to 0.1·10⁻⁵).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from benchmarks import evaluate_real, fleet_platonics, platonics
+from benchmarks.results import RESULTS, read_results
+
+DOCS = Path(__file__).parents[1] / "docs"
+
+RENDER = {
+    "real_robots": evaluate_real.render,
+    "fleet_platonics": fleet_platonics.render,
+    "platonics": platonics.render,
+}
+PAGES = {
+    "real_robots": "real-robots.md",
+    "fleet_platonics": "ball-in-socket.md",
+    "platonics": "ball-in-socket.md",
+}
+
+
+@pytest.mark.parametrize("name", sorted(RENDER))
+def test_each_table_is_its_results_file_and_its_page_includes_it(name: str) -> None:
+    _, rows = read_results(name)
+    assert (RESULTS / f"{name}.md").read_text() == RENDER[name](rows) + "\n"
+    assert f'--8<-- "docs/results/{name}.md"' in (DOCS / PAGES[name]).read_text()
+
+
+def test_every_results_file_has_a_renderer() -> None:
+    assert {p.stem for p in RESULTS.glob("*.json")} == set(RENDER)
+
+
+@pytest.mark.slow
+def test_the_fleet_table_holds_for_the_two_60_row_pandas() -> None:
+    """panda_left and panda_right, re-run as ``kincal fleet`` runs them (about 5 s)."""
+    _, rows = read_results("fleet_platonics")
+    quoted = {r["robot"]: r for r in rows if "robot" in r}
+    fresh, _ = fleet_platonics.run(["panda_left", "panda_right"])
+    for row in fresh:
+        want = quoted[row["robot"]]
+        for key in ("rows", "used", "link_corrections", "largest_translation"):
+            assert row[key] == want[key], (row["robot"], key)
+        assert row["train_rms_mm"] == pytest.approx(want["train_rms_mm"], abs=0.005)
+        assert row["largest_translation_mm"] == pytest.approx(
+            want["largest_translation_mm"], abs=0.05
+        )
+        for joint, value in row["compliance_rad_per_nm"].items():
+            quoted_value = want["compliance_rad_per_nm"][joint]
+            assert (value is None) == (quoted_value is None), (row["robot"], joint)
+            if value is not None:
+                assert value == pytest.approx(quoted_value, abs=0.05e-5), (row["robot"], joint)
+
+
+@pytest.mark.slow
+def test_the_real_robot_table_holds_for_the_ur10e() -> None:
+    """The UR10e row (23 poses, a few seconds) re-run through ``kincal calibrate``."""
+    _, rows = read_results("real_robots")
+    name = "UR10e (FIGAROH UR10 experiment)"
+    (want,) = [r for r in rows if r["recording"] == name]
+    (row,) = evaluate_real.main(names=[name])
+    for key in ("samples", "used", "improved", "splits", "exit", "verdict"):
+        assert row[key] == want[key], key
+    for key in ("before_mm", "after_mm"):
+        assert row[key] == pytest.approx(want[key], abs=0.005), key
+    for key in ("before_deg", "after_deg"):
+        assert row[key] == pytest.approx(want[key], abs=0.0005), key
+
+
+@pytest.mark.slow
+def test_the_ball_in_socket_table_holds_for_panda_right() -> None:
+    """panda_right (60 rows) re-run with its 10 held-out splits, with and without the 50 mm."""
+    _, rows = read_results("platonics")
+    (want,) = [r for r in rows if r["robot"] == "panda_right"]
+    _, got = platonics.row("panda_right", seeds=10)
+    for key in ("rows", "used", "sockets"):
+        assert got[key] == want[key], key
+    for key in ("before_mm", "after_mm", "after_distance_mm"):
+        assert got[key] == pytest.approx(want[key], abs=0.0005), key
