@@ -352,7 +352,10 @@ def test_streamed_fit_equals_in_memory_for_position_only_and_weighted_rotation(
     assert cal.fit.estimated == fit.estimated
     assert _close(cal.fit.params.links, fit.params.links)
     assert _close(cal.fit.params.compliance_rad_per_nm, fit.params.compliance_rad_per_nm)
-    assert _close(cal.fit.standard_errors, fit.standard_errors)
+    # the streamed path inverts the normal equations, the in-memory one a QR factor: the
+    # largest standard error (9 mrad, j2s6s200_joint_5.rz, position-only) carries rounding of
+    # relative size κ²·eps, 1.3e-10 here
+    assert _close(cal.fit.standard_errors, fit.standard_errors, 1e-9)
     assert np.array_equal(cal.removed_rows, np.setdiff1d(np.arange(q.shape[0]), used))
     d = 3 if position_only else 6
     evaluation = evaluate_chain(c, cal.fit.params, q[used], loads[used])
