@@ -322,11 +322,12 @@ def calibrate(
         try:
             preflight(data, description, options, marker)
         except KincalError:
-            from service.app import calibrate as pipeline
+            if _robot_may_refuse(options, findings):
+                from service.app import calibrate as pipeline
 
-            # an option the robot refuses (a sensor joint, pose components) explains a
-            # recording read the wrong way: name it first
-            pipeline.check_calibration(description, options, findings)
+                # an option the robot refuses (a sensor joint, pose components) explains a
+                # recording read the wrong way: name it first
+                pipeline.check_calibration(description, options, findings)
             raise
     from service.app import calibrate as pipeline
 
@@ -348,6 +349,21 @@ def calibrate(
     if report_path is not None:
         outputs.write_text(report_path, "HTML report", run.report_html())
     finish(run, outputs, urdf_path, force_urdf)
+
+
+def _robot_may_refuse(options: object, findings: object) -> bool:
+    """Whether ``options`` set anything that only the calibration's own checks
+    (``check_calibration``: covariance frames, a measurement's sensor joint or pose components, a
+    carried discovery) can refuse; with the defaults the pre-flight error stands alone and the
+    pipeline (~1.4 s of imports) is not loaded to say so."""
+    from schemas.calibration import CalibrationOptions
+
+    assert isinstance(options, CalibrationOptions)
+    return (
+        findings is not None
+        or options.covariance_frames is not None
+        or options.measurement not in ("auto", "pose", "position")
+    )
 
 
 def preflight(data: Path, description: object, options: object, marker: int | None) -> None:
