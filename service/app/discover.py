@@ -50,6 +50,7 @@ from schemas.discovery import (
 )
 from schemas.robots import RobotDescription
 from service.app import calibrate_measurement as measurement_run
+from service.render.chain import chain_for
 from service.render.result_json import kincal_version
 from solver import discovery as solver_discovery
 from solver import lie
@@ -68,7 +69,7 @@ from solver.discovery.results import HeldoutError, PlotPanel, TermEstimate
 from solver.errors import ModelError
 from solver.measurement import ModelParameters as MeasuredParameters
 from solver.measurement import RelativeBase
-from solver.model import KinematicChain, build_chain
+from solver.model import KinematicChain
 
 __all__ = [
     "EFFECTS",
@@ -81,18 +82,6 @@ __all__ = [
 ]
 
 PROTOCOL = "{k}-fold cross-validation (seed {seed}), the same folds before and after"
-
-
-def chain_for(robot: RobotDescription, options: DiscoveryOptions) -> KinematicChain:
-    """The user's model: rigid unless joints/axes are declared compliant."""
-    return build_chain(
-        robot.urdf_xml,
-        robot.base_frame,
-        robot.tip_frame,
-        compliant_joints=options.compliant_joints,
-        virtual_axes_at=options.virtual_axes_at,
-        payload_com_m=options.payload_com_m,
-    )
 
 
 def solver_options(options: DiscoveryOptions) -> solver_discovery.DiscoveryOptions:

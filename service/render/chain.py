@@ -1,6 +1,6 @@
-"""The chain a calibration's options describe (:func:`chain_for`), apart from
-:mod:`service.render.result_json` so that the pre-flight checks build it without loading the
-result document's modules."""
+"""The chain a calibration's or a discovery's options describe (:func:`chain_for`), apart
+from :mod:`service.render.result_json` so that the pre-flight checks build it without loading
+the result document's modules."""
 
 from __future__ import annotations
 
@@ -10,11 +10,15 @@ from solver.model import KinematicChain, build_chain
 
 if TYPE_CHECKING:
     from schemas.calibration import CalibrationOptions
+    from schemas.discovery import DiscoveryOptions
     from schemas.robots import RobotDescription
 
 
-def chain_for(robot: RobotDescription, options: CalibrationOptions) -> KinematicChain:
-    """The chain of ``robot`` with the options' compliant joints, flex axes and payload centre."""
+def chain_for(
+    robot: RobotDescription, options: CalibrationOptions | DiscoveryOptions
+) -> KinematicChain:
+    """The chain of ``robot`` with the options' compliant joints, flex axes and payload centre
+    (rigid unless joints or axes are declared compliant)."""
     return build_chain(
         robot.urdf_xml,
         robot.base_frame,
