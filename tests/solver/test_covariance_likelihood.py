@@ -115,13 +115,18 @@ def test_analytic_gradients_match_finite_differences(structure, d, known, estima
     np.testing.assert_allclose(grad, numeric, rtol=1e-5, atol=1e-6 * np.abs(numeric).max())
 
 
+def reml_projection(v_inv, fit):
+    """P = V⁻¹ − V⁻¹X(XᵀV⁻¹X)⁻¹XᵀV⁻¹ with X the stacked fit Jacobian (N·d, p)."""
+    x = fit.reshape(-1, fit.shape[2])
+    return v_inv - v_inv @ x @ np.linalg.solve(x.T @ v_inv @ x, x.T @ v_inv)
+
+
 @pytest.mark.parametrize(("structure", "d", "known"), CASES[:3])
 def test_fisher_information_equals_half_the_trace_formula(structure, d, known):
     layout, theta, jac, _, known_cov, fit = case(structure, d, known, seed=2, n=10)
     v, dv = dense(layout, theta, jac, known_cov)
     v_inv = np.linalg.inv(v)
-    x = fit.reshape(-1, fit.shape[2])
-    p = v_inv - v_inv @ x @ np.linalg.solve(x.T @ v_inv @ x, x.T @ v_inv)
+    p = reml_projection(v_inv, fit)
     ml = 0.5 * np.array([[np.trace(v_inv @ a @ v_inv @ b) for b in dv] for a in dv])
     reml = 0.5 * np.array([[np.trace(p @ a @ p @ b) for b in dv] for a in dv])
     got_ml = fisher_information_ml(theta, jac, layout, known_covariance=known_cov)
@@ -139,8 +144,7 @@ def test_average_information_equals_the_dense_formula(structure, d, known):
     layout, theta, jac, r, known_cov, fit = case(structure, d, known, seed=3, n=12)
     v, dv = dense(layout, theta, jac, known_cov)
     v_inv = np.linalg.inv(v)
-    x = fit.reshape(-1, fit.shape[2])
-    p = v_inv - v_inv @ x @ np.linalg.solve(x.T @ v_inv @ x, x.T @ v_inv)
+    p = reml_projection(v_inv, fit)
     rs = r.reshape(-1)
     samples = ArraySamples(r, jac, fit)
     transform = fit_basis_transform(samples)
