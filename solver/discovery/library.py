@@ -15,7 +15,8 @@ joint_scale        joint axis × (q_j − mean q_j): gear-ratio / encoder-scale 
 thermal_drift      joint axis, or the measurement frame (6 columns), × a time shape
                    (linear, or warm-up 1 − exp(−t/T) with two time constants)
 payload_mass       extra tip mass: Σ_a c_a ∂τ_a/∂m over the gravity-driven axes modelled
-gravity_direction  base tilt about x and y: Σ_a c_a ∂τ_a/∂tilt
+                   (a candidate only when the user's model declares a gravity-driven term)
+gravity_direction  base tilt about x and y: Σ_a c_a ∂τ_a/∂tilt (same condition)
 depth_scale        the sensor's depth reading off by a factor, along the measurement-frame z
                    (fixed camera) or the marker-frame z (camera on the flange)
 =================  ======================================================================
@@ -321,7 +322,12 @@ def candidate_library(
         out.append(scale_term(chain, j))
         out += [drift_term(chain, j, variant, clock_unit) for variant, _ in shapes]
     out += [drift_term(chain, None, variant, clock_unit) for variant, _ in shapes]
-    if any(t.gravity_driven for t in model):
+    if any(t.gravity_driven and t.declared for t in model):
+        # A payload or tilt is seen only through the springs it loads. Through springs found
+        # in this search it would reshape what was just found: its evidence is then the found
+        # term's residue (on the real FR3 a 35° "tilt" reshaped a concealed panda_joint2
+        # spring to fit the arm's own background), and the name would depend on what was
+        # found first (issue 32). So only the user's declared springs make them candidates.
         out += [global_term("payload_mass"), global_term("gravity_direction")]
     out += [global_term("depth_scale", axis) for axis in DEPTH_AXES]
     # One load-sign backlash per joint: its floating zone is a refinement, not another term.

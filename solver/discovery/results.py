@@ -29,6 +29,9 @@ class HeldoutError:
     rotation_deg: float | None
     whitened_sse: float
     per_sample: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False, compare=False)
+    # one entry per fold partition when several were used (:func:`repeated_heldout`)
+    translation_by_split_mm: tuple[float, ...] = field(default=(), repr=False, compare=False)
+    sse_by_split: tuple[float, ...] = field(default=(), repr=False, compare=False)
 
     def improved_by(self, other: HeldoutError, level: float) -> bool:
         """``other`` predicts held-out samples better: lower total whitened error, and a
@@ -40,6 +43,24 @@ class HeldoutError:
             return True
         t = float(gain.mean() / (gain.std(ddof=1) / np.sqrt(gain.size)))
         return float(scipy.stats.t.sf(t, gain.size - 1)) < level
+
+    def confirmed_by(self, other: HeldoutError, level: float) -> bool:
+        """``other`` (the model with one more term) is confirmed on held-out samples: it is
+        :meth:`improved_by` at ``level`` (per-sample gains averaged over the fold
+        partitions), its whitened error is lower on every partition, and its mean held-out
+        translation error is lower by more than the split-to-split noise — the standard
+        deviation, over partitions, of this model's own held-out translation error (how much
+        the number a user reads moves with nothing but the split)."""
+        if not self.improved_by(other, level):
+            return False
+        if len(self.sse_by_split) != len(other.sse_by_split):
+            raise ValueError("held-out errors from different fold partitions")
+        if any(a <= b for a, b in zip(self.sse_by_split, other.sse_by_split, strict=True)):
+            return False
+        gain_mm = self.translation_mm - other.translation_mm
+        splits = np.asarray(self.translation_by_split_mm)
+        noise_mm = float(splits.std(ddof=1)) if splits.size > 1 else 0.0
+        return gain_mm > noise_mm
 
 
 @dataclass(frozen=True)

@@ -83,6 +83,30 @@ def cross_validate(
     )
 
 
+def repeated_heldout(
+    ctx: Context,
+    terms: tuple[Term, ...],
+    fit: ModelFit,
+    partitions: list[list[tuple[IndexArray, IndexArray]]],
+    weights: FloatArray,
+) -> HeldoutError:
+    """:func:`cross_validate` over several K-fold partitions of the same samples: mean
+    translation / rotation error and whitened SSE, per-sample whitened SSE averaged over the
+    partitions (a paired test on it is not at the mercy of one split), and the per-partition
+    translation errors and SSEs (the split-to-split noise of
+    :meth:`~solver.discovery.results.HeldoutError.confirmed_by`)."""
+    runs = [cross_validate(ctx, terms, fit, folds, weights) for folds in partitions]
+    rotations = [r.rotation_deg for r in runs if r.rotation_deg is not None]
+    return HeldoutError(
+        float(np.mean([r.translation_mm for r in runs])),
+        float(np.mean(rotations)) if rotations else None,
+        float(np.mean([r.whitened_sse for r in runs])),
+        np.mean([r.per_sample for r in runs], axis=0),
+        tuple(r.translation_mm for r in runs),
+        tuple(r.whitened_sse for r in runs),
+    )
+
+
 def _screen_limit(ctx: Context, level: float) -> tuple[float, float]:
     """(χ²_d quantile at ``level / N``, χ²_d median) of :func:`screen_outliers`."""
     d = ctx.data.rows

@@ -74,7 +74,10 @@ def test_every_library_column_equals_finite_differences(name: str) -> None:
     )
     model_chain = dataclasses.replace(truth, compliance_axes=())
     ctx = Context.build(probe_chain(model_chain), _data(recording))
-    declared = (compliance_term(ctx.chain, 1), compliance_term(ctx.chain, 2))
+    declared = (
+        compliance_term(ctx.chain, 1, declared=True),
+        compliance_term(ctx.chain, 2, declared=True),
+    )
     base = ModelParameters(recording.true_params.links, np.array([3e-4, -2e-4]))
     library = candidate_library(ctx.chain, ctx.bank, declared)
     assert {t.effect for t in library} == set(EFFECTS)

@@ -43,7 +43,7 @@ def test_every_library_term_can_be_rebuilt_from_its_key() -> None:
 
     recording = simulate_recording(chain("kinova"), SimulationSpec(n_samples=30, seed=2))
     bank = _bank(recording)
-    library = candidate_library(bank.probe, bank, (compliance_term(bank.probe, 1),))
+    library = candidate_library(bank.probe, bank, (compliance_term(bank.probe, 1, declared=True),))
     assert {t.effect for t in library} == set(EFFECTS)
     for term in library:
         rebuilt = library_term(
