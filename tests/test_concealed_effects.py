@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
+from typing import Any
+
+import pytest
 
 from benchmarks import concealed_effects
 
@@ -110,3 +113,85 @@ def test_real_benchmark_runs_on_a_ball_in_socket_recording_and_names_what_it_lea
     label = concealed_real.RECORDINGS["platonics"].label
     assert f"unmodified {label}: nothing named" in text
     assert f"{label}, not concealed: link_bending (the ball is held in a socket" in text
+
+
+def test_real_benchmark_rows_show_the_four_outcomes_and_the_acceptance_at_twice() -> None:
+    """Issue 32 on fabricated runs (no discovery): each row gives named right, named anything
+    else, ambiguous and nothing named; the report ends, per recording, with the library
+    effects meeting both 90 % rates at 2× and those below with their two rates."""
+    from benchmarks import concealed_real
+
+    def run(
+        effect: str, multiple: float, named: list[tuple[str, int | None, str]], **kw: Any
+    ) -> concealed_real.Run:
+        right = any(n[0] == concealed_real.EFFECTS[effect].effect and n[1] == 2 for n in named)
+        fields: dict[str, Any] = {
+            "recording": "ur10e",
+            "effect": effect,
+            "multiple": multiple,
+            "seed": 0,
+            "joint": 2,
+            "truth": 1e-5,
+            "named": named,
+            "estimate": 1e-5 if right else None,
+            "concealed_estimate": 1e-5 if right else None,
+            "ambiguous": False,
+            "ambiguous_any": False,
+            "heldout_before_mm": 0.5,
+            "heldout_after_mm": 0.3,
+            "seconds": 2.0,
+        }
+        return concealed_real.Run(**{**fields, **kw})
+
+    compliance = ("joint_compliance", 2, "")
+    runs = {
+        # 9 of 10 named right, 1 nothing: exactly 90 %, accepted
+        ("ur10e", "joint_compliance", 2.0): [run("joint_compliance", 2.0, [compliance])] * 9
+        + [run("joint_compliance", 2.0, [])],
+        # right every time, but 2 of 10 also name a gear: below
+        ("ur10e", "gear_h2", 2.0): [run("gear_h2", 2.0, [("gear_periodic", 2, "h2")])] * 8
+        + [run("gear_h2", 2.0, [("gear_periodic", 2, "h2"), ("joint_scale", 4, "")])] * 2,
+        # never named, ambiguous half the time
+        ("ur10e", "backlash_load", 2.0): [run("backlash_load", 2.0, [], ambiguous=True)] * 2
+        + [run("backlash_load", 2.0, [])] * 2,
+        ("ur10e", "backlash_load", 1.0): [run("backlash_load", 1.0, [])] * 4,
+        ("ur10e", "floating_backlash", 2.0): [
+            run("floating_backlash", 2.0, [("backlash", 2, "load")])
+        ],
+    }
+    rows = {key: concealed_real.summarise(picked) for key, picked in runs.items()}
+    assert rows[("ur10e", "backlash_load", 2.0)]["nothing"] == 1.0
+    assert rows[("ur10e", "gear_h2", 2.0)]["wrong_runs"] == pytest.approx(0.2)
+    stated = {(n, e): "1 mrad" for n, e, _ in rows}
+    text = concealed_real.table(rows, stated)
+    header, separator, *lines = text.splitlines()
+    columns = [c.strip() for c in header.strip("|").split("|")]
+    assert columns[5:9] == [
+        "Named right (effect, joint, variant)",
+        "Named anything else",
+        "Ambiguous (concealed effect among the candidates)",
+        "Nothing named",
+    ]
+    assert separator.count("---") == len(columns)
+    cells = {tuple(c.strip() for c in line.strip("|").split("|")[1:3]): line for line in lines}
+    assert all(line.count("|") == len(columns) + 1 for line in lines)
+    compliance_cells = [c.strip() for c in cells[("joint_compliance", "2×")].split("|")[6:10]]
+    assert compliance_cells == ["90 %", "0 %", "0 %", "10 %"]
+    backlash_cells = [c.strip() for c in cells[("backlash_load", "2×")].split("|")[6:10]]
+    assert backlash_cells == ["0 %", "0 %", "50 %", "100 %"]
+
+    summary = concealed_real.acceptance(rows, {"ur10e": []})
+    assert summary[0].startswith("Acceptance at 2× the stated detectability")
+    assert summary[2] == (
+        "- UR10e: 1 of 3 library effects meet both; unmodified recording: nothing named"
+    )
+    assert summary[3] == "  - meet both: joint_compliance"
+    assert summary[4] == (
+        "  - below: gear_h2 (named right 100 %, anything else 20 %); "
+        "backlash_load (named right 0 %, anything else 0 %)"
+    )
+    assert summary[5].startswith("  - not judged") and "floating_backlash" in summary[5]
+    failing = concealed_real.acceptance(rows, {"ur10e": ["gear_periodic h2 on shoulder"]})
+    assert "unmodified recording: named gear_periodic h2 on shoulder (fails)" in failing[2]
+    at_once = {k: r for k, r in rows.items() if k[2] == 1.0}
+    assert concealed_real.acceptance(at_once, {"ur10e": []}) == []

@@ -2,9 +2,11 @@
 
 Sections: held-out error of the user's model and of the discovered one, each finding with its
 residuals-before/after figure (:func:`service.app.discover.finding_figure`), ambiguous effects
-with the poses that would separate them, unexplained structure, random effects, the smallest
-detectable size of every library term left out, the search
-steps and the ``kincal calibrate`` options that carry the discovered model.
+with the poses that would separate them, unexplained structure, random effects, what the
+measurement cannot see (library effects left out with the reason, and terms whose effect
+cancels in what is measured; shown only when there are any), the smallest detectable size of
+every library term left out, the search steps and the ``kincal calibrate`` options that carry
+the discovered model.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ def render_discovery_report(findings: FindingsResult, plots: Mapping[str, bytes]
         _unexplained(findings),
         "<h2>Random effects (for the covariance calibration)</h2>",
         _random_effects(findings),
+        *_unseen(findings),
         "<h2>Smallest detectable effects</h2>",
         _detectability(findings),
         "<h2>Residual health before and after</h2>",
@@ -136,6 +139,48 @@ def _ambiguous(findings: FindingsResult) -> str:
             poses += "</table>"
         parts.append(f'<p class="warn">{e(a.explanation)}</p>{poses}')
     return "".join(parts)
+
+
+def _unseen(findings: FindingsResult) -> list[str]:
+    """What the measurement cannot see, as a heading and its tables; nothing when it sees every
+    library term: the effects left out of the search (``measurement.left_out``, each
+    ``"effect: reason"``) and the terms whose effect cancels in what is measured
+    (``measurement.not_candidates``), which are neither tested nor sized."""
+    measurement = findings.measurement
+    if measurement is None or not (measurement.left_out or measurement.not_candidates):
+        return []
+    e = html.escape
+    parts = [
+        "<h2>What this measurement cannot see</h2>",
+        f"<p>Measured: {e(measurement.type)} (residuals in the {e(measurement.frame)}). "
+        "The terms below are not tested and have no detectable size: nothing can be named "
+        "for them from this recording.</p>",
+    ]
+    if measurement.left_out:
+        rows = []
+        for line in measurement.left_out:
+            effect, separator, reason = line.partition(": ")
+            if not separator:
+                effect, reason = "", line
+            rows.append(f"<tr><td><code>{e(effect)}</code></td><td>{e(reason)}</td></tr>")
+        parts.append(
+            '<p>Library effects left out of the search:</p><table class="text">'
+            "<tr><th>effect</th><th>why this measurement cannot see it</th></tr>"
+            f"{''.join(rows)}</table>"
+        )
+    if measurement.not_candidates:
+        rows = [
+            f"<tr><td><code>{e(u.description)}</code></td><td>{u.remaining_fraction:.1g}</td>"
+            f"<td>{e(u.reason)}</td></tr>"
+            for u in measurement.not_candidates
+        ]
+        parts.append(
+            "<p>Not candidates: library terms whose effect cancels in what is measured.</p>"
+            '<table class="text"><tr><th>term</th><th>share of its column left</th>'
+            "<th>reason</th></tr>"
+            f"{''.join(rows)}</table>"
+        )
+    return parts
 
 
 def _detectability(findings: FindingsResult) -> str:

@@ -43,6 +43,7 @@ h1 { font-size: 1.5rem; } h2 { font-size: 1.15rem; margin-top: 2rem; }
 table { border-collapse: collapse; margin: .5rem 0; }
 th, td { border: 1px solid #ccc; padding: .25rem .6rem; text-align: right; }
 th:first-child, td:first-child { text-align: left; }
+table.text td { text-align: left; }
 .warn { background: #fff4e0; border-left: 4px solid #e69500; padding: .4rem .8rem; }
 .ok { background: #eaf6ea; border-left: 4px solid #3a3; padding: .4rem .8rem; }
 img { max-width: 100%; } pre { background: #f6f6f6; padding: .6rem; overflow-x: auto; }
