@@ -203,7 +203,10 @@ def test_fr3_negative_compliance_is_reported_not_named() -> None:
     declared = {u.joint for u in result.unexplained if u.variable == "declared"}
     assert {"panda_joint2", "panda_joint3"} <= declared
     assert all(f.effect != "joint_compliance" for f in result.findings)
-    assert result.heldout.after.trans_mm <= result.heldout.before.trans_mm
+    # The negative springs absorbed some of the arm's own background: fixing them at 0 costs
+    # a little held-out accuracy (0.982 -> 0.991 mm), which no term confirmed on held-out
+    # samples wins back (issue 32: the background is not named); it must stay small.
+    assert result.heldout.after.trans_mm <= 1.02 * result.heldout.before.trans_mm
     # Issue 13: no compliance, flex or backlash below 0 is reported anywhere: the negative
     # springs are removed from the final model (fixed at 0) and the removal is a step.
     signed = ("joint_compliance", "base_flex", "link_bending", "backlash")
