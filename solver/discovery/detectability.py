@@ -41,6 +41,11 @@ is stated (infinite, with the reason) when the model absorbs the weakest directi
 flange camera's axis) or when no trial size up to :data:`MAX_SIZE_FACTOR` times the classical
 size is found (few samples: the sign-flip test's smallest p-value is ~2^{−(N−1)}).
 
+Named is also confirmed: discovery keeps a term only if the held-out error improves with a
+paired test over samples at its confirmation level. An effect carried by a few samples cannot
+pass that test at any size (:func:`best_confirmation_p`: three samples of sixty reach at most
+p ≈ 0.04), so it gets no size, with that reason.
+
 A joint compliance is stated only where the library's spring is still the mechanism at twice
 the size (:func:`first_order_spring`): the library deflects a joint by c·τ at the reading, a
 real spring by c·τ where the link stands, and the two differ by about the loop gain c·|∂τ/∂q|
@@ -142,6 +147,7 @@ def smallest_detectable(
     unexplained: frozenset[tuple[str, int]] = frozenset(),
     collinear: float = 0.999,
     joint_level: float | None = None,
+    confirmation_level: float | None = None,
 ) -> list[DetectableSize]:
     """Smallest detectable size of each term of ``library`` (not in ``fit``'s model) on the
     recording, for the score test at ``level`` with ``power`` (module docstring); ``seed`` is
@@ -151,7 +157,9 @@ def smallest_detectable(
     model is fitted, are collinear with another term's (canonical correlation ≥
     ``collinear``, :func:`collinear_twins`): discovery reports the pair ambiguous.
     ``joint_level``: the joint test's level (discovery's α); the stated size is then at least
-    the separation size from the hardest other term (module docstring); None: detection only."""
+    the separation size from the hardest other term (module docstring); None: detection only.
+    ``confirmation_level``: the level of discovery's held-out confirmation; no size is stated
+    for a term whose effect could not pass it at any size (:func:`best_confirmation_p`)."""
     if not library:
         return []
     design = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates=tuple(library))
@@ -175,7 +183,16 @@ def smallest_detectable(
         if reason:
             out += [DetectableSize(term, name, np.inf, reason) for name, _ in size_groups(term)]
             continue
-        sizes = term_sizes(null, term, columns[term.key], replicates, level, power, absorbed_limit)
+        sizes = term_sizes(
+            null,
+            term,
+            columns[term.key],
+            replicates,
+            level,
+            power,
+            absorbed_limit,
+            confirmation_level,
+        )
         if joint_level is not None:
             rivals = [
                 (t, bases[t.key])
@@ -268,8 +285,11 @@ def term_sizes(
     level: float,
     power: float,
     absorbed_limit: float,
+    confirmation_level: float | None = None,
 ) -> list[DetectableSize]:
-    """:class:`DetectableSize` of each of ``term``'s size groups (module docstring)."""
+    """:class:`DetectableSize` of each of ``term``'s size groups (module docstring);
+    ``confirmation_level``: the level of discovery's held-out confirmation, which a size must
+    be able to pass (:func:`best_confirmation_p`)."""
     groups = size_groups(term)
     dof = min(null.dof, null.n_samples) - term.size
     basis = unexplained_basis(null, columns)
@@ -298,8 +318,33 @@ def term_sizes(
                 np.inf,
                 f"{UNDETECTABLE_LARGE} in some directions (gear phases, flex axes)",
             )
+        if np.isfinite(size) and confirmation_level is not None:
+            best_p = best_confirmation_p(effect.reshape(-1, null.d))
+            if best_p >= confirmation_level:
+                size, reason = (
+                    np.inf,
+                    "its effect rests on too few samples to be confirmed on held-out ones: even "
+                    f"noise-free held-out gains would give p = {best_p:.2g}, not below the "
+                    f"search's confirmation level {confirmation_level:.2g}",
+                )
         out.append(DetectableSize(term, parameter, size, reason))
     return out
+
+
+def best_confirmation_p(effect: FloatArray) -> float:
+    """The smallest p-value discovery's held-out confirmation (a one-sided paired t-test over
+    samples, :meth:`~solver.discovery.results.HeldoutError.improved_by`) can give a term whose
+    whitened effect is ``effect`` (n_samples, d): the p-value of held-out gains equal to the
+    effect's energy on each sample, as a noise-free refit would leave them. The t-test is
+    scale-free, so this bounds every size: an effect carried by k of n samples reaches at
+    most t = √(k(n − 1)/(n − k)) (three of sixty samples: p ≈ 0.04)."""
+    energy = np.sum(effect**2, axis=1)
+    n = energy.size
+    spread = float(energy.std(ddof=1)) if n > 1 else 0.0
+    if n < 3 or spread == 0.0:
+        return 0.0 if n >= 3 else 1.0
+    t = float(energy.mean() / (spread / np.sqrt(n)))
+    return float(scipy.stats.t.sf(t, n - 1))
 
 
 def separated(

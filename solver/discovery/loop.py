@@ -724,6 +724,7 @@ class _Search:
                 unexplained=frozenset(self.misfits),
                 collinear=options.collinear_correlation,
                 joint_level=level,
+                confirmation_level=self._confirmation_level(),
             )
             if options.detectability
             else None,

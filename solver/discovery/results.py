@@ -31,6 +31,7 @@ class HeldoutError:
     per_sample: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False, compare=False)
     # one entry per fold partition when several were used (:func:`repeated_heldout`)
     translation_by_split_mm: tuple[float, ...] = field(default=(), repr=False, compare=False)
+    rotation_by_split_deg: tuple[float, ...] = field(default=(), repr=False, compare=False)
     sse_by_split: tuple[float, ...] = field(default=(), repr=False, compare=False)
 
     def improved_by(self, other: HeldoutError, level: float) -> bool:
@@ -47,20 +48,30 @@ class HeldoutError:
     def confirmed_by(self, other: HeldoutError, level: float) -> bool:
         """``other`` (the model with one more term) is confirmed on held-out samples: it is
         :meth:`improved_by` at ``level`` (per-sample gains averaged over the fold
-        partitions), its whitened error is lower on every partition, and its mean held-out
-        translation error is lower by more than the split-to-split noise — the standard
-        deviation, over partitions, of this model's own held-out translation error (how much
-        the number a user reads moves with nothing but the split)."""
+        partitions); its whitened error is lower on every partition and, on average, by more
+        than the split-to-split noise (the standard deviation over partitions of this model's
+        own whitened error: how much it moves with nothing but the split); and neither the
+        translation nor the rotation error a user reads gets worse by more than its own
+        split-to-split noise."""
         if not self.improved_by(other, level):
             return False
         if len(self.sse_by_split) != len(other.sse_by_split):
             raise ValueError("held-out errors from different fold partitions")
         if any(a <= b for a, b in zip(self.sse_by_split, other.sse_by_split, strict=True)):
             return False
-        gain_mm = self.translation_mm - other.translation_mm
-        splits = np.asarray(self.translation_by_split_mm)
-        noise_mm = float(splits.std(ddof=1)) if splits.size > 1 else 0.0
-        return gain_mm > noise_mm
+        if self.whitened_sse - other.whitened_sse <= _split_noise(self.sse_by_split):
+            return False
+        if other.translation_mm - self.translation_mm > _split_noise(self.translation_by_split_mm):
+            return False
+        if self.rotation_deg is None or other.rotation_deg is None:
+            return True
+        worse_deg = other.rotation_deg - self.rotation_deg
+        return worse_deg <= _split_noise(self.rotation_by_split_deg)
+
+
+def _split_noise(by_split: tuple[float, ...]) -> float:
+    """Standard deviation of one held-out number over fold partitions (0 with one)."""
+    return float(np.std(by_split, ddof=1)) if len(by_split) > 1 else 0.0
 
 
 @dataclass(frozen=True)

@@ -93,7 +93,7 @@ def repeated_heldout(
     """:func:`cross_validate` over several K-fold partitions of the same samples: mean
     translation / rotation error and whitened SSE, per-sample whitened SSE averaged over the
     partitions (a paired test on it is not at the mercy of one split), and the per-partition
-    translation errors and SSEs (the split-to-split noise of
+    translation and rotation errors and SSEs (the split-to-split noise of
     :meth:`~solver.discovery.results.HeldoutError.confirmed_by`)."""
     runs = [cross_validate(ctx, terms, fit, folds, weights) for folds in partitions]
     rotations = [r.rotation_deg for r in runs if r.rotation_deg is not None]
@@ -103,6 +103,7 @@ def repeated_heldout(
         float(np.mean([r.whitened_sse for r in runs])),
         np.mean([r.per_sample for r in runs], axis=0),
         tuple(r.translation_mm for r in runs),
+        tuple(rotations),
         tuple(r.whitened_sse for r in runs),
     )
 

@@ -14,7 +14,7 @@ import pytest
 from benchmarks import concealed_real
 from schemas.discovery import FindingsResult
 from schemas.robots import example_robot_data_dir
-from solver.mechanisms import conceal
+from solver.mechanisms import CameraWarmup, Concealment, ElasticJoint, conceal
 from tests.service.cli_support import discover_ok, write_recording
 
 ROBOT_FLAGS: dict[str, list[object]] = {
@@ -139,6 +139,50 @@ def test_effect_concealed_at_twice_the_stated_detectability_or_more_is_named(
     assert abs(size) == pytest.approx(truth, rel=0.25)  # a scale error has either sign
 
 
+def _issue_32_concealment(case: str) -> Concealment:
+    """The effects issue 32 concealed in the FR3, each alone."""
+    if case == "gear":  # the reading is q - 2.5 mrad * sin(2q + phase) on panda_joint3
+        gear, _ = concealed_real.concealment("fr3", "gear_h2", 2, 2.5e-3, np.random.default_rng(0))
+        return gear
+    if case.startswith("spring"):  # c = 2e-4 rad/N*m (up to ~10 mrad), and a softer one
+        compliance = {"spring": 2e-4, "spring_small": 1e-4}[case]
+        return Concealment(joints=(ElasticJoint("panda_joint2", compliance),))
+    assert case == "board_drift"  # the board creeps 6 mm along its z over the recording
+    return Concealment(camera_warmup=CameraWarmup(np.r_[0.0, 0.0, 6e-3, 0.0, 0.0, 0.0]))
+
+
+@pytest.mark.parametrize(
+    ("case", "named"),
+    [
+        ("gear", {("gear_periodic", "panda_joint3", "h2")}),
+        ("spring", {("joint_compliance", "panda_joint2", "")}),
+        ("spring_small", {("joint_compliance", "panda_joint2", "")}),
+        ("board_drift", {("thermal_drift", None, "measurement_frame:linear")}),
+    ],
+)
+def test_one_concealed_effect_is_all_that_is_named(
+    tmp_path: Path, case: str, named: set[tuple[str, str | None, str]]
+) -> None:
+    """Issue 32: with one effect concealed in the real FR3, discovery named it and also the
+    arm's own background (a thermal drift after the gear; a gravity tilt and a panda_joint6
+    drift after the spring; link bending after the board drift), which the unmodified
+    recording does not name. A name must mean the same whether or not another effect was
+    found first."""
+    chain, data, frame = concealed_real.recording("fr3")
+    readings, poses = conceal(
+        chain,
+        data.joint_positions,
+        data.measured_pose,
+        data.clock()[0],
+        frame,
+        _issue_32_concealment(case),
+    )
+    path = tmp_path / f"fr3_{case}.csv"
+    write_recording(path, readings, poses, data.clock()[0])
+    result = _discover(path, "fr3", sizes=False)
+    assert {(f.effect, f.joint, f.variant) for f in result.findings} == named
+
+
 # --- a ball in socket (issue 14: "nothing larger went unseen" on a measurement of its own) -----
 
 PLATONICS = concealed_real.DATA / "platonics_ball_socket" / "panda_right"
@@ -173,38 +217,35 @@ def _socket_folder(folder: Path, readings: np.ndarray) -> Path:
     return copy
 
 
-def test_load_backlash_of_a_ball_in_socket_is_named_at_twice_the_stated_size(
+def test_load_backlash_on_three_samples_of_a_ball_in_socket_gets_no_size(
     ball_in_socket: FindingsResult, tmp_path: Path
 ) -> None:
     """A load backlash on panda_joint4 of the platonics Panda: only three of its 60 samples
-    have a positive load there, and the concealed dead band pushes exactly those out of the
-    screen, so on the samples kept the term is a constant offset. It was judged unseen by the
-    measurement on those samples and never tested (nothing named at 2x or 4x, seeds 1, 5, 9 of
-    the benchmark) until what the measurement can see was judged on every sample."""
+    have a positive load there, so its effect rests on those three. Concealed at 2 mrad (twice
+    the size the score test alone would detect) it lowers the held-out error from 0.234 to
+    0.170 mm, but a paired test over samples confirms it only at p = 0.012, not at the
+    search's family-wise level (issue 32). So no size is promised there, with the reason, and
+    nothing else is named in its place."""
     assert ball_in_socket.findings == []  # the unmodified recording: nothing named
     detectability = ball_in_socket.detectability
     assert detectability is not None
-    (stated,) = [
-        s.smallest
+    (size,) = [
+        s
         for s in detectability.sizes
         if (s.effect, s.variant, s.joint) == ("backlash", "load", "panda_joint4")
     ]
-    assert stated is not None and np.isfinite(stated)
+    assert size.smallest is None
+    assert "too few samples to be confirmed on held-out ones" in (size.reason or "")
     chain, data, frame = concealed_real.recording("platonics")
     rng = np.random.default_rng([1, len("backlash_load")])  # the benchmark's seed 1
-    mechanism, truth = concealed_real.concealment("platonics", "backlash_load", 3, 2 * stated, rng)
+    mechanism, _ = concealed_real.concealment("platonics", "backlash_load", 3, 2e-3, rng)
     readings, _ = conceal(
         chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
     )
     folder = _socket_folder(tmp_path, readings)
     result = discover_ok(folder, [*POINT_FLAGS, "--no-detectability"], tmp_path / "found.json")
-    named = [
-        f
-        for f in result.findings
-        if (f.effect, f.joint, f.variant) == ("backlash", "panda_joint4", "load")
-    ]
-    assert named, [(f.effect, f.joint, f.variant) for f in result.findings]
-    assert named[0].parameters["backlash_rad"] == pytest.approx(truth, rel=0.25)
+    named = {(f.effect, f.joint, f.variant) for f in result.findings}
+    assert named <= {("backlash", "panda_joint4", "load")}, named
 
 
 # --- a spring the first-order term is not (issue 14: no size where it cannot hold) -----------
