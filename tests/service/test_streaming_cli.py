@@ -78,8 +78,14 @@ def test_the_path_never_changes_the_numbers(
         monkeypatch,
     )
     want = _numbers(memory)
-    assert_documents_close(_numbers(streamed), want, rel=1e-8)
-    assert_documents_close(_numbers(small), want, rel=1e-8)
+    for other in (streamed, small):
+        got = _numbers(other)
+        # The covariance is a scoring solve stopped at a tolerance, not at the last digits:
+        # chunked sums in another order move it by ~1e-8 relative on an AVX-512 machine
+        # (1.1e-8 seen on a σ). The cross-machine test (tests/test_same_numbers.py) holds it
+        # to 1e-6; so does this. Everything else, held-out splits included, to 1e-8.
+        assert_documents_close(got.pop("covariance"), want["covariance"], ".covariance", 1e-6)
+        assert_documents_close(got, {k: v for k, v in want.items() if k != "covariance"}, rel=1e-8)
     assert memory.covariance.identifiability.rank == small.covariance.identifiability.rank  # type: ignore[union-attr]
 
 
