@@ -112,10 +112,10 @@ def check_calibration(
     defaults."""
     if findings is not None:
         # only with a carried discovery: it imports scipy.stats
-        from service.app import discover as discovery
+        from service.app import discover_carry
 
-        discovery.findings_chain(findings, robot)
-        options = discovery.carried_options(options, findings)
+        discover_carry.findings_chain(findings, robot)
+        options = discover_carry.carried_options(options, findings)
     chain = chain_for(robot, options)
     names = list(chain.joint_names)
     chosen = options.covariance_frames if options.covariance_frames is not None else names
@@ -241,9 +241,9 @@ def open_recording(
     corrections: ModelCorrections | None = None
     notes: tuple[str, ...] = ()
     if setup.findings is not None:
-        from service.app import discover as discovery
+        from service.app import discover_carry
 
-        carried = discovery.carry_model(setup.findings, dataset, setup.robot)
+        carried = discover_carry.carry_model(setup.findings, dataset, setup.robot)
         dataset, corrections, notes = carried.dataset, carried.record, tuple(carried.notes)
     position_only = measured_position_only(options, dataset.is_position_only, dataset.source)
     problem = StreamProblem(
@@ -420,9 +420,9 @@ def _calibrate_measured(
     corrections: ModelCorrections | None = None
     notes: tuple[str, ...] = ()
     if setup.findings is not None:
-        from service.app import discover as discovery
+        from service.app import discover_carry
 
-        carried = discovery.carry_measured(
+        carried = discover_carry.carry_measured(
             setup.findings, recording, setup.robot, setup.chain, setup.options
         )
         recording, corrections, notes = carried.recording, carried.record, tuple(carried.notes)

@@ -209,7 +209,7 @@ def with_rows(
 ) -> MeasuredRecording:
     """``recording`` with new joint positions (N, k) rad (their loads swept again) and
     measurements (a carried discovery's corrections,
-    :func:`service.app.discover.carry_measured`)."""
+    :func:`service.app.discover_carry.carry_measured`)."""
     rows = recording.rows
     loads = _loads(chain, options, joint_positions)
     return dataclasses.replace(
