@@ -33,7 +33,7 @@ from schemas.discovery import (
     Step,
 )
 from schemas.robots import RobotDescription
-from service.app import calibrate_measurement as measurement_run
+from service.app import measurement_input
 from service.render.chain import chain_for
 from service.render.findings import (
     ambiguity_schema,
@@ -145,13 +145,13 @@ def read_source(
     """Read a recording file or folder as ``kincal calibrate`` reads it for
     ``options.measurement`` (:mod:`service.app.calibrate_measurement`)."""
     chain = chain_for(robot, options)
-    measurement_run.check_sensor_joint(options.measurement, chain)
+    measurement_input.check_sensor_joint(options.measurement, chain)
     reading = measurement_options(options)
-    model = measurement_run.measurement_for(reading, chain, source, marker)
+    model = measurement_input.measurement_for(reading, chain, source, marker)
     if model is None:
-        dataset = measurement_run.read_chain_dataset(source, chain, marker, name)
+        dataset = measurement_input.read_chain_dataset(source, chain, marker, name)
         return SourceData(solver_data(dataset, options), dataset.source, None, None)
-    recording = measurement_run.read_measured(
+    recording = measurement_input.read_measured(
         source, chain, reading, model, marker=marker, name=name
     )
     data, described, effects = measured_data(recording, options)
@@ -186,7 +186,7 @@ LEFT_OUT: dict[str, dict[str, str]] = {
 
 
 def measured_data(
-    recording: measurement_run.MeasuredRecording, options: DiscoveryOptions
+    recording: measurement_input.MeasuredRecording, options: DiscoveryOptions
 ) -> tuple[solver_discovery.DiscoveryData, DiscoveryMeasurement, list[Effect] | None]:
     """The rows of a measurement model as discovery sees them, what the findings say about
     the measurement, and the library effects searched (None: as asked)."""

@@ -19,7 +19,7 @@ from schemas.discovery import (
     FindingsResult,
 )
 from schemas.robots import RobotDescription
-from service.app import calibrate_measurement as measurement_run
+from service.app import measurement_input
 from service.app.discover import measured_data, solver_data
 from service.render.chain import chain_for
 from solver import lie
@@ -59,7 +59,7 @@ class CarriedMeasurement:
     (:func:`carry_measured`): its rows with the joint-angle terms undone on the joint
     readings (and, where the rows hold a measured pose, the sensor's terms on it)."""
 
-    recording: measurement_run.MeasuredRecording
+    recording: measurement_input.MeasuredRecording
     notes: list[str]
     record: ModelCorrections
 
@@ -191,7 +191,7 @@ def carry_model(
 
 def carry_measured(
     findings: FindingsResult,
-    recording: measurement_run.MeasuredRecording,
+    recording: measurement_input.MeasuredRecording,
     robot: RobotDescription,
     chain: KinematicChain,
     options: CalibrationOptions,
@@ -229,7 +229,7 @@ def carry_measured(
         )
     corrected = correct_recording(bank, carry.terms)
     notes, record = _carried_record(findings, carry, corrected, names)
-    out = measurement_run.with_rows(
+    out = measurement_input.with_rows(
         recording,
         chain,
         options,
