@@ -12,7 +12,7 @@ recording would have detected, so "nothing found" reads "nothing larger than thi
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -32,18 +32,7 @@ Effect = Literal[
     "depth_scale",
     "gravity_direction",
 ]
-EFFECTS: tuple[Effect, ...] = (
-    "joint_compliance",
-    "base_flex",
-    "link_bending",
-    "gear_periodic",
-    "backlash",
-    "joint_scale",
-    "thermal_drift",
-    "payload_mass",
-    "depth_scale",
-    "gravity_direction",
-)
+EFFECTS: tuple[Effect, ...] = get_args(Effect)
 Vector3 = tuple[float, float, float]
 
 

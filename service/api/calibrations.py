@@ -29,9 +29,9 @@ from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_re
 from service.api.results import CachedResult
 from service.api.robots import one_line
 from service.app import calibrate as pipeline
-from service.app import discover as discovery
-from service.app.calibrate_measurement import refuse_file_measurement
+from service.app import discover_carry
 from service.app.job_functions import CalibrationJobParams, DiscoveryRef
+from service.app.measurement_input import refuse_file_measurement
 from service.render import exports
 from service.render.urdf_export import refusal as urdf_refusal
 from service.storage import repository
@@ -136,7 +136,7 @@ def carried_discovery(
         )
     findings = FindingsResult.model_validate_json(state.files.read(job.artifacts["result"]))
     try:
-        discovery.findings_chain(findings, robot)
+        discover_carry.findings_chain(findings, robot)
     except ModelError as exc:
         raise ProblemException(
             422,
@@ -144,7 +144,7 @@ def carried_discovery(
             f"); name a discovery of a dataset of robot {robot.name}",
             slug="invalid-discovery",
         ) from exc
-    given = discovery.model_options_set(body.options)
+    given = discover_carry.model_options_set(body.options)
     if given:
         fields = ", ".join(f"options.{name}" for name in given)
         raise ProblemException(

@@ -33,6 +33,7 @@ from schemas.dataset import ChunkRef, DatasetChunks, PoseDataset, plan_dataset_c
 from schemas.discovery import FindingsResult
 from schemas.robots import RobotDescription
 from service.app import calibrate_measurement as measurement_run
+from service.app import measurement_input
 from service.app.preflight import chosen_columns, fit_options
 from service.render.result_json import ResidualSample, assemble_result, chain_for, sample_residuals
 from service.render.urdf_export import export_urdf
@@ -40,7 +41,7 @@ from service.render.urdf_export import refusal as urdf_refusal
 from solver.covariance.layout import ROTATION_AXIS_NAMES
 from solver.errors import KincalError, ModelError
 from solver.executors import Executor, InProcessExecutor, ProcessExecutor, preload_in_workers
-from solver.measurement import MeasurementModel
+from solver.measurement import MeasurementModel, PoseComponents
 from solver.measurement.pose import pose_measurement
 from solver.model import KinematicChain
 from solver.stream.calibrate import (
@@ -112,10 +113,10 @@ def check_calibration(
     defaults."""
     if findings is not None:
         # only with a carried discovery: it imports scipy.stats
-        from service.app import discover as discovery
+        from service.app import discover_carry
 
-        discovery.findings_chain(findings, robot)
-        options = discovery.carried_options(options, findings)
+        discover_carry.findings_chain(findings, robot)
+        options = discover_carry.carried_options(options, findings)
     chain = chain_for(robot, options)
     names = list(chain.joint_names)
     chosen = options.covariance_frames if options.covariance_frames is not None else names
@@ -131,10 +132,10 @@ def check_calibration(
             f"{'are not joints of the chain' if unknown else 'given twice'}; "
             f"choose among {', '.join(names)}"
         )
-    measurement_run.check_sensor_joint(options.measurement, chain)
+    measurement_input.check_sensor_joint(options.measurement, chain)
     kind, _, joint = options.measurement.partition(":")
     if kind == "components":
-        measurement_run.PoseComponents(tuple(c.strip() for c in joint.split(",")))
+        PoseComponents(tuple(c.strip() for c in joint.split(",")))
     return CalibrationSetup(
         robot,
         chain,
@@ -237,13 +238,13 @@ def open_recording(
                 cache_bytes=int(stream.cache_mb * 1024 * 1024),
             )
             return Recording(problem, None, plan.source, None, ())
-        dataset = measurement_run.read_chain_dataset(source, chain, marker, name)
+        dataset = measurement_input.read_chain_dataset(source, chain, marker, name)
     corrections: ModelCorrections | None = None
     notes: tuple[str, ...] = ()
     if setup.findings is not None:
-        from service.app import discover as discovery
+        from service.app import discover_carry
 
-        carried = discovery.carry_model(setup.findings, dataset, setup.robot)
+        carried = discover_carry.carry_model(setup.findings, dataset, setup.robot)
         dataset, corrections, notes = carried.dataset, carried.record, tuple(carried.notes)
     position_only = measured_position_only(options, dataset.is_position_only, dataset.source)
     problem = StreamProblem(
@@ -346,7 +347,7 @@ def calibrate_source(
     where the passes run (default :func:`default_executor`; the caller keeps ownership of one
     it passes); ``name``: the recording's name in the result (default: the file's).
     """
-    model = measurement_run.measurement_for(setup.options, setup.chain, source, marker)
+    model = measurement_input.measurement_for(setup.options, setup.chain, source, marker)
     if model is not None:
         return _calibrate_measured(source, setup, model, marker=marker, name=name)
     started = time.perf_counter()
@@ -414,15 +415,15 @@ def _calibrate_measured(
     markers, pose components, a frame on the base, a sensor on the chain): read into memory
     and calibrated by :mod:`service.app.calibrate_measurement`."""
     started = time.perf_counter()
-    recording = measurement_run.read_measured(
+    recording = measurement_input.read_measured(
         source, setup.chain, setup.options, model, marker=marker, name=name
     )
     corrections: ModelCorrections | None = None
     notes: tuple[str, ...] = ()
     if setup.findings is not None:
-        from service.app import discover as discovery
+        from service.app import discover_carry
 
-        carried = discovery.carry_measured(
+        carried = discover_carry.carry_measured(
             setup.findings, recording, setup.robot, setup.chain, setup.options
         )
         recording, corrections, notes = carried.recording, carried.record, tuple(carried.notes)

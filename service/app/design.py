@@ -33,7 +33,7 @@ from schemas.design import (
 )
 from schemas.robots import RobotDescription
 from service.app import calibrate as pipeline
-from service.app import calibrate_measurement as measurement_run
+from service.app import measurement_input
 from service.render import result_json
 from solver.covariance.identifiability import IdentifiabilityReport, analyse_identifiability
 from solver.covariance.layout import CovarianceLayout
@@ -178,7 +178,7 @@ def design_model(
         frames[:, 3:, 3:] = sigma**2 * np.eye(3)
         noise_cov = np.diag(noise_std**2)
         offsets = options.marker_offsets_m or []
-        measurement = measurement_run.measurement_model(kind, argument, chain, len(offsets))
+        measurement = measurement_input.measurement_model(kind, argument, chain, len(offsets))
         if measurement is not None:
             noise = model_noise_std(measurement, noise_std[0], noise_std[3])
             prior = CovariancePrior((), (), np.zeros((0, 6, 6)), noise_cov)
@@ -299,7 +299,7 @@ def read_candidates(path: Path, model: DesignModel) -> tuple[FloatArray, Sockets
         ).joint_positions
         return q, None
     if is_socket_folder(path):
-        recording = measurement_run.read_measured(path, chain, model.calibration, FixedPoints(1))
+        recording = measurement_input.read_measured(path, chain, model.calibration, FixedPoints(1))
         points = recording.model
         assert isinstance(points, FixedPoints)
         return recording.rows.joint_positions, Sockets(

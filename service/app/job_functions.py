@@ -29,7 +29,7 @@ from schemas.robots import RobotDescription, load_robot
 from service.app import calibrate as pipeline
 from service.app import discover as discovery
 from service.app.design import design_model, recorded_design, run_design, socket_candidates
-from service.app.discovery_html import render_discovery_report
+from service.render.discovery_html import render_discovery_report
 from service.settings import load_settings
 from service.storage.files import FileStore
 from solver.errors import KincalError

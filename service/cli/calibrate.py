@@ -302,11 +302,11 @@ def calibrate(
     )
     findings = None
     if model is not None:
-        from service.app import discover as discovery
+        from service.app import discover_carry
 
         given = [
             "--rigid" if rigid and name == "compliant_joints" else CALIBRATION_FLAGS[name]
-            for name in discovery.model_options_set(options)
+            for name in discover_carry.model_options_set(options)
         ]
         if given:
             raise KincalError(

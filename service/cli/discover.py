@@ -117,6 +117,7 @@ def discover(
         ) from exc
     preflight_discovery(data, description, options.measurement, marker)
     from service.app import discover as discovery
+    from service.render.findings import summary
 
     plot_dir = output.resolve().parent if plots else None
     if plot_dir is not None:
@@ -129,12 +130,12 @@ def discover(
     for name in figures:
         outputs.note(output.parent / name, "figure of a finding")
     if report_path is not None:
-        from service.app.discovery_html import render_discovery_report
+        from service.render.discovery_html import render_discovery_report
 
         assert plot_dir is not None or not figures
         embedded = {name: (output.parent / name).read_bytes() for name in figures}
         outputs.write_text(report_path, "HTML report", render_discovery_report(findings, embedded))
-    typer.echo(discovery.summary(findings))
+    typer.echo(summary(findings))
     typer.echo(outputs.listing())
     typer.echo(findings_line(findings))
 

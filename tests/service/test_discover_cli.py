@@ -12,6 +12,7 @@ import pytest
 from schemas.discovery import EFFECTS, DiscoveryOptions, FindingsResult
 from service.app import discover as discovery
 from service.app import simulate as scenarios
+from service.render.findings import summary
 from tests.conftest import chain, robot
 from tests.service.cli_support import run, run_ok
 
@@ -238,6 +239,14 @@ CONCEALED: dict[str, tuple[list[str], list[int], set[tuple[str, int | None]] | i
 }
 
 
+def test_the_findings_schema_names_the_library_effects_in_order() -> None:
+    """schemas/ may not make solver/discovery a start-up import of the CLI, so the effect
+    names are written twice: once as the schema's Literal, once as the library's tuple."""
+    from solver.discovery.library import EFFECTS as LIBRARY_EFFECTS
+
+    assert EFFECTS == LIBRARY_EFFECTS
+
+
 def test_every_library_effect_can_be_concealed_by_kincal_simulate() -> None:
     assert {label.split(" ")[0] for label in CONCEALED} >= set(EFFECTS)
     known = set(scenarios.EFFECTS)
@@ -275,7 +284,7 @@ def test_findings_state_the_smallest_detectable_size_in_json_cli_and_html(
     """Issue 14: every library term left out gets the smallest size the recording would have
     detected, in the JSON, the CLI summary and the HTML report; the gear's harmonic (a fixed
     integer) is shown without an error."""
-    from service.app.discovery_html import render_discovery_report
+    from service.render.discovery_html import render_discovery_report
 
     result = FindingsResult.model_validate_json(findings_path.read_bytes())
     detectability = result.detectability
@@ -286,7 +295,7 @@ def test_findings_state_the_smallest_detectable_size_in_json_cli_and_html(
     assert sizes[("backlash", second, "load")].parameter == "backlash_rad"
     assert 0.0 < (sizes[("backlash", second, "load")].smallest or 0.0) < 1e-3
     assert ("gear_periodic", chain("kinova").joint_names[2], "h2") not in sizes  # found
-    text = discovery.summary(result)
+    text = summary(result)
     assert "smallest detectable sizes" in text and f"{second} " in text
     page = render_discovery_report(result, {})
     assert "Smallest detectable effects" in page and "nan" not in page

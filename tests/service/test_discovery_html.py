@@ -18,7 +18,7 @@ from schemas.discovery import (
     OutlierScreen,
     RobotRef,
 )
-from service.app.discovery_html import render_discovery_report
+from service.render.discovery_html import render_discovery_report
 
 JOINTS = ["panda_joint1", "panda_joint2", "panda_joint3"]
 HEADING = "What this measurement cannot see"

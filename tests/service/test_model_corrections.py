@@ -13,7 +13,7 @@ from schemas.calibration import CalibrationOptions, CalibrationResult, ModelCorr
 from schemas.dataset import read_dataset
 from schemas.discovery import FindingsResult
 from schemas.ranking import RankingOptions
-from service.app import discover as discovery
+from service.app import discover_carry
 from service.app import rank as ranking
 from service.app import simulate as scenarios
 from service.render import corrections, result_json
@@ -196,7 +196,7 @@ def _with_drift(result: CalibrationResult) -> CalibrationResult:
     """``result`` as if discovery had also found a linear thermal drift of joint 2."""
     names = tuple(result.robot.joint_names)
     term = drift_term(probe_chain(result_json.result_chain(result)[0]), 1, "linear", "s")
-    drift = discovery._model_correction(term, np.array([1e-6]), {"time:linear": 298.0}, names)
+    drift = discover_carry._model_correction(term, np.array([1e-6]), {"time:linear": 298.0}, names)
     assert not drift.applied_in_prediction
     record = result.model_corrections
     assert record is not None
@@ -251,12 +251,12 @@ def test_findings_made_with_another_urdf_are_carried_with_a_note(folder: Path) -
     description = robot("kinova")
     chain = result_json.chain_for(description, CalibrationOptions())
     dataset = read_dataset(folder / "gear.csv", chain.joint_names)
-    same = discovery.carry_model(findings, dataset, description)
+    same = discover_carry.carry_model(findings, dataset, description)
     assert not any("another URDF" in note for note in same.notes)
     edited = findings.model_copy(
         update={"robot": findings.robot.model_copy(update={"urdf_sha256": "0" * 64})}
     )
-    carried = discovery.carry_model(edited, dataset, description)
+    carried = discover_carry.carry_model(edited, dataset, description)
     assert any("another URDF" in note and "000000000000" in note for note in carried.notes)
     assert carried.corrections == same.corrections  # noted, still carried
 

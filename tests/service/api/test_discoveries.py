@@ -16,8 +16,8 @@ from schemas.discovery import DiscoveryOptions, FindingsResult
 from service.api import create_app
 from service.api.client import KincalClient
 from service.app import discover as discovery
-from service.app.discovery_html import render_discovery_report
 from service.jobs.worker import WORKER_NICENESS
+from service.render.discovery_html import render_discovery_report
 from tests.conftest import robot
 from tests.service.api.conftest import (
     AppFactory,

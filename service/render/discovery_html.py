@@ -1,7 +1,7 @@
 """The discovery report as one self-contained HTML page (figures embedded as PNG data URIs).
 
 Sections: held-out error of the user's model and of the discovered one, each finding with its
-residuals-before/after figure (:func:`service.app.discover.finding_figure`), ambiguous effects
+residuals-before/after figure (:func:`service.render.findings.finding_figure`), ambiguous effects
 with the poses that would separate them, unexplained structure, random effects, what the
 measurement cannot see (library effects left out with the reason, and terms whose effect
 cancels in what is measured; shown only when there are any), the smallest detectable size of
@@ -16,7 +16,7 @@ import math
 from collections.abc import Mapping
 
 from schemas.discovery import ErrorPair, FindingsResult, Health
-from service.app.discover import detectability_groups, display_size
+from service.render.findings import detectability_groups, display_size
 from service.render.report_html import html_page, png_img
 
 
