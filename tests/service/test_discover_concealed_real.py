@@ -76,6 +76,22 @@ def test_no_term_is_driven_by_a_moment_the_geometry_makes_zero(
     assert "elbow_joint" in bending
 
 
+def test_no_bending_size_where_the_structure_would_tilt_beyond_first_order(
+    unmodified: dict[str, FindingsResult],
+) -> None:
+    """Issue 32: the UR10e's wrist_2 carries a moment of a few N·m, so the bending the test
+    would detect there was ~0.5 rad/N·m — a tilt near a radian at twice it, which the
+    first-order term (tilt c·τ, τ where the structure stands unbent) is not: concealed there,
+    discovery named a bending plus a gear error. No size is stated there, with the reason;
+    the wrist_1 bending, a few mrad of tilt, keeps its size."""
+    detectability = unmodified["ur10e"].detectability
+    assert detectability is not None
+    bending = {s.joint: s for s in detectability.sizes if s.effect == "link_bending"}
+    assert bending["wrist_2_joint"].smallest is None
+    assert "beyond the first-order bending" in (bending["wrist_2_joint"].reason or "")
+    assert bending["wrist_1_joint"].smallest is not None
+
+
 @pytest.mark.parametrize(
     ("name", "effect_name", "effect", "variant", "joint", "seed", "multiple"),
     [
