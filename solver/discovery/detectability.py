@@ -242,13 +242,19 @@ def first_order_spring(ctx: Context, size: DetectableSize) -> DetectableSize:
     if not np.isfinite(size.smallest):
         return size
     gain = 2.0 * size.smallest * own_torque_slope(ctx, size.term)
-    if gain <= SPRING_GAIN_LIMIT:
-        return size
     reason = (
         f"beyond the first-order spring: at twice the size it would be found at "
         f"({2.0 * size.smallest:.3g} rad/N·m) the joint's own gravity stiffness changes its "
         f"deflection by {gain:.0%} (limit {SPRING_GAIN_LIMIT:.0%})"
     )
+    return _within_first_order(size, gain, reason)
+
+
+def _within_first_order(size: DetectableSize, gain: float, reason: str) -> DetectableSize:
+    """``size`` when the loop gain at twice it is at most :data:`SPRING_GAIN_LIMIT`, else no
+    size, with ``reason``."""
+    if gain <= SPRING_GAIN_LIMIT:
+        return size
     return replace(size, smallest=np.inf, reason=reason, separated_from=None)
 
 
@@ -270,14 +276,12 @@ def first_order_flex(ctx: Context, size: DetectableSize) -> DetectableSize:
     if not np.isfinite(size.smallest):
         return size
     gain = 2.0 * size.smallest * flex_moment_nm(ctx, size.term)
-    if gain <= SPRING_GAIN_LIMIT:
-        return size
     reason = (
         f"beyond the first-order bending: at twice the size it would be found at "
         f"({2.0 * size.smallest:.3g} rad/N·m) the structure tilts by up to {gain:.2g} rad, and "
         f"the moment it carries changes with the tilt (limit {SPRING_GAIN_LIMIT:.2g} rad)"
     )
-    return replace(size, smallest=np.inf, reason=reason, separated_from=None)
+    return _within_first_order(size, gain, reason)
 
 
 def collinear_twins(
