@@ -137,8 +137,9 @@ class DiscoveryOptions:
     ``heldout_partitions`` fold partitions) with a one-sided paired t-test over samples
     significant at ``heldout_level / (max_terms + max_rejections)`` (Bonferroni over the
     steps a search can take: a level that does not loosen after a first find), lowers it on
-    every partition, and lowers the mean held-out translation error by more than its
-    split-to-split standard deviation (:meth:`HeldoutError.confirmed_by`). Without the
+    every partition and by more than its split-to-split standard deviation, and leaves
+    neither the translation nor the rotation error worse by more than theirs
+    (:meth:`HeldoutError.confirmed_by`). Without the
     correction, 5 % per step over ten steps named the real FR3's own background (link
     bending, warm-up drifts) once a concealed effect had been found (issue 32).
     ``outlier_level``: probability that screening drops any sample of a recording that fits
