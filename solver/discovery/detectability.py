@@ -269,10 +269,11 @@ def first_order_flex(ctx: Context, size: DetectableSize) -> DetectableSize:
     """``size`` of a link bending or base flex, or no size when at twice it the structure
     would tilt by more than :data:`SPRING_GAIN_LIMIT` rad: the library tilts it by c·τ with τ
     the moment where it would stand unbent, and under a tilt δ the moment of the load it
-    carries changes by up to |τ|·δ, so 2c·max|τ| bounds both the tilt and the loop gain the
-    first-order term leaves out (on the UR10e's wrist the stated bending was ~0.26 rad/N·m: a
-    tilt near a radian at twice it, named as a bending plus a gear error, or on another
-    joint; issue 32)."""
+    carries changes by up to (its largest moment)·δ. With the largest moment the recording
+    shows, 2c·max|τ| is the tilt at twice the size and about the loop gain the first-order
+    term leaves out (on the UR10e's wrist_2 the stated bending was ~0.49 rad/N·m: a tilt near
+    a radian at twice it, named as a bending plus a gear error; on TALOS's arm_left_5 a
+    bending on another joint; issue 32)."""
     if not np.isfinite(size.smallest):
         return size
     gain = 2.0 * size.smallest * flex_moment_nm(ctx, size.term)
