@@ -377,9 +377,11 @@ def best_confirmation_p(effect: FloatArray) -> float:
     most t = √(k(n − 1)/(n − k)) (three of sixty samples: p ≈ 0.04)."""
     energy = np.sum(effect**2, axis=1)
     n = energy.size
-    spread = float(energy.std(ddof=1)) if n > 1 else 0.0
-    if n < 3 or spread == 0.0:
-        return 0.0 if n >= 3 else 1.0
+    if n < 3 or not np.any(energy > 0.0):
+        return 1.0  # nothing to confirm on
+    spread = float(energy.std(ddof=1))
+    if spread == 0.0:
+        return 0.0  # the same gain on every sample: any size is confirmed
     t = float(energy.mean() / (spread / np.sqrt(n)))
     return float(scipy.stats.t.sf(t, n - 1))
 

@@ -229,6 +229,9 @@ class _Search:
         self.declared_notes = self._declared_checks()
         # (candidate key, the fit it was added to, the refit with it) of the last row check
         self.tentative: tuple[str, ModelFit, ModelFit] = ("", self.fit, self.fit)
+        # the held-out error of the current model, kept while the model is unchanged (a
+        # rejected candidate leaves it as it was: the next step compares against the same)
+        self.heldout_of: tuple[tuple[Term, ...], ModelFit, HeldoutError] | None = None
 
     def run(self) -> DiscoveryResult:
         options = self.options
@@ -405,7 +408,7 @@ class _Search:
             return
         term, new_terms, new_fit = added
         candidates.columns[term.key] = candidates.columns[key]  # refined shapes: same columns
-        before = repeated_heldout(self.ctx, self.terms, self.fit, self.partitions, self.fit.weights)
+        before = self._current_heldout()
         after = repeated_heldout(self.ctx, new_terms, new_fit, self.partitions, self.fit.weights)
         if not before.confirmed_by(after, self._confirmation_level()):
             self.steps.append(
@@ -460,6 +463,18 @@ class _Search:
             )
         self.terms = new_terms
         self.fit = screen_outliers(self.ctx, new_terms, new_fit, self.options.outlier_level)
+
+    def _current_heldout(self) -> HeldoutError:
+        """:func:`repeated_heldout` of the current model (terms and fit), computed once per
+        model."""
+        kept = self.heldout_of
+        if kept is not None and kept[0] is self.terms and kept[1] is self.fit:
+            return kept[2]
+        heldout = repeated_heldout(
+            self.ctx, self.terms, self.fit, self.partitions, self.fit.weights
+        )
+        self.heldout_of = (self.terms, self.fit, heldout)
+        return heldout
 
     def _confirmation_level(self) -> float:
         """Level of one step's held-out confirmation: the search's family-wise

@@ -88,3 +88,4 @@ def test_three_samples_of_sixty_cannot_pass_the_search_level() -> None:
     effect[:3] = 1e-3
     assert 0.03 < best_confirmation_p(effect) < 0.05
     assert best_confirmation_p(np.ones((60, 3))) == 0.0
+    assert best_confirmation_p(np.zeros((60, 3))) == 1.0  # no effect: nothing to confirm
