@@ -597,6 +597,13 @@ def pivoted_columns(
     return keep, int(taken.size), float(singular[0] / singular[-1])
 
 
+def scaled_condition_number(gram: FloatArray) -> float:
+    """Condition number of the unit-norm-scaled columns from their Gram (p, p)."""
+    norms = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
+    eigenvalues = np.linalg.eigvalsh(gram / np.outer(norms, norms))
+    return float(np.sqrt(eigenvalues[-1] / max(eigenvalues[0], 1e-300)))
+
+
 def frame_columns(
     chain: KinematicChain, n_columns: int, n_compliance: int | None = None
 ) -> BoolArray:

@@ -368,7 +368,11 @@ def calibrate_source(
                 setup.options.outlier_level,
             ),
             covariance=covariance_settings(recording.problem.residual_dim, setup),
-            heldout=HeldoutSettings(tuple(setup.options.seeds), setup.options.train_fraction)
+            heldout=HeldoutSettings(
+                tuple(setup.options.seeds),
+                setup.options.train_fraction,
+                method=setup.options.heldout_method,
+            )
             if setup.options.heldout
             else None,
             progress=progress,

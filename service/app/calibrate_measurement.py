@@ -50,9 +50,10 @@ from service.render.result_json import (
     fixed_names,
     kincal_version,
     predictive_block,
+    split_fits,
 )
 from solver.calibration import FitOptions, outlier_mask
-from solver.covariance.estimate import CovarianceEstimate, estimate_from_samples
+from solver.covariance.estimate import CovarianceEstimate, estimate_from_samples, warm_estimate
 from solver.kinematics import parameter_names
 from solver.measurement import (
     MeasurementFit,
@@ -62,7 +63,7 @@ from solver.measurement import (
     heldout_errors,
     row_errors,
 )
-from solver.measurement.fit import HeldoutError, covariance_samples, row_weights
+from solver.measurement.fit import HeldoutError, covariance_samples, refit_from, row_weights
 from solver.measurement.predictive import (
     INNER_FOLDS,
     MeasurementPredictive,
@@ -237,17 +238,31 @@ def calibrate_measurement(
         notes.append(step_note)
         used = rows.take(np.flatnonzero(kept))
     baseline = fit_measurement(chain, model, used, baseline_options)
+    one_step = options.heldout_method == "one-step"
     predictive = None
     if estimate is not None and covariance is not None:
         settings, start = covariance, estimate
+        frames = tuple(settings.spec.frames)
+
+        def fitter(r: MeasurementRows) -> MeasurementFit:
+            if one_step:
+                return refit_from(chain, model, r, fit_options, fit.params, fit.estimated)
+            return fit_measurement(chain, model, r, fit_options)
+
+        def estimator(f: MeasurementFit, r: MeasurementRows) -> CovarianceEstimate:
+            if one_step:
+                samples = covariance_samples(chain, f, r, frames)
+                return warm_estimate(start, samples, known=settings.spec.known)
+            return estimate_covariances(chain, f, r, settings, start)
+
         predictive = measurement_predictive(
             chain,
             used,
             fit,
             estimate,
-            lambda r: fit_measurement(chain, model, r, fit_options),
-            lambda f, r: estimate_covariances(chain, f, r, settings, start),
-            tuple(settings.spec.frames),
+            fitter,
+            estimator,
+            frames,
             row_weights(model, fit_options),
             options.seeds if options.heldout else (),
             options.train_fraction,
@@ -261,6 +276,7 @@ def calibrate_measurement(
             {BEFORE: baseline_options, CALIBRATED: fit_options},
             options.seeds,
             options.train_fraction,
+            {BEFORE: baseline, CALIBRATED: fit} if one_step else None,
         )
     return MeasurementCalibration(
         recording,
@@ -372,7 +388,8 @@ def measurement_result(
             protocol=f"{len(options.seeds)} random train/test splits "
             f"({options.train_fraction:.0%} train), seeds {options.seeds}, after outlier "
             f"removal, on all {int(calibrated.kept.sum())} used rows; the model's own unknowns "
-            "(sockets, marker offsets) fitted on the training rows too",
+            "(sockets, marker offsets) fitted on the training rows too; "
+            + split_fits(options.heldout_method),
             splits=[
                 HeldoutSplit(
                     method=s.method,

@@ -214,6 +214,7 @@ def calibrate(
         bool | None,
         _calibration_flag("heldout", "", HELDOUT, "--heldout/--no-heldout"),
     ] = None,
+    heldout_method: Annotated[str | None, _calibration_flag("heldout_method", "", HELDOUT)] = None,
     seeds: Annotated[str | None, _calibration_flag("seeds", "; comma-separated", HELDOUT)] = None,
     train_fraction: Annotated[
         float | None, _calibration_flag("train_fraction", "", HELDOUT)
@@ -283,6 +284,7 @@ def calibrate(
             "tolerance": tolerance,
             "rank_tolerance": rank_tolerance,
             "heldout": heldout,
+            "heldout_method": heldout_method,
             "seeds": None if seeds is None else _integers(seeds, "--seeds"),
             "train_fraction": train_fraction,
             "covariance": covariance,

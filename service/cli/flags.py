@@ -52,6 +52,7 @@ CALIBRATION_FLAGS: dict[str, str] = {
     "tolerance": "--tolerance",
     "rank_tolerance": "--rank-tolerance",
     "heldout": "--heldout",
+    "heldout_method": "--heldout-method",
     "seeds": "--seeds",
     "train_fraction": "--train-fraction",
     "covariance": "--covariance",

@@ -39,6 +39,10 @@ CALIBRATION: dict[str, tuple[str, str, tuple[str, ...]]] = {'compliant_joints': 
                     '1e-07',
                     ()),
  'heldout': ('Run the 10-split held-out evaluation.', 'on', ()),
+ 'heldout_method': ('Held-out splits calibrated one step from the calibration of all rows (about '
+                    "one fit's cost) or exact (each split iterated to convergence, ~10x slower).",
+                    'one-step',
+                    ('one-step', 'exact')),
  'seeds': ('Seeds of the held-out splits (non-negative integers, one split each).', '1..10', ()),
  'train_fraction': ('Share of the rows each held-out split trains on.', '0.9', ()),
  'covariance': ("Structure of the random-effect covariances Σ_n, Σ_1..Σ_k (paper §IV-C); 'none' "

@@ -303,6 +303,16 @@ def _error_stats(translation_mm: FloatArray, rotation_deg: FloatArray | None) ->
     )
 
 
+def split_fits(method: str) -> str:
+    """How the held-out splits were calibrated on their training rows, in words."""
+    if method == "exact":
+        return "each split's fits iterated to convergence from the nominal robot (exact)"
+    return (
+        "each split's fits one Gauss-Newton step (geometry) and one scoring step "
+        "(covariances) from the calibration of all used rows (one-step)"
+    )
+
+
 def _heldout_stats(splits: list[SplitError], method: str, position_only: bool) -> ErrorStats | None:
     """Mean over splits of the per-split mean errors (RMS over the split means)."""
     mine = [s for s in splits if s.method == method]
@@ -327,7 +337,7 @@ def _evaluation(calibrated: RecordingCalibration, options: CalibrationOptions) -
     return Evaluation(
         protocol=f"{len(options.seeds)} random train/test splits "
         f"({options.train_fraction:.0%} train), seeds {options.seeds}, after outlier removal, "
-        f"on {on}",
+        f"on {on}; {split_fits(options.heldout_method)}",
         splits=[
             HeldoutSplit(
                 method=s.method,

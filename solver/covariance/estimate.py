@@ -401,6 +401,70 @@ def estimate_from_samples(
     )
 
 
+def warm_estimate(
+    start: CovarianceEstimate,
+    samples: ArraySamples,
+    *,
+    known: FloatArray | None = None,
+) -> CovarianceEstimate:
+    """The covariance calibration of ``samples`` — rows of the data ``start`` was estimated on,
+    such as a held-out split's training rows — as one projected scoring step of
+    ``start``'s estimator (ML or REML, :func:`~.fitting.fit_likelihood`) from ``start.theta``
+    (issue 29). ``start`` is a √n-consistent start for the subset, so one step is as efficient
+    as the converged estimate up to O(1/n): the one-step estimator. ``start``'s
+    identifiability report serves (its scaling, and its null directions, along which Σ_E does
+    not change: the step stays in the gauge ``start``'s rule chose); no standard errors.
+    ``known`` (d, d): the known part of every Σ_E, as for ``start``. A moment ``start`` is
+    solved afresh: Eq. (14) is one QP already."""
+    layout = start.layout
+    noise_name = start.noise.name if start.noise is not None else "noise"
+    if start.estimator == "moment":
+        return estimate_from_samples(
+            samples,
+            layout,
+            known=known,
+            solver=start.solver,
+            noise_name=noise_name,
+            standard_errors=False,
+        )
+    stats, _ = moment_statistics(samples, layout, known)
+    report = start.identifiability
+    solution = fit_likelihood(
+        start.estimator,
+        start.theta,
+        samples,
+        stats,
+        report.scaling,
+        every_kth(samples, METRIC_SAMPLES),
+        transform=fit_basis_transform(samples) if start.estimator == "reml" else None,
+        known_covariance=known,
+        null_basis=report.null_basis,
+        warm=True,
+    )
+    notes = ["one scoring step from the estimate of all rows (one-step estimator)"]
+    if not np.all(np.isfinite(solution.theta)) or not np.isfinite(solution.objective):
+        raise CalibrationError(f"warm {start.estimator} step failed: {solution.message}")
+    theta = solution.theta
+    frames, noise = frame_results(layout, theta, None, known, noise_name)
+    return CovarianceEstimate(
+        start.estimator,
+        layout.structure,
+        start.solver,
+        stats.n_samples,
+        frames,
+        noise,
+        theta,
+        layout,
+        report,
+        start.moment_solution,
+        solution,
+        stats,
+        None,
+        None,
+        tuple(notes),
+    )
+
+
 SE_METHOD = {
     # how each estimator's standard errors are computed, as the result reports it
     "moment": "sandwich G⁺·2ΣK̃ᵀK̃·G⁺ (Gaussian fourth moments)",

@@ -69,6 +69,7 @@ def fit_likelihood(
     one_step: bool = False,
     tolerance: float = 1e-10,
     null_basis: FloatArray | None = None,
+    warm: bool = False,
 ) -> CovarianceSolution:
     """ML or REML estimate of θ (Q,), started from ``start_theta`` (PSD, e.g. moment).
 
@@ -86,7 +87,11 @@ def fit_likelihood(
     the start. ``objective`` is the NLL (constants omitted). ``null_basis`` (Q, k):
     directions (equilibrated, orthonormal) that do not change Σ_E, along which the NLL is
     exactly flat and the step is rounding (the caller fixes them by rule afterwards); they do
-    not count in the step-size test of convergence.
+    not count in the step-size test of convergence. ``warm``: ``start_theta`` is the
+    estimate of nearby data (a superset of the samples): one full scoring step from it with
+    the average-information metric, no line search, status "one_step" (the one-step
+    estimator from that start, :func:`.estimate.warm_estimate`; ``objective`` is the NLL at
+    the start).
     """
     started = time.perf_counter()
     layout = stats.layout
@@ -118,11 +123,11 @@ def fit_likelihood(
         theta, (value, psi) = _positive_start(start + floor, nll, layout, scaling)
         status: Status = "iteration_limit"
         decrement, message, iterations, blind = float("inf"), "", 0, 0
-        for _ in range(1 if one_step else max_iterations):
+        for _ in range(1 if one_step or warm else max_iterations):
             iterations += 1
             grad = theta_gradient(layout, psi)
             hess = (n / metric.n_samples) * _metric(
-                theta, metric, layout, transform, known_covariance, one_step
+                theta, metric, layout, transform, known_covariance, one_step and not warm
             )
             mu = PROXIMAL_RTOL * float(np.max(np.diag(hess) * scaling.param_scale**2))
             gram = hess + np.diag(mu / scaling.param_scale**2)
@@ -134,7 +139,7 @@ def fit_likelihood(
                 break
             step = target - theta
             decrement = float(-grad @ step)
-            if one_step:  # the classical one-step estimator: the full step, no line search
+            if one_step or warm:  # the one-step estimator: the full step, no line search
                 theta, status = target, "one_step"
                 break
             # Converged, full Σ: the predicted decrease is below the tolerance (or what the
@@ -175,7 +180,7 @@ def fit_likelihood(
         clipped = layout.theta_from_covariances(clip_psd(layout.frame_covariances(theta)))
         if not np.array_equal(clipped, theta):  # a full Σ left the cone by rounding
             theta = clipped
-            if not one_step:
+            if not (one_step or warm):
                 value = nll(clipped)[0]
         return CovarianceSolution(
             estimator,
@@ -187,10 +192,10 @@ def fit_likelihood(
             float(value),
             moment_objective(theta, stats),
             max(decrement, 0.0) / n,
-            message or _scoring_message(iterations, one_step, restriction_samples),
+            message or _scoring_message(iterations, one_step, restriction_samples, warm),
         )
 
-    if one_step:
+    if one_step or warm:
         return scoring(start_theta)
     runs = [scoring(start) for start in _starts(start_theta, layout, scaling)]
     best = min(runs, key=lambda run: (run.status != "optimal", _finite_or_inf(run.objective)))
@@ -403,10 +408,12 @@ def _positive_start(
 
 
 def _scoring_message(
-    iterations: int, one_step: bool, restriction_samples: ArraySamples | None
+    iterations: int, one_step: bool, restriction_samples: ArraySamples | None, warm: bool
 ) -> str:
     text = f"projected Fisher scoring, {iterations} steps"
-    if one_step:
+    if warm:
+        text = "one projected scoring step from the estimate of nearby data (one-step estimator)"
+    elif one_step:
         text = (
             "one projected Fisher-scoring step from the moment solution (one-step estimator; "
             "objective at the moment solution)"

@@ -546,12 +546,67 @@ def resolve_null_space(
     fallback = np.where(report.silent, 0.0, theta)  # each silent entry is a null direction
     if basis.shape[1] == 0:
         return theta
-    import cvxpy as cp
-
     scale = report.scaling.param_scale
     metric = layout.frobenius_weights()
     x0 = fallback / scale
     bound = np.zeros_like(x0) if floor is None else np.where(report.silent, 0.0, floor) / scale
+    if layout.structure == "diag":
+        found = _least_norm_diag(x0 - bound, basis, metric, bound)
+        if found is None:
+            return fallback
+        out = bound + _polish_active_set(found - bound, x0 - bound, basis)
+    else:
+        found = _least_norm_psd(x0, basis, metric, bound, layout)
+        if found is None:
+            return fallback
+        out = found
+    out = np.where(report.silent, 0.0, out) * scale
+    out = layout.theta_from_covariances(clip_psd(layout.frame_covariances(out)))
+    return np.where(report.silent, 0.0, out)  # exact zeros (rows of silent axes stay PSD)
+
+
+def _least_norm_diag(
+    start: FloatArray, basis: FloatArray, metric: FloatArray, bound: FloatArray
+) -> FloatArray | None:
+    """Diagonal Σ: ``x = bound + start + N y`` minimising ‖m∘x‖ subject to ``start + N y ≥ 0``
+    (θ ≥ ``bound``), or None when the solver finds no answer.
+
+    A quadratic program in the k null-direction weights y — ``min ½yᵀPy + pᵀy`` with
+    ``P = 2(m∘N)ᵀ(m∘N)``, ``p = 2(m∘N)ᵀ(m∘(bound + start))``, ``−N y + s = start``, s ≥ 0 —
+    handed to Clarabel directly: the problem cvxpy would build, without importing cvxpy
+    (~0.5 s of every ``kincal calibrate``)."""
+    import clarabel
+    import scipy.sparse as sp
+
+    weighted = metric[:, None] * basis
+    quadratic = sp.csc_matrix(np.triu(2.0 * weighted.T @ weighted))
+    linear = 2.0 * weighted.T @ (metric * (bound + start))
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    solution = clarabel.DefaultSolver(
+        quadratic,
+        linear,
+        sp.csc_matrix(-basis),
+        start,
+        [clarabel.NonnegativeConeT(start.size)],
+        settings,
+    ).solve()
+    if solution.status not in (clarabel.SolverStatus.Solved, clarabel.SolverStatus.AlmostSolved):
+        return None
+    return np.asarray(bound + start + basis @ np.asarray(solution.x), dtype=float)
+
+
+def _least_norm_psd(
+    x0: FloatArray,
+    basis: FloatArray,
+    metric: FloatArray,
+    bound: FloatArray,
+    layout: CovarianceLayout,
+) -> FloatArray | None:
+    """Full Σ: ``x = x0 + N y`` minimising ‖m∘x‖ with every Σ̂_f − bound ⪰ 0, a semidefinite
+    program (Clarabel through cvxpy); None when the solver finds no answer."""
+    import cvxpy as cp
+
     y = cp.Variable(basis.shape[1])
     x = x0 + basis @ y
     problem = cp.Problem(
@@ -563,15 +618,10 @@ def resolve_null_space(
             warnings.simplefilter("ignore", UserWarning)
             problem.solve(solver=cp.CLARABEL)
     except cp.error.SolverError:
-        return fallback
+        return None
     if y.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
-        return fallback
-    out = x0 + basis @ y.value
-    if layout.structure == "diag":
-        out = bound + _polish_active_set(out - bound, x0 - bound, basis)
-    out = np.where(report.silent, 0.0, out) * scale
-    out = layout.theta_from_covariances(clip_psd(layout.frame_covariances(out)))
-    return np.where(report.silent, 0.0, out)  # exact zeros (rows of silent axes stay PSD)
+        return None
+    return np.asarray(x0 + basis @ y.value, dtype=float)
 
 
 def _polish_active_set(x: FloatArray, x0: FloatArray, basis: FloatArray) -> FloatArray:

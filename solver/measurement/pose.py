@@ -6,6 +6,7 @@ models — the in-memory fit; :mod:`solver.stream` streams the same iteration.""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -13,7 +14,7 @@ from numpy.typing import NDArray
 from solver.calibration import DeterministicFit, FitOptions, check_sample_count
 from solver.kinematics import ChainParameters
 from solver.measurement import models as measurement_models
-from solver.measurement.fit import fit_measurement
+from solver.measurement.fit import fit_measurement, refit_from
 from solver.model import KinematicChain
 
 FloatArray = NDArray[np.float64]
@@ -50,27 +51,31 @@ def fit_deterministic(
     position_only: bool,
     options: FitOptions = FitOptions(),
     start: ChainParameters | None = None,
+    estimated: Sequence[str] | None = None,
 ) -> DeterministicFit:
     """Paper Eq. (10): iterate ``x_w = A_w^+ y_w`` and re-linearise until the cost settles.
 
     ``measured_pose`` (N, 4, 4) in the measurement frame (rotation ignored if position-only);
     ``loads_nm`` (N, n_axes) from :func:`solver.model.gravity_loads`. The fit of the pose
     measurement model (:func:`solver.measurement.fit_measurement` with
-    :func:`pose_measurement`), after the sample count is checked against the chain.
+    :func:`pose_measurement`), after the sample count is checked against the chain; with
+    ``estimated`` (the parameters of the fit ``start`` came from) one Gauss–Newton step from
+    ``start`` over them (:func:`solver.measurement.fit.refit_from`).
     """
     check_sample_count(
         chain, joint_positions.shape[0], position_only=position_only, options=options
     )
     rows = measurement_models.MeasurementRows.of(joint_positions, loads_nm, measured_pose)
-    fit = fit_measurement(
-        chain,
-        pose_measurement(position_only=position_only),
-        rows,
-        options,
-        start=None
+    model = pose_measurement(position_only=position_only)
+    begin = (
+        None
         if start is None
-        else measurement_models.ModelParameters(start.links, start.compliance_rad_per_nm),
+        else measurement_models.ModelParameters(start.links, start.compliance_rad_per_nm)
     )
+    if estimated is not None and begin is not None:
+        fit = refit_from(chain, model, rows, options, begin, estimated)
+    else:
+        fit = fit_measurement(chain, model, rows, options, start=begin)
     shared = {f.name: getattr(fit, f.name) for f in dataclasses.fields(DeterministicFit)}
     params = ChainParameters(fit.params.links, fit.params.compliance_rad_per_nm)
     return DeterministicFit(**{**shared, "params": params})

@@ -50,6 +50,7 @@ from solver.stream.coverage import (
     PredictiveCalibration,
     RandomEffectSettings,
     SplitCoverage,
+    WarmStart,
     calibration_predictive,
     split_coverage,
 )
@@ -84,6 +85,7 @@ IntArray = NDArray[np.intp]
 
 
 OutlierRuleName = Literal["model", "sigma", "none"]
+HeldoutMethod = Literal["one-step", "exact"]
 
 
 @dataclass(frozen=True)
@@ -401,6 +403,10 @@ class HeldoutSettings:
     seeds: tuple[int, ...]
     train_fraction: float = 0.9
     max_rows: int = HELDOUT_ROWS
+    method: HeldoutMethod = "one-step"
+    """"one-step": every split's fits are one step from the calibration of all rows (issue
+    29, :class:`~solver.stream.coverage.WarmStart`); "exact": iterated to convergence from
+    the nominal start, as a calibration of those rows alone would be."""
 
 
 @dataclass(frozen=True)
@@ -489,6 +495,7 @@ def calibrate_recording(
             None
             if covariance is None
             else RandomEffectSettings(covariance.spec, covariance.estimator, covariance.solver),
+            None if heldout.method == "exact" else _warm_starts(run, estimate),
         )
         splits, coverage = heldout_evaluation(evaluation, executor, report)
     stage["heldout"] = time.perf_counter() - clock
@@ -500,6 +507,17 @@ def calibrate_recording(
     return RecordingCalibration(
         run, estimate, splits, sample, stride, stage, count.passes, predictive
     )
+
+
+def _warm_starts(
+    run: StreamedCalibration, estimate: CovarianceEstimate | None
+) -> dict[str, WarmStart]:
+    """Where the one-step held-out splits start: the "before" fit and the calibration of all
+    used rows, with its covariance estimate."""
+    return {
+        BEFORE: WarmStart(run.baseline.params, run.baseline.estimated),
+        CALIBRATED: WarmStart(run.fit.params, run.fit.estimated, estimate),
+    }
 
 
 def _predictive(
@@ -697,6 +715,8 @@ class HeldoutProblem:
     baseline_options: FitOptions
     settings: HeldoutSettings
     coverage: RandomEffectSettings | None = None
+    starts: dict[str, WarmStart] | None = None
+    """Per method, the calibration of all rows its splits start from (None: exact refits)."""
 
 
 def _heldout_fit(
@@ -708,6 +728,7 @@ def _heldout_fit(
     sample = evaluation.sample
     train, test = split_indices(sample.n, seed, evaluation.settings.train_fraction)
     options = evaluation.baseline_options if method == BEFORE else evaluation.options
+    warm = None if evaluation.starts is None else evaluation.starts[method]
     fit = fit_deterministic(
         evaluation.chain,
         sample.joint_positions[train],
@@ -715,6 +736,8 @@ def _heldout_fit(
         sample.loads_nm[train],
         position_only=evaluation.position_only,
         options=options,
+        start=None if warm is None else warm.params,
+        estimated=None if warm is None else warm.estimated,
     )
     predicted = forward_kinematics(
         evaluation.chain, fit.params, sample.joint_positions[test], sample.loads_nm[test]
@@ -730,6 +753,7 @@ def _heldout_fit(
             options,
             evaluation.coverage,
             seed=seed,
+            warm=warm,
         )
     return predicted, coverage
 

@@ -26,7 +26,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver.calibration import DeterministicFit, FitOptions, identifiable_parameter_count
-from solver.covariance.estimate import CovarianceEstimate, EstimatorName, estimate_from_samples
+from solver.covariance.estimate import (
+    CovarianceEstimate,
+    EstimatorName,
+    estimate_from_samples,
+    warm_estimate,
+)
 from solver.covariance.likelihood import ee_covariance_batch
 from solver.covariance.samples import ArraySamples
 from solver.covariance.solvers import SolverName
@@ -85,6 +90,20 @@ class RandomEffectSettings:
     spec: CovarianceSpec
     estimator: EstimatorName
     solver: SolverName
+
+
+@dataclass(frozen=True)
+class WarmStart:
+    """The calibration of every row that held-out predictors start from (issue 29, the
+    one-step held-out evaluation): its parameters, the names it estimated, and its covariance
+    estimate. A predictor of a subset of the rows is then one Gauss–Newton step from
+    ``params`` over ``estimated`` (:func:`solver.measurement.fit.refit_from`) and one scoring
+    step from ``covariance`` (:func:`solver.covariance.estimate.warm_estimate`)."""
+
+    params: ChainParameters
+    estimated: list[str]
+    covariance: CovarianceEstimate | None = None
+    """None: the deterministic part alone starts here (the "before" fit)."""
 
 
 @dataclass(frozen=True)
@@ -157,26 +176,34 @@ def predictor_from_fit(
     options: FitOptions,
     settings: RandomEffectSettings,
     start_theta: FloatArray | None = None,
+    warm: WarmStart | None = None,
 ) -> Predictor:
     """A deterministic fit of ``rows`` completed into a predictor: the random-effect
     covariances (the calibration's estimator, on the fit's residuals; ML/REML started from
-    ``start_theta`` when given) and the sandwich Cov(θ̂)."""
+    ``start_theta`` when given, or one scoring step from ``warm``'s) and the sandwich
+    Cov(θ̂)."""
     d = 3 if position_only else 6
     estimated = _columns(chain, fit.estimated)
     point = prediction_point(chain, fit.params, estimated, rows.joint_positions, rows.loads_nm, d)
     spec = settings.spec
     frames = list(spec.frames)
-    estimate = estimate_from_samples(
-        ArraySamples(fit.residuals, point.frame_jacobians[:, frames], point.parameter_jacobian),
-        spec.layout,
-        known=spec.known,
-        estimator=settings.estimator,
-        solver=settings.solver,
-        noise_name=spec.noise_name,
-        standard_errors=False,
-        likelihood_tolerance=NLL_TOLERANCE / max(rows.n, 1),
-        start_theta=start_theta,
+    samples = ArraySamples(
+        fit.residuals, point.frame_jacobians[:, frames], point.parameter_jacobian
     )
+    if warm is not None and warm.covariance is not None:
+        estimate = warm_estimate(warm.covariance, samples, known=spec.known)
+    else:
+        estimate = estimate_from_samples(
+            samples,
+            spec.layout,
+            known=spec.known,
+            estimator=settings.estimator,
+            solver=settings.solver,
+            noise_name=spec.noise_name,
+            standard_errors=False,
+            likelihood_tolerance=NLL_TOLERANCE / max(rows.n, 1),
+            start_theta=start_theta,
+        )
     noise = estimate.noise_covariance()[:d, :d]
     random = ee_covariance_batch(
         point.frame_jacobians[:, frames], estimate.frame_covariances(), _padded(noise)
@@ -203,8 +230,10 @@ def train_predictor(
     options: FitOptions,
     settings: RandomEffectSettings,
     start_theta: FloatArray | None = None,
+    warm: WarmStart | None = None,
 ) -> Predictor:
-    """Fit geometry and compliance (Eq. 8–10) on ``rows``, then :func:`predictor_from_fit`;
+    """Fit geometry and compliance (Eq. 8–10) on ``rows`` (with ``warm``: one step from it),
+    then :func:`predictor_from_fit`;
     :class:`CalibrationError` when the rows leave fewer than :data:`MIN_RESIDUAL_SAMPLES`
     samples' worth of equations beyond the parameters."""
     d = 3 if position_only else 6
@@ -224,10 +253,12 @@ def train_predictor(
             rows.loads_nm,
             position_only=position_only,
             options=options,
+            start=None if warm is None else warm.params,
+            estimated=None if warm is None else warm.estimated,
         )
     except ZeroDivisionError as exc:  # the rows' rank reached their equations: no residual dof
         raise CalibrationError(f"{rows.n} rows leave no residual degrees of freedom") from exc
-    return predictor_from_fit(chain, fit, rows, position_only, options, settings, start_theta)
+    return predictor_from_fit(chain, fit, rows, position_only, options, settings, start_theta, warm)
 
 
 def score_rows(
@@ -304,15 +335,16 @@ def cross_validated_rows(
     folds: int,
     seed: int,
     start_theta: FloatArray | None = None,
+    warm: WarmStart | None = None,
 ) -> ScoredRows:
-    """Every row of ``rows`` scored by a predictor trained on the other folds; a fold whose
-    training part cannot be calibrated is left out."""
+    """Every row of ``rows`` scored by a predictor trained on the other folds (with ``warm``:
+    one step from it); a fold whose training part cannot be calibrated is left out."""
     d = 3 if position_only else 6
     parts = []
     for train, test in fold_indices(rows.n, folds, seed):
         try:
             predictor = train_predictor(
-                chain, rows.take(train), position_only, options, settings, start_theta
+                chain, rows.take(train), position_only, options, settings, start_theta, warm
             )
         except KincalError:
             continue
@@ -330,14 +362,17 @@ def split_coverage(
     settings: RandomEffectSettings,
     *,
     seed: int = 0,
+    warm: WarmStart | None = None,
 ) -> SplitCoverage | None:
     """Every part from the training rows of a split (``fit`` of them given; the model-error
     part by :data:`INNER_FOLDS`-fold cross-validation inside them up to
     :data:`INNER_CV_ROWS` of them, else — or when no fold can be calibrated — from their
     leave-one-out residuals), scored on its test rows; None when the training rows cannot
-    give the covariances."""
+    give the covariances. With ``warm`` every predictor is one step from it (issue 29)."""
     try:
-        predictor = predictor_from_fit(chain, fit, train, position_only, options, settings)
+        predictor = predictor_from_fit(
+            chain, fit, train, position_only, options, settings, warm=warm
+        )
     except KincalError:
         return None
     weight = options.rotation_weight_m_per_rad
@@ -353,6 +388,7 @@ def split_coverage(
         folds=INNER_FOLDS,
         seed=seed,
         start_theta=predictor.theta,
+        warm=warm,
     )
     if not inner.residuals.shape[0]:
         model_error = model_error_of(chain, predictor, train, position_only, weight)

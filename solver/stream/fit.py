@@ -34,6 +34,7 @@ from solver.calibration import (
     levenberg_marquardt_iteration,
     parameter_standard_errors,
     removed_names,
+    scaled_condition_number,
     without_columns,
 )
 from solver.executors import Executor
@@ -274,13 +275,6 @@ class StreamedFit:
     passes: int
     elapsed_s: float
     pruned: list[str] = dataclasses.field(default_factory=list)
-
-
-def scaled_condition_number(gram: FloatArray) -> float:
-    """Condition number of the unit-norm-scaled columns from their Gram (p, p)."""
-    norms = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
-    eigenvalues = np.linalg.eigvalsh(gram / np.outer(norms, norms))
-    return float(np.sqrt(eigenvalues[-1] / max(eigenvalues[0], 1e-300)))
 
 
 def _run_pass(
