@@ -72,7 +72,7 @@ from solver.measurement.predictive import (
 from solver.model import KinematicChain
 from solver.predictive import mahalanobis_squared
 from solver.stream.calibrate import BEFORE, CALIBRATED, MODEL_RULE_ROUNDS, CovarianceSettings
-from solver.stream.coverage import NLL_TOLERANCE
+from solver.stream.coverage import NLL_TOLERANCE, one_step_covariance
 from solver.stream.screening import (
     covariance_too_uncertain,
     family_wise_t2,
@@ -243,6 +243,7 @@ def calibrate_measurement(
     if estimate is not None and covariance is not None:
         settings, start = covariance, estimate
         frames = tuple(settings.spec.frames)
+        warm = one_step_covariance(estimate, used.n * model.dim) if one_step else None
 
         def fitter(r: MeasurementRows) -> MeasurementFit:
             if one_step:
@@ -250,9 +251,9 @@ def calibrate_measurement(
             return fit_measurement(chain, model, r, fit_options)
 
         def estimator(f: MeasurementFit, r: MeasurementRows) -> CovarianceEstimate:
-            if one_step:
+            if warm is not None:
                 samples = covariance_samples(chain, f, r, frames)
-                return warm_estimate(start, samples, known=settings.spec.known)
+                return warm_estimate(warm, samples, known=settings.spec.known)
             return estimate_covariances(chain, f, r, settings, start)
 
         predictive = measurement_predictive(

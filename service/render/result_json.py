@@ -58,6 +58,7 @@ from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS, INNER_FOLDS, Covera
 from solver.selection import fixed_names
 from solver.stream.calibrate import BEFORE, CALIBRATED, RecordingCalibration
 from solver.stream.coverage import INNER_CV_ROWS, PredictiveCalibration
+from solver.stream.screening import MIN_EQUATIONS_PER_COVARIANCE_ENTRY
 from solver.stream.sums import ErrorSums
 from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, verdict_status
 
@@ -309,7 +310,9 @@ def split_fits(method: str) -> str:
         return "each split's fits iterated to convergence from the nominal robot (exact)"
     return (
         "each split's fits one Gauss-Newton step (geometry) and one scoring step "
-        "(covariances) from the calibration of all used rows (one-step)"
+        "(covariances) from the calibration of all used rows (one-step; the covariances "
+        "iterated per split instead where the rows give fewer than "
+        f"{MIN_EQUATIONS_PER_COVARIANCE_ENTRY:g} equations per covariance entry)"
     )
 
 

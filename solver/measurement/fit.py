@@ -133,13 +133,15 @@ def fit_measurement(
             f"{keep.size // model.dim + 1} configurations (3x that is advisable)"
         )
 
-    def evaluate(p: ChainParameters) -> tuple[NormalEquations, FloatArray]:
+    def evaluate(p: ChainParameters) -> tuple[NormalEquations, tuple[FloatArray, FloatArray]]:
+        """The normal equations at ``p`` and, as payload, the rows' weighted Jacobian over
+        ``keep`` and their weighted target (the fit's residuals at its last point)."""
         assert isinstance(p, ModelParameters)
         a, y, j = _stacked(chain, model, p, rows, weights)
         kept = j[:, :, keep]
         if y.size == kept.size:  # no extra equations: the design is the rows' Jacobian
-            return normal_equations(kept.reshape(-1, keep.size), y), kept
-        return normal_equations(a[:, keep], y), kept
+            return normal_equations(kept.reshape(-1, keep.size), y), (kept, y)
+        return normal_equations(a[:, keep], y), (kept, y)
 
     def apply(p: ChainParameters, step: FloatArray, columns: IntArray) -> ChainParameters:
         return model.apply(chain, p, step, columns)
@@ -150,7 +152,9 @@ def fit_measurement(
         if target.size == kept.size
         else normal_equations(design[:, keep], target)
     )
-    run = levenberg_marquardt(chain, params, keep, (first, kept), evaluate, options, apply)
+    run = levenberg_marquardt(
+        chain, params, keep, (first, (kept, target)), evaluate, options, apply
+    )
     iterations, costs = run.iterations, list(run.cost_history)  # of every fit, refits included
     pruned: list[int] = []
     n_chain = chain_column_count(chain)
@@ -177,7 +181,8 @@ def fit_measurement(
         iterations, costs = iterations + run.iterations, costs + run.cost_history
     final = run.params
     assert isinstance(final, ModelParameters)
-    residual, _ = model.linearise(chain, final, rows, jacobian=False)
+    jacobian_at_final, target_at_final = run.payload
+    residual = target_at_final[: rows.n * model.dim].reshape(rows.n, model.dim) / weights
     return MeasurementFit(
         model=model,
         params=final,
@@ -191,7 +196,7 @@ def fit_measurement(
         cost_history=costs,
         residuals=residual,
         constraint_residuals=model.constraints(chain, final)[0],
-        jacobian=run.payload,
+        jacobian=jacobian_at_final,
         elapsed_s=time.perf_counter() - started,
         pruned=[names[i] for i in sorted(pruned)],
     )

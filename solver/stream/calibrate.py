@@ -52,6 +52,7 @@ from solver.stream.coverage import (
     SplitCoverage,
     WarmStart,
     calibration_predictive,
+    one_step_covariance,
     split_coverage,
 )
 from solver.stream.fit import (
@@ -495,7 +496,7 @@ def calibrate_recording(
             None
             if covariance is None
             else RandomEffectSettings(covariance.spec, covariance.estimator, covariance.solver),
-            None if heldout.method == "exact" else _warm_starts(run, estimate),
+            None if heldout.method == "exact" else _warm_starts(run, estimate, problem),
         )
         splits, coverage = heldout_evaluation(evaluation, executor, report)
     stage["heldout"] = time.perf_counter() - clock
@@ -510,13 +511,17 @@ def calibrate_recording(
 
 
 def _warm_starts(
-    run: StreamedCalibration, estimate: CovarianceEstimate | None
+    run: StreamedCalibration, estimate: CovarianceEstimate | None, problem: StreamProblem
 ) -> dict[str, WarmStart]:
     """Where the one-step held-out splits start: the "before" fit and the calibration of all
-    used rows, with its covariance estimate."""
+    used rows, with its covariance estimate where the recording has enough equations for the
+    one-step estimator (:func:`~solver.stream.coverage.one_step_covariance`)."""
+    n_equations = run.fit.sums.errors.n * problem.residual_dim
     return {
         BEFORE: WarmStart(run.baseline.params, run.baseline.estimated),
-        CALIBRATED: WarmStart(run.fit.params, run.fit.estimated, estimate),
+        CALIBRATED: WarmStart(
+            run.fit.params, run.fit.estimated, one_step_covariance(estimate, n_equations)
+        ),
     }
 
 
