@@ -38,6 +38,7 @@ VALUES: dict[str, tuple[list[str], Any]] = {
     "tolerance": (["--tolerance", "1e-9"], 1e-9),
     "rank_tolerance": (["--rank-tolerance", "1e-6"], 1e-6),
     "heldout": (["--no-heldout"], False),
+    "heldout_method": (["--heldout-method", "exact"], "exact"),
     "seeds": (["--seeds", "3,4"], [3, 4]),
     "train_fraction": (["--train-fraction", "0.8"], 0.8),
     "covariance": (["--covariance", "full"], "full"),

@@ -34,6 +34,7 @@ INVALID: dict[str, list[Any]] = {
     "tolerance": [0.0, 1.0, -1e-3],
     "rank_tolerance": [0.0, 1.0],
     "heldout": ["maybe", 2],
+    "heldout_method": ["approximate", None, 1],
     "seeds": [[], [-1], ["a"], 3],
     "train_fraction": [0.0, 1.0, 1.5],
     "covariance": ["triangular", None],
