@@ -415,7 +415,8 @@ def warm_estimate(
     identifiability report serves (its scaling, and its null directions, along which Σ_E does
     not change: the step stays in the gauge ``start``'s rule chose); no standard errors.
     ``known`` (d, d): the known part of every Σ_E, as for ``start``. A moment ``start`` is
-    solved afresh: Eq. (14) is one QP already."""
+    solved afresh (Eq. 14 is one QP already), and so is the estimate when the step fails
+    (a non-finite NLL: Σ_E singular at the start for these samples)."""
     layout = start.layout
     noise_name = start.noise.name if start.noise is not None else "noise"
     if start.estimator == "moment":
@@ -441,9 +442,19 @@ def warm_estimate(
         null_basis=report.null_basis,
         warm=True,
     )
-    notes = ["one scoring step from the estimate of all rows (one-step estimator)"]
     if not np.all(np.isfinite(solution.theta)) or not np.isfinite(solution.objective):
-        raise CalibrationError(f"warm {start.estimator} step failed: {solution.message}")
+        iterated = estimate_from_samples(
+            samples,
+            layout,
+            known=known,
+            estimator=start.estimator,
+            solver=start.solver,
+            noise_name=noise_name,
+            standard_errors=False,
+        )
+        note = f"the one scoring step failed ({solution.message}); iterated from the moments"
+        return replace(iterated, warnings=(*iterated.warnings, note))
+    notes = ["one scoring step from the estimate of all rows (one-step estimator)"]
     theta = solution.theta
     frames, noise = frame_results(layout, theta, None, known, noise_name)
     return CovarianceEstimate(

@@ -6,6 +6,8 @@ posed for Clarabel directly against the same problem built by cvxpy."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import cvxpy as cp
 import numpy as np
 import pytest
@@ -156,3 +158,30 @@ def test_an_infeasible_diagonal_rule_says_so() -> None:
     """θ + N y ≥ 0 with N = e_1 and θ_2 < 0: no y can lift the second entry."""
     basis = np.array([[1.0], [0.0]])
     assert _least_norm_diag(np.array([1.0, -1.0]), basis, np.ones(2), np.zeros(2)) is None
+
+
+def test_a_failed_scoring_step_falls_back_to_the_iterated_estimate(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Where the step cannot be taken (a non-finite NLL at the start), the samples' covariances
+    are estimated as on the exact path, and the estimate says so."""
+    import solver.covariance.estimate as estimate_module
+
+    data = S.simulate_jaco(400, seed=5, deterministic_fit=True)
+    assert data.fit_jacobian is not None
+    layout = make_layout(S.jaco_joint_names(), 6)
+    samples = ArraySamples(data.residuals, data.frame_jacobians, data.fit_jacobian)
+    whole = estimate_from_samples(samples, layout, estimator="reml")
+    real_fit = estimate_module.fit_likelihood
+
+    def failing(*args, **kwargs):  # type: ignore[no-untyped-def]
+        solution = real_fit(*args, **kwargs)
+        if kwargs.get("warm"):
+            return dataclasses.replace(solution, objective=float("nan"), message="singular")
+        return solution
+
+    monkeypatch.setattr(estimate_module, "fit_likelihood", failing)
+    fallback = warm_estimate(whole, samples)
+    assert fallback.solution.status != "one_step"
+    assert any("one scoring step failed (singular)" in w for w in fallback.warnings)
+    np.testing.assert_allclose(fallback.theta, whole.theta, rtol=1e-6, atol=1e-12)
