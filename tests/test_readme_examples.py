@@ -86,6 +86,13 @@ def test_the_real_robot_table_is_the_benchmarks() -> None:
     ]
 
 
+def test_the_readmes_wall_time_is_the_speed_benchmarks() -> None:
+    """The FR3 command's wall time the README quotes is docs/results/cli_speed.json's median."""
+    _, rows = read_results("cli_speed")
+    (fr3,) = [r for r in rows if r["recording"].startswith("FR3 eye-in-hand")]
+    assert f"The whole\ncommand takes {fr3['median_s']:.1f} s on a 2-core machine" in README
+
+
 def _fresh_copy(destination: Path) -> None:
     """The files a clone has (tracked, and new ones not ignored), with their times (so make
     finds .venv up to date), and the suite's .venv."""
