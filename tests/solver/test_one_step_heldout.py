@@ -185,3 +185,30 @@ def test_a_failed_scoring_step_falls_back_to_the_iterated_estimate(
     assert fallback.solution.status != "one_step"
     assert any("one scoring step failed (singular)" in w for w in fallback.warnings)
     np.testing.assert_allclose(fallback.theta, whole.theta, rtol=1e-6, atol=1e-12)
+
+
+def test_a_mid_size_recordings_stepped_estimate_is_the_converged_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Between STEPPED_SAMPLES and FULL_LIKELIHOOD_SAMPLES samples, REML is the one-step
+    estimator from the moment solution refined by two average-information steps (issue 29):
+    on 6 000 simulated Jaco2 samples within 0.01 standard error of the converged REML on every
+    identifiable entry, with the same standard errors to 1 %."""
+    import solver.covariance.estimate as estimate_module
+
+    data = S.simulate_jaco(6000, seed=21, deterministic_fit=True)
+    assert data.fit_jacobian is not None
+    layout = make_layout(S.jaco_joint_names(), 6)
+    samples = ArraySamples(data.residuals, data.frame_jacobians, data.fit_jacobian)
+    stepped = estimate_from_samples(samples, layout, estimator="reml")
+    monkeypatch.setattr(estimate_module, "STEPPED_SAMPLES", 10**9)
+    converged = estimate_from_samples(samples, layout, estimator="reml")
+    assert stepped.solution.status == "one_step" and stepped.solution.iterations == 3
+    assert converged.solution.status == "optimal"
+    assert stepped.uncertainty is not None and converged.uncertainty is not None
+    errors = converged.uncertainty.theta_se
+    seen = converged.uncertainty.identifiable & np.isfinite(errors) & (errors > 0)
+    gap = np.abs(stepped.theta - converged.theta)[seen] / errors[seen]
+    assert np.max(gap) < 0.01, np.max(gap)
+    ratio = stepped.uncertainty.theta_se[seen] / errors[seen]
+    np.testing.assert_allclose(ratio, 1.0, rtol=0.01)
