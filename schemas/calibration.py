@@ -127,11 +127,12 @@ class CalibrationOptions(_Model):
     heldout: bool = Field(True, description="Run the 10-split held-out evaluation.")
     heldout_method: Literal["one-step", "exact"] = Field(
         "one-step",
-        description="Held-out splits calibrated one step from the calibration of all rows "
-        "(about one fit's cost) or exact (each split iterated to convergence, ~10x slower). "
-        "One-step: one Gauss-Newton step for geometry and compliance and one scoring step for "
-        "the covariances, from the calibration of all rows over its parameters; exact: from "
-        "the nominal robot, parameters chosen on the split's own rows.",
+        description="Held-out splits calibrated in one step from the calibration of all rows "
+        "(about one fit's cost) or exact (each split iterated to convergence, ~4x slower). "
+        "One-step: one Gauss-Newton step for geometry and compliance from the calibration of "
+        "all rows over its parameters, and for the covariances the one-step estimator from the "
+        "split's own moment solution refined by two scoring steps; exact: from the nominal "
+        "robot, parameters chosen on the split's own rows, covariances iterated to convergence.",
     )
     seeds: list[Annotated[int, Field(ge=0)]] = Field(
         default_factory=lambda: list(range(1, 11)),

@@ -53,7 +53,7 @@ from service.render.result_json import (
     split_fits,
 )
 from solver.calibration import FitOptions, outlier_mask
-from solver.covariance.estimate import CovarianceEstimate, estimate_from_samples, warm_estimate
+from solver.covariance.estimate import CovarianceEstimate, estimate_from_samples, subset_estimate
 from solver.kinematics import parameter_names
 from solver.measurement import (
     MeasurementFit,
@@ -72,7 +72,7 @@ from solver.measurement.predictive import (
 from solver.model import KinematicChain
 from solver.predictive import mahalanobis_squared
 from solver.stream.calibrate import BEFORE, CALIBRATED, MODEL_RULE_ROUNDS, CovarianceSettings
-from solver.stream.coverage import NLL_TOLERANCE, one_step_covariance
+from solver.stream.coverage import NLL_TOLERANCE, subset_reference
 from solver.stream.screening import (
     covariance_too_uncertain,
     family_wise_t2,
@@ -243,7 +243,7 @@ def calibrate_measurement(
     if estimate is not None and covariance is not None:
         settings, start = covariance, estimate
         frames = tuple(settings.spec.frames)
-        warm = one_step_covariance(estimate, used.n * model.dim) if one_step else None
+        warm = subset_reference(estimate, used.n * model.dim) if one_step else None
 
         def fitter(r: MeasurementRows) -> MeasurementFit:
             if one_step:
@@ -253,7 +253,7 @@ def calibrate_measurement(
         def estimator(f: MeasurementFit, r: MeasurementRows) -> CovarianceEstimate:
             if warm is not None:
                 samples = covariance_samples(chain, f, r, frames)
-                return warm_estimate(warm, samples, known=settings.spec.known)
+                return subset_estimate(warm, samples, known=settings.spec.known)
             return estimate_covariances(chain, f, r, settings, start)
 
         predictive = measurement_predictive(

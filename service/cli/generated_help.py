@@ -39,8 +39,9 @@ CALIBRATION: dict[str, tuple[str, str, tuple[str, ...]]] = {'compliant_joints': 
                     '1e-07',
                     ()),
  'heldout': ('Run the 10-split held-out evaluation.', 'on', ()),
- 'heldout_method': ('Held-out splits calibrated one step from the calibration of all rows (about '
-                    "one fit's cost) or exact (each split iterated to convergence, ~10x slower).",
+ 'heldout_method': ('Held-out splits calibrated in one step from the calibration of all rows '
+                    "(about one fit's cost) or exact (each split iterated to convergence, ~4x "
+                    'slower).',
                     'one-step',
                     ('one-step', 'exact')),
  'seeds': ('Seeds of the held-out splits (non-negative integers, one split each).', '1..10', ()),

@@ -309,9 +309,10 @@ def split_fits(method: str) -> str:
     if method == "exact":
         return "each split's fits iterated to convergence from the nominal robot (exact)"
     return (
-        "each split's fits one Gauss-Newton step (geometry) and one scoring step "
-        "(covariances) from the calibration of all used rows (one-step; the covariances "
-        "iterated per split instead where the rows give fewer than "
+        "each split's geometry one Gauss-Newton step from the calibration of all used rows, "
+        "its covariances the one-step estimator from its own moment solution refined by two "
+        "scoring steps (one-step; iterated to convergence instead where those steps do not "
+        "converge or the rows give fewer than "
         f"{MIN_EQUATIONS_PER_COVARIANCE_ENTRY:g} equations per covariance entry)"
     )
 

@@ -87,11 +87,10 @@ def fit_likelihood(
     the start. ``objective`` is the NLL (constants omitted). ``null_basis`` (Q, k):
     directions (equilibrated, orthonormal) that do not change Σ_E, along which the NLL is
     exactly flat and the step is rounding (the caller fixes them by rule afterwards); they do
-    not count in the step-size test of convergence. ``warm``: ``start_theta`` is the
-    estimate of nearby data (a superset of the samples): one full scoring step from it with
-    the average-information metric, no line search, status "one_step" (the one-step
-    estimator from that start, :func:`.estimate.warm_estimate`; ``objective`` is the NLL at
-    the start).
+    not count in the step-size test of convergence. ``warm``: one full scoring step from
+    ``start_theta`` with the average-information metric, no line search, status "one_step"
+    (a step of :func:`.estimate.subset_estimate` or of the refined one-step estimator;
+    ``objective`` is the NLL at the start).
     """
     started = time.perf_counter()
     layout = stats.layout
@@ -412,7 +411,7 @@ def _scoring_message(
 ) -> str:
     text = f"projected Fisher scoring, {iterations} steps"
     if warm:
-        text = "one projected scoring step from the estimate of nearby data (one-step estimator)"
+        text = "one projected scoring step with the average-information metric"
     elif one_step:
         text = (
             "one projected Fisher-scoring step from the moment solution (one-step estimator; "

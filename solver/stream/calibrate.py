@@ -52,8 +52,8 @@ from solver.stream.coverage import (
     SplitCoverage,
     WarmStart,
     calibration_predictive,
-    one_step_covariance,
     split_coverage,
+    subset_reference,
 )
 from solver.stream.fit import (
     FitRequest,
@@ -515,12 +515,12 @@ def _warm_starts(
 ) -> dict[str, WarmStart]:
     """Where the one-step held-out splits start: the "before" fit and the calibration of all
     used rows, with its covariance estimate where the recording has enough equations for the
-    one-step estimator (:func:`~solver.stream.coverage.one_step_covariance`)."""
+    stepped subset estimates (:func:`~solver.stream.coverage.subset_reference`)."""
     n_equations = run.fit.sums.errors.n * problem.residual_dim
     return {
         BEFORE: WarmStart(run.baseline.params, run.baseline.estimated),
         CALIBRATED: WarmStart(
-            run.fit.params, run.fit.estimated, one_step_covariance(estimate, n_equations)
+            run.fit.params, run.fit.estimated, subset_reference(estimate, n_equations)
         ),
     }
 

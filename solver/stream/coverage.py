@@ -30,7 +30,7 @@ from solver.covariance.estimate import (
     CovarianceEstimate,
     EstimatorName,
     estimate_from_samples,
-    warm_estimate,
+    subset_estimate,
 )
 from solver.covariance.likelihood import ee_covariance_batch
 from solver.covariance.samples import ArraySamples
@@ -98,8 +98,9 @@ class WarmStart:
     """The calibration of every row that held-out predictors start from (issue 29, the
     one-step held-out evaluation): its parameters, the names it estimated, and its covariance
     estimate. A predictor of a subset of the rows is then one Gauss–Newton step from
-    ``params`` over ``estimated`` (:func:`solver.measurement.fit.refit_from`) and one scoring
-    step from ``covariance`` (:func:`solver.covariance.estimate.warm_estimate`)."""
+    ``params`` over ``estimated`` (:func:`solver.measurement.fit.refit_from`), and its
+    covariances a few scoring steps from the subset's own moment solution with
+    ``covariance``'s estimator and scaling (:func:`solver.covariance.estimate.subset_estimate`)."""
 
     params: ChainParameters
     estimated: list[str]
@@ -107,19 +108,19 @@ class WarmStart:
     """None: the deterministic part alone starts here (the "before" fit)."""
 
 
-def one_step_covariance(
+def subset_reference(
     estimate: CovarianceEstimate | None, n_equations: int
 ) -> CovarianceEstimate | None:
-    """The covariance estimate held-out predictors take their one scoring step from, or None
-    (each predictor's covariances iterated to convergence from its own moment solution) when
-    the ``n_equations`` residual equations of the calibration give fewer than
+    """The covariance estimate whose estimator and scaling held-out predictors take a few
+    scoring steps with (:func:`~solver.covariance.estimate.subset_estimate`), or None (each
+    predictor's covariances iterated to convergence, two starts) when the ``n_equations``
+    residual equations of the calibration give fewer than
     :data:`~solver.stream.screening.MIN_EQUATIONS_PER_COVARIANCE_ENTRY` per identifiable entry.
 
-    The one-step estimator rests on a likelihood that is near quadratic between the start and
-    the subset's optimum. On fewer equations per entry it has several optima and the start
-    decides which one a split lands in: on the 21-row TIAGo Vicon file (position only, 63
-    equations, 42 entries) the held-out mean d² is 2.61 with one step from the estimate of all
-    rows, 3.02 with this fallback, 3.00 on the exact path (χ² mean 3)."""
+    A few steps suffice where the likelihood is near quadratic around the subset's optimum. On
+    fewer equations per entry it has several optima and which one a split lands in depends on
+    the start: the 21-row TIAGo Vicon file (position only, 63 equations, 42 entries) is one,
+    where the exact path's second (lifted) start wins on some splits."""
     if estimate is None or covariance_too_uncertain(n_equations, estimate.identifiability.rank):
         return None
     return estimate
@@ -199,7 +200,7 @@ def predictor_from_fit(
 ) -> Predictor:
     """A deterministic fit of ``rows`` completed into a predictor: the random-effect
     covariances (the calibration's estimator, on the fit's residuals; ML/REML started from
-    ``start_theta`` when given, or one scoring step from ``warm``'s) and the sandwich
+    ``start_theta`` when given, or :func:`subset_estimate` with ``warm``'s) and the sandwich
     Cov(θ̂)."""
     d = 3 if position_only else 6
     estimated = _columns(chain, fit.estimated)
@@ -210,7 +211,7 @@ def predictor_from_fit(
         fit.residuals, point.frame_jacobians[:, frames], point.parameter_jacobian
     )
     if warm is not None and warm.covariance is not None:
-        estimate = warm_estimate(warm.covariance, samples, known=spec.known)
+        estimate = subset_estimate(warm.covariance, samples, known=spec.known)
     else:
         estimate = estimate_from_samples(
             samples,
