@@ -472,24 +472,19 @@ def subset_estimate(
         note = f"the scoring steps did not converge ({message}); iterated instead"
         return replace(fallback, warnings=(*fallback.warnings, note))
     solution = steps[-1]
-    theta = solution.theta
-    frames, noise = frame_results(layout, theta, None, known, noise_name)
-    return CovarianceEstimate(
-        reference.estimator,
-        layout.structure,
-        reference.solver,
-        stats.n_samples,
-        frames,
-        noise,
-        theta,
-        layout,
-        report,
-        moment,
-        solution,
-        stats,
-        None,
-        None,
-        (solution.message,),
+    frames, noise = frame_results(layout, solution.theta, None, known, noise_name)
+    return replace(
+        reference,
+        n_samples=stats.n_samples,
+        frames=frames,
+        noise=noise,
+        theta=solution.theta,
+        moment_solution=moment,
+        solution=solution,
+        statistics=stats,
+        theta_covariance=None,
+        uncertainty=None,
+        warnings=(solution.message,),
     )
 
 
@@ -522,7 +517,7 @@ def _stepped(
 ) -> list[CovarianceSolution]:
     """:data:`SUBSET_STEPS` full projected scoring steps from the moment solution ``start``:
     the classical one-step estimator (expected information, Eq. 16), then average-information
-    steps (:func:`~.fitting.fit_likelihood` with ``warm``); each step's solution, the last
+    steps (:func:`~.fitting.fit_likelihood` with ``refine``); each step's solution, the last
     one's ``iterations`` and ``message`` saying what was done. Stops at a non-finite θ."""
     steps: list[CovarianceSolution] = []
     theta = start
@@ -541,7 +536,7 @@ def _stepped(
                 known_covariance=known,
                 null_basis=report.null_basis,
                 one_step=step == 0,
-                warm=step > 0,
+                refine=step > 0,
             )
         )
         theta = steps[-1].theta

@@ -69,7 +69,7 @@ def fit_likelihood(
     one_step: bool = False,
     tolerance: float = 1e-10,
     null_basis: FloatArray | None = None,
-    warm: bool = False,
+    refine: bool = False,
 ) -> CovarianceSolution:
     """ML or REML estimate of θ (Q,), started from ``start_theta`` (PSD, e.g. moment).
 
@@ -87,7 +87,7 @@ def fit_likelihood(
     the start. ``objective`` is the NLL (constants omitted). ``null_basis`` (Q, k):
     directions (equilibrated, orthonormal) that do not change Σ_E, along which the NLL is
     exactly flat and the step is rounding (the caller fixes them by rule afterwards); they do
-    not count in the step-size test of convergence. ``warm``: one full scoring step from
+    not count in the step-size test of convergence. ``refine``: one full scoring step from
     ``start_theta`` with the average-information metric, no line search, status "one_step"
     (a step of :func:`.estimate.subset_estimate` or of the refined one-step estimator;
     ``objective`` is the NLL at the start).
@@ -122,11 +122,11 @@ def fit_likelihood(
         theta, (value, psi) = _positive_start(start + floor, nll, layout, scaling)
         status: Status = "iteration_limit"
         decrement, message, iterations, blind = float("inf"), "", 0, 0
-        for _ in range(1 if one_step or warm else max_iterations):
+        for _ in range(1 if one_step or refine else max_iterations):
             iterations += 1
             grad = theta_gradient(layout, psi)
             hess = (n / metric.n_samples) * _metric(
-                theta, metric, layout, transform, known_covariance, one_step and not warm
+                theta, metric, layout, transform, known_covariance, one_step and not refine
             )
             mu = PROXIMAL_RTOL * float(np.max(np.diag(hess) * scaling.param_scale**2))
             gram = hess + np.diag(mu / scaling.param_scale**2)
@@ -138,7 +138,7 @@ def fit_likelihood(
                 break
             step = target - theta
             decrement = float(-grad @ step)
-            if one_step or warm:  # the one-step estimator: the full step, no line search
+            if one_step or refine:  # the one-step estimator: the full step, no line search
                 theta, status = target, "one_step"
                 break
             # Converged, full Σ: the predicted decrease is below the tolerance (or what the
@@ -179,7 +179,7 @@ def fit_likelihood(
         clipped = layout.theta_from_covariances(clip_psd(layout.frame_covariances(theta)))
         if not np.array_equal(clipped, theta):  # a full Σ left the cone by rounding
             theta = clipped
-            if not (one_step or warm):
+            if not (one_step or refine):
                 value = nll(clipped)[0]
         return CovarianceSolution(
             estimator,
@@ -191,10 +191,10 @@ def fit_likelihood(
             float(value),
             moment_objective(theta, stats),
             max(decrement, 0.0) / n,
-            message or _scoring_message(iterations, one_step, restriction_samples, warm),
+            message or _scoring_message(iterations, one_step, restriction_samples, refine),
         )
 
-    if one_step or warm:
+    if one_step or refine:
         return scoring(start_theta)
     runs = [scoring(start) for start in _starts(start_theta, layout, scaling)]
     best = min(runs, key=lambda run: (run.status != "optimal", _finite_or_inf(run.objective)))
@@ -407,10 +407,10 @@ def _positive_start(
 
 
 def _scoring_message(
-    iterations: int, one_step: bool, restriction_samples: ArraySamples | None, warm: bool
+    iterations: int, one_step: bool, restriction_samples: ArraySamples | None, refine: bool
 ) -> str:
     text = f"projected Fisher scoring, {iterations} steps"
-    if warm:
+    if refine:
         text = "one projected scoring step with the average-information metric"
     elif one_step:
         text = (

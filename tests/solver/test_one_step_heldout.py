@@ -179,7 +179,7 @@ def test_a_failed_scoring_step_falls_back_to_the_iterated_estimate(
 
     def failing(*args, **kwargs):  # type: ignore[no-untyped-def]
         solution = real_fit(*args, **kwargs)
-        if kwargs.get("warm"):
+        if kwargs.get("refine"):
             return dataclasses.replace(solution, objective=float("nan"), message="singular")
         return solution
 
