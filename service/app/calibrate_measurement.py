@@ -53,7 +53,7 @@ from service.render.result_json import (
     split_fits,
 )
 from solver.calibration import FitOptions, outlier_mask
-from solver.covariance.estimate import CovarianceEstimate, estimate_from_samples, subset_estimate
+from solver.covariance.estimate import CovarianceEstimate, estimate_from_samples
 from solver.kinematics import parameter_names
 from solver.measurement import (
     MeasurementFit,
@@ -63,7 +63,7 @@ from solver.measurement import (
     heldout_errors,
     row_errors,
 )
-from solver.measurement.fit import HeldoutError, covariance_samples, refit_from, row_weights
+from solver.measurement.fit import HeldoutError, covariance_samples, row_weights
 from solver.measurement.predictive import (
     INNER_FOLDS,
     MeasurementPredictive,
@@ -72,7 +72,7 @@ from solver.measurement.predictive import (
 from solver.model import KinematicChain
 from solver.predictive import mahalanobis_squared
 from solver.stream.calibrate import BEFORE, CALIBRATED, MODEL_RULE_ROUNDS, CovarianceSettings
-from solver.stream.coverage import NLL_TOLERANCE, subset_reference
+from solver.stream.coverage import NLL_TOLERANCE, one_step_trainers
 from solver.stream.screening import (
     covariance_too_uncertain,
     family_wise_t2,
@@ -243,19 +243,20 @@ def calibrate_measurement(
     if estimate is not None and covariance is not None:
         settings, start = covariance, estimate
         frames = tuple(settings.spec.frames)
-        warm = subset_reference(estimate, used.n * model.dim) if one_step else None
 
-        def fitter(r: MeasurementRows) -> MeasurementFit:
-            if one_step:
-                return refit_from(chain, model, r, fit_options, fit.params, fit.estimated)
-            return fit_measurement(chain, model, r, fit_options)
-
-        def estimator(f: MeasurementFit, r: MeasurementRows) -> CovarianceEstimate:
-            if warm is not None:
-                samples = covariance_samples(chain, f, r, frames)
-                return subset_estimate(warm, samples, known=settings.spec.known)
+        def iterated(f: MeasurementFit, r: MeasurementRows) -> CovarianceEstimate:
             return estimate_covariances(chain, f, r, settings, start)
 
+        def refit(r: MeasurementRows) -> MeasurementFit:
+            return fit_measurement(chain, model, r, fit_options)
+
+        fitter, estimator = (
+            one_step_trainers(
+                chain, used, fit, estimate, fit_options, frames, settings.spec.known, iterated
+            )
+            if one_step
+            else (refit, iterated)
+        )
         predictive = measurement_predictive(
             chain,
             used,

@@ -37,7 +37,11 @@ from solver.covariance.samples import ArraySamples
 from solver.covariance.solvers import SolverName
 from solver.errors import CalibrationError, KincalError
 from solver.kinematics import ChainParameters, parameter_names, pose_residuals
+from solver.measurement.fit import MeasurementFit, covariance_samples, refit_from
+from solver.measurement.models import MeasurementRows
 from solver.measurement.pose import fit_deterministic
+from solver.measurement.predictive import Estimator as MeasurementEstimator
+from solver.measurement.predictive import Fitter as MeasurementFitter
 from solver.model import KinematicChain
 from solver.predictive import (
     INNER_FOLDS,
@@ -124,6 +128,42 @@ def subset_reference(
     if estimate is None or covariance_too_uncertain(n_equations, estimate.identifiability.rank):
         return None
     return estimate
+
+
+def one_step_trainers(
+    chain: KinematicChain,
+    rows: MeasurementRows,
+    fit: MeasurementFit,
+    estimate: CovarianceEstimate,
+    fit_options: FitOptions,
+    frames: tuple[int, ...],
+    known: FloatArray | None,
+    iterated: MeasurementEstimator,
+) -> tuple[MeasurementFitter, MeasurementEstimator]:
+    """How ``--heldout-method one-step`` (the default) trains the held-out predictors of a
+    measurement calibration — ``fit`` and ``estimate`` (random effects at the chain joints
+    ``frames``, ``known`` (d, d) the known part of every Σ_E) of its used ``rows`` — for
+    :func:`~solver.measurement.predictive.measurement_predictive`:
+
+    - the fit of a subset of those rows: one Gauss–Newton step of Eq. (10) from ``fit`` over
+      the parameters it estimated (:func:`~solver.measurement.fit.refit_from`);
+    - its covariances: the subset's own moment solution refined by a few scoring steps with
+      ``estimate``'s estimator (:func:`~solver.covariance.estimate.subset_estimate`); where
+      the rows give too few equations per covariance entry (:func:`subset_reference`),
+      ``iterated`` (the estimator iterated to convergence).
+    """
+    reference = subset_reference(estimate, rows.n * fit.model.dim)
+
+    def fitter(subset: MeasurementRows) -> MeasurementFit:
+        return refit_from(chain, fit.model, subset, fit_options, fit.params, fit.estimated)
+
+    def estimator(subset_fit: MeasurementFit, subset: MeasurementRows) -> CovarianceEstimate:
+        if reference is None:
+            return iterated(subset_fit, subset)
+        samples = covariance_samples(chain, subset_fit, subset, frames)
+        return subset_estimate(reference, samples, known=known)
+
+    return fitter, estimator
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from solver.measurement.predictive import (
 )
 from solver.measurement.simulate import configurations_at_points
 from solver.model import KinematicChain, sample_configurations
+from solver.stream.coverage import one_step_trainers
 from solver.stream.sums import covariance_spec
 from tests.conftest import chain
 from tests.solver.test_measurement_covariance import _marker_positions, _perturbed_recording
@@ -95,23 +96,35 @@ def _settings(c: KinematicChain, model: MeasurementModel):  # type: ignore[no-un
     return frames, fitter, estimator
 
 
-@pytest.mark.parametrize("kind", ["socket", "markers", "plane"])
-def test_heldout_coverage_in_the_residual_space_holds(kind: str) -> None:
+@pytest.mark.parametrize(
+    ("kind", "method"),
+    [("socket", "one-step"), ("markers", "one-step"), ("plane", "one-step"), ("socket", "exact")],
+)
+def test_heldout_coverage_in_the_residual_space_holds(kind: str, method: str) -> None:
     """150 rows, 16 held-out splits (240 held-out rows: at 120 the binomial s.d. of the 95 %
     count, 2 %, put the band's upper edge one row away — the plane case was 117 or 119 of 120
     with the same mean d² to 0.5 % before and after issue 30's REML changes),
     every part (fit, the model's own unknowns, covariances,
     Cov(θ̂), the model-error part by 3-fold cross-validation inside the training rows) from
-    the training rows only: 90-99 % of the held-out rows inside the predicted 95 % ellipsoid
-    of the residual's dimension (3, 9, 3) and mean d² within 25 % of it."""
+    the training rows only, trained as ``--heldout-method`` trains them (the default
+    one-step: :func:`~solver.stream.coverage.one_step_trainers`; exact: refitted and
+    iterated): 90-99 % of the held-out rows inside the predicted 95 % ellipsoid
+    of the residual's dimension (3, 9, 3) and mean d² within 25 % of it. Measured (one-step):
+    socket 95.8 %, markers 94.2 %, plane 96.3 %; mean d²/d 0.88, 0.99, 0.87."""
     c, model, rows = _recording(kind, 150, 21)
     frames, fitter, estimator = _settings(c, model)
     fit = fitter(rows)
+    estimate = estimator(fit, rows)
+    if method == "one-step":
+        spec = covariance_spec(model.dim, list(c.joint_names), frames, noise_rows=model.noise_rows)
+        fitter, estimator = one_step_trainers(
+            c, rows, fit, estimate, FitOptions(), frames, spec.known, estimator
+        )
     predictive = measurement_predictive(
         c,
         rows,
         fit,
-        estimator(fit, rows),
+        estimate,
         fitter,
         estimator,
         frames,
