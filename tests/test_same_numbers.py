@@ -19,16 +19,15 @@ import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-import pandas as pd
 import pytest
 
-from tests.conftest import REAL_DATA, REPO
+from tests.conftest import REPO, computed_once
 
 pytestmark = pytest.mark.slow
 
-TIAGO = REAL_DATA / "figaroh_tiago_mocap" / "vicon" / "vicon_calibration_fc10_gripper3_base1.csv"
 PERTURBATION = 1e-12
 DEFAULT_RTOL = 1e-6
 FULL_RTOL = 5e-3
@@ -113,9 +112,22 @@ def variants() -> tuple[tuple[Variant, ...], tuple[str, ...]]:
     return tuple(found), tuple(skipped)
 
 
-def _probe(variant: Variant) -> dict[str, dict[str, object]]:
+@dataclass(frozen=True)
+class Run:
+    """One setting's numbers: the probe's estimates, and ``kincal calibrate`` of the TIAGo
+    file (its exit code and result JSON)."""
+
+    label: str
+    estimates: dict[str, dict[str, Any]]
+    tiago_exit: int
+    tiago: dict[str, Any]
+
+
+def _run(variant: Variant, folder: Path) -> Run:
+    """Both computations in one subprocess under ``variant`` (one interpreter start each)."""
+    args = ["--perturb", str(variant.perturb), "--calibrate-tiago", str(folder)]
     run = subprocess.run(
-        [sys.executable, "-m", "tests.cross_machine.probe", "--perturb", str(variant.perturb)],
+        [sys.executable, "-m", "tests.cross_machine.probe", *args],
         env={**os.environ, **variant.env},
         cwd=REPO,
         capture_output=True,
@@ -124,38 +136,26 @@ def _probe(variant: Variant) -> dict[str, dict[str, object]]:
         check=False,
     )
     assert run.returncode == 0, f"{variant.label}: {run.stderr[-2000:]}"
-    return json.loads(run.stdout)  # type: ignore[no-any-return]
+    found = json.loads(run.stdout)
+    tiago = json.loads((folder / "tiago.json").read_text(encoding="utf-8"))
+    return Run(variant.label, found["estimates"], found["tiago_exit"], tiago)
 
 
-def _kincal() -> str:
-    return str(Path(sys.executable).with_name("kincal"))
+Runs = tuple[Run, list[Run], tuple[Variant, ...], tuple[str, ...]]
+"""The default environment's run, every setting's, the settings, and why others were skipped."""
 
 
-def _calibrate_tiago(variant: Variant, folder: Path) -> dict[str, object]:
-    from schemas.robots import example_robot_data_dir
+def _all_runs(folder: Path) -> Runs:
+    reference = _run(Variant("default"), folder / "default")
+    found, skipped = variants()
+    others = [_run(v, folder / f"variant{k}") for k, v in enumerate(found)]
+    return reference, others, found, skipped
 
-    folder.mkdir(parents=True, exist_ok=True)
-    recording = TIAGO
-    if variant.perturb:
-        rows = pd.read_csv(TIAGO)
-        rng = np.random.default_rng(12)
-        rows = rows * (1.0 + variant.perturb * rng.uniform(-1.0, 1.0, rows.shape))
-        recording = folder / TIAGO.name
-        rows.to_csv(recording, index=False, float_format="%.17g")
-    urdf = example_robot_data_dir() / "robots/tiago_description/robots/tiago.urdf"
-    output = folder / "tiago.json"
-    args = [_kincal(), "calibrate", str(recording), "--urdf", str(urdf)]
-    args += ["--base", "base_footprint", "--tip", "arm_7_link", "-o", str(output)]
-    run = subprocess.run(
-        args,
-        env={**os.environ, **variant.env},
-        capture_output=True,
-        text=True,
-        timeout=600,
-        check=False,
-    )
-    assert run.returncode in (0, 3), f"{variant.label}: {run.stderr[-2000:]}"
-    return json.loads(output.read_text(encoding="utf-8"))  # type: ignore[no-any-return]
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> Runs:
+    """Computed once per test run, however many workers run this module's tests."""
+    return computed_once(tmp_path_factory, "same-numbers", _all_runs)
 
 
 def _relative(a: object, b: object) -> float:
@@ -164,8 +164,8 @@ def _relative(a: object, b: object) -> float:
     return float(np.max(np.abs(x - y)) / max(float(np.max(np.abs(x))), 1e-300))
 
 
-def test_the_settings_that_apply_are_found_and_the_others_said() -> None:
-    found, skipped = variants()
+def test_the_settings_that_apply_are_found_and_the_others_said(runs: Runs) -> None:
+    _, _, found, skipped = runs
     labels = [v.label for v in found]
     assert "1 BLAS thread" in labels and "2 BLAS threads" in labels
     assert any(v.perturb for v in found)
@@ -174,51 +174,51 @@ def test_the_settings_that_apply_are_found_and_the_others_said() -> None:
         print(f"skipped: {reason}")
 
 
-def test_covariance_estimates_are_the_same_under_every_setting() -> None:
-    reference = _probe(Variant("default"))
-    for case, found in reference.items():
+def test_covariance_estimates_are_the_same_under_every_setting(
+    runs: Runs,
+) -> None:
+    reference, others, _, _ = runs
+    for case, found in reference.estimates.items():
         assert found["status"] == "optimal" and found["moment_status"] == "optimal", case
-    found_variants, _ = variants()
     failures = []
-    for variant in found_variants:
-        other = _probe(variant)
-        for case, expected in reference.items():
-            got = other[case]
+    for other in others:
+        for case, expected in reference.estimates.items():
+            got = other.estimates[case]
             tolerance = DEFAULT_RTOL if case.startswith("diag") else FULL_RTOL
             for key in ("theta", "ee_covariance"):
                 error = _relative(expected[key], got[key])
                 if not error <= tolerance:
-                    failures.append(f"{variant.label}, {case}, {key}: {error:.2e} > {tolerance:g}")
+                    failures.append(f"{other.label}, {case}, {key}: {error:.2e} > {tolerance:g}")
             if got["status"] != "optimal":
-                failures.append(f"{variant.label}, {case}: status {got['status']}")
+                failures.append(f"{other.label}, {case}: status {got['status']}")
     assert not failures, "\n".join(failures)
 
 
 def test_kincal_calibrate_gives_the_same_covariances_and_coverage_under_every_setting(
-    tmp_path: Path,
+    runs: Runs,
 ) -> None:
-    reference = _calibrate_tiago(Variant("default"), tmp_path / "default")
-    found_variants, _ = variants()
+    reference, others, _, _ = runs
     failures = []
-    for k, variant in enumerate(found_variants):
-        other = _calibrate_tiago(variant, tmp_path / f"variant{k}")
+    for run in (reference, *others):
+        assert run.tiago_exit in (0, 3), f"{run.label}: exit {run.tiago_exit}"
         for name in ("covariance", "predictive"):
-            assert other[name] is not None and reference[name] is not None
+            assert run.tiago[name] is not None, (run.label, name)
+    for other in others:
         matrices = [
-            [frame["matrix"] for frame in result["covariance"]["frames"]]  # type: ignore[index]
-            + [result["covariance"]["noise"]["matrix"]]  # type: ignore[index]
-            for result in (reference, other)
+            [frame["matrix"] for frame in result["covariance"]["frames"]]
+            + [result["covariance"]["noise"]["matrix"]]
+            for result in (reference.tiago, other.tiago)
         ]
         error = _relative(*matrices)
         if not error <= DEFAULT_RTOL:
-            failures.append(f"{variant.label}: covariances differ by {error:.2e}")
-        coverage = [result["predictive"]["coverage"] for result in (reference, other)]  # type: ignore[index]
+            failures.append(f"{other.label}: covariances differ by {error:.2e}")
+        coverage = [result["predictive"]["coverage"] for result in (reference.tiago, other.tiago)]
         inside = [[level["observed"] for level in c["levels"]] for c in coverage]
         if inside[0] != inside[1]:
-            failures.append(f"{variant.label}: coverage {inside[1]} against {inside[0]}")
+            failures.append(f"{other.label}: coverage {inside[1]} against {inside[0]}")
         mean = [c["mean_mahalanobis_sq"] for c in coverage]
         if abs(mean[0] - mean[1]) > DEFAULT_RTOL * abs(mean[0]):
-            failures.append(f"{variant.label}: mean d² {mean[1]} against {mean[0]}")
-        if other["covariance"]["solver"]["status"] != "optimal":  # type: ignore[index]
-            failures.append(f"{variant.label}: REML {other['covariance']['solver']}")  # type: ignore[index]
+            failures.append(f"{other.label}: mean d² {mean[1]} against {mean[0]}")
+        if other.tiago["covariance"]["solver"]["status"] != "optimal":
+            failures.append(f"{other.label}: REML {other.tiago['covariance']['solver']}")
     assert not failures, "\n".join(failures)
