@@ -6,7 +6,8 @@ together with the table ``<name>.md`` the pages include (``--8<--``). Checked: t
 rendering of the JSON, the pages include it (no copy by hand), and the cheap rows re-run through
 the same code give the same numbers — counts exactly; errors within half the last digit the
 table shows (0.005 mm for 0.01 mm, 0.0005 mm for 0.001 mm); compliances within 0.05·10⁻⁵
-rad/N·m (shown to 0.1·10⁻⁵).
+rad/N·m (shown to 0.1·10⁻⁵); shares of held-out poses as counts, exactly; mean d² within 0.005
+(shown to 0.01) or 0.05 (shown to 0.1).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import cli_speed, evaluate_real, fleet_platonics, platonics
+from benchmarks import cli_speed, coverage, evaluate_real, fleet_platonics, platonics
 from benchmarks.results import RESULTS, read_results
 
 DOCS = Path(__file__).parents[1] / "docs"
@@ -25,12 +26,16 @@ RENDER = {
     "real_robots": evaluate_real.render,
     "fleet_platonics": fleet_platonics.render,
     "platonics": platonics.render,
+    "coverage_folds": coverage.render_folds,
+    "coverage_rules": coverage.render_rules,
 }
 PAGES = {
     "cli_speed": "predictive.md",
     "real_robots": "real-robots.md",
     "fleet_platonics": "ball-in-socket.md",
     "platonics": "ball-in-socket.md",
+    "coverage_folds": "coverage.md",
+    "coverage_rules": "coverage.md",
 }
 
 
@@ -109,3 +114,58 @@ def test_the_one_step_heldout_table_holds_for_platonics_panda_right(tmp_path: Pa
     assert got.after_mm == pytest.approx(want["after_mm_one_step"], abs=0.0005)
     assert got.inside_95 == want["inside_95_one_step"]
     assert got.mean_d2 == pytest.approx(want["mean_d2_one_step"], abs=0.005)
+
+
+def test_the_cross_validation_table_is_the_sum_of_its_folds() -> None:
+    """Each ``coverage_folds`` row pools its folds' counts and means (so re-running one fold,
+    below, checks the row it belongs to)."""
+    _, rows = read_results("coverage_folds")
+    for row in rows:
+        folds = row["folds"]
+        scored = sum(f["scored"] for f in folds)
+        assert scored == row["scored"] and len(folds) == coverage.FOLDS, row["recording"]
+        assert sum(f["screened"] for f in folds) == row["screened"]
+        assert sum(f["test_rows"] for f in folds) == row["poses"]
+        assert sum(f["failed"] is not None for f in folds) == row["failed_folds"]
+        for key in ("inside_50", "inside_90", "inside_95", "inside_99", "before_inside_95"):
+            assert sum(f[key] for f in folds) == round(scored * row[key]), (row["recording"], key)
+        for key in ("mean_d2", "before_mean_d2"):
+            pooled = sum(f["scored"] * f[key] for f in folds if f["scored"]) / scored
+            assert pooled == pytest.approx(row[key], rel=1e-9), (row["recording"], key)
+
+
+@pytest.mark.slow
+def test_the_cross_validation_table_holds_for_a_tiago_fold() -> None:
+    """Fold 3 of the TIAGo Vicon recording (19 training rows, one of its two held-out poses
+    outside the 95 % ellipsoid; about 1 s) re-run through calibrate → predict: its counts
+    exactly, its mean d² within 0.005 (total) and 0.05 (Σ_E + Σ_n)."""
+    _, rows = read_results("coverage_folds")
+    recording = coverage.RECORDINGS["tiago"]
+    (want,) = [r["folds"][3] for r in rows if r["recording"] == recording.label]
+    _, dimension, (fold,) = coverage.fold_scores(recording, only=3)
+    got = fold.row(dimension)
+    for key in ("test_rows", "scored", "screened", "failed", "before_inside_95"):
+        assert got[key] == want[key], key
+    for key in ("inside_50", "inside_90", "inside_95", "inside_99"):
+        assert got[key] == want[key], key
+    assert got["mean_d2"] == pytest.approx(want["mean_d2"], abs=0.005)
+    assert got["before_mean_d2"] == pytest.approx(want["before_mean_d2"], abs=0.05)
+
+
+@pytest.mark.slow
+def test_the_outlier_rule_table_holds_for_the_ur10e() -> None:
+    """The UR10e (23 poses) under the default model rule, its 10 held-out splits re-run (about
+    1.5 s): used rows and held-out poses exactly, shares to the pose, mean d² within half the
+    last digit shown (0.05 for Σ_E + Σ_n and + Cov(θ̂), 0.005 for the total)."""
+    _, rows = read_results("coverage_rules")
+    recording = coverage.RECORDINGS["ur10e"]
+    (want,) = [r for r in rows if r["recording"] == recording.label and r["rule"] == "model"]
+    got = coverage.measure(recording, "model", seeds=10).row()
+    for key in ("used", "input", "dimension", "heldout"):
+        assert got[key] == want[key], key
+    shares = ("random_inside_95", "parameters_inside_95", "inside_50", "inside_90")
+    for key in (*shares, "inside_95", "inside_99"):
+        assert round(got[key] * got["heldout"]) == round(want[key] * want["heldout"]), key
+    for key in ("random_mean_d2", "parameters_mean_d2"):
+        assert got[key] == pytest.approx(want[key], abs=0.05), key
+    assert got["mean_d2"] == pytest.approx(want["mean_d2"], abs=0.005)
