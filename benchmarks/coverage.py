@@ -13,17 +13,20 @@ Columns: the share of held-out poses inside the predicted 95 % ellipsoid and the
 - "total": adding the model-error part — today's ``kincal predict`` default —, with its
   50/90/95/99 % coverage.
 
-Each recording runs with the default outlier rule and with ``outlier_sigma`` 0 (the paper's 2σ
+Each recording runs with the default outlier rule, the paper's 2σ rule and no rule (the 2σ
 rule truncates the residuals, so the covariances it leaves are too small and the poses it drops
 are missing from the test rows as well).
 
 Two results files (``--write-results``): ``docs/results/coverage_folds.{json,md}``, the 10-fold
 acceptance table of issue 13 (with each fold's counts, so one fold can be re-run against it),
 and ``docs/results/coverage_rules.{json,md}``, the calibration's own coverage under each outlier
-rule; docs/coverage.md includes both and tests/test_quoted_numbers.py checks them.
+rule; docs/coverage.md includes both and tests/test_quoted_numbers.py checks them. A third,
+``docs/results/coverage_measurements.{json,md}``: the calibration's own coverage of the other
+measurement types (ball in socket, markers; :data:`MEASURED`) with ``kincal calibrate``'s
+defaults, which docs/coverage.md and docs/measurements.md include.
 
 Usage: ``python -m benchmarks.coverage [--seeds 10] [--folds 10] [--recordings fr3,ur10e,...]
-[--write-results]``.
+[--measured panda_right,...] [--write-results]``.
 """
 
 from __future__ import annotations
@@ -259,6 +262,95 @@ def render_rules(rows: list[Row]) -> str:
     )
 
 
+MEASURED = {
+    "panda_right": Recording(
+        "platonics `panda_right` (ball in socket)", "platonics_ball_socket/panda_right", "panda"
+    ),
+    "panda_left": Recording("platonics `panda_left`", "platonics_ball_socket/panda_left", "panda"),
+    "panda_1": Recording("platonics `panda_1`", "platonics_ball_socket/panda_1", "panda"),
+    "tiago_qualisys": Recording(
+        "TIAGo Qualisys, 3 markers",
+        "figaroh_tiago_mocap/qualysis/qualysis_base_hand_calibration.csv",
+        urdf="robots/tiago_description/robots/tiago.urdf",
+        base="base_footprint",
+        tip="arm_7_link",
+    ),
+}
+"""Recordings of the other measurement types (the type found from the file, as ``kincal
+calibrate`` finds it: one point per socket file of a platonics folder, markers of the Qualisys
+file)."""
+
+
+def measured_row(recording: Recording, seeds: int) -> Row:
+    """``recording`` calibrated with ``kincal calibrate``'s defaults (``seeds`` held-out
+    splits): its own held-out coverage, the model-error σ of each residual component (mm) and
+    the wall time of the calibration."""
+    setup = pipeline.check_calibration(
+        recording.description(), CalibrationOptions(seeds=list(range(1, seeds + 1)))
+    )
+    started = time.perf_counter()
+    result = pipeline.calibrate_source(DATA / recording.path, setup).result
+    seconds = time.perf_counter() - started
+    predictive = result.predictive
+    assert predictive is not None and predictive.coverage is not None, "no coverage measured"
+    found = predictive.coverage
+    observed = {level.level: level.observed for level in found.levels}
+    return {
+        "recording": recording.label,
+        "measurement": "pose" if result.measurement is None else result.measurement.type,
+        "used": result.outliers.n_used,
+        "input": result.outliers.n_input,
+        "dimension": found.dimension,
+        "heldout": found.n_heldout,
+        **{_inside(a): observed[a] for a in COVERAGE_LEVELS},
+        "mean_d2": found.mean_mahalanobis_sq,
+        "model_error_axes": predictive.model_error.axes,
+        "model_error_std_mm": [1000.0 * std for std in predictive.model_error.std],
+        "model_error_frame": predictive.model_error.frame,
+        "seconds": seconds,
+    }
+
+
+MEASURED_HEADER = (
+    "Recording",
+    "used / input rows",
+    "d",
+    "held-out rows",
+    "in 50 / 90 / 95 / 99 %",
+    "mean d² (χ² mean)",
+    "model error σ, mm",
+    "calibrate s",
+)
+
+
+def render_measured(rows: list[Row]) -> str:
+    """The table of ``docs/results/coverage_measurements.md`` (shares to the percent, mean d²
+    to 2 decimals, model-error σ to 0.001 mm, the calibration's wall time to 0.1 s)."""
+
+    def model_error(row: Row) -> str:
+        stds = zip(row["model_error_axes"], row["model_error_std_mm"], strict=True)
+        text = ", ".join(f"{axis} {std:.3f}" for axis, std in stds)
+        frame = row["model_error_frame"]
+        return text if frame is None else f"{text} ({frame})"
+
+    return markdown_table(
+        MEASURED_HEADER,
+        [
+            (
+                r["recording"],
+                f"{r['used']} / {r['input']}",
+                r["dimension"],
+                r["heldout"],
+                _shares(r),
+                f"{r['mean_d2']:.2f} ({r['dimension']})",
+                model_error(r),
+                f"{r['seconds']:.1f}",
+            )
+            for r in rows
+        ],
+    )
+
+
 FOLDS = 10
 """The acceptance protocol of issue 13: K-fold cross-validation of the recording."""
 BAND_95 = (0.90, 0.98)
@@ -482,11 +574,13 @@ def main(
     names: list[str] | None = None,
     folds: int = FOLDS,
     *,
+    measured: list[str] | None = None,
     write: bool = False,
-) -> tuple[list[Row], list[Row]]:
-    """Both tables (printed; written as results files with ``write``): the rows of
-    ``coverage_folds`` and of ``coverage_rules``."""
+) -> tuple[list[Row], list[Row], list[Row]]:
+    """The three tables (printed; written as results files with ``write``): the rows of
+    ``coverage_folds``, ``coverage_rules`` and ``coverage_measurements``."""
     chosen = names or list(RECORDINGS)
+    chosen_measured = list(MEASURED) if measured is None else measured
     validated: list[Row] = []
     for name in chosen:
         fold = cross_validate(RECORDINGS[name], folds)
@@ -513,18 +607,39 @@ def main(
                 flush=True,
             )
             rows.append(row.row())
-    print("\n" + render_folds(validated) + "\n\n" + render_rules(rows))
+    others: list[Row] = []
+    for name in chosen_measured:
+        other = measured_row(MEASURED[name], seeds)
+        print(
+            f"{other['recording']} ({other['measurement']}): "
+            + ", ".join(f"{100 * other[_inside(a)]:.0f} %" for a in COVERAGE_LEVELS)
+            + f" in the 50/90/95/99 % ellipsoids, mean d² {other['mean_d2']:.2f} (χ² mean "
+            f"{other['dimension']}), {other['seconds']:.1f} s",
+            flush=True,
+        )
+        others.append(other)
+    print(
+        "\n"
+        + render_folds(validated)
+        + "\n\n"
+        + render_rules(rows)
+        + "\n\n"
+        + render_measured(others)
+    )
     if write:
         arguments = f"--seeds {seeds} --folds {folds}"
         if names is not None and names != list(RECORDINGS):
             arguments += f" --recordings {','.join(names)}"
+        if chosen_measured != list(MEASURED):
+            arguments += f" --measured {','.join(chosen_measured)}"
         command = f"python -m benchmarks.coverage {arguments} --write-results"
         for path in (
             *write_results("coverage_folds", command, validated, render_folds),
             *write_results("coverage_rules", command, rows, render_rules),
+            *write_results("coverage_measurements", command, others, render_measured),
         ):
             print("wrote", path)
-    return validated, rows
+    return validated, rows, others
 
 
 if __name__ == "__main__":
@@ -537,14 +652,20 @@ if __name__ == "__main__":
         help="comma-separated: " + ", ".join(RECORDINGS),
     )
     parser.add_argument(
+        "--measured",
+        default=",".join(MEASURED),
+        help="other measurement types, comma-separated: " + ", ".join(MEASURED),
+    )
+    parser.add_argument(
         "--write-results",
         action="store_true",
-        help="write docs/results/coverage_folds.{json,md} and coverage_rules.{json,md}",
+        help="write docs/results/coverage_{folds,rules,measurements}.{json,md}",
     )
     arguments = parser.parse_args()
     main(
         arguments.seeds,
         arguments.recordings.split(","),
         arguments.folds,
+        measured=arguments.measured.split(","),
         write=arguments.write_results,
     )

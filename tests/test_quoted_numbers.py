@@ -28,14 +28,16 @@ RENDER = {
     "platonics": platonics.render,
     "coverage_folds": coverage.render_folds,
     "coverage_rules": coverage.render_rules,
+    "coverage_measurements": coverage.render_measured,
 }
-PAGES = {
+PAGES: dict[str, str | tuple[str, ...]] = {
     "cli_speed": "predictive.md",
     "real_robots": "real-robots.md",
     "fleet_platonics": "ball-in-socket.md",
     "platonics": "ball-in-socket.md",
     "coverage_folds": "coverage.md",
     "coverage_rules": "coverage.md",
+    "coverage_measurements": ("coverage.md", "measurements.md"),
 }
 
 
@@ -43,7 +45,9 @@ PAGES = {
 def test_each_table_is_its_results_file_and_its_page_includes_it(name: str) -> None:
     _, rows = read_results(name)
     assert (RESULTS / f"{name}.md").read_text() == RENDER[name](rows) + "\n"
-    assert f'--8<-- "docs/results/{name}.md"' in (DOCS / PAGES[name]).read_text()
+    pages = PAGES[name]
+    for page in (pages,) if isinstance(pages, str) else pages:
+        assert f'--8<-- "docs/results/{name}.md"' in (DOCS / page).read_text(), page
 
 
 def test_every_results_file_has_a_renderer() -> None:
@@ -169,3 +173,20 @@ def test_the_outlier_rule_table_holds_for_the_ur10e() -> None:
     for key in ("random_mean_d2", "parameters_mean_d2"):
         assert got[key] == pytest.approx(want[key], abs=0.05), key
     assert got["mean_d2"] == pytest.approx(want["mean_d2"], abs=0.005)
+
+
+@pytest.mark.slow
+def test_the_measurement_type_coverage_table_holds_for_panda_right() -> None:
+    """platonics ``panda_right`` (60 rows of ball in socket) re-run with the defaults (about
+    1.5 s): rows and held-out rows exactly, shares to the row, mean d² within 0.005, model-error
+    σ within 0.0005 mm (the wall-time column is not checked)."""
+    _, rows = read_results("coverage_measurements")
+    recording = coverage.MEASURED["panda_right"]
+    (want,) = [r for r in rows if r["recording"] == recording.label]
+    got = coverage.measured_row(recording, seeds=10)
+    for key in ("measurement", "used", "input", "dimension", "heldout", "model_error_axes"):
+        assert got[key] == want[key], key
+    for key in ("inside_50", "inside_90", "inside_95", "inside_99"):
+        assert round(got[key] * got["heldout"]) == round(want[key] * want["heldout"]), key
+    assert got["mean_d2"] == pytest.approx(want["mean_d2"], abs=0.005)
+    assert got["model_error_std_mm"] == pytest.approx(want["model_error_std_mm"], abs=0.0005)
