@@ -13,11 +13,20 @@ Columns: the share of held-out poses inside the predicted 95 % ellipsoid and the
 - "total": adding the model-error part — today's ``kincal predict`` default —, with its
   50/90/95/99 % coverage.
 
-Each recording runs with the default outlier rule and with ``outlier_sigma`` 0 (the paper's 2σ
+Each recording runs with the default outlier rule, the paper's 2σ rule and no rule (the 2σ
 rule truncates the residuals, so the covariances it leaves are too small and the poses it drops
 are missing from the test rows as well).
 
-Usage: ``python benchmarks/coverage.py [--seeds 10] [--recordings fr3,ur10e,...]``.
+Two results files (``--write-results``): ``docs/results/coverage_folds.{json,md}``, the 10-fold
+acceptance table of issue 13 (with each fold's counts, so one fold can be re-run against it),
+and ``docs/results/coverage_rules.{json,md}``, the calibration's own coverage under each outlier
+rule; docs/coverage.md includes both and tests/test_quoted_numbers.py checks them. A third,
+``docs/results/coverage_measurements.{json,md}``: the calibration's own coverage of the other
+measurement types (ball in socket, markers; :data:`MEASURED`) with ``kincal calibrate``'s
+defaults, which docs/coverage.md and docs/measurements.md include.
+
+Usage: ``python -m benchmarks.coverage [--seeds 10] [--folds 10] [--recordings fr3,ur10e,...]
+[--measured panda_right,...] [--write-results]``.
 """
 
 from __future__ import annotations
@@ -30,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 import solver  # noqa: F401  (BLAS defaults)
+from benchmarks.results import Row, markdown_table, write_results
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import PoseDataset
 from schemas.dataset.readers import read_dataset
@@ -40,7 +50,14 @@ from service.render import result_json
 from solver import lie
 from solver.errors import KincalError
 from solver.kinematics import pose_residuals
-from solver.predictive import COVERAGE_LEVELS, Coverage, ScoredRows, coverage, mahalanobis_squared
+from solver.predictive import (
+    COVERAGE_LEVELS,
+    Coverage,
+    ScoredRows,
+    chi2_quantile,
+    coverage,
+    mahalanobis_squared,
+)
 from solver.stream.coverage import PredictiveCalibration, fold_indices
 from solver.stream.screening import family_wise_t2
 
@@ -114,6 +131,29 @@ class CoverageRow:
     total_mean: float
     seconds: float
 
+    def row(self) -> Row:
+        """The numbers of the results file ``coverage_rules`` (shares as fractions)."""
+        return {
+            "recording": self.label,
+            "rule": self.rule,
+            "used": self.n_used,
+            "input": self.n_input,
+            "dimension": self.dimension,
+            "heldout": self.n_heldout,
+            "random_inside_95": self.random_95,
+            "random_mean_d2": self.random_mean,
+            "parameters_inside_95": self.parameters_95,
+            "parameters_mean_d2": self.parameters_mean,
+            **{_inside(a): v for a, v in zip(COVERAGE_LEVELS, self.total, strict=True)},
+            "mean_d2": self.total_mean,
+            "seconds": self.seconds,
+        }
+
+
+def _inside(level: float) -> str:
+    """The results-file key of the share (or count) inside the ``level`` ellipsoid."""
+    return f"inside_{round(100 * level)}"
+
 
 def _share_and_mean(distances: np.ndarray, dimension: int) -> tuple[float, float]:
     found = coverage(distances, dimension)
@@ -177,47 +217,179 @@ def _row(
     )
 
 
-def markdown(header: list[str], rows: list[list[str]]) -> str:
-    """A markdown table."""
-    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines)
+def mean_d2_text(value: float) -> str:
+    """A mean d² to one decimal, thousands grouped by a space beyond 1 000 (to the unit)."""
+    return f"{value:.1f}" if value < 1000 else f"{value:,.0f}".replace(",", " ")
 
 
-def table(rows: list[CoverageRow]) -> str:
-    """The markdown table of the calibrate-reported coverage (README)."""
-    header = [
-        "Recording",
-        "Outlier rule",
-        "Used / input",
-        "d",
-        "Held-out poses",
-        "Σ_E + Σ_n: in 95 % / mean d²",
-        "+ Cov(θ̂): in 95 % / mean d²",
-        "Total: in 50 / 90 / 95 / 99 %",
-        "Total: mean d² (χ² mean)",
-        "Time",
-    ]
-    body = [
+def _shares(row: Row) -> str:
+    return " / ".join(f"{100 * row[_inside(a)]:.0f}" for a in COVERAGE_LEVELS)
+
+
+RULES_HEADER = (
+    "Recording",
+    "Outlier rule",
+    "Used / input",
+    "d",
+    "Held-out poses",
+    "Σ_E + Σ_n: in 95 % / mean d²",
+    "+ Cov(θ̂): in 95 % / mean d²",
+    "Total: in 50 / 90 / 95 / 99 %",
+    "Total: mean d² (χ² mean)",
+)
+
+
+def render_rules(rows: list[Row]) -> str:
+    """The table of ``docs/results/coverage_rules.md``: the calibration's own held-out coverage
+    under each outlier rule (shares to the percent, mean d² to 1 and 2 decimals)."""
+    return markdown_table(
+        RULES_HEADER,
         [
-            r.label,
-            r.rule,
-            f"{r.n_used} / {r.n_input}",
-            str(r.dimension),
-            str(r.n_heldout),
-            f"{100 * r.random_95:.0f} % / {r.random_mean:.1f}",
-            f"{100 * r.parameters_95:.0f} % / {r.parameters_mean:.1f}",
-            " / ".join(f"{100 * v:.0f}" for v in r.total),
-            f"{r.total_mean:.2f} ({r.dimension})",
-            f"{r.seconds:.0f} s",
-        ]
-        for r in rows
-    ]
-    return markdown(header, body)
+            (
+                r["recording"],
+                "model (default)" if r["rule"] == "model" else r["rule"],
+                f"{r['used']} / {r['input']}",
+                r["dimension"],
+                r["heldout"],
+                f"{100 * r['random_inside_95']:.0f} % / {mean_d2_text(r['random_mean_d2'])}",
+                f"{100 * r['parameters_inside_95']:.0f} % / "
+                + mean_d2_text(r["parameters_mean_d2"]),
+                _shares(r),
+                f"{r['mean_d2']:.2f} ({r['dimension']})",
+            )
+            for r in rows
+        ],
+    )
+
+
+MEASURED = {
+    "panda_right": Recording(
+        "platonics `panda_right` (ball in socket)", "platonics_ball_socket/panda_right", "panda"
+    ),
+    "panda_left": Recording("platonics `panda_left`", "platonics_ball_socket/panda_left", "panda"),
+    "panda_1": Recording("platonics `panda_1`", "platonics_ball_socket/panda_1", "panda"),
+    "tiago_qualisys": Recording(
+        "TIAGo Qualisys, 3 markers",
+        "figaroh_tiago_mocap/qualysis/qualysis_base_hand_calibration.csv",
+        urdf="robots/tiago_description/robots/tiago.urdf",
+        base="base_footprint",
+        tip="arm_7_link",
+    ),
+}
+"""Recordings of the other measurement types (the type found from the file, as ``kincal
+calibrate`` finds it: one point per socket file of a platonics folder, markers of the Qualisys
+file)."""
+
+
+def measured_row(recording: Recording, seeds: int) -> Row:
+    """``recording`` calibrated with ``kincal calibrate``'s defaults (``seeds`` held-out
+    splits): its own held-out coverage, the model-error σ of each residual component (mm) and
+    the wall time of the calibration."""
+    setup = pipeline.check_calibration(
+        recording.description(), CalibrationOptions(seeds=list(range(1, seeds + 1)))
+    )
+    started = time.perf_counter()
+    result = pipeline.calibrate_source(DATA / recording.path, setup).result
+    seconds = time.perf_counter() - started
+    predictive = result.predictive
+    assert predictive is not None and predictive.coverage is not None, "no coverage measured"
+    found = predictive.coverage
+    observed = {level.level: level.observed for level in found.levels}
+    return {
+        "recording": recording.label,
+        "measurement": "pose" if result.measurement is None else result.measurement.type,
+        "used": result.outliers.n_used,
+        "input": result.outliers.n_input,
+        "dimension": found.dimension,
+        "heldout": found.n_heldout,
+        **{_inside(a): observed[a] for a in COVERAGE_LEVELS},
+        "mean_d2": found.mean_mahalanobis_sq,
+        "model_error_axes": predictive.model_error.axes,
+        "model_error_std_mm": [1000.0 * std for std in predictive.model_error.std],
+        "model_error_frame": predictive.model_error.frame,
+        "seconds": seconds,
+    }
+
+
+MEASURED_HEADER = (
+    "Recording",
+    "used / input rows",
+    "d",
+    "held-out rows",
+    "in 50 / 90 / 95 / 99 %",
+    "mean d² (χ² mean)",
+    "model error σ, mm",
+    "calibrate s",
+)
+
+
+def render_measured(rows: list[Row]) -> str:
+    """The table of ``docs/results/coverage_measurements.md`` (shares to the percent, mean d²
+    to 2 decimals, model-error σ to 0.001 mm, the calibration's wall time to 0.1 s)."""
+
+    def model_error(row: Row) -> str:
+        stds = zip(row["model_error_axes"], row["model_error_std_mm"], strict=True)
+        text = ", ".join(f"{axis} {std:.3f}" for axis, std in stds)
+        frame = row["model_error_frame"]
+        return text if frame is None else f"{text} ({frame})"
+
+    return markdown_table(
+        MEASURED_HEADER,
+        [
+            (
+                r["recording"],
+                f"{r['used']} / {r['input']}",
+                r["dimension"],
+                r["heldout"],
+                _shares(r),
+                f"{r['mean_d2']:.2f} ({r['dimension']})",
+                model_error(r),
+                f"{r['seconds']:.1f}",
+            )
+            for r in rows
+        ],
+    )
 
 
 FOLDS = 10
 """The acceptance protocol of issue 13: K-fold cross-validation of the recording."""
+BAND_95 = (0.90, 0.98)
+"""Issue 13's band: the share of held-out poses inside the predicted 95 % ellipsoid."""
+BAND_MEAN = 0.25
+"""Issue 13's band: the mean d² within this fraction of the χ²_d mean d."""
+
+
+@dataclass(frozen=True)
+class FoldScore:
+    """One fold of the cross-validation: the squared Mahalanobis distances of its scored
+    held-out poses under the total (``total``) and under Σ_E + Σ_n (``before``), how many
+    poses the training calibration's outlier rule screens out, or why the fold's calibration
+    failed (``failed``; none of its poses scored)."""
+
+    test_rows: int
+    total: np.ndarray
+    before: np.ndarray
+    screened: int
+    failed: str | None
+
+    def row(self, dimension: int) -> Row:
+        """Counts inside each level's χ²_``dimension`` ellipsoid and the means, for the results
+        file (a fold of the :class:`FoldCoverage` row)."""
+        scored = int(self.total.size)
+
+        def inside(d2: np.ndarray, level: float) -> int:
+            return int(np.count_nonzero(d2 <= chi2_quantile(level, dimension)))
+
+        return {
+            "test_rows": self.test_rows,
+            "scored": scored,
+            "screened": self.screened,
+            **{_inside(a): inside(self.total, a) for a in COVERAGE_LEVELS},
+            "mean_d2": float(np.mean(self.total)) if scored else None,
+            "before_inside_95": inside(self.before, 0.95),
+            "before_mean_d2": float(np.mean(self.before)) if scored else None,
+            "failed": self.failed,
+        }
 
 
 @dataclass(frozen=True)
@@ -228,7 +400,7 @@ class FoldCoverage:
     under Σ_E + Σ_n (``before``, ``--part random-effects``: what it wrote before issue 13);
     ``screened``: held-out poses the training calibration's own outlier rule rejects (detector
     failures, not scored); ``failed``: folds whose calibration raised (their poses are not
-    scored), with the message."""
+    scored), with the message; ``folds``: each fold's scores."""
 
     label: str
     n_input: int
@@ -237,6 +409,26 @@ class FoldCoverage:
     screened: int
     failed: tuple[str, ...]
     seconds: float
+    folds: tuple[FoldScore, ...]
+
+    def row(self) -> Row:
+        """The numbers of the results file ``coverage_folds`` (shares as fractions; each
+        fold's counts under ``folds``)."""
+        d = self.found.dimension
+        return {
+            "recording": self.label,
+            "poses": self.n_input,
+            "dimension": d,
+            "scored": self.found.n,
+            "screened": self.screened,
+            "before_inside_95": self.before.at(0.95),
+            "before_mean_d2": self.before.mean_d2,
+            **{_inside(a): self.found.at(a) for a in COVERAGE_LEVELS},
+            "mean_d2": self.found.mean_d2,
+            "failed_folds": len(self.failed),
+            "seconds": self.seconds,
+            "folds": [fold.row(d) for fold in self.folds],
+        }
 
 
 def _measured_pose(dataset: PoseDataset) -> np.ndarray:
@@ -279,83 +471,130 @@ def heldout_distances(result: CalibrationResult, test: PoseDataset) -> HeldoutDi
     return HeldoutDistances(distances, before, distances <= threshold)
 
 
-def cross_validate(recording: Recording, folds: int = FOLDS, seed: int = 0) -> FoldCoverage:
-    """:class:`FoldCoverage` of ``recording`` with ``kincal calibrate``'s defaults."""
+def fold_scores(
+    recording: Recording, folds: int = FOLDS, seed: int = 0, only: int | None = None
+) -> tuple[int, int, list[FoldScore]]:
+    """The number of poses, their dimension d and the :class:`FoldScore` of every fold of
+    ``recording`` with ``kincal calibrate``'s defaults (of fold ``only`` alone if given)."""
     setup = pipeline.check_calibration(recording.description(), CalibrationOptions())
     chain = setup.chain
     dataset = read_dataset(
         DATA / recording.path, chain.joint_names, other_joint_names=chain.other_joint_names
     )
-    started = time.perf_counter()
-    total, before, screened, failed = [], [], 0, []
-    for train, test in fold_indices(dataset.n_samples, folds, seed):
+    scores = []
+    for index, (train, test) in enumerate(fold_indices(dataset.n_samples, folds, seed)):
+        if only is not None and index != only:
+            continue
         try:
             result = pipeline.calibrate_source(dataset.subset(train), setup).result
         except KincalError as exc:
-            failed.append(f"{len(train)} rows: {exc}")
+            empty = np.zeros(0)
+            scores.append(FoldScore(len(test), empty, empty, 0, f"{len(train)} rows: {exc}"))
             continue
         found = heldout_distances(result, dataset.subset(test))
-        total.append(found.total[found.scored])
-        before.append(found.random_effects[found.scored])
-        screened += int(np.count_nonzero(~found.scored))
-    d = 3 if dataset.is_position_only else 6
+        scores.append(
+            FoldScore(
+                len(test),
+                found.total[found.scored],
+                found.random_effects[found.scored],
+                int(np.count_nonzero(~found.scored)),
+                None,
+            )
+        )
+    return dataset.n_samples, 3 if dataset.is_position_only else 6, scores
+
+
+def cross_validate(recording: Recording, folds: int = FOLDS, seed: int = 0) -> FoldCoverage:
+    """:class:`FoldCoverage` of ``recording`` with ``kincal calibrate``'s defaults."""
+    started = time.perf_counter()
+    n_input, d, scores = fold_scores(recording, folds, seed)
     return FoldCoverage(
         recording.label,
-        dataset.n_samples,
-        coverage(np.concatenate(total) if total else np.zeros(0), d),
-        coverage(np.concatenate(before) if before else np.zeros(0), d),
-        screened,
-        tuple(failed),
+        n_input,
+        coverage(np.concatenate([s.total for s in scores]), d),
+        coverage(np.concatenate([s.before for s in scores]), d),
+        sum(s.screened for s in scores),
+        tuple(s.failed for s in scores if s.failed is not None),
         time.perf_counter() - started,
+        tuple(scores),
     )
 
 
-def fold_table(rows: list[FoldCoverage]) -> str:
-    """The acceptance table: K-fold cross-validation through calibrate → predict."""
-    header = [
-        "Recording",
-        "Poses",
-        "d",
-        "Scored / screened",
-        "Before (Σ_E + Σ_n): in 95 % / mean d²",
-        "Total: in 50 / 90 / 95 / 99 %",
-        "Total: mean d² (χ² mean)",
-        "Failed folds",
-        "Time",
-    ]
-    body = [
+def holds(row: Row) -> str:
+    """Whether a ``coverage_folds`` row is inside issue 13's band (:data:`BAND_95`,
+    :data:`BAND_MEAN`), and whether it sits on the band's edge (to the percent shown)."""
+    share, d = row["inside_95"], row["dimension"]
+    if not (BAND_95[0] <= share <= BAND_95[1] and abs(row["mean_d2"] - d) <= BAND_MEAN * d):
+        return "**no**"
+    shown = round(100 * share)
+    for edge, name in zip(BAND_95, ("lower", "upper"), strict=True):
+        if shown == round(100 * edge):
+            return f"yes, **at the band's {name} edge** ({shown} %)"
+    return "yes"
+
+
+FOLDS_HEADER = (
+    "Recording",
+    "Poses",
+    "d",
+    "Scored / screened",
+    "Before (Σ_E + Σ_n): in 95 % / mean d²",
+    "After (total): in 50 / 90 / 95 / 99 %",
+    "After: mean d² (χ² mean)",
+    "Failed folds",
+    "Holds?",
+)
+
+
+def render_folds(rows: list[Row]) -> str:
+    """The table of ``docs/results/coverage_folds.md``: issue 13's acceptance, K-fold
+    cross-validation through calibrate → predict (shares to the percent, mean d² to 1 and 2
+    decimals)."""
+    return markdown_table(
+        FOLDS_HEADER,
         [
-            r.label,
-            str(r.n_input),
-            str(r.found.dimension),
-            f"{r.found.n} / {r.screened}",
-            f"{100 * r.before.at(0.95):.0f} % / {r.before.mean_d2:.1f}",
-            " / ".join(f"{100 * r.found.at(a):.0f}" for a in COVERAGE_LEVELS),
-            f"{r.found.mean_d2:.2f} ({r.found.dimension})",
-            str(len(r.failed)),
-            f"{r.seconds:.0f} s",
-        ]
-        for r in rows
-    ]
-    return markdown(header, body)
+            (
+                r["recording"],
+                r["poses"],
+                r["dimension"],
+                f"{r['scored']} / {r['screened']}",
+                f"{100 * r['before_inside_95']:.0f} % / {mean_d2_text(r['before_mean_d2'])}",
+                _shares(r),
+                f"{r['mean_d2']:.2f} ({r['dimension']})",
+                r["failed_folds"],
+                holds(r),
+            )
+            for r in rows
+        ],
+    )
 
 
-def main(seeds: int = 10, names: list[str] | None = None, folds: int = FOLDS) -> str:
+def main(
+    seeds: int = 10,
+    names: list[str] | None = None,
+    folds: int = FOLDS,
+    *,
+    measured: list[str] | None = None,
+    write: bool = False,
+) -> tuple[list[Row], list[Row], list[Row]]:
+    """The three tables (printed; written as results files with ``write``): the rows of
+    ``coverage_folds``, ``coverage_rules`` and ``coverage_measurements``."""
     chosen = names or list(RECORDINGS)
-    validated = []
+    chosen_measured = list(MEASURED) if measured is None else measured
+    validated: list[Row] = []
     for name in chosen:
         fold = cross_validate(RECORDINGS[name], folds)
         print(
             f"{fold.label}: {folds}-fold, {fold.found.n} poses scored ({fold.screened} "
             f"screened, {len(fold.failed)} folds failed): {100 * fold.found.at(0.95):.0f} % in "
             f"the 95 % ellipsoid, mean d² {fold.found.mean_d2:.2f} (χ² mean "
-            f"{fold.found.dimension})",
+            f"{fold.found.dimension}), {fold.seconds:.0f} s",
             flush=True,
         )
         for message in fold.failed:
             print(f"  failed fold: {message}", flush=True)
-        validated.append(fold)
-    rows = []
+        validated.append(fold.row())
+    rows: list[Row] = []
     for name in chosen:
         for rule in RULES:
             row = measure(RECORDINGS[name], rule, seeds)
@@ -363,13 +602,44 @@ def main(seeds: int = 10, names: list[str] | None = None, folds: int = FOLDS) ->
             print(
                 f"{row.label} ({row.rule}): total {shares}"
                 f" in the 50/90/95/99 % ellipsoids, mean d² {row.total_mean:.2f} "
-                f"(χ² mean {row.dimension}); Σ_E + Σ_n alone {100 * row.random_95:.0f} % in 95 %",
+                f"(χ² mean {row.dimension}); Σ_E + Σ_n alone {100 * row.random_95:.0f} % in 95 %"
+                f", {row.seconds:.1f} s",
                 flush=True,
             )
-            rows.append(row)
-    out = fold_table(validated) + "\n\n" + table(rows)
-    print("\n" + out)
-    return out
+            rows.append(row.row())
+    others: list[Row] = []
+    for name in chosen_measured:
+        other = measured_row(MEASURED[name], seeds)
+        print(
+            f"{other['recording']} ({other['measurement']}): "
+            + ", ".join(f"{100 * other[_inside(a)]:.0f} %" for a in COVERAGE_LEVELS)
+            + f" in the 50/90/95/99 % ellipsoids, mean d² {other['mean_d2']:.2f} (χ² mean "
+            f"{other['dimension']}), {other['seconds']:.1f} s",
+            flush=True,
+        )
+        others.append(other)
+    print(
+        "\n"
+        + render_folds(validated)
+        + "\n\n"
+        + render_rules(rows)
+        + "\n\n"
+        + render_measured(others)
+    )
+    if write:
+        arguments = f"--seeds {seeds} --folds {folds}"
+        if names is not None and names != list(RECORDINGS):
+            arguments += f" --recordings {','.join(names)}"
+        if chosen_measured != list(MEASURED):
+            arguments += f" --measured {','.join(chosen_measured)}"
+        command = f"python -m benchmarks.coverage {arguments} --write-results"
+        for path in (
+            *write_results("coverage_folds", command, validated, render_folds),
+            *write_results("coverage_rules", command, rows, render_rules),
+            *write_results("coverage_measurements", command, others, render_measured),
+        ):
+            print("wrote", path)
+    return validated, rows, others
 
 
 if __name__ == "__main__":
@@ -381,5 +651,21 @@ if __name__ == "__main__":
         default=",".join(RECORDINGS),
         help="comma-separated: " + ", ".join(RECORDINGS),
     )
+    parser.add_argument(
+        "--measured",
+        default=",".join(MEASURED),
+        help="other measurement types, comma-separated: " + ", ".join(MEASURED),
+    )
+    parser.add_argument(
+        "--write-results",
+        action="store_true",
+        help="write docs/results/coverage_{folds,rules,measurements}.{json,md}",
+    )
     arguments = parser.parse_args()
-    main(arguments.seeds, arguments.recordings.split(","), arguments.folds)
+    main(
+        arguments.seeds,
+        arguments.recordings.split(","),
+        arguments.folds,
+        measured=arguments.measured.split(","),
+        write=arguments.write_results,
+    )

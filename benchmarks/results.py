@@ -46,3 +46,18 @@ def read_results(name: str) -> tuple[str, list[Row]]:
 def dash(value: float | None, digits: int) -> str:
     """A number with ``digits`` decimals, or "–" when there is none."""
     return "–" if value is None else f"{value:.{digits}f}"
+
+
+def count_text(n: int) -> str:
+    """``n`` as a power of ten (10⁵) when it is one above 10, else with thousands separators."""
+    exponent = len(str(n)) - 1
+    if n == 10**exponent and exponent > 1:
+        return "10" + str(exponent).translate(str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹"))
+    return f"{n:,}"
+
+
+def percent(fraction: float, digits: int, *, signed: bool = False) -> str:
+    """A fraction as a percentage with ``digits`` decimals and a space before the sign
+    ("0.85 %"); ``signed``: always with its sign, a minus sign for negatives ("−26.5 %")."""
+    text = f"{100 * fraction:{'+' if signed else ''}.{digits}f}".replace("-", "−")
+    return f"{text} %"

@@ -4,7 +4,8 @@ kincal (:mod:`benchmarks.pinocchio_sim`), through ``kincal calibrate`` → ``kin
 with their defaults (``--no-heldout``: the held-out splits do not touch the covariances).
 
 The full table (10 seeds, both sizes, with and without detector failures, and the paper's 2σ
-rule for comparison) is ``python -m benchmarks.honest_covariance``; README quotes it.
+rule for comparison) is ``python -m benchmarks.honest_covariance --write-results``;
+docs/covariance.md includes it.
 """
 
 from __future__ import annotations

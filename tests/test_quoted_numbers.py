@@ -6,17 +6,28 @@ together with the table ``<name>.md`` the pages include (``--8<--``). Checked: t
 rendering of the JSON, the pages include it (no copy by hand), and the cheap rows re-run through
 the same code give the same numbers — counts exactly; errors within half the last digit the
 table shows (0.005 mm for 0.01 mm, 0.0005 mm for 0.001 mm); compliances within 0.05·10⁻⁵
-rad/N·m (shown to 0.1·10⁻⁵).
+rad/N·m (shown to 0.1·10⁻⁵); shares of held-out poses as counts, exactly; mean d² within 0.005
+(shown to 0.01) or 0.05 (shown to 0.1).
 """
 
 from __future__ import annotations
 
+import statistics
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from benchmarks import cli_speed, evaluate_real, fleet_platonics, platonics
+from benchmarks import (
+    cli_speed,
+    coverage,
+    evaluate_real,
+    fleet_platonics,
+    honest_covariance,
+    platonics,
+)
 from benchmarks.results import RESULTS, read_results
+from tests.service.cli_support import run_ok
 
 DOCS = Path(__file__).parents[1] / "docs"
 
@@ -25,12 +36,20 @@ RENDER = {
     "real_robots": evaluate_real.render,
     "fleet_platonics": fleet_platonics.render,
     "platonics": platonics.render,
+    "coverage_folds": coverage.render_folds,
+    "coverage_rules": coverage.render_rules,
+    "coverage_measurements": coverage.render_measured,
+    "honest_covariance": honest_covariance.render,
 }
-PAGES = {
+PAGES: dict[str, str | tuple[str, ...]] = {
     "cli_speed": "predictive.md",
     "real_robots": "real-robots.md",
     "fleet_platonics": "ball-in-socket.md",
     "platonics": "ball-in-socket.md",
+    "coverage_folds": "coverage.md",
+    "coverage_rules": "coverage.md",
+    "coverage_measurements": ("coverage.md", "measurements.md"),
+    "honest_covariance": "covariance.md",
 }
 
 
@@ -38,7 +57,9 @@ PAGES = {
 def test_each_table_is_its_results_file_and_its_page_includes_it(name: str) -> None:
     _, rows = read_results(name)
     assert (RESULTS / f"{name}.md").read_text() == RENDER[name](rows) + "\n"
-    assert f'--8<-- "docs/results/{name}.md"' in (DOCS / PAGES[name]).read_text()
+    pages = PAGES[name]
+    for page in (pages,) if isinstance(pages, str) else pages:
+        assert f'--8<-- "docs/results/{name}.md"' in (DOCS / page).read_text(), page
 
 
 def test_every_results_file_has_a_renderer() -> None:
@@ -109,3 +130,111 @@ def test_the_one_step_heldout_table_holds_for_platonics_panda_right(tmp_path: Pa
     assert got.after_mm == pytest.approx(want["after_mm_one_step"], abs=0.0005)
     assert got.inside_95 == want["inside_95_one_step"]
     assert got.mean_d2 == pytest.approx(want["mean_d2_one_step"], abs=0.005)
+
+
+def test_the_cross_validation_table_is_the_sum_of_its_folds() -> None:
+    """Each ``coverage_folds`` row pools its folds' counts and means (so re-running one fold,
+    below, checks the row it belongs to)."""
+    _, rows = read_results("coverage_folds")
+    for row in rows:
+        folds = row["folds"]
+        scored = sum(f["scored"] for f in folds)
+        assert scored == row["scored"] and len(folds) == coverage.FOLDS, row["recording"]
+        assert sum(f["screened"] for f in folds) == row["screened"]
+        assert sum(f["test_rows"] for f in folds) == row["poses"]
+        assert sum(f["failed"] is not None for f in folds) == row["failed_folds"]
+        for key in ("inside_50", "inside_90", "inside_95", "inside_99", "before_inside_95"):
+            assert sum(f[key] for f in folds) == round(scored * row[key]), (row["recording"], key)
+        for key in ("mean_d2", "before_mean_d2"):
+            pooled = sum(f["scored"] * f[key] for f in folds if f["scored"]) / scored
+            assert pooled == pytest.approx(row[key], rel=1e-9), (row["recording"], key)
+
+
+@pytest.mark.slow
+def test_the_cross_validation_table_holds_for_a_tiago_fold() -> None:
+    """Fold 3 of the TIAGo Vicon recording (19 training rows, one of its two held-out poses
+    outside the 95 % ellipsoid; about 1 s) re-run through calibrate → predict: its counts
+    exactly, its mean d² within 0.005 (total) and 0.05 (Σ_E + Σ_n)."""
+    _, rows = read_results("coverage_folds")
+    recording = coverage.RECORDINGS["tiago"]
+    (want,) = [r["folds"][3] for r in rows if r["recording"] == recording.label]
+    _, dimension, (fold,) = coverage.fold_scores(recording, only=3)
+    got = fold.row(dimension)
+    for key in ("test_rows", "scored", "screened", "failed", "before_inside_95"):
+        assert got[key] == want[key], key
+    for key in ("inside_50", "inside_90", "inside_95", "inside_99"):
+        assert got[key] == want[key], key
+    assert got["mean_d2"] == pytest.approx(want["mean_d2"], abs=0.005)
+    assert got["before_mean_d2"] == pytest.approx(want["before_mean_d2"], abs=0.05)
+
+
+@pytest.mark.slow
+def test_the_outlier_rule_table_holds_for_the_ur10e() -> None:
+    """The UR10e (23 poses) under the default model rule, its 10 held-out splits re-run (about
+    1.5 s): used rows and held-out poses exactly, shares to the pose, mean d² within half the
+    last digit shown (0.05 for Σ_E + Σ_n and + Cov(θ̂), 0.005 for the total)."""
+    _, rows = read_results("coverage_rules")
+    recording = coverage.RECORDINGS["ur10e"]
+    (want,) = [r for r in rows if r["recording"] == recording.label and r["rule"] == "model"]
+    got = coverage.measure(recording, "model", seeds=10).row()
+    for key in ("used", "input", "dimension", "heldout"):
+        assert got[key] == want[key], key
+    shares = ("random_inside_95", "parameters_inside_95", "inside_50", "inside_90")
+    for key in (*shares, "inside_95", "inside_99"):
+        assert round(got[key] * got["heldout"]) == round(want[key] * want["heldout"]), key
+    for key in ("random_mean_d2", "parameters_mean_d2"):
+        assert got[key] == pytest.approx(want[key], abs=0.05), key
+    assert got["mean_d2"] == pytest.approx(want["mean_d2"], abs=0.005)
+
+
+@pytest.mark.slow
+def test_the_measurement_type_coverage_table_holds_for_panda_right() -> None:
+    """platonics ``panda_right`` (60 rows of ball in socket) re-run with the defaults (about
+    1.5 s): rows and held-out rows exactly, shares to the row, mean d² within 0.005, model-error
+    σ within 0.0005 mm (the wall-time column is not checked)."""
+    _, rows = read_results("coverage_measurements")
+    recording = coverage.MEASURED["panda_right"]
+    (want,) = [r for r in rows if r["recording"] == recording.label]
+    got = coverage.measured_row(recording, seeds=10)
+    for key in ("measurement", "used", "input", "dimension", "heldout", "model_error_axes"):
+        assert got[key] == want[key], key
+    for key in ("inside_50", "inside_90", "inside_95", "inside_99"):
+        assert round(got[key] * got["heldout"]) == round(want[key] * want["heldout"]), key
+    assert got["mean_d2"] == pytest.approx(want["mean_d2"], abs=0.005)
+    assert got["model_error_std_mm"] == pytest.approx(want["model_error_std_mm"], abs=0.0005)
+
+
+def test_the_honest_covariance_table_summarises_its_seeds() -> None:
+    """Each ``honest_covariance`` line is the median / max / min / quartiles of its seeds'
+    outcomes (so re-running one seed, below, checks the line it belongs to)."""
+    _, rows = read_results("honest_covariance")
+    for row in rows:
+        outcomes = row["outcomes"]
+        assert [o["seed"] for o in outcomes] == list(range(row["seeds"]))
+        removed = [o["clean_removed"] for o in outcomes]
+        assert row["clean_removed_median"] == statistics.median(removed)
+        assert row["clean_removed_max"] == max(removed)
+        caught = [o["gross_caught"] for o in outcomes if o["gross_caught"] is not None]
+        assert row["gross_caught_min"] == (min(caught) if caught else None)
+        errors = [o["task_error"] for o in outcomes]
+        quartiles = [row[f"task_error_{k}"] for k in ("q1", "median", "q3")]
+        assert quartiles == pytest.approx(np.percentile(errors, [25, 50, 75]), rel=1e-12)
+
+
+@pytest.mark.slow
+def test_the_honest_covariance_table_holds_for_seed_0_at_119_poses(tmp_path: Path) -> None:
+    """Seed 0 of the default rule at N = 119 with 2 % detector failures re-run through
+    ``kincal calibrate`` → ``kincal predict`` in process (about 1.5 s): the clean samples
+    removed and failures caught exactly (counts), the task-score error within 0.0005 (the table
+    shows 0.1 %)."""
+    _, rows = read_results("honest_covariance")
+    (row,) = [r for r in rows if r["n"] == 119 and r["rule"] == "model (default)"]
+    want = row["outcomes"][0]
+
+    def kincal(*args: str) -> None:
+        run_ok(list(args))
+
+    got = honest_covariance.run_one(119, 0, row["gross_fraction"], row["flags"], tmp_path, kincal)
+    assert got.clean_removed == want["clean_removed"]
+    assert got.gross_caught == want["gross_caught"]
+    assert got.task_error == pytest.approx(want["task_error"], abs=0.0005)
