@@ -236,7 +236,7 @@ def test_coverage_benchmark_runs_on_a_small_recording() -> None:
     row = coverage_benchmark.measure(coverage_benchmark.RECORDINGS["ur10e"], "none", seeds=2)
     assert row.dimension == 6 and row.n_used == 23 and row.n_heldout > 0
     assert len(row.total) == 4 and all(0.0 <= v <= 1.0 for v in row.total)
-    assert "UR10e" in coverage_benchmark.table([row])
+    assert "UR10e" in coverage_benchmark.render_rules([row.row()])
 
 
 def test_splits_with_many_training_rows_take_the_model_error_from_leave_one_out(
@@ -304,6 +304,6 @@ def test_the_benchmark_scores_heldout_poses_as_kincal_predict_does(
     assert np.allclose(found.random_effects, before)
     assert found.scored.all()
     row = coverage_benchmark.FoldCoverage(
-        "sim", len(found.total), coverage(found.total, 6), coverage(before, 6), 0, (), 1.0
+        "sim", len(found.total), coverage(found.total, 6), coverage(before, 6), 0, (), 1.0, ()
     )
-    assert "| sim | 600 | 6 | 600 / 0 |" in coverage_benchmark.fold_table([row])
+    assert "| sim | 600 | 6 | 600 / 0 |" in coverage_benchmark.render_folds([row.row()])
