@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from tests.conftest import REPO, computed_once
+from tests.conftest import REPO
 
 pytestmark = pytest.mark.slow
 
@@ -141,21 +141,12 @@ def _run(variant: Variant, folder: Path) -> Run:
     return Run(variant.label, found["estimates"], found["tiago_exit"], tiago)
 
 
-Runs = tuple[Run, list[Run], tuple[Variant, ...], tuple[str, ...]]
-"""The default environment's run, every setting's, the settings, and why others were skipped."""
-
-
-def _all_runs(folder: Path) -> Runs:
+def _all_runs(folder: Path) -> tuple[Run, list[Run]]:
+    """The default environment's run and every setting's (one test consumes them all: a
+    second test waiting for them on the other xdist worker idled it for 37 s)."""
     reference = _run(Variant("default"), folder / "default")
-    found, skipped = variants()
-    others = [_run(v, folder / f"variant{k}") for k, v in enumerate(found)]
-    return reference, others, found, skipped
-
-
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> Runs:
-    """Computed once per test run, however many workers run this module's tests."""
-    return computed_once(tmp_path_factory, "same-numbers", _all_runs)
+    found, _ = variants()
+    return reference, [_run(v, folder / f"variant{k}") for k, v in enumerate(found)]
 
 
 def _relative(a: object, b: object) -> float:
@@ -164,8 +155,8 @@ def _relative(a: object, b: object) -> float:
     return float(np.max(np.abs(x - y)) / max(float(np.max(np.abs(x))), 1e-300))
 
 
-def test_the_settings_that_apply_are_found_and_the_others_said(runs: Runs) -> None:
-    _, _, found, skipped = runs
+def test_the_settings_that_apply_are_found_and_the_others_said() -> None:
+    found, skipped = variants()
     labels = [v.label for v in found]
     assert "1 BLAS thread" in labels and "2 BLAS threads" in labels
     assert any(v.perturb for v in found)
@@ -174,10 +165,11 @@ def test_the_settings_that_apply_are_found_and_the_others_said(runs: Runs) -> No
         print(f"skipped: {reason}")
 
 
-def test_covariance_estimates_are_the_same_under_every_setting(
-    runs: Runs,
+def test_covariances_and_kincal_calibrate_are_the_same_under_every_setting(
+    tmp_path: Path,
 ) -> None:
-    reference, others, _, _ = runs
+    """Both computations under every setting against the default environment's."""
+    reference, others = _all_runs(tmp_path)
     for case, found in reference.estimates.items():
         assert found["status"] == "optimal" and found["moment_status"] == "optimal", case
     failures = []
@@ -191,14 +183,6 @@ def test_covariance_estimates_are_the_same_under_every_setting(
                     failures.append(f"{other.label}, {case}, {key}: {error:.2e} > {tolerance:g}")
             if got["status"] != "optimal":
                 failures.append(f"{other.label}, {case}: status {got['status']}")
-    assert not failures, "\n".join(failures)
-
-
-def test_kincal_calibrate_gives_the_same_covariances_and_coverage_under_every_setting(
-    runs: Runs,
-) -> None:
-    reference, others, _, _ = runs
-    failures = []
     for run in (reference, *others):
         assert run.tiago_exit in (0, 3), f"{run.label}: exit {run.tiago_exit}"
         for name in ("covariance", "predictive"):
