@@ -182,7 +182,6 @@ class MeasurementModel(ABC):
     def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
         """A first guess in the Gauss–Newton basin (closed form where there is one)."""
 
-    @abstractmethod
     def linearise(
         self,
         chain: KinematicChain,
@@ -191,7 +190,16 @@ class MeasurementModel(ABC):
         *,
         jacobian: bool = True,
     ) -> tuple[FloatArray, FloatArray | None]:
-        """Residual (N, d) and, with ``jacobian``, ``A`` (N, d, P + E)."""
+        """Residual (N, d) and, with ``jacobian``, ``A`` (N, d, P + E): from :meth:`at_tip`,
+        the chain columns ``M J_tip`` (N, d, P), then the model's own unknowns (N, d, E).
+        Overridden by :class:`FullPose` (``M`` is rows of I₆: a slice, not a product) and
+        :class:`EyeOnHead` (its rows are seen from a sensor on the chain, not from the base)."""
+        if not jacobian:
+            pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
+            return self.at_tip(pose, params.extra, rows)[0], None
+        pose, j_tip = tip_linearisation(chain, params, rows)
+        residual, tip_map, columns = self.at_tip(pose, params.extra, rows)
+        return residual, np.concatenate([tip_map @ j_tip, columns], axis=2)
 
     @abstractmethod
     def at_tip(
@@ -243,23 +251,6 @@ def _links_folded(
     links[first] = world @ links[first]
     links[-1] = links[-1] @ tool
     return ModelParameters(links, np.zeros(len(chain.compliance_axes)))
-
-
-def _linearised(
-    model: MeasurementModel,
-    chain: KinematicChain,
-    params: ModelParameters,
-    rows: MeasurementRows,
-    jacobian: bool,
-) -> tuple[FloatArray, FloatArray | None]:
-    """:meth:`MeasurementModel.linearise` from :meth:`MeasurementModel.at_tip`: chain columns
-    ``M J_tip`` (N, d, P), then the model's own unknowns (N, d, E)."""
-    if not jacobian:
-        pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
-        return model.at_tip(pose, params.extra, rows)[0], None
-    pose, j_tip = tip_linearisation(chain, params, rows)
-    residual, tip_map, columns = model.at_tip(pose, params.extra, rows)
-    return residual, np.concatenate([tip_map @ j_tip, columns], axis=2)
 
 
 # --- full pose and position (DESIGN.md §2) ------------------------------------------------------
@@ -435,16 +426,6 @@ class PoseComponents(MeasurementModel):
         the measurement frame must be near the robot base (e.g. the plane under the robot)."""
         return ModelParameters(chain.nominal_links.copy(), np.zeros(len(chain.compliance_axes)))
 
-    def linearise(
-        self,
-        chain: KinematicChain,
-        params: ModelParameters,
-        rows: MeasurementRows,
-        *,
-        jacobian: bool = True,
-    ) -> tuple[FloatArray, FloatArray | None]:
-        return _linearised(self, chain, params, rows, jacobian)
-
     def at_tip(
         self, pose: FloatArray, extra: FloatArray, rows: MeasurementRows
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -562,16 +543,6 @@ class FixedPoints(MeasurementModel):
         base = _links_folded(chain, 0, np.eye(4), tool, ChainParameters.nominal(chain))
         return replace(base, extra=np.asarray(solution[3:], dtype=float))
 
-    def linearise(
-        self,
-        chain: KinematicChain,
-        params: ModelParameters,
-        rows: MeasurementRows,
-        *,
-        jacobian: bool = True,
-    ) -> tuple[FloatArray, FloatArray | None]:
-        return _linearised(self, chain, params, rows, jacobian)
-
     def at_tip(
         self, pose: FloatArray, extra: FloatArray, rows: MeasurementRows
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -686,16 +657,6 @@ class MultiMarker(MeasurementModel):
             offsets.append(np.linalg.lstsq(design, rhs.reshape(-1), rcond=None)[0])
         base = _links_folded(chain, 0, world, np.eye(4), ChainParameters.nominal(chain))
         return replace(base, extra=np.concatenate(offsets))
-
-    def linearise(
-        self,
-        chain: KinematicChain,
-        params: ModelParameters,
-        rows: MeasurementRows,
-        *,
-        jacobian: bool = True,
-    ) -> tuple[FloatArray, FloatArray | None]:
-        return _linearised(self, chain, params, rows, jacobian)
 
     def at_tip(
         self, pose: FloatArray, extra: FloatArray, rows: MeasurementRows
