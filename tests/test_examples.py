@@ -101,9 +101,17 @@ def test_cli_http_fleet_and_demo_calibrate_alike(
 
 
 def test_real_data_benchmark_prints_the_readme_table(tmp_path: Path) -> None:
-    rows = evaluate_real.main(seeds=2, figures=tmp_path)
+    """benchmarks/evaluate_real.py end to end on two recordings, a pose file with its residual
+    figure and the DH-table positioner (every shipped recording is calibrated by
+    tests/test_shipped_recordings_solve.py; the UR10e row is checked against the README's
+    results file by tests/test_quoted_numbers.py)."""
+    names = [
+        "UR10e (FIGAROH UR10 experiment)",
+        "2-axis positioner, DH table (industrial_calibration)",
+    ]
+    rows = evaluate_real.main(seeds=2, figures=tmp_path, names=names)
     table = evaluate_real.render(rows)
-    assert table.count("\n") == 1 + len(evaluate_real.RECORDINGS) and "2 of 2" in table
+    assert table.count("\n") == 1 + len(names) and "2 of 2" in table
     assert "| 0 | ok |" in table or "| 0 | warning |" in table
-    figures = [r for r in evaluate_real.RECORDINGS.values() if r.figure]
-    assert len(list(tmp_path.glob("*_residuals.png"))) == len(figures)
+    figures = [name for name in names if evaluate_real.RECORDINGS[name].figure]
+    assert len(figures) == 1 and len(list(tmp_path.glob("*_residuals.png"))) == 1
