@@ -359,6 +359,51 @@ def average_information(
     return np.asarray(0.5 * (gram + gram.T) * np.outer(unit, unit), dtype=float)
 
 
+def observed_information(
+    theta: FloatArray,
+    samples: ArraySamples,
+    layout: CovarianceLayout,
+    *,
+    transform: FloatArray | None = None,
+    known_covariance: FloatArray | None = None,
+    average: FloatArray | None = None,
+) -> FloatArray:
+    """The Hessian of the NLL (= −2 log L; ML, or REML with ``transform``) in θ, (Q, Q), on
+    ``samples`` (in memory): ``∂²NLL/∂θ_p∂θ_q = 2·AI_pq − 2·I_pq``.
+
+    V is linear in θ (V_pq = 0), so ``∂²/∂θ_p∂θ_q log det V = −tr(V⁻¹V_pV⁻¹V_q)`` and
+    ``∂²/∂θ_p∂θ_q rᵀV⁻¹r = 2 rᵀV⁻¹V_pV⁻¹V_qV⁻¹r``; for REML P takes the place of V⁻¹ (its
+    log det(XᵀV⁻¹X) term turns −tr(V⁻¹…) into −tr(P…)). With the average information
+    ``AI_pq = rᵀPV_pPV_qPr`` (:func:`average_information`) and the expected information
+    ``I_pq = ½ tr(PV_pPV_q)`` (:func:`fisher_information_ml`, :func:`fisher_information_reml`)
+    the Hessian is ``2·AI − 2·I``: AI = ½(Hessian + 2·I) is the mean of the observed and the
+    expected curvature. Where the data curve the NLL less than expected (the weak directions
+    of a small recording, ``Hessian < 2·I``) AI overrates the curvature, and scoring with it
+    shortens every step there: on the TIAGo Qualisys file by ~2× (:mod:`.fitting`).
+    ``average``: AI at θ when the caller has it. Not positive definite in general (a variance
+    whose optimum is on its bound often has negative curvature, log det being concave).
+    """
+    if average is None:
+        average = average_information(
+            theta, samples, layout, transform=transform, known_covariance=known_covariance
+        )
+    if transform is None:
+        expected = fisher_information_ml(
+            theta, samples.frame_jacobians, layout, known_covariance=known_covariance
+        )
+    else:
+        if samples.fit_jacobian is None:
+            raise CalibrationError("REML's observed information needs the fit Jacobian")
+        expected = fisher_information_reml(
+            theta,
+            samples.frame_jacobians,
+            samples.fit_jacobian @ transform,
+            layout,
+            known_covariance=known_covariance,
+        )
+    return np.asarray(2.0 * average - 2.0 * expected, dtype=float)
+
+
 def whitening(
     theta: FloatArray,
     frame_jacobians: FloatArray,

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from solver.covariance import (
     column_matrix,
@@ -18,7 +20,7 @@ from solver.covariance import (
     theta_gradient,
 )
 from solver.covariance.layout import block_diagonal
-from solver.covariance.likelihood import average_information
+from solver.covariance.likelihood import average_information, observed_information
 from solver.covariance.samples import ArraySamples
 from solver.errors import CalibrationError
 from tests.solver import covariance_support as S
@@ -187,6 +189,46 @@ def test_average_information_is_the_mean_of_observed_and_expected(estimator):
     got = average_information(theta, samples, layout, transform=fit_basis)
     mean = 0.5 * (observed + expected)
     np.testing.assert_allclose(got, mean, rtol=1e-4, atol=1e-6 * np.abs(mean).max())
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**16),
+    structure=st.sampled_from(["diag", "full"]),
+    d=st.sampled_from([3, 6]),
+    known=st.booleans(),
+    estimator=st.sampled_from(["ml", "reml"]),
+    n=st.integers(6, 14),
+)
+def test_the_nll_hessian_is_twice_the_average_minus_twice_the_expected_information(
+    seed, structure, d, known, estimator, n
+):
+    """``∂²NLL/∂θ∂θᵀ = 2·AI − 2·I`` (:func:`observed_information`), against central differences
+    of the analytic gradient, at random θ, residuals and configurations (ML and REML, diagonal
+    and full Σ, with and without a known part of Σ_E)."""
+    layout, theta, jac, r, known_cov, fit = case(structure, d, known, seed=seed, n=n)
+    samples = ArraySamples(r, jac, fit)
+    transform = fit_basis_transform(samples) if estimator == "reml" else None
+
+    def gradient(t):
+        if transform is None:
+            psi = gaussian_nll(t, samples, layout, known_covariance=known_cov)[1]
+        else:
+            psi = restricted_nll(t, samples, transform, layout, known_covariance=known_cov)[1]
+        return theta_gradient(layout, psi)
+
+    step = 1e-5 * np.abs(theta).max()
+    numeric = np.stack(
+        [
+            (gradient(theta + step * e) - gradient(theta - step * e)) / (2 * step)
+            for e in np.eye(layout.n_params)
+        ]
+    )
+    got = observed_information(
+        theta, samples, layout, transform=transform, known_covariance=known_cov
+    )
+    np.testing.assert_allclose(got, got.T, rtol=0, atol=1e-10 * np.abs(got).max())
+    np.testing.assert_allclose(got, numeric, rtol=1e-6, atol=1e-8 * np.abs(numeric).max())
 
 
 def test_ee_covariance_batch_is_eq_12():
