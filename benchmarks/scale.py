@@ -23,11 +23,14 @@ come with the refit's last pass).
 Then a fleet of robots (one Parquet file each) is calibrated by ``kincal fleet``'s code on each
 backend.
 
-Prints a table, writes ``scale.json`` in ``--out`` and the log-log plot to ``--plot``.
+Prints a table, writes ``scale.json`` in ``--out`` and the log-log plot to ``--plot``; with
+``--write-results`` also ``docs/results/scale.{json,md}`` (wall time per backend, peak memory
+without the chunk cache, passes, per N) and ``docs/results/scale_fleet.{json,md}``, the tables
+docs/large-recordings.md includes.
 
-Usage: ``python benchmarks/scale.py [--sizes 1e3,1e4,1e5,1e6] [--backends inprocess,processes,
+Usage: ``python -m benchmarks.scale [--sizes 1e3,1e4,1e5,1e6] [--backends inprocess,processes,
 dask] [--uncached inprocess] [--fleet-robots 100] [--fleet-poses 2000] [--cache-mb 512]
-[--idle 0.1] [--out out/scale] [--plot docs/scale.png]``.
+[--idle 0.1] [--out out/scale] [--plot docs/scale.png] [--write-results]``.
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import solver  # noqa: F401  (BLAS defaults)
+from benchmarks.results import Row, count_text, markdown_table, write_results
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import PoseDataset, dataset_to_frame, write_dataset
 from schemas.robots import load_robot
@@ -371,6 +375,68 @@ def table(runs: list[Run], fleets: list[FleetRun]) -> str:
     return "\n".join(lines)
 
 
+BACKEND_TITLES = {"inprocess": "in-process", "processes": "processes", "dask": "Dask (local)"}
+"""Column titles of the backends in the results table."""
+
+
+def render(rows: list[Row]) -> str:
+    """The table of ``docs/results/scale.md`` from the runs (``asdict(Run)``): per N, the wall
+    seconds of each cached backend (to 0.01 s; the fastest at the largest N in bold), the peak
+    resident memory of the largest process without the chunk cache (MiB), the passes over the
+    data, and the most CPU seconds the rest of the machine used during one of the N's runs
+    (to 0.1 s; the ``processes`` backend's fork server counts ~1.5 s here)."""
+    cached = [r for r in rows if r["cache_mb"]]
+    backends = list(dict.fromkeys(r["backend"] for r in cached))
+    workers = {r["backend"]: r["workers"] for r in cached}
+    largest = max(r["n"] for r in rows)
+    fastest = min((r for r in cached if r["n"] == largest), key=lambda r: r["total_s"])
+    header = [
+        f"{workers[b]} processes s" if b == "processes" else f"{BACKEND_TITLES.get(b, b)} s"
+        for b in backends
+    ]
+    uncached = list(dict.fromkeys(r["backend"] for r in rows if not r["cache_mb"]))
+    header += [f"peak MiB, {BACKEND_TITLES.get(b, b)} without chunk cache" for b in uncached]
+    table = []
+    for n in sorted({r["n"] for r in rows}):
+        mine = [r for r in rows if r["n"] == n]
+        cells: list[object] = [count_text(n)]
+        for backend in backends:
+            (run,) = [r for r in mine if r["backend"] == backend and r["cache_mb"]]
+            text = f"{run['total_s']:.2f}"
+            cells.append(f"**{text}**" if run is fastest else text)
+        for backend in uncached:
+            (run,) = [r for r in mine if r["backend"] == backend and not r["cache_mb"]]
+            cells.append(f"{max(run['driver_mib'], run['worker_mib']):.0f}")
+        cells.append(" / ".join(str(p) for p in sorted({r["passes"] for r in mine})))
+        cells.append(f"{max(r['other_cpu_s'] for r in mine):.1f}")
+        table.append(cells)
+    return markdown_table(["poses", *header, "passes", "other CPU s, at most"], table)
+
+
+WORN = "SN0007:compliance."
+"""The worn robot's flag (:func:`write_fleet`: robot 7, joint 3's compliance)."""
+
+
+def render_fleet(rows: list[Row]) -> str:
+    """The table of ``docs/results/scale_fleet.md`` from the fleet runs (``asdict(FleetRun)``):
+    wall seconds (to 0.1 s), robots per second, whether the worn joint is flagged and how
+    many other parameters are."""
+    return markdown_table(
+        ("backend", "robots × poses", "wall s", "robots/s", "worn joint flagged", "other flags"),
+        [
+            (
+                BACKEND_TITLES.get(r["backend"], r["backend"]),
+                f"{r['n_robots']} × {r['n_poses']}",
+                f"{r['wall_s']:.1f}",
+                f"{r['robots_per_s']:.2f}",
+                ", ".join(f.split(":")[1] for f in r["flagged"] if f.startswith(WORN)) or "**no**",
+                sum(not f.startswith(WORN) for f in r["flagged"]),
+            )
+            for r in rows
+        ],
+    )
+
+
 def plot(runs: list[Run], path: Path) -> None:
     import matplotlib
 
@@ -420,9 +486,12 @@ def main(
     idle: float | None = None,
     idle_timeout_s: float = 600.0,
     echo=print,  # type: ignore[no-untyped-def]
+    write: str | None = None,
 ) -> tuple[str, list[Run], list[FleetRun]]:
     """Run the benchmark; returns the table and the measurements. ``idle``: before each run,
-    wait (up to ``idle_timeout_s``) until the machine is at most that fraction busy."""
+    wait (up to ``idle_timeout_s``) until the machine is at most that fraction busy.
+    ``write``: the command line to record in ``docs/results/scale{,_fleet}.json`` (written
+    with their tables when given)."""
 
     def settle() -> None:
         if idle is not None:
@@ -465,6 +534,14 @@ def main(
     )
     if plot_path is not None and runs:
         plot(runs, plot_path)
+    if write is not None:
+        written: tuple[Path, ...] = write_results("scale", write, [asdict(r) for r in runs], render)
+        if fleets:
+            written += write_results(
+                "scale_fleet", write, [asdict(f) for f in fleets], render_fleet
+            )
+        for path in written:
+            echo(f"wrote {path}")
     return summary, runs, fleets
 
 
@@ -488,6 +565,11 @@ if __name__ == "__main__":
         default=None,
         help="Before each run wait until the CPUs are at most this fraction busy (e.g. 0.1).",
     )
+    parser.add_argument(
+        "--write-results",
+        action="store_true",
+        help="write docs/results/scale.{json,md} and scale_fleet.{json,md}",
+    )
     args = parser.parse_args()
     report = main(
         [int(float(s)) for s in args.sizes.split(",")],
@@ -501,5 +583,8 @@ if __name__ == "__main__":
         workers=args.workers,
         uncached=[b for b in args.uncached.split(",") if b],
         idle=args.idle,
+        write=" ".join(["python -m benchmarks.scale", *sys.argv[1:]])
+        if args.write_results
+        else None,
     )[0]
     print(report)
