@@ -28,14 +28,19 @@ table reports, median over seeds:
 ml/reml with the non-default solvers are skipped above ``--likelihood-all-max-n``: their moment
 answer only starts the likelihood fit, whose fixed point does not depend on it.
 
-Usage: ``python benchmarks/compare_solvers.py [--sizes 119,1e3,1e4,1e5] [--seeds 1,2,3]
-[--csv out.csv] [--known-noise]``.
+With ``--write-results`` also ``docs/results/compare_solvers.{json,md}`` (every estimate, and
+the table of the rows :data:`PAGE_ROWS` picks) and ``docs/results/compare_solvers_timing.{json,md}``
+(the timing figures), the tables docs/covariance.md includes.
+
+Usage: ``python -m benchmarks.compare_solvers [--sizes 119,1e3,1e4,1e5] [--seeds 1,2,3]
+[--csv out.csv] [--known-noise] [--idle 0.1] [--write-results]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import sys
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -46,6 +51,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 import solver  # noqa: F401  (BLAS defaults before numpy work)
+from benchmarks import results
+from benchmarks.scale import wait_until_idle
 from schemas.calibration import CalibrationOptions
 from schemas.robots import load_robot
 from service.app.simulate import scenario
@@ -427,6 +434,112 @@ def timing_lines(timings: Sequence[Timing], rows: Sequence[Row]) -> list[str]:
     return out
 
 
+PAGE_ROWS: tuple[tuple[int, str, str, str], ...] = (
+    (119, DEFAULT_SOLVER, DEFAULT_ESTIMATOR, ""),
+    (119, "clarabel", "moment", "paper's problem"),
+    (119, "nnls", "moment", ""),
+    (119, "pgd-stable", "moment", "stable step 1/λmax, KKT stop"),
+    (119, "pgd-published", "moment", "paper's Table I as published"),
+    (119, "pgd-published-kkt", "moment", "Table I step, run to KKT"),
+    (10_000, DEFAULT_SOLVER, DEFAULT_ESTIMATOR, ""),
+    (10_000, "nnls", "moment", ""),
+    (100_000, "nnls", "moment", ""),
+    (100_000, "clarabel", DEFAULT_ESTIMATOR, ""),
+)
+"""The rows docs/covariance.md shows (N, solver, estimator, a note), medians over the seeds."""
+
+
+def _grouped(value: float) -> str:
+    """A number to the unit, thousands grouped by a space (100 000)."""
+    return f"{value:,.0f}".replace(",", " ")
+
+
+def _seconds(value: float) -> str:
+    """Seconds to 0.1 ms below 0.01 s, to 1 ms below 1 s, else to 0.01 s."""
+    return f"{value:.4f}" if value < 0.01 else f"{value:.3f}" if value < 1 else f"{value:.2f}"
+
+
+def render(rows: list[results.Row]) -> str:
+    """The table of ``docs/results/compare_solvers.md`` from every estimate (``asdict(Row)``):
+    the :data:`PAGE_ROWS` present, medians over seeds of the solve time (:func:`_seconds`), the
+    iterations, the task-score error (to 0.1 %) and the RMS σ error of the
+    joint frames' rotation axes (to 0.01 mrad)."""
+    table = []
+    for n, label, estimator, note in PAGE_ROWS:
+        group = [r for r in rows if (r["n"], r["solver"], r["estimator"]) == (n, label, estimator)]
+        if not group:
+            continue
+        name = f"{label.split('-')[0]} + {estimator}"
+        notes = [note] if note else []
+        if (label, estimator) == (DEFAULT_SOLVER, DEFAULT_ESTIMATOR):
+            notes.append("default")
+        if n == max(r["n"] for r in rows) and label == "nnls" and estimator == "moment":
+            notes.append(f"statistics {_median([r['stats_s'] for r in group]):.2f} s")
+        if notes:
+            name += f" ({', '.join(notes)})"
+        if "default" in notes and n == min(r["n"] for r in rows):
+            name = f"**{name}**"
+        table.append(
+            (
+                _grouped(n),
+                name,
+                _seconds(_median([r["solve_s"] for r in group])),
+                _status([r["status"] for r in group]),
+                _grouped(_median([float(r["iterations"]) for r in group])),
+                f"{100 * _median([r['task_error'] for r in group]):.1f} %",
+                f"{_median([r['sigma_rmse_rot_mrad'] for r in group]):.2f}",
+            )
+        )
+    return results.markdown_table(
+        ("N", "solver + estimator", "solve s", "status", "iterations", "task err", "σ rot. mrad"),
+        table,
+    )
+
+
+def timing_row(t: Timing) -> results.Row:
+    """A :class:`Timing` for the results file (no published PGD: ``None`` instead of NaN)."""
+    row = asdict(t)
+    if not np.isfinite(t.published_kkt_s):
+        row.update(published_kkt_s=None, published_kkt_status=None, published_kkt_iterations=None)
+    return row
+
+
+def render_timing(rows: list[results.Row]) -> str:
+    """The table of ``docs/results/compare_solvers_timing.md``: best-of-``repeats`` seconds of
+    the default solver and estimator at the smallest and largest N (first seed), and the
+    published PGD's run to the KKT tolerance with its speed-up over the default solver."""
+    table = []
+    for r in rows:
+        published = r["published_kkt_s"]
+        table.append(
+            (
+                _grouped(r["n"]),
+                f"{r['stats_s']:.3f}",
+                f"{1e3 * r['default_moment_solve_s']:.1f}",
+                f"{r['default_solve_s']:.3f}",
+                f"{r['stats_s'] + r['default_solve_s']:.2f}",
+                f"{r['default_total_s']:.2f}",
+                "–"
+                if published is None
+                else f"{published:.2f} ({r['published_kkt_status']}, "
+                f"{_grouped(r['published_kkt_iterations'])} iterations; "
+                f"{_grouped(published / r['default_moment_solve_s'])}×)",
+            )
+        )
+    return results.markdown_table(
+        (
+            "N",
+            "statistics s",
+            f"{DEFAULT_SOLVER} moment solve ms",
+            f"{DEFAULT_SOLVER} + {DEFAULT_ESTIMATOR} solve s",
+            "statistics + solve s",
+            "whole estimate s (no standard errors)",
+            "published PGD to KKT s (× the moment solve)",
+        ),
+        table,
+    )
+
+
 def write_csv(rows: Sequence[Row], path: Path) -> None:
     with path.open("w", newline="", encoding="utf-8") as handle:
         writer = csv.DictWriter(handle, fieldnames=[f.name for f in fields(Row)])
@@ -446,8 +559,14 @@ def main(
     repeats: int = 3,
     csv_path: Path | None = None,
     echo: Callable[[str], None] = print,
+    write: str | None = None,
+    idle: float | None = None,
+    idle_timeout_s: float = 600.0,
 ) -> tuple[str, list[Row], list[Timing]]:
-    """Run everything; print the table and the timing lines; return them."""
+    """Run everything; print the table and the timing lines; return them. ``write``: the
+    command line to record in ``docs/results/compare_solvers{,_timing}.json`` (written with
+    their tables when given). ``idle``: before each problem's estimates, wait (up to
+    ``idle_timeout_s``) until the machine's CPUs are at most that fraction busy."""
     unknown = set(solvers) - set(SOLVERS)
     if unknown:
         raise SystemExit(f"unknown solvers {sorted(unknown)}; choose from {', '.join(SOLVERS)}")
@@ -456,6 +575,10 @@ def main(
     for n in sizes:
         for seed in seeds:
             problem = simulate_problem(n, seed)
+            if idle is not None:
+                busy = wait_until_idle(idle, idle_timeout_s)
+                if busy > idle:
+                    echo(f"machine still {100 * busy:.0f} % busy after {idle_timeout_s:.0f} s")
             rows += run_problem(
                 problem,
                 solvers=solvers,
@@ -483,6 +606,15 @@ def main(
     if csv_path is not None:
         write_csv(rows, csv_path)
         echo(f"wrote {csv_path}")
+    if write is not None:
+        every = [asdict(r) for r in rows]
+        for path in (
+            *results.write_results("compare_solvers", write, every, render),
+            *results.write_results(
+                "compare_solvers_timing", write, [timing_row(t) for t in timings], render_timing
+            ),
+        ):
+            echo(f"wrote {path}")
     return text, rows, timings
 
 
@@ -500,6 +632,18 @@ if __name__ == "__main__":
     parser.add_argument("--likelihood-all-max-n", type=int, default=10_000)
     parser.add_argument("--repeats", type=int, default=3, help="timing repeats (best of)")
     parser.add_argument("--csv", type=Path, default=None)
+    parser.add_argument(
+        "--write-results",
+        action="store_true",
+        help="write docs/results/compare_solvers.{json,md} and compare_solvers_timing.{json,md}",
+    )
+    parser.add_argument(
+        "--idle",
+        type=float,
+        default=None,
+        help="before each problem wait (up to 10 min) until the CPUs are at most this fraction "
+        "busy (e.g. 0.1)",
+    )
     args = parser.parse_args()
     main(
         args.sizes,
@@ -510,4 +654,8 @@ if __name__ == "__main__":
         likelihood_all_max_n=args.likelihood_all_max_n,
         repeats=args.repeats,
         csv_path=args.csv,
+        write=" ".join(["python -m benchmarks.compare_solvers", *sys.argv[1:]])
+        if args.write_results
+        else None,
+        idle=args.idle,
     )
