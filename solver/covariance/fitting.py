@@ -130,6 +130,9 @@ def fit_likelihood(
         return value + extra, psi + extra_psi
 
     floor = noise_floor(stats)
+    weight = n / metric.n_samples  # the metric's samples stand for all N
+    # iterated diagonal fits: per-entry proximal weights and Newton steps in the tail
+    exact = layout.structure == "diag" and not (one_step or refine)
 
     def newton_tail(
         theta: FloatArray,
@@ -142,7 +145,6 @@ def fit_likelihood(
         ``metric`` samples scaled to N like the scoring metric ``average``), sized by the slope
         of the NLL along it (:func:`_slope_search`); None where the NLL is not convex on the
         face or the slope does not confirm the step."""
-        weight = n / metric.n_samples
         observed = weight * observed_information(
             theta,
             metric,
@@ -163,12 +165,10 @@ def fit_likelihood(
         for _ in range(1 if one_step or refine else max_iterations):
             iterations += 1
             grad = theta_gradient(layout, psi)
-            weight = n / metric.n_samples  # the metric's samples stand for all N
             average = _metric(
                 theta, metric, layout, transform, known_covariance, one_step and not refine
             )
             hess = weight * average
-            exact = layout.structure == "diag" and not (one_step or refine)
             damping = _proximal(hess, scaling, per_entry=exact)
             gram = hess + np.diag(damping)
             # the QP in θ − floor (the cone shifted by the noise floor, :func:`noise_floor`)
