@@ -3,21 +3,23 @@ covariances it leaves are unbiased — on recordings from a simulator that share
 kincal (:mod:`benchmarks.pinocchio_sim`), through ``kincal calibrate`` → ``kincal predict``
 with their defaults (``--no-heldout``: the held-out splits do not touch the covariances).
 
-The full table (10 seeds, both sizes, with and without detector failures, and the paper's 2σ
-rule for comparison) is ``python -m benchmarks.honest_covariance --write-results``;
-docs/covariance.md includes it.
+The acceptance reads the published table (10 seeds, both sizes, with detector failures, and the
+paper's 2σ rule for comparison: ``python -m benchmarks.honest_covariance --write-results``,
+included by docs/covariance.md) and re-runs one seed per size, so a change that moves the numbers
+fails here until the table is re-run.
 """
 
 from __future__ import annotations
 
-import statistics
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from benchmarks.honest_covariance import jaco2, run_one
 from benchmarks.pinocchio_sim import PinocchioRobot, true_pose
+from benchmarks.results import read_results
 from tests.service.cli_support import run_ok
 
 
@@ -45,23 +47,52 @@ def test_the_independent_simulator_agrees_with_pinocchio_and_the_dataset_frame()
     assert np.allclose(got.homogeneous, want.homogeneous, atol=1e-12)
 
 
-@pytest.mark.parametrize("n, seeds, limit", [(119, 10, 0.08), (2000, 4, 0.02)])
-def test_default_covariances_are_unbiased_on_independent_data(
-    n: int, seeds: int, limit: float, tmp_path: Path
-) -> None:
-    """Median task-score error (tr(WΣ_EWᵀ), paper W, Σ_n excluded, against finite-difference
-    truth) within 8 % at N = 119 and 2 % at N = 2000, with 2 % detector failures (5 mm, 10°)
-    in the recording; at most 1 % of the clean samples removed and at least 95 % of the
-    failures caught in every run. (The paper's 2σ rule removed ~21 % of clean samples and came
-    out ~26 % low here.)"""
-    outcomes = [run_one(n, seed, 0.02, [], tmp_path, _kincal) for seed in range(seeds)]
-    assert max(o.clean_removed for o in outcomes) <= 0.01
-    assert min(o.gross_caught or 0.0 for o in outcomes) >= 0.95
-    assert abs(statistics.median(o.task_error for o in outcomes)) <= limit
+DEFAULT_BARS = {119: 0.08, 2000: 0.02}
+"""Issue 13's bar on the median task-score error of the default rule, per recording size."""
 
 
-def test_the_paper_rule_stays_available_by_name(tmp_path: Path) -> None:
+def _rows(rule_flags: list[str]) -> dict[int, dict[str, Any]]:
+    """The published rows (docs/results/honest_covariance.json) of one outlier rule, by N."""
+    _, rows = read_results("honest_covariance")
+    return {row["n"]: row for row in rows if row["flags"] == rule_flags}
+
+
+def test_default_covariances_are_unbiased_on_independent_data() -> None:
+    """The published table (10 seeds at N = 119 and 2000, 2 % detector failures of 5 mm and
+    10° in the recording, through ``kincal calibrate`` → ``kincal predict``): median
+    task-score error (tr(WΣ_EWᵀ), paper W, Σ_n excluded, against finite-difference truth)
+    within 8 % at N = 119 and 2 % at N = 2000; at most 1 % of the clean samples removed and at
+    least 95 % of the failures caught in every run. The table is current: seed 0 is re-run at
+    both sizes (below and tests/test_quoted_numbers.py), and the table is its seeds' summary."""
+    rows = _rows([])
+    assert sorted(rows) == sorted(DEFAULT_BARS)
+    for n, limit in DEFAULT_BARS.items():
+        row = rows[n]
+        assert row["seeds"] >= 10 and row["gross_fraction"] == 0.02, n
+        assert row["clean_removed_max"] <= 0.01, n
+        assert row["gross_caught_min"] >= 0.95, n
+        assert abs(row["task_error_median"]) <= limit, n
+
+
+@pytest.mark.slow
+def test_the_default_rule_row_holds_for_seed_0_at_2000_poses(tmp_path: Path) -> None:
+    """Seed 0 of the default rule at N = 2000 re-run through ``kincal calibrate`` →
+    ``kincal predict`` in process: clean samples removed and failures caught exactly, the
+    task-score error within 0.0005 (the table shows 0.1 %)."""
+    want = _rows([])[2000]["outcomes"][0]
+    got = run_one(2000, 0, 0.02, [], tmp_path, _kincal)
+    assert got.clean_removed == want["clean_removed"]
+    assert got.gross_caught == want["gross_caught"]
+    assert got.task_error == pytest.approx(want["task_error"], abs=0.0005)
+
+
+def test_the_paper_rule_stays_available_by_name() -> None:
     """``--outlier-rule sigma`` is §V-A's 2σ rule: on clean independent data it removes about a
-    fifth of the samples (each of 6 components cut at 2σ) — why it is not the default."""
-    outcome = run_one(300, 0, 0.0, ["--outlier-rule", "sigma"], tmp_path, _kincal)
-    assert 0.12 <= outcome.clean_removed <= 0.30
+    fifth of the samples (each of 6 components cut at 2σ) and its covariances come out ~26 %
+    low — why it is not the default (published rows, 3 seeds per size)."""
+    rows = _rows(["--outlier-rule", "sigma"])
+    assert sorted(rows) == [119, 2000]
+    for row in rows.values():
+        assert row["gross_fraction"] == 0.0
+        assert 0.12 <= row["clean_removed_median"] <= 0.30
+        assert row["task_error_median"] < -0.1
