@@ -33,9 +33,10 @@ error over the splits), the largest inner-link correction any split's chosen fit
 (rotation, rad), and FIGAROH's held-out error (docs/figaroh.md, run of 2026-11-28, rounded
 there to 0.01 mm).
 
+With ``--write-results`` also ``docs/results/model_selection.{json,md}`` (docs/figaroh.md).
 Usage (from the repository root): ``python -m benchmarks.model_selection [--seeds 10]
-[--only TIAGo] [--method ridge-gcv]``; about 10 minutes for everything on a quiet 2-core
-machine.
+[--only TIAGo] [--method ridge-gcv] [--write-results]``; about 10 minutes for everything on a
+shared 2-core machine.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ from numpy.typing import NDArray
 
 import solver  # noqa: F401  (BLAS defaults)
 from benchmarks.figaroh_side_by_side import DATA, RECORDINGS, Recording, mean_se, robot_of
+from benchmarks.results import Row, markdown_table, write_results
 from schemas.calibration import CalibrationOptions
 from service.app import calibrate as pipeline
 from solver import lie
@@ -299,24 +301,14 @@ def load_rows(recording: Recording) -> tuple[KinematicChain, MeasurementRows, bo
     return chain, MeasurementRows.of(q, gravity_loads(chain, q), pose), dataset.is_position_only
 
 
-@dataclass(frozen=True)
-class Cell:
-    method: str
-    robot: str
-    model: str
-    heldout_mm: list[float]
-    largest_rotation_rad: float
-
-
-def evaluate(recording: Recording, methods: Sequence[str], seeds: Sequence[int]) -> list[Cell]:
+def evaluate(recording: Recording, methods: Sequence[str], seeds: Sequence[int]) -> list[Row]:
+    """Per model and method: the held-out mean position error of each split (mm) and the
+    largest inner-link rotation any split's chosen fit made (rad)."""
     chain, rows, position_only = load_rows(recording)
-    cells = []
+    out = []
     for model_name, options in MODELS.items():
         problem = Problem(
-            chain,
-            Position() if position_only else FullPose(),
-            position_only,
-            options,
+            chain, Position() if position_only else FullPose(), position_only, options
         )
         for method in methods:
             if method in FIX_COMPLIANCE_ONLY and options.fit_compliance:
@@ -329,18 +321,27 @@ def evaluate(recording: Recording, methods: Sequence[str], seeds: Sequence[int])
                     float(position_errors_mm(problem, fit.params, rows.take(test)).mean())
                 )
                 rotations.append(largest_inner_rotation_rad(chain, fit.params))
-            cells.append(Cell(method, recording.name, model_name, errors, max(rotations)))
+            out.append(
+                {
+                    "method": method,
+                    "robot": recording.name,
+                    "model": model_name,
+                    "heldout_mm": [round(e, 4) for e in errors],
+                    "largest_inner_rotation_rad": round(max(rotations), 4),
+                }
+            )
             print(
                 f"{recording.name} {model_name} {method}: "
                 f"{np.round(errors, 2).tolist()} (max inner rotation {max(rotations):.3f} rad)",
                 flush=True,
             )
-    return cells
+    return out
 
 
-def table(cells: Sequence[Cell]) -> str:
-    """Method × robot × model: held-out mm (mean ± SE), largest inner rotation, FIGAROH and
-    whether ``--fix compliance`` is within FIGAROH + 1 SE."""
+def render(rows: Sequence[Row]) -> str:
+    """Method × robot × model: held-out mm (mean ± SE over the splits), the largest
+    inner-link rotation, FIGAROH's error and whether ``--fix compliance`` is within
+    FIGAROH + 1 SE."""
     header = [
         "Method",
         "Robot",
@@ -350,26 +351,43 @@ def table(cells: Sequence[Cell]) -> str:
         "FIGAROH mm",
         "≤ FIGAROH + 1 SE",
     ]
-    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
-    for cell in cells:
-        mean, se = mean_se(cell.heldout_mm)
-        f_mean, f_se = FIGAROH_MM[cell.robot]
-        holds = ("yes" if mean <= f_mean + f_se else "no") if cell.model != "default" else "–"
-        lines.append(
-            f"| {cell.method} | {cell.robot} | {cell.model} | {mean:.3f} ± {se:.3f} "
-            f"| {cell.largest_rotation_rad:.3f} | {f_mean:.2f} ± {f_se:.2f} | {holds} |"
-        )
-    return "\n".join(lines)
-
-
-def main(seeds: int = 10, only: list[str] | None = None, methods: list[str] | None = None) -> str:
     cells = []
+    for row in rows:
+        mean, se = mean_se(row["heldout_mm"])
+        f_mean, f_se = FIGAROH_MM[row["robot"]]
+        holds = "–" if row["model"] == "default" else "yes" if mean <= f_mean + f_se else "no"
+        cells.append(
+            [
+                row["method"],
+                row["robot"],
+                f"`{row['model']}`" if row["model"].startswith("--") else row["model"],
+                f"{mean:.3f} ± {se:.3f}",
+                f"{row['largest_inner_rotation_rad']:.3f}",
+                f"{f_mean:.2f} ± {f_se:.2f}",
+                holds,
+            ]
+        )
+    return markdown_table(header, cells)
+
+
+def main(
+    seeds: int = 10,
+    only: list[str] | None = None,
+    methods: list[str] | None = None,
+    *,
+    write: bool = False,
+) -> str:
+    rows = []
     for recording in RECORDINGS:
         if only and recording.name not in only:
             continue
-        cells += evaluate(recording, methods or list(METHODS), list(range(1, seeds + 1)))
-    text = table(cells)
+        rows += evaluate(recording, methods or list(METHODS), list(range(1, seeds + 1)))
+    text = render(rows)
     print("\n" + text)
+    if write:
+        command = f"python -m benchmarks.model_selection --seeds {seeds} --write-results"
+        for path in write_results("model_selection", command, rows, render):
+            print(f"wrote {path}")
     return text
 
 
@@ -378,5 +396,10 @@ if __name__ == "__main__":
     parser.add_argument("--seeds", type=int, default=10, help="number of held-out splits")
     parser.add_argument("--only", action="append", help="robot name (repeatable)")
     parser.add_argument("--method", action="append", choices=list(METHODS), help="(repeatable)")
+    parser.add_argument(
+        "--write-results",
+        action="store_true",
+        help="write docs/results/model_selection.{json,md} (every method, robot and model)",
+    )
     arguments = parser.parse_args()
-    main(arguments.seeds, arguments.only, arguments.method)
+    main(arguments.seeds, arguments.only, arguments.method, write=arguments.write_results)
