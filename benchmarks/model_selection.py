@@ -1,6 +1,6 @@
-"""Data-driven model selection for the deterministic fit (issue 30's last open point,
-docs/figaroh.md "What is not closed"): which of the directions the data identify to fit, and
-how far, decided on the training rows alone — measured on the held-out splits of the
+"""Data-driven model selection for the deterministic fit (issue 30's last open point;
+docs/figaroh.md, "Choosing the model by the data"): which of the directions the data identify
+to fit, and how far, decided on the training rows alone — measured on the held-out splits of the
 FIGAROH side by side (:mod:`benchmarks.figaroh_side_by_side`: UR10e, TIAGo, TALOS; seeds
 1..S, 90 % train, all rows, which the default calibration keeps on these three files),
 for ``--fix compliance`` (geometry and frames: FIGAROH's model) and the default model
