@@ -26,6 +26,7 @@ from benchmarks import (
     evaluate_real,
     fleet_platonics,
     honest_covariance,
+    model_selection,
     platonics,
     scale,
 )
@@ -51,6 +52,7 @@ RENDER = {
     "honest_covariance": honest_covariance.render,
     "compare_solvers": compare_solvers.render,
     "compare_solvers_timing": compare_solvers.render_timing,
+    "model_selection": model_selection.render,
 }
 PAGES: dict[str, str | tuple[str, ...]] = {
     "cli_speed": "predictive.md",
@@ -66,6 +68,7 @@ PAGES: dict[str, str | tuple[str, ...]] = {
     "honest_covariance": "covariance.md",
     "compare_solvers": "covariance.md",
     "compare_solvers_timing": "covariance.md",
+    "model_selection": "figaroh.md",
 }
 
 
@@ -319,3 +322,23 @@ def test_the_solver_table_holds_for_seed_1_at_119_poses() -> None:
         assert (got.status, got.iterations) == (want["status"], want["iterations"]), key
         assert got.task_error == pytest.approx(want["task_error"], abs=0.0005), key
         assert got.sigma_rmse_rot_mrad == pytest.approx(want["sigma_rmse_rot_mrad"], abs=0.005)
+
+
+@pytest.mark.slow
+def test_the_model_selection_table_holds_for_tiago() -> None:
+    """TIAGo's today and ridge-gcv rows (21 rows, 10 splits, both models; a few seconds)
+    re-run: every split's held-out error within 0.0005 mm (the table shows 0.001 mm), the
+    largest inner rotation within 0.0005 rad."""
+    _, rows = read_results("model_selection")
+    (tiago,) = [r for r in model_selection.RECORDINGS if r.name == "TIAGo"]
+    methods = ["today", "ridge-gcv"]
+    for got in model_selection.evaluate(tiago, methods, list(range(1, 11))):
+        (want,) = [
+            r
+            for r in rows
+            if (r["robot"], r["model"], r["method"]) == (got["robot"], got["model"], got["method"])
+        ]
+        assert got["heldout_mm"] == pytest.approx(want["heldout_mm"], abs=0.0005)
+        assert got["largest_inner_rotation_rad"] == pytest.approx(
+            want["largest_inner_rotation_rad"], abs=0.0005
+        )
