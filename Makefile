@@ -16,12 +16,14 @@ $(STAMP): requirements.lock pyproject.toml
 demo: $(STAMP)
 	$(BIN)/kincal demo
 
+# The suite starts ~100 Python processes (servers, their children, CLI runs): it lets them cache
+# bytecode in the clone's __pycache__ (git-ignored) even where the environment turns that off.
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/mypy solver schemas service benchmarks
 	$(BIN)/lint-imports
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir build/site
-	$(BIN)/pytest -q -n 2 --durations=15
+	PYTHONDONTWRITEBYTECODE= $(BIN)/pytest -q -n 2 --durations=15
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -326,19 +326,19 @@ def test_the_solver_table_holds_for_seed_1_at_119_poses() -> None:
 
 @pytest.mark.slow
 def test_the_model_selection_table_holds_for_tiago() -> None:
-    """TIAGo's today and ridge-gcv rows (21 rows, 10 splits, both models; a few seconds)
-    re-run: every split's held-out error within 0.0005 mm (the table shows 0.001 mm), the
-    largest inner rotation within 0.0005 rad."""
+    """TIAGo's today and ridge-gcv rows (21 rows, both models) re-run on splits 1 and 2
+    (about 2 s): each split's held-out error within 0.0005 mm (the table shows 0.001 mm), the
+    largest inner rotation no larger than the ten splits' (within 0.0005 rad)."""
     _, rows = read_results("model_selection")
     (tiago,) = [r for r in model_selection.RECORDINGS if r.name == "TIAGo"]
     methods = ["today", "ridge-gcv"]
-    for got in model_selection.evaluate(tiago, methods, list(range(1, 11))):
+    found = model_selection.evaluate(tiago, methods, [1, 2])
+    assert len(found) == 4
+    for got in found:
         (want,) = [
             r
             for r in rows
             if (r["robot"], r["model"], r["method"]) == (got["robot"], got["model"], got["method"])
         ]
-        assert got["heldout_mm"] == pytest.approx(want["heldout_mm"], abs=0.0005)
-        assert got["largest_inner_rotation_rad"] == pytest.approx(
-            want["largest_inner_rotation_rad"], abs=0.0005
-        )
+        assert got["heldout_mm"] == pytest.approx(want["heldout_mm"][:2], abs=0.0005)
+        assert got["largest_inner_rotation_rad"] <= want["largest_inner_rotation_rad"] + 0.0005

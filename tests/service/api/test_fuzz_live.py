@@ -28,8 +28,12 @@ from tests.service.api.conftest import fresh_database_url, recording_bytes
 from tests.service.api.test_crash_recovery import Server
 from tests.service.api.test_fuzz import SCHEMA_CHECKS, _openapi_document, steered_bodies
 
-# Its own schema object: the hook below steers bodies to this module's live server.
+# Its own schema object: the hook below steers bodies to this module's live server. Fuzzing
+# phase only: the coverage phase's boundary cases go to the same application in process
+# (test_fuzz.py); here they would cost seconds at every collection for the process boundary
+# that a few requests per operation already cross.
 LIVE_SCHEMA = schemathesis.openapi.from_dict(_openapi_document())
+LIVE_SCHEMA.config.phases.coverage.enabled = False
 
 
 @dataclass
