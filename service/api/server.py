@@ -12,9 +12,6 @@ import time
 from pathlib import Path
 from types import FrameType
 
-import uvicorn
-
-from service.api.app import create_app
 from service.api.metrics import Metrics
 from service.jobs.runner import JobRunner, default_registry
 from service.jobs.runner_link import STATUS_INTERVAL_S, RemoteRunner, listen_for_wakes, write_status
@@ -28,7 +25,12 @@ log = logging.getLogger("kincal.jobs")
 def serve_requests(settings: Settings, listen_fd: int, run_dir: Path, wake_fd: int) -> None:
     """A request process: the app on the inherited listening socket, jobs left to the runner
     process (reached through ``run_dir`` and the wake pipe). Returns after SIGTERM/SIGINT once
-    the requests in flight are answered."""
+    the requests in flight are answered. The app (every route and use case, ~2.5 s of
+    imports) is imported here, not by the module: the job runner needs none of it."""
+    import uvicorn
+
+    from service.api.app import create_app
+
     sock = socket.socket(fileno=listen_fd)
     app = create_app(settings, runner=RemoteRunner(run_dir, wake_fd, workers=settings.workers))
     freeze_startup_heap()

@@ -5,11 +5,13 @@ from __future__ import annotations
 import gc
 import os
 import socket
+import subprocess
 import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
+import uvicorn
 
 from service.api import server
 from service.settings import Settings
@@ -33,7 +35,7 @@ def test_the_startup_heap_is_frozen_before_serving(
             seen["frozen"] = gc.get_freeze_count()
             seen["addresses"] = [sock.getsockname() for sock in sockets]
 
-    monkeypatch.setattr(server.uvicorn, "Server", FakeServer)
+    monkeypatch.setattr(uvicorn, "Server", FakeServer)
     listening = socket.create_server(("127.0.0.1", 0))
     address = listening.getsockname()
     read_end, write_end = os.pipe()
@@ -62,3 +64,17 @@ def test_uvicorn_runs_on_its_fast_stack() -> None:
         assert type(loop).__module__.startswith("uvloop")
     finally:
         loop.close()
+
+
+def test_the_job_runner_process_imports_no_web_application() -> None:
+    """The runner child (``python -m service.api.child runner``) imports
+    :mod:`service.api.server` for its job loop; the app (FastAPI, every route and use case,
+    ~2.5 s) is imported by the request processes only, so a runner starts (and is replaced
+    after a crash) in a fraction of that."""
+    code = (
+        "import sys; import service.api.server; "
+        "print(sorted(m for m in ('fastapi', 'service.api.app', 'service.app.job_functions', "
+        "'pinocchio', 'matplotlib') if m in sys.modules))"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.strip() == "[]", run.stdout
