@@ -153,7 +153,13 @@ def test_every_shell_block_of_the_readme_runs_as_written(tmp_path: Path) -> None
         "http_tour/fr3_calibrated.urdf",
     ):
         assert (out / produced).stat().st_size > 0, produced
-    created = {p.relative_to(copy) for p in copy.rglob("*") if ".venv" not in p.parts} - before
+    # Python's bytecode caches (git-ignored, written wherever the environment allows) are not
+    # the tour's outputs
+    created = {
+        p.relative_to(copy)
+        for p in copy.rglob("*")
+        if ".venv" not in p.parts and "__pycache__" not in p.parts
+    } - before
     assert {p.parts[0] for p in created} == {"out"}, "the tour writes under out/ only"
     assert f"listening on http://127.0.0.1:{port}" in done.stdout
     assert "verdict: ok: fit to use (exit code 0)" in done.stdout
