@@ -276,7 +276,8 @@ async def export_calibration(
         Query(
             description="urdf (the robot's URDF, calibrated joint origins), offsets-yaml / "
             "offsets-csv (joint-offset table), dh / mdh (DH or modified-DH table), pal-master "
-            "(PAL's master_calibration.yaml); docs/exports.md."
+            "(PAL's master_calibration.yaml), ur-kinematics (Universal Robots' kinematics "
+            "YAML); docs/exports.md."
         ),
     ] = "urdf",
     measurement_frame: Annotated[
@@ -290,7 +291,8 @@ async def export_calibration(
     """A succeeded calibration in a format a robot controller uses; each reproduces kincal's
     calibrated forward kinematics where the format can express it (the X-Kincal-Not-Expressed
     header and the file say what it cannot). 409 for a failed verdict (unless ``force``) or a
-    calibration carrying a discovery's joint corrections."""
+    calibration carrying a discovery's joint corrections or of a robot the format cannot
+    describe (ur-kinematics of an arm that is not a UR)."""
 
     def render() -> tuple[str, list[str]]:
         result = result_of(state, principal.tenant_id, calibration_id)

@@ -42,7 +42,8 @@ def export_command(
             "--format",
             help="urdf (the robot's URDF, calibrated joint origins), offsets-yaml / "
             "offsets-csv (joint-offset table), dh / mdh (DH or modified-DH table, the YAML of "
-            "calibrate --dh), pal-master (PAL's master_calibration.yaml).",
+            "calibrate --dh), pal-master (PAL's master_calibration.yaml), ur-kinematics (Universal "
+            "Robots' kinematics YAML for ur_description and the UR driver).",
         ),
     ] = "urdf",
     measurement_frame: Annotated[

@@ -15,7 +15,12 @@ express it — tested by reloading the file and comparing forward kinematics to 
   geometric_calibration: {<joint>_<dx|dy|dz|droll|dpitch|dyaw>: value}``: additive deltas on
   each joint's URDF ``<origin>`` xyz and rpy as written, joint names without ``_joint``), the
   overlay PAL robots apply to their unmodified URDF (FIGAROH 1.0.2's
-  ``geometric_calibration_export`` writes the same layout).
+  ``geometric_calibration_export`` writes the same layout);
+* ``ur-kinematics`` — the ``kinematics:`` YAML of Universal Robots' ROS description and driver
+  (``ur_description``'s ``kinematics_parameters_file``): per joint of the arm (``shoulder``,
+  ``upper_arm``, ``forearm``, ``wrist_1..3`` for ``shoulder_pan_joint`` ... ``wrist_3_joint``)
+  the calibrated ``<origin>`` as x, y, z (m) and roll, pitch, yaw (rad), which the description's
+  xacro writes into those joints' origins, and a ``hash``.
 
 All of them describe the robot from its base frame to its tip frame: the measurement frame and
 marker are not part of the robot (``measurement_frame=True`` adds them to ``urdf``, ``dh`` and
@@ -26,6 +31,7 @@ each lists it as not expressed when the calibration has any.
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
@@ -44,7 +50,9 @@ from solver.dh import DhConvention, dh_table_of_links
 from solver.errors import KincalError
 from solver.model import KinematicChain
 
-ExportFormat = Literal["urdf", "offsets-yaml", "offsets-csv", "dh", "mdh", "pal-master"]
+ExportFormat = Literal[
+    "urdf", "offsets-yaml", "offsets-csv", "dh", "mdh", "pal-master", "ur-kinematics"
+]
 FORMATS: tuple[ExportFormat, ...] = (
     "urdf",
     "offsets-yaml",
@@ -52,6 +60,7 @@ FORMATS: tuple[ExportFormat, ...] = (
     "dh",
     "mdh",
     "pal-master",
+    "ur-kinematics",
 )
 MEDIA_TYPES: dict[ExportFormat, str] = {
     "urdf": "application/xml",
@@ -60,6 +69,7 @@ MEDIA_TYPES: dict[ExportFormat, str] = {
     "dh": "application/yaml",
     "mdh": "application/yaml",
     "pal-master": "application/yaml",
+    "ur-kinematics": "application/yaml",
 }
 SUFFIX: dict[ExportFormat, str] = {
     "urdf": ".urdf",
@@ -68,6 +78,7 @@ SUFFIX: dict[ExportFormat, str] = {
     "dh": ".yaml",
     "mdh": ".yaml",
     "pal-master": ".yaml",
+    "ur-kinematics": ".yaml",
 }
 PAL_AXES = ("dx", "dy", "dz", "droll", "dpitch", "dyaw")
 EXACT_TOLERANCE = 1e-12
@@ -96,6 +107,7 @@ def export(
         "dh": lambda: dh_export(result, "dh", measurement_frame=measurement_frame),
         "mdh": lambda: dh_export(result, "mdh", measurement_frame=measurement_frame),
         "pal-master": lambda: pal_master(result),
+        "ur-kinematics": lambda: ur_kinematics(result),
     }
     return writers[format]()
 
@@ -279,3 +291,56 @@ def _xyz_rpy(joint: ET.Element) -> tuple[np.ndarray, np.ndarray]:
     xyz = np.array([float(v) for v in origin.get("xyz", "0 0 0").split()])
     rpy = np.array([float(v) for v in origin.get("rpy", "0 0 0").split()])
     return xyz, rpy
+
+
+# --- Universal Robots' kinematics YAML ---------------------------------------------------------
+
+UR_SECTIONS = (
+    ("shoulder", "shoulder_pan_joint"),
+    ("upper_arm", "shoulder_lift_joint"),
+    ("forearm", "elbow_joint"),
+    ("wrist_1", "wrist_1_joint"),
+    ("wrist_2", "wrist_2_joint"),
+    ("wrist_3", "wrist_3_joint"),
+)
+"""The sections of ``kinematics:`` and the joint whose ``<origin>`` each one sets in
+``ur_description`` (``ur_common.xacro`` reads them, ``ur_macro.xacro`` writes them)."""
+
+
+def ur_kinematics(result: CalibrationResult) -> str:
+    """Universal Robots' ``kinematics:`` YAML: each UR joint's calibrated URDF origin, x, y, z
+    (m) and roll, pitch, yaw (rad, URDF's fixed-axis convention), from the calibrated URDF
+    (:func:`export_urdf`); ``hash`` names this calibration (``kincal_`` and 16 hex digits of
+    the values' SHA-256), not the controller's own calibration checksum: the UR driver warns
+    that the two differ, which they do. :class:`KincalError` for a robot whose chain is not
+    the six UR joints (a ``tf_prefix`` before the names is allowed)."""
+    chain, _ = result_chain(result)
+    prefix = _ur_prefix(chain.joint_names)
+    calibrated = {j.get("name"): j for j in ET.fromstring(export_urdf(result)).findall("joint")}
+    sections: dict[str, Any] = {}
+    for section, joint in UR_SECTIONS:
+        xyz, rpy = _xyz_rpy(calibrated[prefix + joint])
+        values = [*xyz.tolist(), *rpy.tolist()]
+        sections[section] = dict(zip(("x", "y", "z", "roll", "pitch", "yaw"), values, strict=True))
+    digest = hashlib.sha256(repr(sorted(sections.items())).encode()).hexdigest()[:16]
+    sections["hash"] = f"kincal_{digest}"
+    header = "".join(f"# not expressed: {line}\n" for line in not_expressed(result))
+    header += "# measurement frame and marker: in the kincal result JSON, not robot joints\n"
+    header += (
+        "# hash: this calibration's, not the controller's checksum (the UR driver warns that "
+        "they differ)\n"
+    )
+    return header + yaml.safe_dump({"kinematics": sections}, sort_keys=False, width=1000)
+
+
+def _ur_prefix(joint_names: tuple[str, ...]) -> str:
+    """The ``tf_prefix`` of a UR arm's six joint names; :class:`KincalError` otherwise."""
+    wanted = [joint for _, joint in UR_SECTIONS]
+    prefix = joint_names[0].removesuffix(wanted[0]) if joint_names else ""
+    if list(joint_names) != [prefix + name for name in wanted]:
+        raise KincalError(
+            f"ur-kinematics needs a Universal Robots arm, the chain {', '.join(wanted)} (with "
+            f"any tf_prefix); this calibration's chain is {', '.join(joint_names)}: use "
+            "--format urdf or dh instead"
+        )
+    return prefix

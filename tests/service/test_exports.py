@@ -24,7 +24,7 @@ from solver import lie
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.measurement.models import nominal_pose
 from solver.model import build_chain, sample_configurations
-from tests.conftest import robot
+from tests.conftest import REPO, robot
 from tests.service.cli_support import run
 
 N = 40
@@ -123,6 +123,73 @@ def test_pal_master_calibration_on_the_nominal_urdf_reproduces_the_prediction(na
     names = tuple(result.robot.joint_names)
     got = _urdf_fk(overlaid, result.robot.base_frame, result.robot.tip_frame, names, q)
     assert np.abs(got - in_robot).max() < 1e-9
+
+
+def _apply_ur(urdf: str, document: dict[str, dict[str, float]]) -> str:
+    """``ur_description``'s reading of a kinematics file: each section's x, y, z and roll,
+    pitch, yaw become its joint's ``<origin xyz rpy>`` as written (ur_common.xacro)."""
+    root = ET.fromstring(urdf)
+    joints = {j.get("name"): j for j in root.findall("joint")}
+    for section, joint in exports.UR_SECTIONS:
+        values = document[section]
+        origin = joints[joint].find("origin")
+        assert origin is not None
+        origin.set("xyz", " ".join(repr(float(values[a])) for a in ("x", "y", "z")))
+        origin.set("rpy", " ".join(repr(float(values[a])) for a in ("roll", "pitch", "yaw")))
+    return ET.tostring(root, encoding="unicode")
+
+
+def test_ur_kinematics_on_the_nominal_urdf_reproduces_the_prediction() -> None:
+    result = _calibrated("ur10")
+    q, _, in_robot = _predictions(result)
+    text = exports.export(result, "ur-kinematics")
+    assert "# not expressed: joint compliance" in text
+    kinematics = yaml.safe_load(text)["kinematics"]
+    assert list(kinematics) == [section for section, _ in exports.UR_SECTIONS] + ["hash"]
+    assert kinematics["hash"].startswith("kincal_")
+    got = _urdf_fk(
+        _apply_ur(result.robot.urdf, kinematics),
+        result.robot.base_frame,
+        result.robot.tip_frame,
+        tuple(result.robot.joint_names),
+        q,
+    )
+    assert np.abs(got - in_robot).max() < 1e-9
+    other = yaml.safe_load(exports.export(_calibrated("ur10", ("joint_offsets",)), "ur-kinematics"))
+    assert other["kinematics"]["hash"] != kinematics["hash"]  # it names the calibration
+
+
+def test_ur_kinematics_refuses_an_arm_that_is_not_a_ur() -> None:
+    from solver.errors import KincalError
+
+    with pytest.raises(KincalError, match=r"ur-kinematics needs a Universal Robots arm.*panda_"):
+        exports.export(_calibrated("panda"), "ur-kinematics")
+
+
+def test_the_real_ur10e_calibration_as_the_ur_kinematics_file_reproduces_kincal(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The shipped UR10e recording (its ur_description URDF) through ``kincal calibrate`` and
+    ``kincal export --format ur-kinematics``: the file, read as ur_description reads it into
+    that URDF, gives kincal's calibrated forward kinematics to 1e-9."""
+    folder = REPO / "data/real/figaroh_ur10_experiment"
+    result_path, out = tmp_path / "ur10e.json", tmp_path / "ur10e_kinematics.yaml"
+    calibrate = ["calibrate", folder / "calibration.csv", "--urdf", folder / "ur10e_robot.urdf"]
+    calibrate += ["--base", "base_link", "--tip", "wrist_3_link", "--no-heldout"]
+    code, _, err = run([*calibrate, "-o", result_path], capsys, monkeypatch)
+    assert code in (0, 3), err
+    export = ["export", result_path, "--format", "ur-kinematics", "-o", out, "--force"]
+    code, text, err = run(export, capsys, monkeypatch)
+    assert code == 0, err
+    assert f"{out}  ur-kinematics export" in text
+    result = CalibrationResult.model_validate_json(result_path.read_bytes())
+    q, _, in_robot = _predictions(result)
+    names = tuple(result.robot.joint_names)
+    overlaid = _apply_ur(result.robot.urdf, yaml.safe_load(out.read_text())["kinematics"])
+    got = _urdf_fk(overlaid, "base_link", "wrist_3_link", names, q)
+    assert np.abs(got - in_robot).max() < 1e-9
+    nominal = _urdf_fk(result.robot.urdf, "base_link", "wrist_3_link", names, q)
+    assert np.abs(nominal - in_robot).max() > 1e-4  # the calibration moved the joints
 
 
 def test_offsets_are_exact_for_a_joint_offset_calibration_and_say_so_otherwise() -> None:

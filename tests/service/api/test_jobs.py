@@ -114,6 +114,11 @@ def test_upload_calibrate_poll_result_report_urdf_round_trip(
         params={"format": "pal-master", "force": True},
     )
     assert pal.status_code == 200 and "geometric_calibration" in pal.text
+    ur = worker_client.get(
+        f"/api/v1/calibrations/{calibration['id']}/export",
+        params={"format": "ur-kinematics", "force": True},
+    )
+    assert ur.status_code == 200 and ur.text.count("\n  wrist_") == 3, ur.text
     bad = worker_client.get(
         f"/api/v1/calibrations/{calibration['id']}/export", params={"format": "sdf"}
     )
