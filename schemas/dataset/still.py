@@ -1,0 +1,134 @@
+"""Samples of a calibration from streams: one sample per interval in which the robot holds
+still, joint readings and measured poses averaged over it.
+
+A joint-state interval (between two consecutive messages) is *still* when every joint's
+finite-difference velocity is at most ``tolerance_rad_s`` (rad/s, m/s for prismatic joints);
+a *still segment* is a maximal run of messages joined by still intervals. A segment shorter than
+``window_s`` is dropped ("too short"); so is one without a measurement message inside it, the
+segment shrunk by ``clock_tolerance_s`` at both ends so that a measurement clock off by up to that
+much still falls inside ("no measurement").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+NS_PER_S = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class StillSettings:
+    """How still is still: joint speed (rad/s), shortest hold (s), clock offset tolerated
+    between the joint-state and measurement topics (s)."""
+
+    tolerance_rad_s: float = 1e-3
+    window_s: float = 0.2
+    clock_tolerance_s: float = 0.02  # the CLI's defaults (service/cli/common.py) equal these
+
+
+@dataclass(frozen=True)
+class Measurements:
+    """Measured poses at stamps (n,) ns: position (n, 3) m, quaternion (n, 4) x,y,z,w or None
+    (position-only)."""
+
+    stamps_ns: NDArray[np.int64]
+    position_m: NDArray[np.float64]
+    quaternion_xyzw: NDArray[np.float64] | None
+
+
+@dataclass(frozen=True)
+class Samples:
+    """One row per kept segment: mean joints (n, k), mean position (n, 3), mean quaternion
+    (n, 4) or None, the segment's mid time (n,) ns; and what was dropped."""
+
+    joint_positions: NDArray[np.float64]
+    position_m: NDArray[np.float64]
+    quaternion_xyzw: NDArray[np.float64] | None
+    stamps_ns: NDArray[np.int64]
+    n_messages: int
+    n_moving: int
+    n_too_short: int
+    n_no_measurement: int
+
+    @property
+    def n_samples(self) -> int:
+        return len(self.stamps_ns)
+
+
+def still_segments(
+    stamps_ns: NDArray[np.int64], joints: NDArray[np.float64], tolerance_rad_s: float
+) -> list[tuple[int, int]]:
+    """Index ranges ``[start, stop)`` of the still segments of joint readings (n, k) at sorted
+    stamps (n,) ns; a segment holds at least two messages."""
+    if len(stamps_ns) < 2:
+        return []
+    dt_s = np.diff(stamps_ns).astype(float) / NS_PER_S
+    step = np.max(np.abs(np.diff(joints, axis=0)), axis=1)
+    still = np.where(dt_s > 0, step <= tolerance_rad_s * dt_s, step == 0.0)
+    edges = np.diff(np.concatenate([[0], still.astype(np.int8), [0]]))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return [(int(a), int(b) + 1) for a, b in zip(starts, stops, strict=True)]
+
+
+def mean_quaternion(quaternions_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The average rotation of (n, 4) unit quaternions: the principal eigenvector of Σ q qᵀ
+    (invariant to each quaternion's sign), signed like the first."""
+    _, vectors = np.linalg.eigh(quaternions_xyzw.T @ quaternions_xyzw)
+    mean = vectors[:, -1]
+    return mean if mean @ quaternions_xyzw[0] >= 0.0 else -mean
+
+
+def synchronise(
+    stamps_ns: NDArray[np.int64],
+    joints: NDArray[np.float64],
+    measured: Measurements,
+    settings: StillSettings,
+) -> Samples:
+    """One sample per still segment of the joint readings (n, k) at stamps (n,) ns with a
+    measurement inside it (see the module docstring)."""
+    segments = still_segments(stamps_ns, joints, settings.tolerance_rad_s)
+    margin_ns = round(settings.clock_tolerance_s * NS_PER_S)
+    window_ns = round(settings.window_s * NS_PER_S)
+    rows: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None, int]]
+    rows = []
+    too_short = no_measurement = 0
+    for start, stop in segments:
+        first, last = int(stamps_ns[start]), int(stamps_ns[stop - 1])
+        if last - first < window_ns:
+            too_short += 1
+            continue
+        lo = np.searchsorted(measured.stamps_ns, first + margin_ns, side="left")
+        hi = np.searchsorted(measured.stamps_ns, last - margin_ns, side="right")
+        if hi <= lo:
+            no_measurement += 1
+            continue
+        quaternion = (
+            None
+            if measured.quaternion_xyzw is None
+            else mean_quaternion(measured.quaternion_xyzw[lo:hi])
+        )
+        rows.append(
+            (
+                joints[start:stop].mean(axis=0),
+                measured.position_m[lo:hi].mean(axis=0),
+                quaternion,
+                (first + last) // 2,
+            )
+        )
+    k = joints.shape[1]
+    in_segments = sum(stop - start for start, stop in segments)
+    return Samples(
+        joint_positions=np.array([r[0] for r in rows]).reshape(-1, k),
+        position_m=np.array([r[1] for r in rows]).reshape(-1, 3),
+        quaternion_xyzw=None
+        if measured.quaternion_xyzw is None
+        else np.array([r[2] for r in rows]).reshape(-1, 4),
+        stamps_ns=np.array([r[3] for r in rows], dtype=np.int64),
+        n_messages=len(stamps_ns),
+        n_moving=len(stamps_ns) - in_segments,
+        n_too_short=too_short,
+        n_no_measurement=no_measurement,
+    )
