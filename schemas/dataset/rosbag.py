@@ -105,8 +105,8 @@ def read_bag(
         counts = {name: info.msgcount for name, info in reader.topics.items()}
         listing = ", ".join(f"{t} ({topics[t]}, {counts[t]} messages)" for t in sorted(topics))
         _check_topic(joint_states, (JOINT_STATE,), "--joint-states", topics, listing, source)
+        measured = _measurements(reader, measure, topics, listing, source)  # the cheaper read
         names, stamps, joints = _joint_states(reader, joint_states, joint_names, source)
-        measured = _measurements(reader, measure, topics, listing, source)
     samples = synchronise(stamps, joints, measured, settings)
     if samples.n_samples == 0:
         raise DatasetError(

@@ -97,7 +97,7 @@ def slerp(
     w0 = np.where(small, 1.0 - u, np.sin((1.0 - u) * theta) / sin_theta)
     w1 = np.where(small, u, np.sin(u * theta) / sin_theta)
     q = w0[:, None] * q0 + w1[:, None] * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where((u == 0.0)[:, None], q0, q / np.linalg.norm(q, axis=-1, keepdims=True))
 
 
 def interpolate(
@@ -122,7 +122,6 @@ def interpolate(
     translation = p0 + u[:, None] * (p1 - p0)
     translation = np.where((u == 0.0)[:, None], p0, translation)
     quaternion = slerp(edge.quaternion_xyzw[i], edge.quaternion_xyzw[i + 1], u)
-    quaternion = np.where((u == 0.0)[:, None], edge.quaternion_xyzw[i], quaternion)
     return translation, quaternion, valid
 
 
