@@ -17,6 +17,7 @@ from service.cli.common import (
     DhOpt,
     JointStatesOpt,
     MeasureOpt,
+    OutDirOpt,
     Outputs,
     RobotOpt,
     StillToleranceOpt,
@@ -52,6 +53,7 @@ def import_command(
     output: Annotated[
         Path | None, output_option("recording.parquet", "The recording (.csv, .parquet, .json)")
     ] = None,
+    out_dir: OutDirOpt = None,
 ) -> None:
     """Turn a ROS bag into a recording: one sample per hold of the robot (joint states still
     for --still-window), joints and measured pose averaged over the hold.
@@ -70,7 +72,7 @@ def import_command(
     recording = read_bag(
         bag, joint_states, measure, (still_tolerance, still_window, clock_tolerance), chain
     )
-    outputs = Outputs(out_dir_for(None, bag, "import"))
+    outputs = Outputs(out_dir_for(out_dir, bag, "import"))
     path = outputs.path(output, "recording.parquet", "a recording")
     outputs.write(
         path,
