@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 
 from schemas.dataset import read_dataset
+from tests.conftest import REPO
 from tests.schemas.bag_writer import FR3_POSES, PANDA_JOINTS, STORAGES, Truth, fr3_bags
 from tests.schemas.test_rosbag import assert_same_rows
 from tests.service.cli_support import run, run_ok
@@ -50,11 +51,14 @@ def test_calibrating_a_bag_equals_calibrating_the_csv(
     flags = [*BAG_FLAGS, *TF, *([] if heldout else ["--no-heldout"])]
     code, text, err = run(["calibrate", path, *flags, "-o", out], capsys, monkeypatch)
     assert code == 0, err
-    assert (
+    report = (
         f"{path.name}: 114 samples (one per still segment); dropped: 1 still segment(s) too short, "
         f"1 without a measurement; {truth.n_moving} of {truth.n_messages} joint-state messages "
         "while moving"
-    ) in text
+    )
+    assert report in text
+    if storage == "ros1":  # the example docs/ros.md shows
+        assert report in (REPO / "docs" / "ros.md").read_text(encoding="utf-8")
     result = json.loads(out.read_bytes())
     for side in ("train", "heldout") if heldout else ("train",):
         got, want = result["fit"]["after"][side], csv_result["fit"]["after"][side]
