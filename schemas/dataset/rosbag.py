@@ -204,13 +204,16 @@ def _joint_states(
             wanted = names
         if names not in order:
             seen.update(names)
-            have = wanted is not None and set(wanted) <= set(names)
-            order[names] = np.array([names.index(n) for n in wanted]) if have else None  # type: ignore[union-attr]
+            order[names] = _columns_of(wanted or (), names)
         index = order[names]
         if index is None or len(msg.position) != len(names):
             continue
         stamps.append(_stamp_ns(msg.header))
         rows.append(np.asarray(msg.position, dtype=float)[index])
+    if joint_names is None and not rows:
+        raise DatasetError(
+            f"{source}: {topic} holds no joint positions; pass the arm's joint-state topic"
+        )
     if wanted is None or not rows:
         missing = [] if wanted is None else [n for n in wanted if n not in seen]
         raise DatasetError(
@@ -227,6 +230,13 @@ def _joint_states(
     stamp_array = np.asarray(stamps, dtype=np.int64)
     by_time = np.argsort(stamp_array, kind="stable")
     return wanted, stamp_array[by_time], np.asarray(rows)[by_time]
+
+
+def _columns_of(wanted: Sequence[str], names: tuple[str, ...]) -> NDArray[np.intp] | None:
+    """Where each wanted joint is in a message's ``names``; None if one is missing."""
+    if not wanted or not set(wanted) <= set(names):
+        return None
+    return np.array([names.index(n) for n in wanted])
 
 
 def _measurements(
