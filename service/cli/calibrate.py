@@ -27,7 +27,7 @@ from service.cli.common import (
     ChunkRowsOpt,
     ClockToleranceOpt,
     DaskOpt,
-    DataArg,
+    DataOrBagArg,
     DhOpt,
     ExecutorOpt,
     JointStatesOpt,
@@ -147,7 +147,7 @@ ResultOut = Annotated[Path | None, output_option("calibration.json", "The result
 
 
 def calibrate(
-    data: DataArg,
+    data: DataOrBagArg,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
@@ -161,6 +161,11 @@ def calibrate(
             rich_help_panel=RECORDING,
         ),
     ] = None,
+    joint_states: JointStatesOpt = None,
+    measure: MeasureOpt = None,
+    still_tolerance: StillToleranceOpt = STILL_TOLERANCE_RAD_S,
+    still_window: StillWindowOpt = STILL_WINDOW_S,
+    clock_tolerance: ClockToleranceOpt = CLOCK_TOLERANCE_S,
     compliant_joints: Annotated[
         str | None, _calibration_flag("compliant_joints", "; comma-separated")
     ] = None,
@@ -229,11 +234,6 @@ def calibrate(
     train_fraction: Annotated[
         float | None, _calibration_flag("train_fraction", "", HELDOUT)
     ] = None,
-    joint_states: JointStatesOpt = None,
-    measure: MeasureOpt = None,
-    still_tolerance: StillToleranceOpt = STILL_TOLERANCE_RAD_S,
-    still_window: StillWindowOpt = STILL_WINDOW_S,
-    clock_tolerance: ClockToleranceOpt = CLOCK_TOLERANCE_S,
     executor: ExecutorOpt = None,
     dask: DaskOpt = None,
     chunk_rows: ChunkRowsOpt = None,

@@ -94,11 +94,18 @@ DhOpt = Annotated[
         rich_help_panel=RECORDING,
     ),
 ]
+_DATA_HELP = (
+    "Dataset: CSV, Parquet, JSON or industrial_calibration YAML; or a folder of "
+    "ball-in-socket hole_<k>.csv files"
+)
 DataArg = Annotated[
+    Path, typer.Argument(help=f"{_DATA_HELP}.", metavar="RECORDING", show_default=False)
+]
+DataOrBagArg = Annotated[
     Path,
     typer.Argument(
-        help="Dataset: CSV, Parquet, JSON or industrial_calibration YAML; or a folder of "
-        "ball-in-socket hole_<k>.csv files.",
+        help=f"{_DATA_HELP}; or a ROS bag (.bag file, rosbag2 folder) with --joint-states and "
+        "--measure.",
         metavar="RECORDING",
         show_default=False,
     ),
