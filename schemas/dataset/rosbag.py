@@ -54,8 +54,9 @@ class MeasureSource:
     def parse(cls, text: str) -> MeasureSource:
         kind, _, rest = text.partition(":")
         parts = rest.split(":")
-        if kind == "tf" and len(parts) == 2 and all(parts):
-            return cls("tf", frames=(parts[0], parts[1]))
+        frames = [part.lstrip("/") for part in parts]  # tf2 frame ids have no leading slash
+        if kind == "tf" and len(frames) == 2 and all(frames):
+            return cls("tf", frames=(frames[0], frames[1]))
         if kind in ("pose", "point") and len(parts) == 1 and parts[0]:
             return cls(kind, topic=parts[0])
         raise DatasetError(f"--measure {text!r}: give {SOURCE_FORMS}")

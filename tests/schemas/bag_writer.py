@@ -213,6 +213,7 @@ def write_bag(
                     pose=types["geometry_msgs/msg/Pose"](position=position, orientation=rotation),
                 ),
             ),
+            ("/board_transform", stamp, transform(stamp, "camera_link", "board", pose)),
             (
                 "/tracker_point",
                 stamp,
@@ -227,6 +228,7 @@ def write_bag(
         "/tf": "tf2_msgs/msg/TFMessage",
         "/tf_static": "tf2_msgs/msg/TFMessage",
         "/board_pose": "geometry_msgs/msg/PoseStamped",
+        "/board_transform": "geometry_msgs/msg/TransformStamped",
         "/tracker_point": "geometry_msgs/msg/PointStamped",
     }
     writer: Any = (

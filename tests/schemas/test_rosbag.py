@@ -167,13 +167,29 @@ def test_every_bag_storage_gives_back_the_recording_and_drops_exactly_the_moving
     assert recording.dataset.time_s is not None and np.all(np.diff(recording.dataset.time_s) > 0)
 
 
+def test_measurements_near_a_holds_ends_are_left_to_the_clock_tolerance() -> None:
+    stamps = np.arange(0, 301, 10, dtype=np.int64) * 1_000_000  # still for 0.3 s
+    at = np.array([10, 150, 295]) * 1_000_000
+    measured = Measurements(at, np.array([[1.0, 0, 0], [2.0, 0, 0], [6.0, 0, 0]]), None)
+    joints = np.zeros((len(stamps), 2))
+    samples = synchronise(stamps, joints, measured, StillSettings(clock_tolerance_s=0.02))
+    np.testing.assert_array_equal(samples.position_m, [[2.0, 0, 0]])
+    samples = synchronise(stamps, joints, measured, StillSettings(clock_tolerance_s=0.0))
+    np.testing.assert_array_equal(samples.position_m, [[3.0, 0, 0]])  # the mean of all three
+
+
 @pytest.mark.parametrize(
-    ("measure", "position_only"), [("pose:/board_pose", False), ("point:/tracker_point", True)]
+    ("measure", "position_only"),
+    [
+        ("pose:/board_pose", False),
+        ("pose:/board_transform", False),
+        ("point:/tracker_point", True),
+    ],
 )
 def test_pose_and_point_topics_are_measurements_too(
     bags: dict[str, tuple[Path, Truth]], recorded: PoseDataset, measure: str, position_only: bool
 ) -> None:
-    recording = _read(bags["mcap"][0], measure)
+    recording = _read(bags["mcap"][0] / "fr3_mcap.mcap", measure)  # its storage file will do
     want = recorded
     if position_only:
         want = PoseDataset(
@@ -186,7 +202,7 @@ def test_pose_and_point_topics_are_measurements_too(
 @pytest.mark.parametrize(
     ("joint_states", "measure", "message"),
     [
-        ("/joints", "tf:camera_link:board", "no topic '/joints' in the bag; its topics: "),
+        ("/joints", "tf:/camera_link:board", "no topic '/joints' in the bag; its topics: "),
         ("/tf", "tf:camera_link:board", "'/tf' holds tf2_msgs/msg/TFMessage, --joint-states"),
         ("/joint_states", "pose:/tf", "--measure pose:… needs geometry_msgs/msg/PoseStamped"),
         ("/joint_states", "tf:camera_link:robot_base", "roots: camera_link, world"),
