@@ -24,7 +24,14 @@ from numpy.typing import NDArray
 
 from schemas.dataset.columns import one_line
 from schemas.dataset.records import POSITION_COLUMNS, QUATERNION_COLUMNS, PoseDataset
-from schemas.dataset.still import NS_PER_S, Measurements, Samples, StillSettings, synchronise
+from schemas.dataset.still import (
+    NS_PER_S,
+    Measurements,
+    Samples,
+    StillSettings,
+    synchronise,
+    synchronise_captures,
+)
 from schemas.dataset.tf_tree import Edge, TfTree
 from schemas.dataset.validate import dataset_from_frame
 from solver.errors import DatasetError
@@ -72,6 +79,12 @@ class BagRecording:
     def report(self) -> str:
         """One line: samples kept, segments dropped per reason, messages while moving."""
         s = self.samples
+        if s.n_captures is not None:
+            return (
+                f"{self.dataset.source}: {s.n_samples} samples (one per capture message); "
+                f"dropped: {s.n_moving} of {s.n_captures} captures while moving, "
+                f"{s.n_no_measurement} without a measurement"
+            )
         return (
             f"{self.dataset.source}: {s.n_samples} samples (one per still segment); dropped: "
             f"{s.n_too_short} still segment(s) too short, {s.n_no_measurement} without a "
@@ -94,11 +107,13 @@ def read_bag(
     joint_names: Sequence[str] | None = None,
     other_joint_names: Sequence[str] = (),
     settings: StillSettings | None = None,
+    capture: str | None = None,
 ) -> BagRecording:
     """The bag at ``path`` as a recording: one sample per still segment of ``joint_states``
     with ``measure`` averaged inside it. ``joint_names``: the chain's URDF joints, in chain
     order (None: every joint of the topic, in its order); ``other_joint_names``: URDF joints off
-    the chain, accepted and left out."""
+    the chain, accepted and left out; ``capture``: a topic of any type whose messages (header
+    stamp, else the time it was logged) mark the samples instead of the still segments."""
     path, settings = Path(path), settings or StillSettings()
     source = path.name
     with _open(path, source) as reader:
@@ -106,28 +121,55 @@ def read_bag(
         counts = {name: info.msgcount for name, info in reader.topics.items()}
         listing = ", ".join(f"{t} ({topics[t]}, {counts[t]} messages)" for t in sorted(topics))
         _check_topic(joint_states, (JOINT_STATE,), "--joint-states", topics, listing, source)
-        measured = _measurements(reader, measure, topics, listing, source)  # the cheaper read
+        measured = _measurements(reader, measure, topics, listing, source)  # the cheaper reads
+        captures = None
+        if capture is not None:
+            _check_topic(capture, (), "--capture", topics, listing, source)
+            captures = _capture_stamps(reader, capture)
         names, stamps, joints = _joint_states(reader, joint_states, joint_names, source)
-    samples = synchronise(stamps, joints, measured, settings)
+    samples = (
+        synchronise(stamps, joints, measured, settings)
+        if captures is None
+        else synchronise_captures(stamps, joints, measured, captures, settings)
+    )
     if samples.n_samples == 0:
-        raise DatasetError(
-            f"{source}: no still segment to sample: {_segments_hint(samples)}; record holds "
-            f"of at least "
-            f"{settings.window_s:g} s with the measurement published, or raise --still-tolerance "
-            f"(now {settings.tolerance_rad_s:g} rad/s) / lower --still-window"
-        )
+        raise DatasetError(f"{source}: {_no_sample(samples, settings)}")
     frame = _frame(names, samples, int(stamps[0]))
     dataset = dataset_from_frame(frame, names, source=source, other_joint_names=other_joint_names)
     return BagRecording(dataset, samples)
 
 
-def _segments_hint(samples: Samples) -> str:
+def _no_sample(samples: Samples, settings: StillSettings) -> str:
+    """Why no sample was kept, and what to change."""
+    if samples.n_captures is not None:
+        return (
+            f"no capture to sample: {samples.n_captures} capture message(s), {samples.n_moving} "
+            f"while moving, {samples.n_no_measurement} without a measurement; capture while the "
+            f"robot holds still for {settings.window_s:g} s around the message with the "
+            "measurement published, or lower --still-window"
+        )
     found = samples.n_too_short + samples.n_no_measurement
-    if found == 0:
-        return f"the robot never holds still ({samples.n_messages} joint-state messages)"
-    return (
+    what = (
         f"{found} still segment(s), {samples.n_too_short} too short and "
         f"{samples.n_no_measurement} without a measurement"
+        if found
+        else f"the robot never holds still ({samples.n_messages} joint-state messages)"
+    )
+    return (
+        f"no still segment to sample: {what}; record holds of at least {settings.window_s:g} s "
+        "with the measurement published, or raise --still-tolerance (now "
+        f"{settings.tolerance_rad_s:g} rad/s) / lower --still-window"
+    )
+
+
+def _capture_stamps(reader: AnyReader, topic: str) -> NDArray[np.int64]:
+    """The header stamp of every message of ``topic``, or the time it was logged."""
+    return np.array(
+        [
+            _stamp_ns(msg.header) if hasattr(msg, "header") else logged
+            for logged, msg in _messages(reader, topic)
+        ],
+        dtype=np.int64,
     )
 
 
@@ -167,18 +209,19 @@ def _check_topic(
             f"{source}: no topic {topic!r} in the bag; its topics: {listing or 'none'}; "
             f"pass one of them to {option}"
         )
-    if topics[topic] not in types:
+    if types and topics[topic] not in types:
         raise DatasetError(
             f"{source}: topic {topic!r} holds {topics[topic]}, {option} needs "
             f"{' or '.join(types)}; its topics: {listing}"
         )
 
 
-def _messages(reader: AnyReader, topic: str) -> Iterator[Any]:
+def _messages(reader: AnyReader, topic: str) -> Iterator[tuple[int, Any]]:
+    """(time logged ns, message) of every message of ``topic``."""
     connections = [c for c in reader.connections if c.topic == topic]
-    for connection, _, raw in reader.messages(connections=connections):
+    for connection, logged_ns, raw in reader.messages(connections=connections):
         try:
-            yield reader.deserialize(raw, connection.msgtype)
+            yield logged_ns, reader.deserialize(raw, connection.msgtype)
         except Exception as exc:
             raise DatasetError(
                 f"{topic}: a message cannot be decoded ({one_line(exc)}); re-record the topic"
@@ -199,7 +242,7 @@ def _joint_states(
     order: dict[tuple[str, ...], NDArray[np.intp] | None] = {}
     stamps: list[int] = []
     rows: list[NDArray[np.float64]] = []
-    for msg in _messages(reader, topic):
+    for _, msg in _messages(reader, topic):
         names = tuple(msg.name)
         if wanted is None and names:
             wanted = names
@@ -259,7 +302,7 @@ def _measurements(
     types = POSE_TYPES if measure.kind == "pose" else (POINT_TYPE,)
     _check_topic(measure.topic, types, f"--measure {measure.kind}:…", topics, listing, source)
     stamps_list, positions, quaternions = [], [], []
-    for msg in _messages(reader, measure.topic):
+    for _, msg in _messages(reader, measure.topic):
         stamps_list.append(_stamp_ns(msg.header))
         if measure.kind == "point":
             positions.append([msg.point.x, msg.point.y, msg.point.z])
@@ -284,7 +327,7 @@ def _tf_tree(reader: AnyReader, topics: dict[str, str], source: str) -> TfTree:
     for topic in TF_TOPICS:
         if topics.get(topic) != TF_MESSAGE:
             continue
-        for msg in _messages(reader, topic):
+        for _, msg in _messages(reader, topic):
             for tf in msg.transforms:
                 t, r = tf.transform.translation, tf.transform.rotation
                 key = (tf.child_frame_id.lstrip("/"), topic == "/tf_static")

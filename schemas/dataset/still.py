@@ -7,6 +7,10 @@ a *still segment* is a maximal run of messages joined by still intervals. A segm
 ``window_s`` is dropped ("too short"); so is one without a measurement message inside it, the
 segment shrunk by ``clock_tolerance_s`` at both ends so that a measurement clock off by up to that
 much still falls inside ("no measurement").
+
+With a capture topic (a message when the robot was told to measure) each capture is a sample
+instead: the window of ``window_s`` centred on it must be still ("moving" otherwise) and hold a
+measurement (:func:`synchronise_captures`); two captures at one configuration are two samples.
 """
 
 from __future__ import annotations
@@ -17,6 +21,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 NS_PER_S = 1_000_000_000
+Row = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None, int]
+"""A sample: mean joints (k,), mean position (3,), mean quaternion (4,) or None, stamp ns."""
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,9 @@ class Samples:
     n_moving: int
     n_too_short: int
     n_no_measurement: int
+    n_captures: int | None = None
+    """With a capture topic: its messages (``n_moving`` then counts captures taken while the
+    robot moved, ``n_too_short`` is 0)."""
 
     @property
     def n_samples(self) -> int:
@@ -81,6 +90,92 @@ def mean_quaternion(quaternions_xyzw: NDArray[np.float64]) -> NDArray[np.float64
     return mean if mean @ quaternions_xyzw[0] >= 0.0 else -mean
 
 
+def _is_still(joints: NDArray[np.float64], stamps_ns: NDArray[np.int64], tolerance: float) -> bool:
+    return len(joints) >= 2 and still_segments(stamps_ns, joints, tolerance) == [(0, len(joints))]
+
+
+def synchronise_captures(
+    stamps_ns: NDArray[np.int64],
+    joints: NDArray[np.float64],
+    measured: Measurements,
+    captures_ns: NDArray[np.int64],
+    settings: StillSettings,
+) -> Samples:
+    """One sample per capture message: joints and measurements averaged over ``window_s``
+    centred on it (measurements within ``clock_tolerance_s`` of the window's ends left out);
+    dropped when the joints move inside the window or no measurement falls inside."""
+    half_ns = round(settings.window_s * NS_PER_S / 2)
+    margin_ns = round(settings.clock_tolerance_s * NS_PER_S)
+    windows = [
+        (int(t), int(t) - half_ns, int(t) + half_ns) for t in np.sort(captures_ns, kind="stable")
+    ]
+    moving = no_measurement = 0
+    rows: list[Row] = []
+    for stamp, first, last in windows:
+        lo = int(np.searchsorted(stamps_ns, first, side="left"))
+        hi = int(np.searchsorted(stamps_ns, last, side="right"))
+        if not _is_still(joints[lo:hi], stamps_ns[lo:hi], settings.tolerance_rad_s):
+            moving += 1
+            continue
+        row = _averages(joints[lo:hi], measured, first + margin_ns, last - margin_ns)
+        if row is None:
+            no_measurement += 1
+            continue
+        rows.append((*row, stamp))
+    return _samples(
+        rows,
+        joints.shape[1],
+        measured,
+        len(stamps_ns),
+        moving,
+        0,
+        no_measurement,
+        n_captures=len(windows),
+    )
+
+
+def _averages(
+    joints: NDArray[np.float64], measured: Measurements, first_ns: int, last_ns: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None] | None:
+    """Mean joints, and mean position and rotation of the measurements stamped within
+    ``[first_ns, last_ns]``; None without one."""
+    lo = np.searchsorted(measured.stamps_ns, first_ns, side="left")
+    hi = np.searchsorted(measured.stamps_ns, last_ns, side="right")
+    if hi <= lo:
+        return None
+    quaternion = (
+        None
+        if measured.quaternion_xyzw is None
+        else mean_quaternion(measured.quaternion_xyzw[lo:hi])
+    )
+    return joints.mean(axis=0), measured.position_m[lo:hi].mean(axis=0), quaternion
+
+
+def _samples(
+    rows: list[Row],
+    k: int,
+    measured: Measurements,
+    n_messages: int,
+    n_moving: int,
+    n_too_short: int,
+    n_no_measurement: int,
+    n_captures: int | None = None,
+) -> Samples:
+    return Samples(
+        joint_positions=np.array([r[0] for r in rows]).reshape(-1, k),
+        position_m=np.array([r[1] for r in rows]).reshape(-1, 3),
+        quaternion_xyzw=None
+        if measured.quaternion_xyzw is None
+        else np.array([r[2] for r in rows]).reshape(-1, 4),
+        stamps_ns=np.array([r[3] for r in rows], dtype=np.int64),
+        n_messages=n_messages,
+        n_moving=n_moving,
+        n_too_short=n_too_short,
+        n_no_measurement=n_no_measurement,
+        n_captures=n_captures,
+    )
+
+
 def synchronise(
     stamps_ns: NDArray[np.int64],
     joints: NDArray[np.float64],
@@ -92,43 +187,20 @@ def synchronise(
     segments = still_segments(stamps_ns, joints, settings.tolerance_rad_s)
     margin_ns = round(settings.clock_tolerance_s * NS_PER_S)
     window_ns = round(settings.window_s * NS_PER_S)
-    rows: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None, int]]
-    rows = []
+    rows: list[Row] = []
     too_short = no_measurement = 0
     for start, stop in segments:
         first, last = int(stamps_ns[start]), int(stamps_ns[stop - 1])
         if last - first < window_ns:
             too_short += 1
             continue
-        lo = np.searchsorted(measured.stamps_ns, first + margin_ns, side="left")
-        hi = np.searchsorted(measured.stamps_ns, last - margin_ns, side="right")
-        if hi <= lo:
+        row = _averages(joints[start:stop], measured, first + margin_ns, last - margin_ns)
+        if row is None:
             no_measurement += 1
             continue
-        quaternion = (
-            None
-            if measured.quaternion_xyzw is None
-            else mean_quaternion(measured.quaternion_xyzw[lo:hi])
-        )
-        rows.append(
-            (
-                joints[start:stop].mean(axis=0),
-                measured.position_m[lo:hi].mean(axis=0),
-                quaternion,
-                (first + last) // 2,
-            )
-        )
-    k = joints.shape[1]
+        rows.append((*row, (first + last) // 2))
     in_segments = sum(stop - start for start, stop in segments)
-    return Samples(
-        joint_positions=np.array([r[0] for r in rows]).reshape(-1, k),
-        position_m=np.array([r[1] for r in rows]).reshape(-1, 3),
-        quaternion_xyzw=None
-        if measured.quaternion_xyzw is None
-        else np.array([r[2] for r in rows]).reshape(-1, 4),
-        stamps_ns=np.array([r[3] for r in rows], dtype=np.int64),
-        n_messages=len(stamps_ns),
-        n_moving=len(stamps_ns) - in_segments,
-        n_too_short=too_short,
-        n_no_measurement=no_measurement,
+    n_moving = len(stamps_ns) - in_segments
+    return _samples(
+        rows, joints.shape[1], measured, len(stamps_ns), n_moving, too_short, no_measurement
     )

@@ -13,6 +13,7 @@ from service.cli.common import (
     STILL_TOLERANCE_RAD_S,
     STILL_WINDOW_S,
     BaseOpt,
+    CaptureOpt,
     ClockToleranceOpt,
     DhOpt,
     JointStatesOpt,
@@ -47,6 +48,7 @@ def import_command(
     dh: DhOpt = None,
     joint_states: JointStatesOpt = None,
     measure: MeasureOpt = None,
+    capture: CaptureOpt = None,
     still_tolerance: StillToleranceOpt = STILL_TOLERANCE_RAD_S,
     still_window: StillWindowOpt = STILL_WINDOW_S,
     clock_tolerance: ClockToleranceOpt = CLOCK_TOLERANCE_S,
@@ -56,7 +58,7 @@ def import_command(
     out_dir: OutDirOpt = None,
 ) -> None:
     """Turn a ROS bag into a recording: one sample per hold of the robot (joint states still
-    for --still-window), joints and measured pose averaged over the hold.
+    for --still-window) or per --capture message, joints and measured pose averaged over it.
 
     With a robot (--robot/--urdf/--dh) the joint-state names are matched to its chain joints
     and the columns are named by them; without, every joint of the topic is written. Prints the
@@ -69,9 +71,8 @@ def import_command(
         from service.render.chain import chain_for
 
         chain = chain_for(_robot(robot, urdf, base, tip, dh), CalibrationOptions())
-    recording = read_bag(
-        bag, joint_states, measure, (still_tolerance, still_window, clock_tolerance), chain
-    )
+    still = (still_tolerance, still_window, clock_tolerance)
+    recording = read_bag(bag, joint_states, measure, still, chain, capture)
     outputs = Outputs(out_dir_for(out_dir, bag, "import"))
     path = outputs.path(output, "recording.parquet", "a recording")
     outputs.write(

@@ -24,6 +24,7 @@ from service.cli.common import (
     STILL_TOLERANCE_RAD_S,
     STILL_WINDOW_S,
     BaseOpt,
+    CaptureOpt,
     ChunkRowsOpt,
     ClockToleranceOpt,
     DaskOpt,
@@ -163,6 +164,7 @@ def calibrate(
     ] = None,
     joint_states: JointStatesOpt = None,
     measure: MeasureOpt = None,
+    capture: CaptureOpt = None,
     still_tolerance: StillToleranceOpt = STILL_TOLERANCE_RAD_S,
     still_window: StillWindowOpt = STILL_WINDOW_S,
     clock_tolerance: ClockToleranceOpt = CLOCK_TOLERANCE_S,
@@ -337,7 +339,7 @@ def calibrate(
     urdf_path = None if export_urdf_to is None else outputs.path(export_urdf_to, "", None)
     source: Path | PoseDataset = data
     if not show_options:
-        bag = (joint_states, measure, (still_tolerance, still_window, clock_tolerance))
+        bag = (joint_states, measure, (still_tolerance, still_window, clock_tolerance), capture)
         source = bag_source(data, description, options, *bag)
         try:
             preflight(source, description, options, marker)
@@ -400,15 +402,16 @@ def bag_source(
     joint_states: str | None,
     measure: str | None,
     still: tuple[float, float, float],
+    capture: str | None,
 ) -> Path | PoseDataset:
     """``data`` itself, or the recording a ROS bag holds (its synchronisation report printed);
     the bag options without a bag are refused."""
     from schemas.dataset.rosbag import is_bag
 
     if not is_bag(data):
-        if joint_states is not None or measure is not None:
+        if joint_states is not None or measure is not None or capture is not None:
             raise KincalError(
-                f"--joint-states and --measure read a ROS bag; {data.name} is not one "
+                f"--joint-states, --measure and --capture read a ROS bag; {data.name} is not one "
                 "(a .bag file or a rosbag2 folder)"
             )
         return data
@@ -417,7 +420,8 @@ def bag_source(
     from service.render.chain import chain_for
 
     assert isinstance(description, RobotDescription) and isinstance(options, CalibrationOptions)
-    recording = read_bag(data, joint_states, measure, still, chain_for(description, options))
+    chain = chain_for(description, options)
+    recording = read_bag(data, joint_states, measure, still, chain, capture)
     typer.echo(recording.report())
     return recording.dataset
 

@@ -191,6 +191,16 @@ MeasureOpt = Annotated[
         rich_help_panel=ROS_BAG,
     ),
 ]
+CaptureOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--capture",
+        help="A ROS bag: a topic (any type) with one message per capture; each is a sample, "
+        "the robot still for --still-window around it [default: one sample per still segment].",
+        metavar="TOPIC",
+        rich_help_panel=ROS_BAG,
+    ),
+]
 StillToleranceOpt = Annotated[
     float,
     typer.Option(
@@ -454,10 +464,11 @@ def read_bag(
     measure: str | None,
     still: tuple[float, float, float],
     chain: KinematicChain | None,
+    capture: str | None = None,
 ) -> BagRecording:
     """The ROS bag ``bag`` as a recording (``schemas.dataset.rosbag``): ``still`` = tolerance
     rad/s, window s, clock tolerance s; ``chain``: the robot whose joints to match (None: every
-    joint of the topic)."""
+    joint of the topic); ``capture``: the capture topic, if any."""
     from schemas.dataset.rosbag import MeasureSource, read_bag
     from schemas.dataset.still import StillSettings
 
@@ -473,4 +484,5 @@ def read_bag(
         joint_names=None if chain is None else chain.joint_names,
         other_joint_names=() if chain is None else chain.other_joint_names,
         settings=StillSettings(*still),
+        capture=capture,
     )

@@ -43,6 +43,8 @@ class Truth:
     n_moving: int
     n_too_short: int = 1
     n_no_measurement: int = 1
+    n_captures: int = 0
+    """/capture: one message amid every hold (the extra two too) and amid the first move."""
 
 
 @dataclass(frozen=True)
@@ -91,14 +93,15 @@ def _stretches(ds: PoseDataset) -> list[_Stretch]:
     return stretches
 
 
-def _streams(ds: PoseDataset, seed: int) -> tuple[list[Any], list[Any], Truth]:
+def _streams(ds: PoseDataset, seed: int) -> tuple[list[Any], list[Any], list[int], Truth]:
     """(stamp ns, joints) of every joint-state message, (stamp ns, cameraMboard) of every
-    measurement, and the truth."""
+    measurement, the capture times ns, and the truth."""
     rng = np.random.default_rng(seed)
     joint_msgs: list[tuple[int, NDArray[np.float64]]] = []
     tf_msgs: list[tuple[int, Any]] = []
     moving = 0
     start = 0  # message index where the stretch starts
+    captures: list[int] = []
     for stretch in _stretches(ds):
         first = 1 if stretch.moving else 0  # a move's first message is the previous hold's last
         u = np.arange(first, stretch.n) / stretch.n
@@ -110,6 +113,8 @@ def _streams(ds: PoseDataset, seed: int) -> tuple[list[Any], list[Any], Truth]:
             jitter = int(rng.integers(-200_000, 200_000))  # ±0.2 ms
             joint_msgs.append((START_NS + (start + i) * JOINT_DT_NS + jitter, row))
         t0, t1 = START_NS + start * JOINT_DT_NS, START_NS + (start + len(u)) * JOINT_DT_NS
+        if not stretch.moving or len(captures) == 1:  # every hold, and the first move
+            captures.append((t0 + t1) // 2)
         if stretch.measured:
             for t in range(-(-(t0 - START_NS) // TF_DT_NS), -(-(t1 - START_NS) // TF_DT_NS)):
                 stamp = START_NS + t * TF_DT_NS
@@ -119,7 +124,7 @@ def _streams(ds: PoseDataset, seed: int) -> tuple[list[Any], list[Any], Truth]:
                     jitter = 0
                 tf_msgs.append((stamp + jitter, pose))
         start += len(u)
-    return joint_msgs, tf_msgs, Truth(len(joint_msgs), moving)
+    return joint_msgs, tf_msgs, captures, Truth(len(joint_msgs), moving, n_captures=len(captures))
 
 
 STORAGES = {"ros1": "fr3.bag", "sqlite3": "fr3_sqlite3", "mcap": "fr3_mcap"}
@@ -176,7 +181,7 @@ def write_bag(
     def tf_message(transforms: list[Any]) -> Any:
         return types["tf2_msgs/msg/TFMessage"](transforms=transforms)
 
-    joint_msgs, tf_msgs, truth = _streams(ds, seed)
+    joint_msgs, tf_msgs, captures, truth = _streams(ds, seed)
     names = [*reversed(ds.joint_names), *FINGERS]  # not the chain's order
     static = [
         transform(START_NS, "camera_link", "mid", CAMERA_M_MID),
@@ -222,6 +227,8 @@ def write_bag(
                 ),
             ),
         ]
+    empty = types["std_msgs/msg/Empty"](structure_needs_at_least_one_member=0)
+    messages += [("/capture", stamp, empty) for stamp in captures]  # no header: the log time
     messages.sort(key=lambda m: m[1])
     kinds = {
         "/joint_states": "sensor_msgs/msg/JointState",
@@ -230,6 +237,7 @@ def write_bag(
         "/board_pose": "geometry_msgs/msg/PoseStamped",
         "/board_transform": "geometry_msgs/msg/TransformStamped",
         "/tracker_point": "geometry_msgs/msg/PointStamped",
+        "/capture": "std_msgs/msg/Empty",
     }
     writer: Any = (
         Writer1(path)

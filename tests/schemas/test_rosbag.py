@@ -178,6 +178,30 @@ def test_measurements_near_a_holds_ends_are_left_to_the_clock_tolerance() -> Non
     np.testing.assert_array_equal(samples.position_m, [[3.0, 0, 0]])  # the mean of all three
 
 
+@pytest.mark.parametrize("storage", ["ros1", "mcap"])
+def test_one_sample_per_capture_message_while_still(
+    bags: dict[str, tuple[Path, Truth]], recorded: PoseDataset, storage: str
+) -> None:
+    path, truth = bags[storage]
+    recording = read_bag(
+        path,
+        "/joint_states",
+        MeasureSource.parse("tf:camera_link:board"),
+        joint_names=PANDA_JOINTS,
+        capture="/capture",
+    )
+    assert_same_rows(recording.dataset, recorded)
+    samples = recording.samples
+    assert (samples.n_captures, samples.n_moving, samples.n_no_measurement) == (
+        truth.n_captures,
+        2,  # the capture amid a move, and amid the hold shorter than the window
+        1,
+    )
+    assert "114 samples (one per capture message); dropped: 2 of 117 captures while moving, 1 " in (
+        recording.report()
+    )
+
+
 @pytest.mark.parametrize(
     ("measure", "position_only"),
     [

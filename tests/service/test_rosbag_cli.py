@@ -107,6 +107,7 @@ def test_import_without_a_robot_names_the_columns_by_the_topic(
         ),
         (["--joint-states", "/joint_states", *TF, "--still-window", "5"], "no still segment"),
         (["--joint-states", "/joint_states"], "give --joint-states TOPIC and --measure SOURCE"),
+        (["--joint-states", "/joint_states", *TF, "--capture", "/nope"], "no topic '/nope'"),
     ],
 )
 def test_a_bad_bag_is_exit_code_2_and_one_line(
