@@ -109,19 +109,14 @@ def synchronise_captures(
     windows = [
         (int(t), int(t) - half_ns, int(t) + half_ns) for t in np.sort(captures_ns, kind="stable")
     ]
-    moving = no_measurement = 0
-    rows: list[Row] = []
+    still: list[tuple[int, int, int, int, int]] = []
     for stamp, first, last in windows:
         lo = int(np.searchsorted(stamps_ns, first, side="left"))
         hi = int(np.searchsorted(stamps_ns, last, side="right"))
-        if not _is_still(joints[lo:hi], stamps_ns[lo:hi], settings.tolerance_rad_s):
-            moving += 1
-            continue
-        row = _averages(joints[lo:hi], measured, first + margin_ns, last - margin_ns)
-        if row is None:
-            no_measurement += 1
-            continue
-        rows.append((*row, stamp))
+        if _is_still(joints[lo:hi], stamps_ns[lo:hi], settings.tolerance_rad_s):
+            still.append((lo, hi, first + margin_ns, last - margin_ns, stamp))
+    moving = len(windows) - len(still)
+    rows, no_measurement = _measured_rows(still, joints, measured)
     return _samples(
         rows,
         joints.shape[1],
@@ -132,6 +127,22 @@ def synchronise_captures(
         no_measurement,
         n_captures=len(windows),
     )
+
+
+def _measured_rows(
+    windows: list[tuple[int, int, int, int, int]],
+    joints: NDArray[np.float64],
+    measured: Measurements,
+) -> tuple[list[Row], int]:
+    """The samples of still windows ``(start, stop, first_ns, last_ns, stamp_ns)``: joints
+    ``[start, stop)`` averaged, measurements stamped in ``[first_ns, last_ns]`` averaged; and
+    how many windows had no measurement."""
+    rows: list[Row] = []
+    for start, stop, first_ns, last_ns, stamp_ns in windows:
+        row = _averages(joints[start:stop], measured, first_ns, last_ns)
+        if row is not None:
+            rows.append((*row, stamp_ns))
+    return rows, len(windows) - len(rows)
 
 
 def _averages(
@@ -187,18 +198,15 @@ def synchronise(
     segments = still_segments(stamps_ns, joints, settings.tolerance_rad_s)
     margin_ns = round(settings.clock_tolerance_s * NS_PER_S)
     window_ns = round(settings.window_s * NS_PER_S)
-    rows: list[Row] = []
-    too_short = no_measurement = 0
+    long_enough: list[tuple[int, int, int, int, int]] = []
     for start, stop in segments:
         first, last = int(stamps_ns[start]), int(stamps_ns[stop - 1])
-        if last - first < window_ns:
-            too_short += 1
-            continue
-        row = _averages(joints[start:stop], measured, first + margin_ns, last - margin_ns)
-        if row is None:
-            no_measurement += 1
-            continue
-        rows.append((*row, (first + last) // 2))
+        if last - first >= window_ns:
+            long_enough.append(
+                (start, stop, first + margin_ns, last - margin_ns, (first + last) // 2)
+            )
+    too_short = len(segments) - len(long_enough)
+    rows, no_measurement = _measured_rows(long_enough, joints, measured)
     in_segments = sum(stop - start for start, stop in segments)
     n_moving = len(stamps_ns) - in_segments
     return _samples(
