@@ -126,6 +126,20 @@ def test_a_bad_bag_is_exit_code_2_and_one_line(
         assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
 
 
+def test_a_bag_of_another_robot_is_refused_listing_both_joint_sets(
+    bags: dict[str, tuple[Path, Truth]],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    args = ["calibrate", bags["ros1"][0], "--robot", "ur10", "--joint-states", "/joint_states"]
+    code, _, err = run([*args, *TF, "--out-dir", tmp_path], capsys, monkeypatch)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert (
+        "names joints panda_finger_joint1" in err and "chain joints are shoulder_pan_joint" in err
+    )
+
+
 def test_bag_options_without_a_bag_are_refused(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
