@@ -77,13 +77,18 @@ class RecordingView:
 
 
 def read_view(
-    source: str | Path, chain: KinematicChain, measurement: str = "auto", marker: int | None = None
+    source: str | Path | PoseDataset,
+    chain: KinematicChain,
+    measurement: str = "auto",
+    marker: int | None = None,
 ) -> RecordingView:
     """Read ``source`` as the calibration will (a dataset file, its head when it is large, a
-    ball-in-socket folder, or every marker of a FIGAROH file); :class:`DatasetError` if it
-    cannot be read."""
-    path = Path(source)
+    ball-in-socket folder, or every marker of a FIGAROH file; or a dataset in memory: a ROS
+    bag's); :class:`DatasetError` if it cannot be read."""
     kind = measurement.partition(":")[0]
+    if isinstance(source, PoseDataset):
+        return dataset_view(source, plain=kind in ("auto", "pose", "position"))
+    path = Path(source)
     if kind == "point" or (kind == "auto" and is_socket_folder(path)):
         sockets = read_socket_folder(path, chain.joint_names)
         q = sockets.joint_positions
@@ -142,7 +147,7 @@ def dataset_view(dataset: PoseDataset, *, plain: bool = True) -> RecordingView:
 
 
 def check_recording(
-    source: str | Path,
+    source: str | Path | PoseDataset,
     chain: KinematicChain,
     options: CalibrationOptions | None = None,
     *,

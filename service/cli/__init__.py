@@ -14,13 +14,14 @@ from typing import Any
 
 import typer
 
-from service.cli import calibrate, design, discover, export, fleet, predict, serve
+from service.cli import bags, calibrate, design, discover, export, fleet, predict, serve
 from service.cli.common import app
 from solver.errors import KincalError
 
 # The command table, in the order ``kincal --help`` lists the commands.
 app.command()(calibrate.simulate)
 app.command()(calibrate.calibrate)
+app.command("import")(bags.import_command)
 app.command("dh-urdf")(export.dh_urdf_command)
 app.command("export")(export.export_command)
 app.command()(predict.predict)

@@ -14,24 +14,33 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from service.cli.common import (
+    CLOCK_TOLERANCE_S,
     COVARIANCE,
     HELDOUT,
     MODEL,
     OUTLIERS,
     OUTPUT,
     RECORDING,
+    STILL_TOLERANCE_RAD_S,
+    STILL_WINDOW_S,
     BaseOpt,
+    CaptureOpt,
     ChunkRowsOpt,
+    ClockToleranceOpt,
     DaskOpt,
-    DataArg,
+    DataOrBagArg,
     DhOpt,
     ExecutorOpt,
+    JointStatesOpt,
     MarkerOpt,
     MeasurementOpt,
+    MeasureOpt,
     OutDirOpt,
     Outputs,
     PointDistanceOpt,
     RobotOpt,
+    StillToleranceOpt,
+    StillWindowOpt,
     TipOpt,
     UrdfOpt,
     WorkersOpt,
@@ -42,6 +51,7 @@ from service.cli.common import (
     _vector3,
     out_dir_for,
     output_option,
+    read_bag,
     read_findings,
     read_noise_covariance,
 )
@@ -57,6 +67,7 @@ from service.cli.generated_help import DEFAULT_EFFECTS, SIMULATE_EFFECTS
 from solver.errors import KincalError
 
 if TYPE_CHECKING:
+    from schemas.dataset import PoseDataset
     from service.app.calibrate import CalibrationRun
 
 RESULT_KIND = "kincal.calibration/1"
@@ -137,7 +148,7 @@ ResultOut = Annotated[Path | None, output_option("calibration.json", "The result
 
 
 def calibrate(
-    data: DataArg,
+    data: DataOrBagArg,
     robot: RobotOpt = None,
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
@@ -151,6 +162,12 @@ def calibrate(
             rich_help_panel=RECORDING,
         ),
     ] = None,
+    joint_states: JointStatesOpt = None,
+    measure: MeasureOpt = None,
+    capture: CaptureOpt = None,
+    still_tolerance: StillToleranceOpt = STILL_TOLERANCE_RAD_S,
+    still_window: StillWindowOpt = STILL_WINDOW_S,
+    clock_tolerance: ClockToleranceOpt = CLOCK_TOLERANCE_S,
     compliant_joints: Annotated[
         str | None, _calibration_flag("compliant_joints", "; comma-separated")
     ] = None,
@@ -320,9 +337,12 @@ def calibrate(
     result_path = outputs.path(output, "calibration.json", RESULT_KIND)
     report_path = None if report is None else outputs.path(report, "report.html", None)
     urdf_path = None if export_urdf_to is None else outputs.path(export_urdf_to, "", None)
+    source: Path | PoseDataset = data
     if not show_options:
+        bag = (joint_states, measure, (still_tolerance, still_window, clock_tolerance), capture)
+        source = bag_source(data, description, options, *bag)
         try:
-            preflight(data, description, options, marker)
+            preflight(source, description, options, marker)
         except KincalError:
             if _robot_may_refuse(options, findings):
                 from service.app import calibrate as pipeline
@@ -342,7 +362,14 @@ def calibrate(
         stream = pipeline.StreamOptions(chunk_rows=chunk_rows)
     chosen = _executor(executor, dask, workers)
     with chosen or contextlib.nullcontext():
-        run = pipeline.calibrate_source(data, setup, executor=chosen, stream=stream, marker=marker)
+        run = pipeline.calibrate_source(
+            source,
+            setup,
+            executor=chosen,
+            stream=stream,
+            marker=marker,
+            name=None if source is data else data.name,
+        )
     for note in run.notes:
         typer.echo(f"--model: {note}")
     outputs.write_text(
@@ -368,7 +395,40 @@ def _robot_may_refuse(options: object, findings: object) -> bool:
     )
 
 
-def preflight(data: Path, description: object, options: object, marker: int | None) -> None:
+def bag_source(
+    data: Path,
+    description: object,
+    options: object,
+    joint_states: str | None,
+    measure: str | None,
+    still: tuple[float, float, float],
+    capture: str | None,
+) -> Path | PoseDataset:
+    """``data`` itself, or the recording a ROS bag holds (its synchronisation report printed);
+    the bag options without a bag are refused."""
+    from schemas.dataset.rosbag import is_bag
+
+    if not is_bag(data):
+        if joint_states is not None or measure is not None or capture is not None:
+            raise KincalError(
+                f"--joint-states, --measure and --capture read a ROS bag; {data.name} is not one "
+                "(a .bag file or a rosbag2 folder)"
+            )
+        return data
+    from schemas.calibration import CalibrationOptions
+    from schemas.robots import RobotDescription
+    from service.render.chain import chain_for
+
+    assert isinstance(description, RobotDescription) and isinstance(options, CalibrationOptions)
+    chain = chain_for(description, options)
+    recording = read_bag(data, joint_states, measure, still, chain, capture)
+    typer.echo(recording.report())
+    return recording.dataset
+
+
+def preflight(
+    data: Path | PoseDataset, description: object, options: object, marker: int | None
+) -> None:
     """The pre-flight checks of :mod:`service.app.preflight` on ``data`` for the robot, before
     the calibration pipeline is imported."""
     from schemas.calibration import CalibrationOptions

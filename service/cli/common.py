@@ -19,8 +19,10 @@ if TYPE_CHECKING:  # imported where used: ``kincal --help`` stays light (docs/ar
     import pydantic
 
     from schemas.calibration import CalibrationResult
+    from schemas.dataset.rosbag import BagRecording
     from schemas.discovery import FindingsResult
     from solver.executors import Executor
+    from solver.model import KinematicChain
 
 DocumentT = TypeVar("DocumentT", bound="pydantic.BaseModel")
 
@@ -33,6 +35,7 @@ COVARIANCE = "Covariance"
 HELDOUT = "Held-out"
 EXECUTION = "Execution"
 OUTPUT = "Output"
+ROS_BAG = "ROS bag"
 
 app = typer.Typer(
     add_completion=False,
@@ -91,11 +94,18 @@ DhOpt = Annotated[
         rich_help_panel=RECORDING,
     ),
 ]
+_DATA_HELP = (
+    "Dataset: CSV, Parquet, JSON or industrial_calibration YAML; or a folder of "
+    "ball-in-socket hole_<k>.csv files"
+)
 DataArg = Annotated[
+    Path, typer.Argument(help=f"{_DATA_HELP}.", metavar="RECORDING", show_default=False)
+]
+DataOrBagArg = Annotated[
     Path,
     typer.Argument(
-        help="Dataset: CSV, Parquet, JSON or industrial_calibration YAML; or a folder of "
-        "ball-in-socket hole_<k>.csv files.",
+        help=f"{_DATA_HELP}; or a ROS bag (.bag file, rosbag2 folder) with --joint-states and "
+        "--measure.",
         metavar="RECORDING",
         show_default=False,
     ),
@@ -160,6 +170,71 @@ WorkersOpt = Annotated[
         rich_help_panel=EXECUTION,
     ),
 ]
+
+JointStatesOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--joint-states",
+        help="A ROS bag: the sensor_msgs/JointState topic (e.g. /joint_states).",
+        metavar="TOPIC",
+        rich_help_panel=ROS_BAG,
+    ),
+]
+MeasureOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--measure",
+        help="A ROS bag: the measured pose. tf:PARENT:CHILD (CHILD in PARENT, from /tf and "
+        "/tf_static), pose:TOPIC (PoseStamped or TransformStamped) or point:TOPIC "
+        "(PointStamped: positions only).",
+        metavar="SOURCE",
+        rich_help_panel=ROS_BAG,
+    ),
+]
+CaptureOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--capture",
+        help="A ROS bag: a topic (any type) with one message per capture; each is a sample, "
+        "the robot still for --still-window around it [default: one sample per still segment].",
+        metavar="TOPIC",
+        rich_help_panel=ROS_BAG,
+    ),
+]
+StillToleranceOpt = Annotated[
+    float,
+    typer.Option(
+        "--still-tolerance",
+        min=0.0,
+        help="A ROS bag: the robot holds still while every joint moves slower than this, "
+        "rad/s (m/s).",
+        rich_help_panel=ROS_BAG,
+    ),
+]
+StillWindowOpt = Annotated[
+    float,
+    typer.Option(
+        "--still-window",
+        min=0.0,
+        help="A ROS bag: shortest hold that makes a sample, s.",
+        rich_help_panel=ROS_BAG,
+    ),
+]
+ClockToleranceOpt = Annotated[
+    float,
+    typer.Option(
+        "--clock-tolerance",
+        min=0.0,
+        help="A ROS bag: clock offset tolerated between the joint-state and measurement "
+        "topics, s (measurements this close to a hold's ends are not used).",
+        rich_help_panel=ROS_BAG,
+    ),
+]
+STILL_TOLERANCE_RAD_S = 1e-3
+STILL_WINDOW_S = 0.2
+CLOCK_TOLERANCE_S = 0.02
+"""The defaults of the three options above (``schemas.dataset.still.StillSettings``'s; a test
+keeps them equal: that module imports numpy, which ``kincal --help`` must not)."""
 
 
 def output_option(default_name: str, what: str) -> Any:
@@ -381,3 +456,33 @@ def _executor(kind: str | None, dask: str | None, workers: int | None) -> Execut
             raise KincalError(f"--dask: {exc}") from None
     address = dask or (load_settings().dask_address if name == "dask" else None)
     return make_executor(name, n_workers=workers, dask_address=address)  # type: ignore[arg-type]
+
+
+def read_bag(
+    bag: Path,
+    joint_states: str | None,
+    measure: str | None,
+    still: tuple[float, float, float],
+    chain: KinematicChain | None,
+    capture: str | None = None,
+) -> BagRecording:
+    """The ROS bag ``bag`` as a recording (``schemas.dataset.rosbag``): ``still`` = tolerance
+    rad/s, window s, clock tolerance s; ``chain``: the robot whose joints to match (None: every
+    joint of the topic); ``capture``: the capture topic, if any."""
+    from schemas.dataset.rosbag import MeasureSource, read_bag
+    from schemas.dataset.still import StillSettings
+
+    if joint_states is None or measure is None:
+        raise KincalError(
+            f"{bag.name} is a ROS bag: give --joint-states TOPIC and --measure SOURCE "
+            "(e.g. --joint-states /joint_states --measure tf:camera_link:board)"
+        )
+    return read_bag(
+        bag,
+        joint_states,
+        MeasureSource.parse(measure),
+        joint_names=None if chain is None else chain.joint_names,
+        other_joint_names=() if chain is None else chain.other_joint_names,
+        settings=StillSettings(*still),
+        capture=capture,
+    )

@@ -14,7 +14,17 @@ from service import kincal_version
 from service.cli.help_text import GENERATED, generated_source
 from tests.service.cli_support import help_text, run
 
-HEAVY = ("pinocchio", "cvxpy", "fastapi", "matplotlib", "pandas", "numpy", "scipy", "sqlalchemy")
+HEAVY = (
+    "pinocchio",
+    "cvxpy",
+    "fastapi",
+    "matplotlib",
+    "pandas",
+    "numpy",
+    "scipy",
+    "sqlalchemy",
+    "rosbags",
+)
 """Packages ``kincal --help`` must not import: each costs 0.1-2 s."""
 
 PANELS = (
@@ -48,7 +58,9 @@ def _imported_by(*args: str) -> set[str]:
     return set(json.loads(done.stdout))
 
 
-@pytest.mark.parametrize("args", [("--help",), ("calibrate", "--help"), ("--version",)])
+@pytest.mark.parametrize(
+    "args", [("--help",), ("calibrate", "--help"), ("import", "--help"), ("--version",)]
+)
 def test_help_loads_none_of_the_heavy_packages(args: tuple[str, ...]) -> None:
     loaded = _imported_by(*args)
     assert "typer" in loaded and "service" in loaded

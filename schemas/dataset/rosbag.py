@@ -1,0 +1,371 @@
+"""ROS bags (ROS 1 ``.bag``, rosbag2 folders with sqlite3 or MCAP storage) to a recording of the
+dataset contract, read with ``rosbags`` (no ROS install; imported only when a bag is read).
+
+Joint readings come from a ``sensor_msgs/JointState`` topic; the measured pose from one source
+(:class:`MeasureSource`): ``tf:PARENT:CHILD`` (the pose of CHILD in PARENT composed along
+``/tf`` and ``/tf_static``, :mod:`schemas.dataset.tf_tree`), ``pose:TOPIC``
+(``geometry_msgs/PoseStamped`` or ``TransformStamped``) or ``point:TOPIC``
+(``geometry_msgs/PointStamped``: a position-only recording). Header stamps are the time.
+Samples are the still segments of the joint readings (:mod:`schemas.dataset.still`).
+Every problem is one :class:`~solver.errors.DatasetError` line naming the fix.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from schemas.dataset.columns import one_line
+from schemas.dataset.records import POSITION_COLUMNS, QUATERNION_COLUMNS, PoseDataset
+from schemas.dataset.still import (
+    NS_PER_S,
+    Measurements,
+    Samples,
+    StillSettings,
+    synchronise,
+    synchronise_captures,
+)
+from schemas.dataset.tf_tree import Edge, TfTree
+from schemas.dataset.validate import dataset_from_frame
+from solver.errors import DatasetError
+
+if TYPE_CHECKING:
+    from rosbags.highlevel import AnyReader
+
+BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+JOINT_STATE = "sensor_msgs/msg/JointState"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/TransformStamped")
+POINT_TYPE = "geometry_msgs/msg/PointStamped"
+TF_TOPICS = ("/tf", "/tf_static")
+SOURCE_FORMS = "tf:PARENT:CHILD, pose:TOPIC or point:TOPIC"
+
+
+@dataclass(frozen=True)
+class MeasureSource:
+    """Where the measured pose comes from: ``kind`` tf (``frames`` = parent, child), pose or
+    point (``topic``)."""
+
+    kind: str
+    topic: str = ""
+    frames: tuple[str, str] = ("", "")
+
+    @classmethod
+    def parse(cls, text: str) -> MeasureSource:
+        kind, _, rest = text.partition(":")
+        parts = rest.split(":")
+        frames = [part.lstrip("/") for part in parts]  # tf2 frame ids have no leading slash
+        if kind == "tf" and len(frames) == 2 and all(frames):
+            return cls("tf", frames=(frames[0], frames[1]))
+        if kind in ("pose", "point") and len(parts) == 1 and parts[0]:
+            return cls(kind, topic=parts[0])
+        raise DatasetError(f"--measure {text!r}: give {SOURCE_FORMS}")
+
+
+@dataclass(frozen=True)
+class BagRecording:
+    """A bag read as a recording: the dataset and what synchronisation kept and dropped."""
+
+    dataset: PoseDataset
+    samples: Samples
+
+    def report(self) -> str:
+        """One line: samples kept, segments dropped per reason, messages while moving."""
+        s = self.samples
+        if s.n_captures is not None:
+            return (
+                f"{self.dataset.source}: {s.n_samples} samples (one per capture message); "
+                f"dropped: {s.n_moving} of {s.n_captures} captures while moving, "
+                f"{s.n_no_measurement} without a measurement"
+            )
+        return (
+            f"{self.dataset.source}: {s.n_samples} samples (one per still segment); dropped: "
+            f"{s.n_too_short} still segment(s) too short, {s.n_no_measurement} without a "
+            f"measurement; {s.n_moving} of {s.n_messages} joint-state messages while moving"
+        )
+
+
+def is_bag(path: Path) -> bool:
+    """A ROS 1 bag file, a rosbag2 folder (``metadata.yaml``) or a storage file inside one."""
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    return path.suffix.lower() in BAG_SUFFIXES
+
+
+def read_bag(
+    path: str | Path,
+    joint_states: str,
+    measure: MeasureSource,
+    *,
+    joint_names: Sequence[str] | None = None,
+    other_joint_names: Sequence[str] = (),
+    settings: StillSettings | None = None,
+    capture: str | None = None,
+) -> BagRecording:
+    """The bag at ``path`` as a recording: one sample per still segment of ``joint_states``
+    with ``measure`` averaged inside it. ``joint_names``: the chain's URDF joints, in chain
+    order (None: every joint of the topic, in its order); ``other_joint_names``: URDF joints off
+    the chain, accepted and left out; ``capture``: a topic of any type whose messages (header
+    stamp, else the time it was logged) mark the samples instead of the still segments."""
+    path, settings = Path(path), settings or StillSettings()
+    source = path.name
+    with _open(path, source) as reader:
+        topics = {name: info.msgtype or "?" for name, info in reader.topics.items()}
+        counts = {name: info.msgcount for name, info in reader.topics.items()}
+        listing = ", ".join(f"{t} ({topics[t]}, {counts[t]} messages)" for t in sorted(topics))
+        _check_topic(joint_states, (JOINT_STATE,), "--joint-states", topics, listing, source)
+        measured = _measurements(reader, measure, topics, listing, source)  # the cheaper reads
+        captures = None
+        if capture is not None:
+            _check_topic(capture, (), "--capture", topics, listing, source)
+            captures = _capture_stamps(reader, capture)
+        names, stamps, joints = _joint_states(reader, joint_states, joint_names, source)
+    samples = (
+        synchronise(stamps, joints, measured, settings)
+        if captures is None
+        else synchronise_captures(stamps, joints, measured, captures, settings)
+    )
+    if samples.n_samples == 0:
+        raise DatasetError(f"{source}: {_no_sample(samples, settings)}")
+    frame = _frame(names, samples, int(stamps[0]))
+    dataset = dataset_from_frame(frame, names, source=source, other_joint_names=other_joint_names)
+    return BagRecording(dataset, samples)
+
+
+def _no_sample(samples: Samples, settings: StillSettings) -> str:
+    """Why no sample was kept, and what to change."""
+    if samples.n_captures is not None:
+        return (
+            f"no capture to sample: {samples.n_captures} capture message(s), {samples.n_moving} "
+            f"while moving, {samples.n_no_measurement} without a measurement; capture while the "
+            f"robot holds still for {settings.window_s:g} s around the message with the "
+            "measurement published, or lower --still-window"
+        )
+    found = samples.n_too_short + samples.n_no_measurement
+    what = (
+        f"{found} still segment(s), {samples.n_too_short} too short and "
+        f"{samples.n_no_measurement} without a measurement"
+        if found
+        else f"the robot never holds still ({samples.n_messages} joint-state messages)"
+    )
+    return (
+        f"no still segment to sample: {what}; record holds of at least {settings.window_s:g} s "
+        "with the measurement published, or raise --still-tolerance (now "
+        f"{settings.tolerance_rad_s:g} rad/s) / lower --still-window"
+    )
+
+
+def _capture_stamps(reader: AnyReader, topic: str) -> NDArray[np.int64]:
+    """The header stamp of every message of ``topic``, or the time it was logged."""
+    return np.array(
+        [
+            _stamp_ns(msg.header) if hasattr(msg, "header") else logged
+            for logged, msg in _messages(reader, topic)
+        ],
+        dtype=np.int64,
+    )
+
+
+@contextmanager
+def _open(path: Path, source: str) -> Iterator[AnyReader]:
+    """The bag opened with rosbags' AnyReader; a storage file of a rosbag2 folder opens its
+    folder."""
+    from rosbags.highlevel import AnyReader
+
+    if path.is_file() and path.suffix.lower() in (".mcap", ".db3"):
+        if not (path.parent / "metadata.yaml").is_file():
+            raise DatasetError(
+                f"{source}: no metadata.yaml next to it; pass the rosbag2 folder that holds it"
+            )
+        path = path.parent
+    if not path.exists():
+        raise DatasetError(f"{source}: file not found ({path}); check the path")
+    try:
+        reader = AnyReader([path])
+        reader.open()
+    except Exception as exc:  # rosbags' reader errors, a truncated file: one line
+        raise DatasetError(
+            f"{source}: cannot read as a ROS bag ({type(exc).__name__}: {one_line(exc)}); pass "
+            "a ROS 1 .bag file or a rosbag2 folder (metadata.yaml with sqlite3 or mcap files)"
+        ) from exc
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def _check_topic(
+    topic: str, types: Sequence[str], option: str, topics: dict[str, str], listing: str, source: str
+) -> None:
+    if topic not in topics:
+        raise DatasetError(
+            f"{source}: no topic {topic!r} in the bag; its topics: {listing or 'none'}; "
+            f"pass one of them to {option}"
+        )
+    if types and topics[topic] not in types:
+        raise DatasetError(
+            f"{source}: topic {topic!r} holds {topics[topic]}, {option} needs "
+            f"{' or '.join(types)}; its topics: {listing}"
+        )
+
+
+def _messages(reader: AnyReader, topic: str) -> Iterator[tuple[int, Any]]:
+    """(time logged ns, message) of every message of ``topic``."""
+    connections = [c for c in reader.connections if c.topic == topic]
+    for connection, logged_ns, raw in reader.messages(connections=connections):
+        try:
+            yield logged_ns, reader.deserialize(raw, connection.msgtype)
+        except Exception as exc:
+            raise DatasetError(
+                f"{topic}: a message cannot be decoded ({one_line(exc)}); re-record the topic"
+            ) from exc
+
+
+def _stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * NS_PER_S + int(header.stamp.nanosec)
+
+
+def _joint_states(
+    reader: AnyReader, topic: str, joint_names: Sequence[str] | None, source: str
+) -> tuple[tuple[str, ...], NDArray[np.int64], NDArray[np.float64]]:
+    """Joint names, stamps (n,) ns sorted, positions (n, k) of the messages holding every
+    wanted joint (messages of other joints on the same topic, e.g. a gripper, are skipped)."""
+    wanted: tuple[str, ...] | None = None if joint_names is None else tuple(joint_names)
+    seen: set[str] = set()
+    order: dict[tuple[str, ...], NDArray[np.intp] | None] = {}
+    stamps: list[int] = []
+    rows: list[NDArray[np.float64]] = []
+    for _, msg in _messages(reader, topic):
+        names = tuple(msg.name)
+        if wanted is None and names:
+            wanted = names
+        if names not in order:
+            seen.update(names)
+            order[names] = _columns_of(wanted or (), names)
+        index = order[names]
+        if index is None or len(msg.position) != len(names):
+            continue
+        stamps.append(_stamp_ns(msg.header))
+        rows.append(np.asarray(msg.position, dtype=float)[index])
+    if joint_names is None and not rows:
+        raise DatasetError(
+            f"{source}: {topic} holds no joint positions; pass the arm's joint-state topic"
+        )
+    if wanted is None or not rows:
+        missing = [] if wanted is None else [n for n in wanted if n not in seen]
+        raise DatasetError(
+            f"{source}: {topic} names joints {', '.join(sorted(seen)) or '(none)'}; the robot's "
+            f"chain joints are {', '.join(wanted or ())}"
+            + (
+                f" ({', '.join(missing)} never published)"
+                if 0 < len(missing) < len(wanted or ())
+                else ""
+            )
+            + "; pass the robot the bag was recorded with (--robot/--urdf), or the arm's "
+            "joint-state topic"
+        )
+    stamp_array = np.asarray(stamps, dtype=np.int64)
+    by_time = np.argsort(stamp_array, kind="stable")
+    return wanted, stamp_array[by_time], np.asarray(rows)[by_time]
+
+
+def _columns_of(wanted: Sequence[str], names: tuple[str, ...]) -> NDArray[np.intp] | None:
+    """Where each wanted joint is in a message's ``names``; None if one is missing."""
+    if not wanted or not set(wanted) <= set(names):
+        return None
+    return np.array([names.index(n) for n in wanted])
+
+
+def _measurements(
+    reader: AnyReader, measure: MeasureSource, topics: dict[str, str], listing: str, source: str
+) -> Measurements:
+    if measure.kind == "tf":
+        _check_topic("/tf", (TF_MESSAGE,), "--measure tf:…", topics, listing, source)
+        tree = _tf_tree(reader, topics, source)
+        parent, child = measure.frames
+        stamps = tree.dynamic_stamps(parent, child)
+        if len(stamps) == 0:
+            raise DatasetError(
+                f"{source}: {child!r} in {parent!r} is static (only /tf_static joins them); "
+                "name the frames of the measured transform"
+            )
+        poses = tree.pose(parent, child, stamps)
+        valid = poses.valid
+        return Measurements(stamps[valid], poses.translation_m[valid], poses.quaternion_xyzw[valid])
+    types = POSE_TYPES if measure.kind == "pose" else (POINT_TYPE,)
+    _check_topic(measure.topic, types, f"--measure {measure.kind}:…", topics, listing, source)
+    stamps_list, positions, quaternions = [], [], []
+    for _, msg in _messages(reader, measure.topic):
+        stamps_list.append(_stamp_ns(msg.header))
+        if measure.kind == "point":
+            positions.append([msg.point.x, msg.point.y, msg.point.z])
+            continue
+        pose = getattr(msg, "pose", None)
+        if pose is not None:
+            position, orientation = pose.position, pose.orientation
+        else:
+            position, orientation = msg.transform.translation, msg.transform.rotation
+        positions.append([position.x, position.y, position.z])
+        quaternions.append([orientation.x, orientation.y, orientation.z, orientation.w])
+    by_time = np.argsort(np.asarray(stamps_list, dtype=np.int64), kind="stable")
+    return Measurements(
+        np.asarray(stamps_list, dtype=np.int64)[by_time],
+        np.asarray(positions, dtype=float).reshape(-1, 3)[by_time],
+        None if measure.kind == "point" else np.asarray(quaternions).reshape(-1, 4)[by_time],
+    )
+
+
+def _tf_tree(reader: AnyReader, topics: dict[str, str], source: str) -> TfTree:
+    samples: dict[tuple[str, bool], list[tuple[str, int, list[float]]]] = {}
+    for topic in TF_TOPICS:
+        if topics.get(topic) != TF_MESSAGE:
+            continue
+        for _, msg in _messages(reader, topic):
+            for tf in msg.transforms:
+                t, r = tf.transform.translation, tf.transform.rotation
+                key = (tf.child_frame_id.lstrip("/"), topic == "/tf_static")
+                samples.setdefault(key, []).append(
+                    (
+                        tf.header.frame_id.lstrip("/"),
+                        _stamp_ns(tf.header),
+                        [t.x, t.y, t.z, r.x, r.y, r.z, r.w],
+                    )
+                )
+    edges: dict[str, Edge] = {}
+    for (child, static), entries in sorted(samples.items(), key=lambda kv: kv[0][1]):
+        parents = {parent for parent, _, _ in entries}
+        parents |= {edges[child].parent} if child in edges else set()
+        if len(parents) > 1:
+            raise DatasetError(
+                f"{source}: frame {child!r} has several parents in the tf tree "
+                f"({', '.join(sorted(parents))}); "
+                "a tf frame has one parent: fix the recording's tf publishers"
+            )
+        entries.sort(key=lambda e: e[1])
+        values = np.array([v for _, _, v in entries])
+        edges[child] = Edge(
+            parents.pop(),
+            child,
+            np.array([s for _, s, _ in entries], dtype=np.int64),
+            values[:, :3],
+            values[:, 3:] / np.linalg.norm(values[:, 3:], axis=1, keepdims=True),
+            static,
+        )
+    return TfTree(edges, source)
+
+
+def _frame(names: Sequence[str], samples: Samples, start_ns: int) -> pd.DataFrame:
+    data: dict[str, Any] = {"sample_id": np.arange(samples.n_samples)}
+    data |= {n: samples.joint_positions[:, i] for i, n in enumerate(names)}
+    data |= {c: samples.position_m[:, i] for i, c in enumerate(POSITION_COLUMNS)}
+    if samples.quaternion_xyzw is not None:
+        data |= {c: samples.quaternion_xyzw[:, i] for i, c in enumerate(QUATERNION_COLUMNS)}
+    data["t"] = (samples.stamps_ns - start_ns).astype(float) / NS_PER_S
+    return pd.DataFrame(data)
