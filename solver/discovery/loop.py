@@ -93,7 +93,7 @@ from solver.discovery.scoring import (
     bootstrap_winners,
     canonical_correlation,
     holm,
-    score_test,
+    score_tests,
 )
 from solver.discovery.validation import (
     corroborated,
@@ -319,12 +319,12 @@ class _Search:
             self.ctx, self.fit.terms, self.fit.params, self.fit.rows, candidates=tuple(library)
         )
         null = NullModel.from_fit(self.fit, self.options.seed)
-        tests, columns = {}, {}
-        for term in library:
-            cols = whitened(design.candidates[term.key], self.fit.weights).reshape(-1, term.size)
-            result = score_test(null, term.key, cols)
-            if result is not None:
-                tests[term.key], columns[term.key] = result, cols
+        every = {
+            t.key: whitened(design.candidates[t.key], self.fit.weights).reshape(-1, t.size)
+            for t in library
+        }
+        tests = score_tests(null, every)
+        columns = {key: every[key] for key in tests}
         self.n_candidates = self.n_candidates or len(tests)
         significant = holm({k: t.p_value for k, t in tests.items()}, self.options.alpha)
         ranked = sorted(significant, key=lambda k: tests[k].log_p)
