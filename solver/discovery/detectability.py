@@ -558,13 +558,17 @@ def calibrated_size(
     needed = int(np.ceil(power * count - 1e-9))
     ceiling = MAX_SIZE_FACTOR * start
 
+    decided: dict[float, bool] = {}  # the scans and the checks above revisit sizes
+
     def detected(size: float) -> bool:
-        hits = 0
-        for done in range(count):
-            hits += trials.rejected(done, size, level)
-            if hits >= needed or hits + count - done - 1 < needed:
-                break
-        return hits >= needed
+        if size not in decided:
+            hits = 0
+            for done in range(count):
+                hits += trials.rejected(done, size, level)
+                if hits >= needed or hits + count - done - 1 < needed:
+                    break
+            decided[size] = hits >= needed
+        return decided[size]
 
     if not detected(LIMIT_FACTOR * start):
         return float("inf"), UNDETECTABLE_LARGE
