@@ -41,7 +41,7 @@ from solver.discovery.fitting import (
     whitened,
 )
 from solver.discovery.library import Term
-from solver.discovery.scoring import NullModel, ScoreTest, holm, score_test
+from solver.discovery.scoring import NullModel, ScoreTest, holm, score_test, score_tests
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
@@ -191,7 +191,8 @@ def residual_structure(
     """Generic-basis tests on the final model, Holm-corrected together; significant ones only."""
     rows = fit.rows
     d = null.d
-    tests: dict[str, tuple[str, int | None, ScoreTest]] = {}
+    labels: dict[str, tuple[str, int | None]] = {}
+    columns: dict[str, FloatArray] = {}
     whitened_residual = null.residual.reshape(-1, d)
     for j, unit in units.items():
         q = ctx.data.joint_positions[rows, j]
@@ -204,21 +205,16 @@ def residual_structure(
         if np.ptp(tau) > 1e-9:
             basis = load_basis(tau, library=True, extra=True)
             candidates["load"] = axis_function_columns(unit, basis, fit.weights)
-        for kind, columns in candidates.items():
-            if skip is not None and (kind, j) in skip:
-                continue
-            result = score_test(null, f"{kind}:{j}", columns)
-            if result is not None:
-                tests[f"{kind}:{j}"] = (kind, j, result)
+        for kind, candidate in candidates.items():
+            if skip is None or (kind, j) not in skip:
+                labels[f"{kind}:{j}"], columns[f"{kind}:{j}"] = (kind, j), candidate
     clock = ctx.bank.clock[rows]
     ranges = ctx.data.range_m()
     for kind, variable in (("time", clock), ("range", None if ranges is None else ranges[rows])):
         if variable is not None and np.ptp(variable) > 0:
-            result = score_test(
-                null, kind, component_columns(legendre_basis(variable, range(1, 5)), d)
-            )
-            if result is not None:
-                tests[kind] = (kind, None, result)
+            labels[kind] = (kind, None)
+            columns[kind] = component_columns(legendre_basis(variable, range(1, 5)), d)
+    tests = {key: (*labels[key], test) for key, test in score_tests(null, columns).items()}
     rejected = holm({k: v[2].p_value for k, v in tests.items()}, alpha)
     rss = float(null.residual @ null.residual)
     out = []

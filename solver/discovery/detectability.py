@@ -73,7 +73,7 @@ from solver.discovery.scoring import (
     FLIP_DRAWS,
     NullModel,
     flip_batch,
-    flip_p_value,
+    flip_p_values,
     flip_whitened,
     tie_threshold,
     unexplained_basis,
@@ -471,16 +471,19 @@ def robust_in_every_direction(
     every phase, a flex about every axis ⟂ the joint? With several coefficients the
     per-sample scores of one signature need not agree, so its p-value has a floor that
     depends on the direction (:func:`calibrated_size` checks only the weakest one). Checked on
-    :data:`LIMIT_DIRECTIONS` directions spread over the group (unit vectors, (m,))."""
+    :data:`LIMIT_DIRECTIONS` directions spread over the group (unit vectors, (m,)); the
+    sign-flip p-values of those the bound :func:`flip_p_bound` does not settle from one pass
+    over the bank (:func:`~solver.discovery.scoring.flip_p_values`)."""
     if len(indices) < 2:
         return True
+    uncertified = []  # the directions whose p-value bound does not already reject
     for direction in spread_directions(len(indices)):
         coefficients = np.zeros(projected.shape[1])
         coefficients[indices] = direction
         z, _ = flip_whitened(null.sample_scores(basis, projected @ coefficients))
-        if flip_p_bound(z) > level and flip_p_value(z, null.flip_seed) > level:
-            return False
-    return True
+        if flip_p_bound(z) > level:
+            uncertified.append(z)
+    return all(p <= level for p in flip_p_values(uncertified, null.flip_seed))
 
 
 def flip_p_bound(z: FloatArray) -> float:
@@ -558,13 +561,17 @@ def calibrated_size(
     needed = int(np.ceil(power * count - 1e-9))
     ceiling = MAX_SIZE_FACTOR * start
 
+    decided: dict[float, bool] = {}  # the scans and the checks above revisit sizes
+
     def detected(size: float) -> bool:
-        hits = 0
-        for done in range(count):
-            hits += trials.rejected(done, size, level)
-            if hits >= needed or hits + count - done - 1 < needed:
-                break
-        return hits >= needed
+        if size not in decided:
+            hits = 0
+            for done in range(count):
+                hits += trials.rejected(done, size, level)
+                if hits >= needed or hits + count - done - 1 < needed:
+                    break
+            decided[size] = hits >= needed
+        return decided[size]
 
     if not detected(LIMIT_FACTOR * start):
         return float("inf"), UNDETECTABLE_LARGE

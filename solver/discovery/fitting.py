@@ -126,6 +126,25 @@ class Design:
     candidates: dict[str, FloatArray] = field(default_factory=dict)
     unit: dict[tuple[int, str], FloatArray] = field(default_factory=dict)
 
+    def restricted(self, rows: IndexArray) -> Design | None:
+        """This design on ``rows`` (sorted), a subset of its own sorted rows, without
+        evaluating again; None when one of ``rows`` is not among them. Valid where each
+        sample is evaluated on its own (pose rows: :func:`design_on`)."""
+        at = np.searchsorted(self.rows, rows)
+        if np.any(at >= self.rows.size) or not np.array_equal(
+            self.rows[np.minimum(at, self.rows.size - 1)], rows
+        ):
+            return None
+        return Design(
+            rows=rows,
+            pose=self.pose[at],
+            residual=self.residual[at],
+            links=self.links[at],
+            terms=self.terms[at],
+            candidates={k: v[at] for k, v in self.candidates.items()},
+            unit={k: v[at] for k, v in self.unit.items()},
+        )
+
 
 def _globals(
     terms: tuple[Term, ...], theta: FloatArray, data: DiscoveryData
@@ -548,16 +567,20 @@ def fit_model(
     *,
     max_iterations: int = 40,
     tolerance: float = 1e-10,
+    design: Design | None = None,
 ) -> ModelFit:
     """Gauss–Newton on the whitened residuals (Eq. 10 with the extra term columns) over the
     nuisance columns :func:`_kept_links` keeps and θ, the measurement model's known distances
     met in every step (:func:`_constrained_step`). A step that does not lower the cost (with
     the constraints' violation, :func:`_merit`) is replaced by Levenberg–Marquardt steps damped
     tenfold each time, and the damping is relaxed tenfold after each accepted step until it is
-    pure Gauss–Newton again; a fit whose Gauss–Newton steps all succeed is plain Gauss–Newton."""
+    pure Gauss–Newton again; a fit whose Gauss–Newton steps all succeed is plain Gauss–Newton.
+    ``design``: :func:`evaluate` of ``terms`` at ``start`` on ``rows``, when the caller has it
+    (not evaluated again)."""
     d = ctx.data.rows
     params = start
-    design = evaluate(ctx, terms, params, rows)
+    if design is None or not np.array_equal(design.rows, rows):
+        design = evaluate(ctx, terms, params, rows)
     p_terms = design.terms.shape[2]
     if start.theta.size != p_terms:
         raise ValueError("start parameters do not match the terms")
@@ -701,14 +724,24 @@ def fit_with_noise(
     rows: IndexArray,
     weights: FloatArray | None = None,
     rounds: int = 2,
+    design: Design | None = None,
 ) -> ModelFit:
-    """Fit, re-estimate the per-block noise scale, refit (``rounds`` times)."""
+    """Fit, re-estimate the per-block noise scale, refit (``rounds`` times); ``design`` as
+    :func:`fit_model`'s, the later fits start from the design of the one before."""
     w = np.ones(ctx.data.rows) if weights is None else weights
-    fit = fit_model(ctx, terms, start, rows, w)
+    fit = fit_model(ctx, terms, start, rows, w, design=design)
     for _ in range(rounds):
         w = noise_weights(fit, ctx.data.noise_blocks())
-        fit = fit_model(ctx, terms, fit.params, rows, w)
+        fit = fit_model(ctx, terms, fit.params, rows, w, design=fit.design)
     return fit
+
+
+def design_on(ctx: Context, design: Design, rows: IndexArray) -> Design | None:
+    """``design`` on ``rows`` ⊂ its rows without evaluating again (:meth:`Design.restricted`)
+    where the recording's samples are evaluated each on its own — pose rows; None for other
+    measurement models (their rows may depend on one another) or when ``rows`` is not a
+    subset."""
+    return design.restricted(rows) if ctx.data.is_pose else None
 
 
 def extend(

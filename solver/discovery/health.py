@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from solver.discovery.checks import component_columns
 from solver.discovery.features import legendre_basis
 from solver.discovery.fitting import Context, ModelFit
-from solver.discovery.scoring import NullModel, score_test, unexplained_basis
+from solver.discovery.scoring import NullModel, score_tests, unexplained_basis
 
 FloatArray = NDArray[np.float64]
 COMPONENT_NAMES = ("x", "y", "z", "rx", "ry", "rz")
@@ -81,8 +81,11 @@ def health_report(
     rss = float(null.residual @ null.residual)
     names = COMPONENT_NAMES if ctx.data.is_pose else ctx.data.model.components
     dependences = []
+    tests = score_tests(
+        null, {f"{v}:{j}": component_columns(basis, d) for v, j, basis in variables}
+    )
     for variable, joint, basis in variables:
-        result = score_test(null, variable, component_columns(basis, d))
+        result = tests.get(f"{variable}:{joint}")
         if result is None:
             continue
         dependences.append(

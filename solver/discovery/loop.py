@@ -93,7 +93,7 @@ from solver.discovery.scoring import (
     bootstrap_winners,
     canonical_correlation,
     holm,
-    score_test,
+    score_tests,
 )
 from solver.discovery.validation import (
     corroborated,
@@ -229,6 +229,8 @@ class _Search:
         self.declared_notes = self._declared_checks()
         # (candidate key, the fit it was added to, the refit with it) of the last row check
         self.tentative: tuple[str, ModelFit, ModelFit] = ("", self.fit, self.fit)
+        # (fit, its terms, level, the screened fit) of the last outlier screen
+        self.last_screen: tuple[ModelFit, tuple[Term, ...], float | None, ModelFit] | None = None
         # the held-out error of the current model, kept while the model is unchanged (a
         # rejected candidate leaves it as it was: the next step compares against the same)
         self.heldout_of: tuple[tuple[Term, ...], ModelFit, HeldoutError] | None = None
@@ -319,12 +321,12 @@ class _Search:
             self.ctx, self.fit.terms, self.fit.params, self.fit.rows, candidates=tuple(library)
         )
         null = NullModel.from_fit(self.fit, self.options.seed)
-        tests, columns = {}, {}
-        for term in library:
-            cols = whitened(design.candidates[term.key], self.fit.weights).reshape(-1, term.size)
-            result = score_test(null, term.key, cols)
-            if result is not None:
-                tests[term.key], columns[term.key] = result, cols
+        every = {
+            t.key: whitened(design.candidates[t.key], self.fit.weights).reshape(-1, t.size)
+            for t in library
+        }
+        tests = score_tests(null, every)
+        columns = {key: every[key] for key in tests}
         self.n_candidates = self.n_candidates or len(tests)
         significant = holm({k: t.p_value for k, t in tests.items()}, self.options.alpha)
         ranked = sorted(significant, key=lambda k: tests[k].log_p)
@@ -371,7 +373,7 @@ class _Search:
             tentative = fit_with_noise(
                 self.ctx, new_terms, start, self.fit.rows, self.fit.weights, rounds=1
             )
-            kept = screen_outliers(self.ctx, new_terms, tentative, level).rows
+            kept = self._screened(new_terms, tentative, level).rows
             back = np.setdiff1d(kept, self.fit.rows)
             if back.size:
                 return back
@@ -462,7 +464,18 @@ class _Search:
                 _Accepted(term, step, test, wins.get(key, 0.0), before, after, self.fit)
             )
         self.terms = new_terms
-        self.fit = screen_outliers(self.ctx, new_terms, new_fit, self.options.outlier_level)
+        self.fit = self._screened(new_terms, new_fit, self.options.outlier_level)
+
+    def _screened(self, terms: tuple[Term, ...], fit: ModelFit, level: float | None) -> ModelFit:
+        """:func:`~solver.discovery.validation.screen_outliers` of ``fit`` (of ``terms``), once
+        per fit: the row check (:meth:`_brought_back`) screens the tentative fit that the
+        step then keeps."""
+        last = self.last_screen
+        if last is not None and last[0] is fit and last[1] == terms and last[2] == level:
+            return last[3]
+        screened = screen_outliers(self.ctx, terms, fit, level)
+        self.last_screen = (fit, terms, level, screened)
+        return screened
 
     def _current_heldout(self) -> HeldoutError:
         """:func:`repeated_heldout` of the current model (terms and fit), computed once per

@@ -15,10 +15,11 @@ the model cannot absorb, ``C̃ = (I − QQᵀ) C`` — no refit per candidate. T
   same for every sign pattern ε ∈ {±1}ᴺ, so ``T(ε) = |Zᵀε|²`` with ``Z = U V^{-1/2}`` and
   ``T = T(1)``; p = P_ε(T(ε) ≥ T(1)). Exact over all 2ᴺ⁻¹ patterns (T(ε) = T(−ε)) for
   N ≤ :data:`EXACT_FLIP_SAMPLES` (meet in the middle), else sequential Monte Carlo
-  (Besag & Clifford 1991) over a fixed, seeded bank of patterns. Its smallest p is
-  ~2^{−(N−1)}, so 21 samples still reach a Holm level of 1e-4, and an effect that dominates
-  makes every u_n agree and p tiny whatever its share of V (the asymptotic χ² reference
-  bounded T by N and could not).
+  (Besag & Clifford 1991) over a fixed, seeded bank of patterns (the tests of one step read
+  the bank once together, each stopping where it would alone: :func:`flip_p_values`). Its
+  smallest p is ~2^{−(N−1)}, so 21 samples still reach a Holm level of 1e-4, and an effect
+  that dominates makes every u_n agree and p tiny whatever its share of V (the asymptotic χ²
+  reference bounded T by N and could not).
 
 The reported p-value is the larger of the two: a candidate must pass both.
 """
@@ -28,7 +29,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.special
@@ -136,6 +137,36 @@ class ScoreTest:
 
 def score_test(null: NullModel, key: str, columns: FloatArray) -> ScoreTest | None:
     """Test whitened candidate ``columns`` (R, m); None when the model absorbs them entirely."""
+    pending = _pending_test(null, key, columns)
+    if pending is None:
+        return None
+    test, z = pending
+    return replace(test, p_robust=flip_p_value(z, null.flip_seed))
+
+
+def score_tests(null: NullModel, candidates: Mapping[str, FloatArray]) -> dict[str, ScoreTest]:
+    """:func:`score_test` of every candidate (key → whitened columns (R, m)), in order, with
+    the sign-flip p-values of all of them from one pass over the bank
+    (:func:`flip_p_values`: the same p-values as one test at a time); candidates the model
+    absorbs entirely are left out."""
+    pending = {}
+    for key, columns in candidates.items():
+        found = _pending_test(null, key, columns)
+        if found is not None:
+            pending[key] = found
+    p_values = flip_p_values([z for _, z in pending.values()], null.flip_seed)
+    return {
+        key: replace(test, p_robust=p)
+        for (key, (test, _)), p in zip(pending.items(), p_values, strict=True)
+    }
+
+
+def _pending_test(
+    null: NullModel, key: str, columns: FloatArray
+) -> tuple[ScoreTest, FloatArray] | None:
+    """A candidate's score test with its sign-flip p-value still to be computed (NaN), and
+    its whitened per-sample scores ``Z`` (N, k) that p-value is of; None when the model
+    absorbs the candidate entirely."""
     norms = np.linalg.norm(columns, axis=0)
     if not np.all(norms > 0):
         return None
@@ -160,7 +191,8 @@ def score_test(null: NullModel, key: str, columns: FloatArray) -> ScoreTest | No
     f_stat = delta_ss / m / denominator
     p_classical = float(scipy.special.fdtrc(m, dof_rest, f_stat))
     log_p = log_f_sf(f_stat, m, dof_rest)
-    robust, p_robust = _robust(null, u, r, m)
+    z, _ = flip_whitened(null.sample_scores(u, r))
+    total = z.sum(axis=0)
     estimate = pinv @ r  # one-step estimate: least squares of r on the projected columns
     covariance = denominator * pinv @ pinv.T
     sandwich = sandwich_covariance(null, pinv, r)
@@ -169,26 +201,20 @@ def score_test(null: NullModel, key: str, columns: FloatArray) -> ScoreTest | No
     absorbed = 1.0 - float(np.sum(null.project(effect[:, None]) ** 2)) / max(
         float(effect @ effect), 1e-300
     )
-    return ScoreTest(
+    test = ScoreTest(
         key=key,
         m=m,
         delta_ss=delta_ss,
         f_statistic=float(f_stat),
         p_classical=p_classical,
-        robust_statistic=robust,
-        p_robust=p_robust,
+        robust_statistic=float(total @ total),
+        p_robust=float("nan"),
         log_p=log_p,
         estimate=estimate,
         stderr=np.sqrt(variance),
         absorbed_fraction=float(np.clip(absorbed, 0.0, 1.0)),
     )
-
-
-def _robust(null: NullModel, u: FloatArray, r: FloatArray, m: int) -> tuple[float, float]:
-    """Cluster-robust score statistic (per sample) and its sign-flip p-value."""
-    z, _ = flip_whitened(null.sample_scores(u, r))
-    total = z.sum(axis=0)
-    return float(total @ total), flip_p_value(z, null.flip_seed)
+    return test, z
 
 
 def flip_whitened(scores: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -211,6 +237,23 @@ def flip_p_value(z: FloatArray, seed: int = 0) -> float:
     if z.shape[0] <= EXACT_FLIP_SAMPLES:
         return flip_p_exact(z, observed)
     return flip_p_sequential(z, observed, seed)
+
+
+def flip_p_values(zs: list[FloatArray], seed: int = 0) -> list[float]:
+    """:func:`flip_p_value` of each of ``zs`` (whitened scores (N, k_i) of the same N
+    samples), the Monte Carlo ones from one pass over the bank
+    (:func:`flip_p_sequential_batched`)."""
+    out = [1.0 if z.shape[1] == 0 else float("nan") for z in zs]
+    pending = [i for i, z in enumerate(zs) if z.shape[1] > 0]
+    observed = [tie_threshold(float(np.sum(zs[i].sum(axis=0) ** 2))) for i in pending]
+    if pending and zs[pending[0]].shape[0] <= EXACT_FLIP_SAMPLES:
+        for i, level in zip(pending, observed, strict=True):
+            out[i] = flip_p_exact(zs[i], level)
+        return out
+    found = flip_p_sequential_batched([zs[i] for i in pending], observed, seed)
+    for i, p in zip(pending, found, strict=True):
+        out[i] = p
+    return out
 
 
 def tie_threshold(observed: float) -> float:
@@ -250,17 +293,86 @@ def flip_p_sequential(z: FloatArray, observed: float, seed: int = 0) -> float:
     """Monte Carlo sign-flip p-value (Besag & Clifford 1991): draw patterns in order from the
     seeded bank until :data:`FLIP_EXCEEDANCES` reach ``observed`` (p = h / draws), else
     p = (exceedances + 1) / (FLIP_DRAWS + 1)."""
-    n = z.shape[0]
+    n, scores = z.shape[0], z.astype(np.float32)
     count, drawn = 0, 0
     for batch in range(FLIP_DRAWS // FLIP_BATCH):
-        projected = flip_batch(seed, n, batch) @ z.astype(np.float32)
-        reached = np.sum(projected.astype(np.float64) ** 2, axis=1) >= observed
+        reached = _reached(flip_batch(seed, n, batch), scores, observed)
         running = count + np.cumsum(reached)
-        if running[-1] >= FLIP_EXCEEDANCES:
-            stop = int(np.searchsorted(running, FLIP_EXCEEDANCES)) + 1
-            return FLIP_EXCEEDANCES / float(drawn + stop)
+        stop = _stop_index(running)
+        if stop is not None:
+            return FLIP_EXCEEDANCES / float(drawn + stop + 1)
         count, drawn = int(running[-1]), drawn + reached.size
     return (count + 1) / float(FLIP_DRAWS + 1)
+
+
+def flip_p_sequential_batched(
+    zs: list[FloatArray], observed: list[float], seed: int = 0
+) -> list[float]:
+    """:func:`flip_p_sequential` of each of ``zs`` (N, k_i) against its ``observed``
+    statistic, bit for bit, from one pass over the bank: each batch of patterns (B, N) is
+    multiplied by the float32 scores of every test still drawing, stacked (N, Σk), in one
+    product.
+
+    That product sums the N terms ``ε_n z_nj`` in another order than the test's own product,
+    so its projections may differ in the last bits. For any order the float32 sum is within
+    ``γ Σ_n |z_nj|`` of the exact one (γ = (N−1)u / (1 − (N−1)u), u = 2⁻²⁴; Higham 2002,
+    §3.1), so the two differ by at most ``δ_j = 2γ Σ_n |z_nj|``, and a pattern's statistic
+    ``T = Σ_j p_j²`` by at most ``Σ_j δ_j (2|p_j| + δ_j)``. A pattern within that margin of
+    ``observed`` before the test would have stopped is decided by the test's own product of
+    that batch (:func:`_reached`), so every test stops where it would alone."""
+    n = zs[0].shape[0] if zs else 0
+    gamma = (n - 1) * 2.0**-24 / (1.0 - (n - 1) * 2.0**-24)
+    scores = [z.astype(np.float32) for z in zs]
+    # (1 + 1e-9): the float64 rounding of the bound itself
+    slack = [
+        2.0 * gamma * (1.0 + 1e-9) * np.sum(np.abs(z.astype(np.float64)), axis=0) for z in scores
+    ]
+    counts, drawn = np.zeros(len(zs), dtype=np.int64), 0
+    p_values: list[float | None] = [None] * len(zs)
+    for batch in range(FLIP_DRAWS // FLIP_BATCH):
+        active = [i for i, p in enumerate(p_values) if p is None]
+        if not active:
+            break
+        bank = flip_batch(seed, n, batch)
+        starts = np.cumsum([0] + [scores[i].shape[1] for i in active[:-1]])
+        part = (bank @ np.hstack([scores[i] for i in active])).astype(np.float64)  # (B, Σk)
+        delta = np.concatenate([slack[i] for i in active])
+        statistic = np.add.reduceat(part**2, starts, axis=1)  # (B, tests)
+        margin = np.add.reduceat(delta * (2.0 * np.abs(part) + delta), starts, axis=1)
+        level = np.array([observed[i] for i in active])
+        margin += 1e-12 * (statistic + level)  # float64 rounding of the sums
+        unsure = np.abs(statistic - level) <= margin
+        running = counts[active] + np.cumsum(statistic >= level, axis=0)
+        for column, i in enumerate(active):
+            own = running[:, column]
+            ending = _stop_index(own)
+            if np.any(unsure[: FLIP_BATCH if ending is None else ending + 1, column]):
+                own = counts[i] + np.cumsum(_reached(bank, scores[i], observed[i]))
+                ending = _stop_index(own)
+            if ending is not None:
+                p_values[i] = FLIP_EXCEEDANCES / float(drawn + ending + 1)
+            counts[i] = own[-1]
+        drawn += FLIP_BATCH
+    return [
+        (int(counts[i]) + 1) / float(FLIP_DRAWS + 1) if p is None else p
+        for i, p in enumerate(p_values)
+    ]
+
+
+def _stop_index(running: NDArray[np.int64]) -> int | None:
+    """Index in a batch of the pattern at which the running exceedance count reaches
+    :data:`FLIP_EXCEEDANCES` (the sequential test stops there); None if it does not."""
+    if running[-1] < FLIP_EXCEEDANCES:
+        return None
+    return int(np.searchsorted(running, FLIP_EXCEEDANCES))
+
+
+def _reached(
+    bank: NDArray[np.float32], scores: NDArray[np.float32], observed: float
+) -> NDArray[np.bool_]:
+    """Which patterns of ``bank`` (B, N) reach ``observed`` with float32 ``scores`` (N, k),
+    by the one product :func:`flip_p_sequential` computes."""
+    return np.asarray(np.sum((bank @ scores).astype(np.float64) ** 2, axis=1) >= observed)
 
 
 def flip_batch(seed: int, n: int, batch: int) -> NDArray[np.float32]:
@@ -272,16 +384,24 @@ def flip_batch(seed: int, n: int, batch: int) -> NDArray[np.float32]:
 
 @functools.lru_cache(maxsize=2)
 def _cached_bank(seed: int, n: int) -> NDArray[np.float32]:
-    """The whole bank (FLIP_DRAWS, n) of one seed and sample count."""
-    return np.concatenate(
-        [_generate_batch(seed, n, b) for b in range(FLIP_DRAWS // FLIP_BATCH)], axis=0
-    )
+    """The whole bank (FLIP_DRAWS, n) of one seed and sample count, written batch by batch
+    into one array (no concatenated copy)."""
+    bank = np.empty((FLIP_DRAWS, n), dtype=np.float32)
+    for b in range(FLIP_DRAWS // FLIP_BATCH):
+        _generate_batch(seed, n, b, out=bank[b * FLIP_BATCH : (b + 1) * FLIP_BATCH])
+    return bank
 
 
-def _generate_batch(seed: int, n: int, batch: int) -> NDArray[np.float32]:
+def _generate_batch(
+    seed: int, n: int, batch: int, out: NDArray[np.float32] | None = None
+) -> NDArray[np.float32]:
+    """Batch ``batch`` (FLIP_BATCH, n) of the bank, ±1, written into ``out`` when given."""
     rng = np.random.default_rng([seed, n, batch])
     bits = rng.integers(0, 2, size=(FLIP_BATCH, n), dtype=np.int8)
-    return np.asarray(1 - 2 * bits, dtype=np.float32)
+    if out is None:
+        out = np.empty((FLIP_BATCH, n), dtype=np.float32)
+    np.subtract(1, 2 * bits, out=out, casting="unsafe")
+    return out
 
 
 def sandwich_covariance(null: NullModel, pinv: FloatArray, r: FloatArray) -> FloatArray:

@@ -10,6 +10,7 @@ from solver.calibration import pose_errors
 from solver.discovery.fitting import (
     Context,
     ModelFit,
+    design_on,
     evaluate,
     fit_model,
     fit_with_noise,
@@ -57,7 +58,10 @@ def cross_validate(
             continue
         try:
             # Gauss–Newton converges quadratically from the all-sample optimum: a few steps.
-            fold_fit = fit_model(ctx, terms, fit.params, train, weights, max_iterations=4)
+            start = design_on(ctx, fit.design, train) if fit.terms == terms else None
+            fold_fit = fit_model(
+                ctx, terms, fit.params, train, weights, max_iterations=4, design=start
+            )
         except CalibrationError:
             fold_fit = fit
         design = evaluate(ctx, terms, fold_fit.params, test)
@@ -144,7 +148,8 @@ def screen_outliers(
         rows = all_rows[_passing(norm2, fit.rows, limit, median)]
         if np.array_equal(rows, fit.rows):
             break
-        fit = fit_with_noise(ctx, terms, fit.params, rows, fit.weights, rounds=1)
+        start = design_on(ctx, design, rows)
+        fit = fit_with_noise(ctx, terms, fit.params, rows, fit.weights, rounds=1, design=start)
     return fit
 
 

@@ -21,6 +21,7 @@ from solver.discovery.features import (
 from solver.discovery.fitting import (
     Context,
     ModelParameters,
+    design_on,
     evaluate,
     extend,
     orthonormal_basis,
@@ -99,6 +100,32 @@ def test_every_library_column_equals_finite_differences(name: str) -> None:
                 atol=2e-5 * max(1.0, float(np.abs(numeric).max())),
                 err_msg=f"{term.key} column {column}",
             )
+
+
+@pytest.mark.parametrize("name", ["kinova", "panda"])
+def test_a_design_restricted_to_some_rows_is_their_evaluation_bit_for_bit(name: str) -> None:
+    """Issue 29: a fold's fit starts from the full fit's design on its rows
+    (:func:`~solver.discovery.fitting.design_on`), so pose rows must be evaluated each on its
+    own — the same bits on any subset, every column included."""
+    truth = chain(name)
+    recording = simulate_recording(
+        truth, SimulationSpec(n_samples=40, seed=2, geometry_rotation_rad=0.01)
+    )
+    ctx = Context.build(
+        probe_chain(dataclasses.replace(truth, compliance_axes=())), _data(recording)
+    )
+    declared = (compliance_term(ctx.chain, 1, declared=True),)
+    params = ModelParameters(recording.true_params.links, np.array([3e-4]))
+    library = tuple(candidate_library(ctx.chain, ctx.bank, declared))
+    whole = evaluate(ctx, declared, params, ctx.all_rows, candidates=library)
+    rows = np.flatnonzero(np.random.default_rng(1).random(40) < 0.7)
+    part = whole.restricted(rows)
+    own = evaluate(ctx, declared, params, rows, candidates=library)
+    assert part is not None and design_on(ctx, whole, rows) is not None
+    for field in ("rows", "pose", "residual", "links", "terms"):
+        assert np.array_equal(getattr(part, field), getattr(own, field)), field
+    assert all(np.array_equal(part.candidates[t.key], own.candidates[t.key]) for t in library)
+    assert whole.restricted(np.array([0, 40])) is None  # not a subset
 
 
 def test_approach_lag_trails_the_motion_in_execution_order() -> None:

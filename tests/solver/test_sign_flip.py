@@ -19,11 +19,15 @@ from solver.discovery.detectability import flip_p_bound
 from solver.discovery.fitting import orthonormal_basis
 from solver.discovery.scoring import (
     NullModel,
+    flip_batch,
     flip_p_exact,
     flip_p_sequential,
+    flip_p_sequential_batched,
     flip_p_value,
+    flip_p_values,
     flip_whitened,
     score_test,
+    score_tests,
     tie_threshold,
 )
 
@@ -87,6 +91,44 @@ def test_monte_carlo_p_value_estimates_the_exact_one() -> None:
         # Besag-Clifford stops after 32 exceedances: relative error ~ 1/sqrt(32)
         assert estimate == pytest.approx(exact, rel=0.6, abs=2e-4), (m, shift)
         assert flip_p_sequential(z, observed, seed=1) == estimate  # seeded: reproducible
+
+
+@pytest.mark.parametrize("n", [23, 114, 500])
+def test_one_pass_over_the_bank_gives_each_test_its_own_p_value(n: int) -> None:
+    """Issue 29: the tests' scores stacked in one product per batch of the bank stop where
+    each would alone, bit for bit — also where a pattern ties with the observed statistic to
+    the last bits of the test's own product (decided by that product), and for statistics
+    that run through the whole bank."""
+    rng = np.random.default_rng(n)
+    zs, observed = [], []
+    for k, shift in itertools.product((1, 2, 3, 6), (0.0, 0.05, 0.3)):
+        z, _ = flip_whitened(rng.normal(shift, 1.0, size=(n, k)))
+        zs.append(z)
+        observed.append(tie_threshold(float(np.sum(z.sum(axis=0) ** 2))))
+        own = np.sum((flip_batch(0, n, 0) @ z.astype(np.float32)).astype(np.float64) ** 2, axis=1)
+        zs.append(z)
+        observed.append(float(np.sort(own)[-20]))  # ties with a pattern of the first batch
+    alone = [flip_p_sequential(z, level) for z, level in zip(zs, observed, strict=True)]
+    assert flip_p_sequential_batched(zs, observed) == alone
+
+
+def test_score_tests_are_the_score_test_of_each_candidate() -> None:
+    rng = np.random.default_rng(7)
+    n, d = 60, 3
+    basis = orthonormal_basis(rng.normal(size=(n * d, 4)))
+    e = rng.normal(size=n * d)
+    null = NullModel(e - basis @ (basis.T @ e), basis, d, 2)
+    candidates = {f"c{k}": rng.normal(size=(n * d, k)) for k in (1, 2, 3)}
+    candidates["absorbed"] = basis[:, :2]
+    together = score_tests(null, candidates)
+    assert list(together) == ["c1", "c2", "c3"]
+    for key, test in together.items():
+        alone = score_test(null, key, candidates[key])
+        assert alone is not None
+        assert test.p_robust == alone.p_robust and test.p_value == alone.p_value
+        assert test.robust_statistic == alone.robust_statistic
+    zs = [flip_whitened(rng.normal(size=(12, 2)))[0], np.zeros((12, 0))]
+    assert flip_p_values(zs) == [flip_p_value(z) for z in zs]  # exact N, and nothing to test
 
 
 def _null_p_values(n: int, k: int, reps: int, seed: int) -> np.ndarray:
