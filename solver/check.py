@@ -177,15 +177,15 @@ def max_bad_samples(n: int) -> int:
 
 
 def pose_verdict(residuals: FloatArray, covariance: FloatArray, level: float) -> PoseTests:
-    """The verdict on ``residuals`` (n, d) with joint covariance (n·d, n·d): the global test at
-    ``level``/2 and the max-type test at ``level``/2 (family-wise over the poses, Šidák), so
-    together they reject a calibration that holds with probability at most ``level``.
+    """The verdict on ``residuals`` (n, d) with joint covariance (n·d, n·d): the global test
+    and the max-type test (family-wise over the poses, Šidák), each at ``level``.
 
     Bad-sample rule: when 1..:func:`max_bad_samples` poses exceed the max-type threshold and
     the others pass both tests (at their own count), those poses are named bad samples and the
-    calibration holds on the rest."""
+    calibration holds on the rest. A calibration that holds is therefore called drifted with
+    probability about ``level`` (the global test's; the max-type test's alarms on clean poses
+    are mostly named bad samples, with probability at most ``level``)."""
     n, d = residuals.shape
-    half = 0.5 * level
     d2 = pose_distances_squared(residuals, covariance)
     every = np.arange(n)
     if n < MIN_POSES:
@@ -198,9 +198,9 @@ def pose_verdict(residuals: FloatArray, covariance: FloatArray, level: float) ->
             "inconclusive",
             f"{n} check pose(s): at least {MIN_POSES} are needed",
         )
-    threshold = sidak_quantile(half, n, d)
+    threshold = sidak_quantile(level, n, d)
     far = every[~(d2 <= threshold)]
-    whole = global_test(residuals.ravel(), covariance, half)
+    whole = global_test(residuals.ravel(), covariance, level)
     if far.size == 0 and not whole.rejects:
         return PoseTests(
             d2,
@@ -215,9 +215,9 @@ def pose_verdict(residuals: FloatArray, covariance: FloatArray, level: float) ->
     if 0 < far.size <= max_bad_samples(n) and n - far.size >= MIN_POSES:
         rest = np.setdiff1d(every, far)
         rest_test = global_test(
-            residuals[rest].ravel(), subset_covariance(covariance, rest, d), half
+            residuals[rest].ravel(), subset_covariance(covariance, rest, d), level
         )
-        rest_max = sidak_quantile(half, rest.size, d)
+        rest_max = sidak_quantile(level, rest.size, d)
         if not rest_test.rejects and bool(np.all(d2[rest] <= rest_max)):
             named = ", ".join(str(i + 1) for i in far)
             return PoseTests(

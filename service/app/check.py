@@ -251,7 +251,7 @@ def run_check(
         checks.Candidate(c.name, c.kind, c.components, c.units, c.jacobian[used])
         for c in arrays.candidates
     ]
-    sizes = checks.stated_sizes(used_covariance, used_candidates, 0.5 * level)
+    sizes = checks.stated_sizes(used_covariance, used_candidates, level)
     scored = located.tests if located is not None else ()
     return CheckResult(
         kincal_version=kincal_version(),

@@ -38,7 +38,7 @@ def check(
     drifted (exit 3, with the change located and sized) or inconclusive (exit 0).
 
     Each pose's d² under the total predictive covariance (Σ_E + Σ_n + Cov(θ̂) + model error);
-    a global χ² test and a max-type test (Šidák), at half the level each; a single pose far off
+    a global χ² test and a max-type test (Šidák) at the level; a single pose far off
     while the others agree is named a bad sample and the verdict is taken on the rest; the
     drift located by score tests of candidate changes (joint offsets and scales, base, tool,
     link geometry; Bonferroni), and the smallest changes the check detects with 90 %
