@@ -152,8 +152,9 @@ def concealed_changes(
 
 def draw_once(
     recording: str, dataset: PoseDataset, seed: int, folder: Path
-) -> tuple[bool, dict[str, tuple[bool, bool]]]:
-    """One draw: (false alarm?, change -> (flagged?, located?))."""
+) -> tuple[bool, dict[str, tuple[bool, bool, bool]]]:
+    """One draw: (false alarm?, change -> (flagged?, located?, named?)); named: located or
+    among the candidates the check poses cannot tell apart from the located one."""
     rng = np.random.default_rng(seed)
     order = rng.permutation(dataset.n_samples)
     n_train = int(np.ceil(TRAIN_FRACTION * dataset.n_samples))
@@ -164,8 +165,9 @@ def draw_once(
     outcomes = {}
     for change, expected, changed in concealed_changes(result, check_rows, rng):
         out = run_check(result, changed)
-        located = out.located is not None and out.located.name == expected
-        outcomes[change] = (out.verdict == "drifted", located)
+        named = [] if out.located is None else [out.located.name]
+        named += [] if out.located is None else out.located.indistinguishable_from
+        outcomes[change] = (out.verdict == "drifted", named[:1] == [expected], expected in named)
     return clean.verdict == "drifted", outcomes
 
 
@@ -217,13 +219,15 @@ def run(name: str, draws: int, *, timing: bool = True) -> Row:
     alarms = 0
     flagged: dict[str, int] = {}
     located: dict[str, int] = {}
+    named: dict[str, int] = {}
     with tempfile.TemporaryDirectory() as folder:
         for seed in range(draws):
             alarm, outcomes = draw_once(recording, dataset, seed, Path(folder))
             alarms += alarm
-            for change, (hit, right) in outcomes.items():
+            for change, (hit, right, among) in outcomes.items():
                 flagged[change] = flagged.get(change, 0) + hit
                 located[change] = located.get(change, 0) + right
+                named[change] = named.get(change, 0) + among
         seconds = whole_process_seconds(recording, Path(folder)) if timing else None
     return {
         "recording": name,
@@ -231,7 +235,9 @@ def run(name: str, draws: int, *, timing: bool = True) -> Row:
         "check_poses": check_count(dataset.n_samples),
         "draws": draws,
         "false_alarms": alarms,
-        "changes": {c: {"flagged": flagged[c], "located": located[c]} for c in flagged},
+        "changes": {
+            c: {"flagged": flagged[c], "located": located[c], "named": named[c]} for c in flagged
+        },
         "check_seconds": seconds,
     }
 
@@ -246,6 +252,7 @@ def render(rows: list[Row]) -> str:
         "Change at the stated size",
         "Flagged",
         "Located",
+        "Located or not told apart",
         "10-pose check, whole process",
     )
     lines = []
@@ -263,6 +270,7 @@ def render(rows: list[Row]) -> str:
                     change,
                     percent(counts["flagged"] / draws, 0),
                     percent(counts["located"] / draws, 0),
+                    percent(counts["named"] / draws, 0),
                     (f"{seconds:.2f} s" if seconds is not None else "–") if first else "",
                 )
             )

@@ -30,7 +30,9 @@ class CheckPose(_Model):
     d2: float = Field(description="r^T Σ^-1 r under the total predictive covariance.")
     translation_mm: float = Field(description="Length of the residual's translation, mm.")
     rotation_mrad: float | None = Field(description="Residual rotation angle, mrad (full pose).")
-    bad_sample: bool = Field(description="Far off while the others agree: re-measure it.")
+    bad_sample: bool = Field(
+        description="Far off (d² above the max-type threshold), set aside: re-measure it."
+    )
 
 
 class GlobalTestResult(_Model):
@@ -38,7 +40,7 @@ class GlobalTestResult(_Model):
 
     statistic: float
     dof: int
-    threshold: float = Field(description="The χ²_dof quantile at the global test's level.")
+    threshold: float = Field(description="The χ²_dof quantile at the critical p-value.")
     p_value: float
     n_poses: int
 
@@ -61,7 +63,9 @@ class CandidateTest(_Model):
     statistic: float
     dof: int
     p_value: float
-    adjusted_p_value: float = Field(description="Bonferroni over the candidates.")
+    adjusted_p_value: float = Field(
+        description="Family-wise over the global and every candidate's test (min-p rule)."
+    )
 
 
 class LocatedChange(_Model):
@@ -94,6 +98,12 @@ class CheckResult(_Model):
     recording: str
     dimension: int = Field(description="Residual rows per pose: 6 (full pose) or 3 (position).")
     level: float = Field(description="Family-wise false-alarm probability of the verdict.")
+    global_critical_p: float | None = Field(
+        description="The global test rejects below this p-value (weighted min-p rule)."
+    )
+    candidate_critical_p: float | None = Field(
+        description="A candidate's score test rejects below this p-value."
+    )
     verdict: Literal["holds", "drifted", "inconclusive"]
     reason: str
     advice: str

@@ -168,8 +168,8 @@ def advice(tests: checks.PoseTests, located: checks.LocatedDrift | None) -> str:
     best = located.best if located is not None else None
     if best is None:
         return (
-            "record a new calibration recording and recalibrate everything (kincal calibrate); "
-            "no single candidate change explains the drift"
+            f"{remeasure}record a new calibration recording and recalibrate everything "
+            "(kincal calibrate); no single candidate change explains the drift"
         )
     kind = best.candidate.kind
     free = {
@@ -180,11 +180,11 @@ def advice(tests: checks.PoseTests, located: checks.LocatedDrift | None) -> str:
     }
     if kind == "joint_scale":
         return (
-            f"{best.candidate.name}: kincal models no joint scale; check that joint's encoder "
-            "and transmission, then recalibrate"
+            f"{remeasure}{best.candidate.name}: kincal models no joint scale; check that "
+            "joint's encoder and transmission, then recalibrate"
         )
     return (
-        f"record a new calibration recording and recalibrate {best.candidate.name} "
+        f"{remeasure}record a new calibration recording and recalibrate {best.candidate.name} "
         f"(kincal calibrate RECORDING {free[kind]})"
     )
 
@@ -240,19 +240,23 @@ def run_check(
     dataset = read_check_recording(source, result, result_name)
     arrays = check_arrays(result, dataset)
     refuse_other_frames(arrays.residuals, result, dataset)
-    tests = checks.pose_verdict(arrays.residuals, arrays.covariance, level)
-    located = None
-    if tests.verdict == "drifted":
-        located = checks.locate_drift(arrays.residuals, arrays.covariance, arrays.candidates, level)
+    model = checks.DriftModel.build(arrays.covariance, arrays.candidates, level)
+    tests = checks.pose_verdict(arrays.residuals, model, level)
     used = tests.used
     d = arrays.residuals.shape[1]
-    used_covariance = checks.subset_covariance(arrays.covariance, used, d)
-    used_candidates = [
-        checks.Candidate(c.name, c.kind, c.components, c.units, c.jacobian[used])
-        for c in arrays.candidates
-    ]
-    sizes = checks.stated_sizes(used_covariance, used_candidates, level)
-    scored = located.tests if located is not None else ()
+    drift = tests.drift
+    sizes = (
+        []
+        if drift is None
+        else checks.stated_sizes(
+            checks.subset_covariance(arrays.covariance, used, d),
+            checks.subset_candidates(arrays.candidates, used),
+            drift.global_p,
+            drift.candidate_p,
+        )
+    )
+    located = drift.located if drift is not None and tests.verdict == "drifted" else None
+    scored = drift.located.tests if drift is not None else ()
     return CheckResult(
         kincal_version=kincal_version(),
         created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -260,18 +264,20 @@ def run_check(
         recording=dataset.source,
         dimension=d,
         level=level,
+        global_critical_p=None if drift is None else drift.global_p,
+        candidate_critical_p=None if drift is None else drift.candidate_p,
         verdict=tests.verdict,  # type: ignore[arg-type]
         reason=tests.reason,
         advice=advice(tests, located),
         max_threshold=tests.threshold,
         poses=_poses(arrays.residuals, tests, dataset),
         global_test=None
-        if tests.global_test is None
+        if drift is None
         else GlobalTestResult(
-            statistic=tests.global_test.statistic,
-            dof=tests.global_test.dof,
-            threshold=tests.global_test.threshold,
-            p_value=tests.global_test.p_value,
+            statistic=drift.global_test.statistic,
+            dof=drift.global_test.dof,
+            threshold=drift.global_test.threshold,
+            p_value=drift.global_test.p_value,
             n_poses=int(used.size),
         ),
         located=None if located is None else located_change(located),
