@@ -34,9 +34,10 @@ import solver  # noqa: F401  (BLAS defaults)
 from benchmarks.evaluate_real import DATA, RECORDINGS, _resolve
 from benchmarks.results import Row, markdown_table, percent, write_results
 from schemas.calibration import CalibrationResult
+from schemas.check import CheckResult
 from schemas.dataset import PoseDataset, read_dataset, write_dataset
 from service import cli
-from service.app.check import DEFAULT_LEVEL, check_arrays, run_check
+from service.app.check import check_arrays, run_check
 from service.render import result_json
 from solver import check as checks
 from solver import lie
@@ -118,14 +119,12 @@ def conceal_frame(
 
 
 def concealed_changes(
-    result: CalibrationResult, dataset: PoseDataset, rng: np.random.Generator
+    result: CalibrationResult, dataset: PoseDataset, clean: CheckResult, rng: np.random.Generator
 ) -> list[tuple[str, str, PoseDataset]]:
     """(change, the candidate that should be located, the check recording with it) at the
-    sizes the check states for these poses (worst direction, a random sign)."""
+    sizes the ``clean`` check of these poses states (worst direction, a random sign)."""
     arrays = check_arrays(result, dataset)
-    stated = {
-        s.name: s for s in checks.stated_sizes(arrays.covariance, arrays.candidates, DEFAULT_LEVEL)
-    }
+    stated = {s.name: s for s in clean.stated_sizes}
     white = checks.whitening(arrays.covariance)
     chain, _ = result_json.result_chain(result)
     out = []
@@ -163,7 +162,7 @@ def draw_once(
     result = calibrate(recording, train, folder)
     clean = run_check(result, check_rows)
     outcomes = {}
-    for change, expected, changed in concealed_changes(result, check_rows, rng):
+    for change, expected, changed in concealed_changes(result, check_rows, clean, rng):
         out = run_check(result, changed)
         named = [] if out.located is None else [out.located.name]
         named += [] if out.located is None else out.located.indistinguishable_from

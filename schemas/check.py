@@ -80,12 +80,17 @@ class LocatedChange(_Model):
 
 
 class StatedSize(_Model):
-    """The smallest change of this kind the check detects with probability ``power`` at its
-    level (along the worst direction: any change of this size or larger)."""
+    """The smallest change of this kind the check detects and locates with probability
+    ``power`` at its level (along the worst direction: any change of this size or larger is
+    detected)."""
 
     name: str
     size: float
     unit: str
+    located: bool = Field(
+        description="False: not located that often even at 4× the detectable size; the size "
+        "promises detection only."
+    )
 
 
 class CheckResult(_Model):

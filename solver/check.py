@@ -106,6 +106,14 @@ def chi2_log_survival(statistic: float, dof: int) -> float:
     return float((a - 1.0) * np.log(x) - x - scipy.special.gammaln(a))
 
 
+def chi2_log_survivals(statistics: FloatArray, dof: int) -> FloatArray:
+    """:func:`chi2_log_survival` of many statistics (N,) at once."""
+    p_values = scipy.special.gammaincc(0.5 * dof, 0.5 * np.maximum(statistics, 0.0))
+    a, x = 0.5 * dof, 0.5 * np.maximum(statistics, 1e-300)
+    tail = (a - 1.0) * np.log(x) - x - scipy.special.gammaln(a)
+    return np.where(p_values > 1e-300, np.log(np.maximum(p_values, 1e-300)), tail)
+
+
 # --- per pose and global tests -------------------------------------------------------------
 
 
@@ -401,6 +409,18 @@ error from it at 5 %: 0.2 points)."""
 NULL_SEED = 33
 """Fixed: the same check gives the same verdict."""
 
+LOCATE_DRAWS = 1000
+"""Simulated checks per size when a stated size is checked for location (the located share's
+standard error at 90 %: about 1 point)."""
+
+LOCATE_TARGET = 0.92
+"""The simulated located share a stated size must reach: :data:`POWER` plus twice the Monte
+Carlo error, so that the promise holds."""
+
+SIZE_STEPS = (1.0, 1.15, 1.3, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0)
+"""Multiples of the detectable size tried, smallest first, until the change is also located
+in :data:`POWER` of simulated checks."""
+
 GLOBAL_WEIGHT = 0.5
 """The global test's share of the level in the weighted min-p rule; the candidates' score
 tests share the rest equally."""
@@ -441,6 +461,19 @@ class DriftTests:
         return " and ".join(parts)
 
 
+def nested_pairs(bases: tuple[FloatArray, ...]) -> dict[int, list[int]]:
+    """Outer candidate index -> the candidates nested in it (:func:`nested_in`), from their
+    orthonormal ``bases`` (ν, rank)."""
+    pairs: dict[int, list[int]] = {}
+    for i, inner in enumerate(bases):
+        for j, outer in enumerate(bases):
+            if inner.shape[1] < outer.shape[1] and all(
+                reproduced_share(column, outer) >= NESTED_SHARE for column in inner.T
+            ):
+                pairs.setdefault(j, []).append(i)
+    return pairs
+
+
 @dataclass(frozen=True)
 class DriftModel:
     """The drift tests at a set of poses, before any residual is seen: the global χ² test and
@@ -459,6 +492,10 @@ class DriftModel:
     weights: FloatArray
     null: FloatArray
     critical: float
+    bases: tuple[FloatArray, ...] = ()
+    """Each candidate's orthonormal basis (ν, rank) of its whitened columns."""
+    nested: dict[int, list[int]] = dataclasses.field(default_factory=dict)
+    """Outer candidate index -> the candidates nested in it (:func:`nested_pairs`)."""
 
     @classmethod
     def build(cls, covariance: FloatArray, candidates: list[Candidate], level: float) -> DriftModel:
@@ -466,12 +503,13 @@ class DriftModel:
         white = whitening(covariance)
         dof = white.shape[0]
         z = np.random.default_rng(NULL_SEED).standard_normal((NULL_DRAWS, dof))
-        statistics, ranks = [np.sum(z**2, axis=1)], [dof]
+        statistics, ranks, bases = [np.sum(z**2, axis=1)], [dof], []
         for candidate in candidates:
             n, d, m = candidate.jacobian.shape
             basis = score_test(np.zeros(dof), white @ candidate.jacobian.reshape(n * d, m)).basis
             statistics.append(np.sum((z @ basis) ** 2, axis=1))
             ranks.append(basis.shape[1])
+            bases.append(basis)
         own = (1.0 - GLOBAL_WEIGHT) / max(len(candidates), 1)
         weights = np.r_[GLOBAL_WEIGHT, np.full(len(candidates), own)]
         model = cls(
@@ -482,8 +520,11 @@ class DriftModel:
             weights,
             np.stack(statistics, axis=1),
             0.0,
+            tuple(bases),
         )
-        return dataclasses.replace(model, critical=model.solve_critical(level))
+        return dataclasses.replace(
+            model, critical=model.solve_critical(level), nested=nested_pairs(model.bases)
+        )
 
     def thresholds(self, critical: float) -> FloatArray:
         """Each test's statistic threshold (T,) at ``critical``: its χ² upper quantile at
@@ -524,6 +565,49 @@ class DriftModel:
         """The family-wise p-value of a test with this p-value and weight: the null share in
         which some test rejects at the ``c`` that just rejects it."""
         return max(self.false_alarm(p_value / weight), p_value)
+
+    def simulated_rates(self, pattern: FloatArray, target: int) -> tuple[float, float]:
+        """Shares of :data:`LOCATE_DRAWS` simulated checks with the whitened change ``pattern``
+        (ν,) in which the check detects drift and in which it locates candidate ``target``
+        (its index), with the rules of :func:`locate_drift` (smallest p-value among the
+        significant; a nested simpler candidate unless the extra components are significant),
+        under the linearised model."""
+        rng = np.random.default_rng(NULL_SEED + 1)
+        z = pattern + rng.standard_normal((LOCATE_DRAWS, pattern.size))
+        statistics = np.stack(
+            [np.sum(z**2, axis=1)] + [np.sum((z @ b) ** 2, axis=1) for b in self.bases], axis=1
+        )
+        rejects = statistics > self.thresholds(self.critical)
+        detected = np.any(rejects, axis=1)
+        scores = statistics[:, 1:]
+        ranks = self.ranks[1:]
+        significant = rejects[:, 1:]
+        masked = np.full(scores.shape, np.inf)  # log p of the significant tests only
+        for t, rank in enumerate(ranks):
+            rows = np.flatnonzero(significant[:, t])
+            if rows.size:
+                masked[rows, t] = chi2_log_survivals(scores[rows, t], int(rank))
+        log_p = masked
+        best = np.argmin(masked, axis=1)
+        any_significant = np.any(significant, axis=1)
+        for outer, inners in self.nested.items():
+            at = np.flatnonzero(any_significant & (best == outer))
+            if at.size == 0:
+                continue
+            choice = np.full(at.size, -1)
+            choice_log_p = np.full(at.size, np.inf)
+            for inner in inners:
+                extra = scores[at, outer] - scores[at, inner]
+                keep = significant[at, inner] & (
+                    scipy.special.gammaincc(0.5 * (ranks[outer] - ranks[inner]), 0.5 * extra)
+                    > NESTED_LEVEL
+                )
+                better = keep & (log_p[at, inner] < choice_log_p)
+                choice = np.where(better, inner, choice)
+                choice_log_p = np.where(better, log_p[at, inner], choice_log_p)
+            best[at] = np.where(choice >= 0, choice, best[at])
+        located = any_significant & (best == target)
+        return float(np.mean(detected)), float(np.mean(located))
 
     def tests(self, residuals: FloatArray) -> DriftTests:
         """:class:`DriftTests` of ``residuals`` (n, d) at these poses. A candidate's
@@ -579,6 +663,8 @@ class PoseTests:
     drift: DriftTests | None
     verdict: str
     reason: str
+    model: DriftModel | None = None
+    """The drift model of the poses used (for the stated sizes)."""
 
 
 def max_bad_samples(n: int) -> int:
@@ -648,22 +734,22 @@ def pose_verdict(residuals: FloatArray, model: DriftModel, level: float) -> Pose
         tests = model.tests(residuals)
         if far.size:
             why = f"{far.size} of {n} poses with d² above {threshold:.1f} (family-wise, Šidák)"
-            return PoseTests(d2, threshold, far[:0], every, tests, "drifted", why)
-        return _decided(d2, threshold, far, every, tests, "")
+            return PoseTests(d2, threshold, far[:0], every, tests, "drifted", why, model)
+        return _decided(d2, threshold, far, every, tests, "", model)
+    poses = ", ".join(str(i + 1) for i in far)
+    whole = model.tests(residuals)
+    if explained_by_change(residuals, covariance, whole, far, threshold):
+        why = f"pose(s) {poses} far off, as a located change explains; "
+        return _decided(d2, threshold, far[:0], every, whole, why, model)
     used = np.setdiff1d(every, far)
-    rest = DriftModel.build(
+    rest_model = DriftModel.build(
         subset_covariance(covariance, used, d),
         subset_candidates(list(model.candidates), used),
         level,
-    ).tests(residuals[used])
-    poses = ", ".join(str(i + 1) for i in far)
-    if not rest.drifted:
-        whole = model.tests(residuals)
-        if explained_by_change(residuals, covariance, whole, far, threshold):
-            why = f"pose(s) {poses} far off, as a located change explains; "
-            return _decided(d2, threshold, far[:0], every, whole, why)
+    )
+    rest = rest_model.tests(residuals[used])
     named = f"pose(s) {poses} far off (d² above {threshold:.1f}), set aside as bad samples; "
-    return _decided(d2, threshold, far, used, rest, named)
+    return _decided(d2, threshold, far, used, rest, named, rest_model)
 
 
 def _decided(
@@ -673,15 +759,16 @@ def _decided(
     used: IntArray,
     tests: DriftTests,
     prefix: str,
+    model: DriftModel,
 ) -> PoseTests:
     if tests.drifted:
-        return PoseTests(d2, threshold, far, used, tests, "drifted", prefix + tests.why())
+        return PoseTests(d2, threshold, far, used, tests, "drifted", prefix + tests.why(), model)
     g = tests.global_test
     agree = (
         f"Σ d² = {g.statistic:.1f} of {used.size} poses below its χ²_{g.dof} limit "
         f"{g.threshold:.1f} and no candidate change significant"
     )
-    return PoseTests(d2, threshold, far, used, tests, "holds", prefix + agree)
+    return PoseTests(d2, threshold, far, used, tests, "holds", prefix + agree, model)
 
 
 # --- stated power --------------------------------------------------------------------------
@@ -704,43 +791,55 @@ def detectable_size(whitened_columns: FloatArray, noncentrality: float) -> float
 
 @dataclass(frozen=True)
 class StatedSize:
-    """A change the check detects with probability :data:`POWER`: ``name`` ("panda_joint3
-    offset", "base translation", ...), ``size`` in ``unit`` along the worst direction (any
-    direction of that size or more is detected)."""
+    """A change the check detects and locates with probability :data:`POWER`: ``name``
+    ("panda_joint3 offset", "base translation", ...), ``size`` in ``unit`` along the worst
+    direction (any direction of that size or more is detected); ``located`` False when even
+    :data:`SIZE_STEPS`' largest multiple of the detectable size is located less often (the
+    size then promises detection only)."""
 
     name: str
     size: float
     unit: str
+    located: bool = True
 
 
-def stated_sizes(
-    covariance: FloatArray, candidates: list[Candidate], global_p: float, candidate_p: float
-) -> list[StatedSize]:
+def stated_sizes(model: DriftModel) -> list[StatedSize]:
     """The smallest joint-offset, base and tool changes (translation and rotation separately)
-    that the check detects with probability :data:`POWER` at these poses: the smaller of the
-    sizes the global test (at its critical p-value ``global_p``) and the candidate's own score
-    test (at ``candidate_p``, :class:`DriftTests`) each detect with that probability (either
-    rejecting is drift, so the check detects it at least as often)."""
-    white = whitening(covariance)
-    overall = detectable_noncentrality(white.shape[0], global_p)
+    that the check at the poses of ``model`` detects and locates with probability
+    :data:`POWER`. Detection: the smaller of the sizes the global test and the candidate's own
+    score test, each at its critical p-value, detect with that probability (non-central χ²;
+    either rejecting is drift, so the check detects it at least as often). Location: the first
+    multiple of it (:data:`SIZE_STEPS`) at which :meth:`DriftModel.simulated_rates` locates the
+    candidate in :data:`LOCATE_TARGET` of simulated checks (a change along the worst
+    direction)."""
+    overall = detectable_noncentrality(model.white.shape[0], model.global_p)
     sizes = []
-    for candidate in candidates:
+    for index, candidate in enumerate(model.candidates):
         if candidate.kind not in ("joint_offset", "base", "tool"):
             continue
         n, d, m = candidate.jacobian.shape
-        columns = white @ candidate.jacobian.reshape(n * d, m)
-        rank = score_test(np.zeros(columns.shape[0]), columns).dof
-        noncentrality = min(overall, detectable_noncentrality(rank, candidate_p))
-        if candidate.kind == "joint_offset":
-            size = detectable_size(columns, noncentrality)
-            sizes.append(StatedSize(candidate.name, size, candidate.units[0]))
-            continue
-        for part, axes, unit in (
-            ("translation", slice(0, 3), "m"),
-            ("rotation", slice(3, 6), "rad"),
-        ):
-            size = detectable_size(columns[:, axes], noncentrality)
-            sizes.append(StatedSize(f"{candidate.kind} {part}", size, unit))
+        columns = model.white @ candidate.jacobian.reshape(n * d, m)
+        rank = int(model.ranks[index + 1])
+        noncentrality = min(overall, detectable_noncentrality(rank, model.candidate_p))
+        parts = [(candidate.name, slice(0, 1), candidate.units[0])]
+        if candidate.kind != "joint_offset":
+            parts = [
+                (f"{candidate.kind} translation", slice(0, 3), "m"),
+                (f"{candidate.kind} rotation", slice(3, 6), "rad"),
+            ]
+        for name, axes, unit in parts:
+            detectable = detectable_size(columns[:, axes], noncentrality)
+            if not np.isfinite(detectable):
+                sizes.append(StatedSize(name, detectable, unit, False))
+                continue
+            pattern = columns[:, axes] @ worst_direction(columns[:, axes])
+            size, located = detectable * SIZE_STEPS[-1], False
+            for step in SIZE_STEPS:
+                _, rate = model.simulated_rates(pattern * detectable * step, index)
+                if rate >= LOCATE_TARGET:
+                    size, located = detectable * step, True
+                    break
+            sizes.append(StatedSize(name, size if located else detectable, unit, located))
     return sizes
 
 

@@ -245,16 +245,7 @@ def run_check(
     used = tests.used
     d = arrays.residuals.shape[1]
     drift = tests.drift
-    sizes = (
-        []
-        if drift is None
-        else checks.stated_sizes(
-            checks.subset_covariance(arrays.covariance, used, d),
-            checks.subset_candidates(arrays.candidates, used),
-            drift.global_p,
-            drift.candidate_p,
-        )
-    )
+    sizes = [] if tests.model is None else checks.stated_sizes(tests.model)
     located = drift.located if drift is not None and tests.verdict == "drifted" else None
     scored = drift.located.tests if drift is not None else ()
     return CheckResult(
@@ -283,7 +274,9 @@ def run_check(
         located=None if located is None else located_change(located),
         candidates=[_candidate_test(t) for t in scored],
         power=checks.POWER,
-        stated_sizes=[StatedSize(name=s.name, size=s.size, unit=s.unit) for s in sizes],
+        stated_sizes=[
+            StatedSize(name=s.name, size=s.size, unit=s.unit, located=s.located) for s in sizes
+        ],
     )
 
 

@@ -38,11 +38,11 @@ def check(
     drifted (exit 3, with the change located and sized) or inconclusive (exit 0).
 
     Each pose's d² under the total predictive covariance (Σ_E + Σ_n + Cov(θ̂) + model error);
-    a global χ² test and a max-type test (Šidák) at the level; a single pose far off
-    while the others agree is named a bad sample and the verdict is taken on the rest; the
-    drift located by score tests of candidate changes (joint offsets and scales, base, tool,
-    link geometry; Bonferroni), and the smallest changes the check detects with 90 %
-    probability (docs/check.md)."""
+    a global χ² test and score tests of candidate changes (joint offsets and scales, base,
+    tool, link geometry), family-wise at the level; a pose far off (max-type test, Šidák) is
+    set aside as a bad sample and the verdict taken on the rest; the drift located with its
+    size and 95 % interval, and the smallest changes the check detects with 90 % probability
+    (docs/check.md)."""
     from service.app.check import run_check
 
     outputs = Outputs(result_path.parent)
