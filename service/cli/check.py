@@ -87,8 +87,11 @@ def summary(out: CheckResult) -> str:
             )
     elif out.verdict == "drifted":
         lines.append("located: no single candidate change is significant")
-    sizes = ", ".join(f"{s.name} {_shown(s.size, s.unit)}" for s in out.stated_sizes)
-    lines.append(f"detected with {out.power:.0%} probability: {sizes}")
+    sizes = ", ".join(
+        f"{s.name} {_shown(s.size, s.unit)}{'' if s.located else ' (detected only)'}"
+        for s in out.stated_sizes
+    )
+    lines.append(f"detected and located with {out.power:.0%} probability: {sizes}")
     lines.append(f"advice: {out.advice}")
     return "\n".join(lines)
 
