@@ -39,6 +39,7 @@ import scipy.special
 from numpy.typing import NDArray
 
 from solver import lie
+from solver.model import KinematicChain
 from solver.predictive import chi2_quantile, mahalanobis_squared
 
 FloatArray = NDArray[np.float64]
@@ -199,17 +200,15 @@ def base_columns(frame_jacobians: FloatArray, nominal_first_link: FloatArray) ->
 
 
 def candidates_at(
-    frame_jacobians: FloatArray,
-    joint_screws: FloatArray,
-    nominal_first_link: FloatArray,
-    joint_positions: FloatArray,
-    joint_names: tuple[str, ...],
-    revolute: NDArray[np.bool_],
+    chain: KinematicChain, frame_jacobians: FloatArray, joint_positions: FloatArray
 ) -> list[Candidate]:
-    """The candidate changes at the check poses: each joint's offset and scale, the base frame
-    (robot base in the measurement frame, 6), the tool or marker frame (its pose in the tip
-    frame, 6) and each inner link's geometry (L_2..L_k, 6 each). ``joint_positions`` (n, k)
-    the configurations (rad or m) the Jacobians were taken at."""
+    """The candidate changes of ``chain`` at the check poses: each joint's offset and scale,
+    the base frame (robot base in the measurement frame, 6), the tool or marker frame (its
+    pose in the tip frame, 6) and each inner link's geometry (L_2..L_k, 6 each).
+    ``frame_jacobians`` (n, k+1, d, 6) of every link frame (Eq. 9) and ``joint_positions``
+    (n, k) the configurations (rad or m) they were taken at."""
+    joint_screws, joint_names = chain.joint_screws, chain.joint_names
+    revolute, nominal_first_link = chain.is_revolute(), chain.nominal_links[0]
     k = joint_screws.shape[0]
     offsets = joint_offset_columns(frame_jacobians, joint_screws)
     twist_units = ("m", "m", "m", "rad", "rad", "rad")

@@ -128,14 +128,7 @@ def check_arrays(result: CalibrationResult, dataset: PoseDataset) -> CheckArrays
     covariance = checks.joint_covariance(
         local[:, :d, :d], point.parameter_jacobian[:, :d], predictive.parameter_covariance
     )
-    candidates = checks.candidates_at(
-        point.frame_jacobians[:, :, :d],
-        chain.joint_screws,
-        chain.nominal_links[0],
-        q,
-        chain.joint_names,
-        chain.is_revolute(),
-    )
+    candidates = checks.candidates_at(chain, point.frame_jacobians[:, :, :d], q)
     return CheckArrays(residuals, covariance, candidates)
 
 

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from solver import check as C
 from solver import lie
 from solver.kinematics import ChainParameters, evaluate_chain, forward_kinematics, pose_residuals
-from solver.model import sample_configurations
+from solver.model import KinematicChain, sample_configurations
 from tests.conftest import chain as builtin_chain
 
 N_POSES = 10
@@ -34,7 +34,7 @@ def draw(rng: np.random.Generator, covariance: np.ndarray, n: int, d: int) -> np
     return (factor @ rng.normal(size=n * d)).reshape(n, d)
 
 
-def panda_at(n: int, seed: int) -> tuple[object, ChainParameters, np.ndarray, np.ndarray]:
+def panda_at(n: int, seed: int) -> tuple[KinematicChain, ChainParameters, np.ndarray, np.ndarray]:
     chain = builtin_chain("panda")
     params = ChainParameters.nominal(chain)
     q = sample_configurations(chain, n, np.random.default_rng(seed))
@@ -53,14 +53,7 @@ def panda_check(seed: int, d: int = 6) -> tuple[np.ndarray, list[C.Candidate], C
     evaluation = evaluate_chain(chain, params, q, loads)
     rng = np.random.default_rng(seed)
     covariance = random_covariance(rng, N_POSES, d)
-    candidates = C.candidates_at(
-        evaluation.link_jacobians[:, :, :d],
-        chain.joint_screws,
-        chain.nominal_links[0],
-        q,
-        chain.joint_names,
-        chain.is_revolute(),
-    )
+    candidates = C.candidates_at(chain, evaluation.link_jacobians[:, :, :d], q)
     return covariance, candidates, C.DriftModel.build(covariance, candidates, 0.05)
 
 
