@@ -48,7 +48,9 @@ def _imported_by(*args: str) -> set[str]:
     return set(json.loads(done.stdout))
 
 
-@pytest.mark.parametrize("args", [("--help",), ("calibrate", "--help"), ("--version",)])
+@pytest.mark.parametrize(
+    "args", [("--help",), ("calibrate", "--help"), ("check", "--help"), ("--version",)]
+)
 def test_help_loads_none_of_the_heavy_packages(args: tuple[str, ...]) -> None:
     loaded = _imported_by(*args)
     assert "typer" in loaded and "service" in loaded
