@@ -130,7 +130,7 @@ def concealed_changes(
     out = []
     for j, name in enumerate(chain.joint_names):
         size = stated[f"{name} offset"].size
-        if np.isfinite(size):
+        if size is not None:
             sign = rng.choice([-1.0, 1.0])
             out.append((f"{name} offset", f"{name} offset", conceal_joint(dataset, j, sign * size)))
     for candidate in arrays.candidates:
@@ -139,7 +139,7 @@ def concealed_changes(
         n, d, _ = candidate.jacobian.shape
         for part, axes in (("translation", slice(0, 3)), ("rotation", slice(3, 6))):
             size = stated[f"{candidate.kind} {part}"].size
-            if not np.isfinite(size):
+            if size is None:
                 continue
             columns = white @ candidate.jacobian[:, :, axes].reshape(n * d, 3)
             twist = np.zeros(6)

@@ -85,7 +85,7 @@ class StatedSize(_Model):
     detected)."""
 
     name: str
-    size: float
+    size: float | None = Field(description="null: no size of it moves these poses.")
     unit: str
     located: bool = Field(
         description="False: not located that often even at 4× the detectable size; the size "
@@ -112,7 +112,9 @@ class CheckResult(_Model):
     verdict: Literal["holds", "drifted", "inconclusive"]
     reason: str
     advice: str
-    max_threshold: float = Field(description="Šidák threshold of a single pose's d².")
+    max_threshold: float | None = Field(
+        description="Šidák threshold of a single pose's d² (null: too few poses)."
+    )
     poses: list[CheckPose]
     global_test: GlobalTestResult | None
     located: LocatedChange | None

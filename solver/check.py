@@ -562,8 +562,10 @@ class DriftModel:
 
     def adjusted(self, p_value: float, weight: float) -> float:
         """The family-wise p-value of a test with this p-value and weight: the null share in
-        which some test rejects at the ``c`` that just rejects it."""
-        return max(self.false_alarm(p_value / weight), p_value)
+        which some test rejects at the ``c`` that just rejects it; below the Monte Carlo's
+        resolution (no draw rejects), the weighted Bonferroni bound ``p / w``, never smaller."""
+        share = self.false_alarm(p_value / weight)
+        return max(share, p_value) if share > 0.0 else min(1.0, p_value / weight)
 
     def simulated_rates(self, pattern: FloatArray, target: int) -> tuple[float, float]:
         """Shares of :data:`LOCATE_DRAWS` simulated checks with the whitened change ``pattern``

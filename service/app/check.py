@@ -253,7 +253,7 @@ def run_check(
         verdict=tests.verdict,  # type: ignore[arg-type]
         reason=tests.reason,
         advice=advice(tests, located),
-        max_threshold=tests.threshold,
+        max_threshold=tests.threshold if np.isfinite(tests.threshold) else None,
         poses=_poses(arrays.residuals, tests, dataset),
         global_test=None
         if drift is None
@@ -268,7 +268,13 @@ def run_check(
         candidates=[_candidate_test(t) for t in scored],
         power=checks.POWER,
         stated_sizes=[
-            StatedSize(name=s.name, size=s.size, unit=s.unit, located=s.located) for s in sizes
+            StatedSize(
+                name=s.name,
+                size=s.size if np.isfinite(s.size) else None,
+                unit=s.unit,
+                located=s.located,
+            )
+            for s in sizes
         ],
     )
 

@@ -61,9 +61,8 @@ def summary(out: CheckResult) -> str:
     """The per-pose table (when short), the located change and the stated sizes."""
     lines = []
     if len(out.poses) <= SHORT_TABLE:
-        lines.append(
-            f"pose  {'d²':>8}  {'mm':>7}  {'mrad':>7}   (one pose's limit {out.max_threshold:.1f})"
-        )
+        limit = "" if out.max_threshold is None else f"(one pose's limit {out.max_threshold:.1f})"
+        lines.append(f"pose  {'d²':>8}  {'mm':>7}  {'mrad':>7}   {limit}".rstrip())
         for pose in out.poses:
             mrad = "" if pose.rotation_mrad is None else f"{pose.rotation_mrad:7.2f}"
             flag = "  bad sample: re-measure" if pose.bad_sample else ""
@@ -91,13 +90,16 @@ def summary(out: CheckResult) -> str:
         f"{s.name} {_shown(s.size, s.unit)}{'' if s.located else ' (detected only)'}"
         for s in out.stated_sizes
     )
-    lines.append(f"detected and located with {out.power:.0%} probability: {sizes}")
+    if out.stated_sizes:
+        lines.append(f"detected and located with {out.power:.0%} probability: {sizes}")
     lines.append(f"advice: {out.advice}")
     return "\n".join(lines)
 
 
-def _shown(value: float, unit: str) -> str:
+def _shown(value: float | None, unit: str) -> str:
     """A size in display units: mm, mrad, or ppm for a scale."""
+    if value is None:
+        return "not detectable"
     if unit == "m":
         return f"{value * 1000:.2f} mm"
     if unit == "rad":

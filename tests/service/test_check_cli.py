@@ -134,3 +134,12 @@ def test_a_result_without_predictive_covariance_is_refused(calibrated) -> None:
 def test_level_outside_zero_one_is_refused(calibrated) -> None:
     with pytest.raises(KincalError, match=r"--level 1\.5"):
         run_check(read_result(calibrated[0]), FR3, level=1.5)
+
+
+def test_two_poses_are_inconclusive(calibrated, tmp_path, capsys, monkeypatch) -> None:
+    code, stdout, _, out = check(calibrated, calibrated[1].iloc[:2], tmp_path, capsys, monkeypatch)
+    assert code == 0
+    result = CheckResult.model_validate_json(out.read_bytes())  # reads back: no inf in it
+    assert result.verdict == "inconclusive" and result.max_threshold is None
+    assert result.stated_sizes == [] and result.global_test is None
+    assert stdout.splitlines()[-1].startswith("check: inconclusive: 2 check pose(s)")
