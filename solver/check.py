@@ -674,6 +674,11 @@ def max_bad_samples(n: int) -> int:
     return max(1, n // 5)
 
 
+EXPLAIN_LEVEL = 0.05
+"""The change that would explain far-off poses must be seen in the other poses at this level
+(a change they do not show predicts anything within its wide uncertainty)."""
+
+
 def explained_by_change(
     residuals: FloatArray,
     covariance: FloatArray,
@@ -683,8 +688,9 @@ def explained_by_change(
 ) -> bool:
     """Whether the far poses ``far`` are a drift that shows most on them rather than bad
     samples: the change located on every pose (``whole``), estimated from the other poses
-    alone, predicts them to within ``threshold`` (their d² under their covariance plus that
-    estimate's). A bad sample stays far: the others do not carry its error."""
+    alone, is seen in them (its score test there at :data:`EXPLAIN_LEVEL`) and predicts the
+    far poses to within ``threshold`` (their d² under their covariance plus that estimate's).
+    A bad sample stays far: the others do not carry its error."""
     best = whole.located.best
     if best is None:
         return False
@@ -697,6 +703,8 @@ def explained_by_change(
     fit = score_test(
         white @ residuals[rest].ravel(), white @ candidate.jacobian.reshape(rest.size * d, m)
     )
+    if fit.p_value > EXPLAIN_LEVEL:  # the others do not show the change: nothing to predict
+        return False
     columns = best.candidate.jacobian[far]  # (f, d, m)
     predicted = columns @ fit.estimate
     spread = columns @ fit.covariance @ columns.transpose(0, 2, 1)
