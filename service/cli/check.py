@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from service.cli.common import Outputs, output_option, read_result
+from service.cli.common import Outputs, ResultOutDirOpt, output_option, read_result
 
 if TYPE_CHECKING:
     from schemas.check import CheckResult
@@ -30,6 +30,7 @@ def check(
         ),
     ],
     output: CheckOut = None,
+    out_dir: ResultOutDirOpt = None,
     level: Annotated[
         float, typer.Option(help="Family-wise probability of a false alarm when it holds.")
     ] = 0.05,
@@ -45,7 +46,7 @@ def check(
     (docs/check.md)."""
     from service.app.check import run_check
 
-    outputs = Outputs(result_path.parent)
+    outputs = Outputs(out_dir if out_dir is not None else result_path.parent)
     path = outputs.path(output, "check.json", "kincal.check/1")
     result = read_result(result_path)
     out = run_check(result, recording, level=level, result_name=str(result_path))
