@@ -374,20 +374,28 @@ class PredictiveModel:
     """True: the variances are along the end-effector frame's axes (a measurement type whose
     residual is the tip pose, e.g. relative-base), so T(q) = I."""
 
-    def parts(self, joint_positions: FloatArray, loads_nm: FloatArray) -> PredictiveParts:
-        """:class:`PredictiveParts` at configurations (N, k) rad, gravity loads (N, n_axes)."""
-        point = prediction_point(
+    def point(self, joint_positions: FloatArray, loads_nm: FloatArray) -> PredictionPoint:
+        """:class:`PredictionPoint` (6-D) at configurations (N, k) rad, loads (N, n_axes)."""
+        return prediction_point(
             self.chain, self.params, self.estimated, joint_positions, loads_nm, 6
         )
+
+    def model_error(self, point: PredictionPoint) -> FloatArray:
+        """The model-error part ``T diag(s) Tᵀ`` (N, 6, 6) at a :meth:`point`."""
+        return model_error_part(
+            np.broadcast_to(np.eye(6), (point.pose.shape[0], 6, 6))
+            if self.model_error_in_tip_frame
+            else measurement_axes(point.pose, 6),
+            self.model_error_variance,
+        )
+
+    def parts(self, joint_positions: FloatArray, loads_nm: FloatArray) -> PredictiveParts:
+        """:class:`PredictiveParts` at configurations (N, k) rad, gravity loads (N, n_axes)."""
+        point = self.point(joint_positions, loads_nm)
         return PredictiveParts(
             point.pose,
             parameter_part(point.parameter_jacobian, self.parameter_covariance),
-            model_error_part(
-                np.broadcast_to(np.eye(6), (point.pose.shape[0], 6, 6))
-                if self.model_error_in_tip_frame
-                else measurement_axes(point.pose, 6),
-                self.model_error_variance,
-            ),
+            self.model_error(point),
         )
 
 

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from benchmarks import (
+    check,
     cli_speed,
     compare_solvers,
     coverage,
@@ -39,6 +40,7 @@ from tests.service.cli_support import run_ok
 DOCS = Path(__file__).parents[1] / "docs"
 
 RENDER = {
+    "check": check.render,
     "cli_speed": cli_speed.render,
     "real_robots": evaluate_real.render,
     "fleet_platonics": fleet_platonics.render,
@@ -55,6 +57,7 @@ RENDER = {
     "model_selection": model_selection.render,
 }
 PAGES: dict[str, str | tuple[str, ...]] = {
+    "check": "check.md",
     "cli_speed": "predictive.md",
     "real_robots": "real-robots.md",
     "fleet_platonics": "ball-in-socket.md",

@@ -14,7 +14,7 @@ from typing import Any
 
 import typer
 
-from service.cli import bags, calibrate, design, discover, export, fleet, predict, serve
+from service.cli import bags, calibrate, check, design, discover, export, fleet, predict, serve
 from service.cli.common import app
 from solver.errors import KincalError
 
@@ -26,6 +26,7 @@ app.command("dh-urdf")(export.dh_urdf_command)
 app.command("export")(export.export_command)
 app.command()(predict.predict)
 app.command()(predict.rank)
+app.command()(check.check)
 app.command()(discover.discover)
 app.command()(serve.demo)
 app.command(epilog=serve.settings_epilog())(serve.serve)

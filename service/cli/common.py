@@ -297,6 +297,18 @@ def file_kind(path: Path) -> str | None:
     return None
 
 
+ResultOutDirOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--out-dir",
+        help="Folder for the output [default: the folder of RESULT].",
+        rich_help_panel=OUTPUT,
+        show_default=False,
+    ),
+]
+"""``--out-dir`` of the commands that read a result (predict, rank, check)."""
+
+
 @dataclass
 class Outputs:
     """The files of one command run: their paths are settled (and checked) before the work

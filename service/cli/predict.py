@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from service.cli.common import (
-    OUTPUT,
     Outputs,
+    ResultOutDirOpt,
     _prediction_note,
     output_option,
     read_result,
@@ -23,15 +23,6 @@ if TYPE_CHECKING:
     from solver.model import KinematicChain
 
 PredictionsOut = Annotated[Path | None, output_option("predictions.csv", "The predictions CSV")]
-ResultOutDirOpt = Annotated[
-    Path | None,
-    typer.Option(
-        "--out-dir",
-        help="Folder for the output [default: the folder of RESULT].",
-        rich_help_panel=OUTPUT,
-        show_default=False,
-    ),
-]
 RankingOut = Annotated[Path | None, output_option("ranking.json", "The ranking JSON")]
 
 

@@ -59,7 +59,14 @@ def _imported_by(*args: str) -> set[str]:
 
 
 @pytest.mark.parametrize(
-    "args", [("--help",), ("calibrate", "--help"), ("import", "--help"), ("--version",)]
+    "args",
+    [
+        ("--help",),
+        ("calibrate", "--help"),
+        ("import", "--help"),
+        ("check", "--help"),
+        ("--version",),
+    ],
 )
 def test_help_loads_none_of_the_heavy_packages(args: tuple[str, ...]) -> None:
     loaded = _imported_by(*args)

@@ -1,0 +1,145 @@
+"""``kincal check`` through the CLI on the real FR3 recording (issue 33): calibrated on the
+other rows, 10 held-out rows hold; the same rows with a joint reading 2 mrad off drift, located
+to that joint; a bad row is named; another robot, another measurement type and other frames
+are refused with exit code 2."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from schemas.check import CheckResult
+from service.app.check import run_check
+from service.cli.common import read_result
+from solver.errors import KincalError
+from tests.conftest import REAL_DATA, computed_once
+from tests.service.cli_support import run, run_ok
+
+FR3 = REAL_DATA / "philnad_fr3_eye_in_hand" / "fr3_poses.csv"
+BAD_ROWS = (43, 112, 113)
+"""sample_id of the FR3 rows 3.5–8 mm off (the model outlier rule removes them)."""
+
+
+def split(folder: Path) -> tuple[Path, pd.DataFrame]:
+    """10 held-out rows (not the bad ones) and the calibration of the others, defaults."""
+    data = pd.read_csv(FR3)
+    rng = np.random.default_rng(0)
+    clean = data[~data["sample_id"].isin(BAD_ROWS)]
+    held = np.sort(rng.choice(clean.index.to_numpy(), 10, replace=False))
+    data.drop(index=held).to_csv(folder / "train.csv", index=False, float_format="%.17g")
+    with contextlib.redirect_stdout(io.StringIO()):
+        run_ok(["calibrate", folder / "train.csv", "--robot", "panda", "-o", folder / "cal.json"])
+    return folder / "cal.json", data.loc[held]
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, pd.DataFrame]:
+    return computed_once(tmp_path_factory, "check-fr3", split)
+
+
+def check(
+    calibrated: tuple[Path, pd.DataFrame],
+    rows: pd.DataFrame,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> tuple[int, str, str, Path]:
+    recording = tmp_path / "check.csv"
+    rows.to_csv(recording, index=False, float_format="%.17g")
+    out = tmp_path / "check.json"
+    code, stdout, stderr = run(["check", calibrated[0], recording, "-o", out], capsys, monkeypatch)
+    return code, stdout, stderr, out
+
+
+def test_held_out_rows_hold(calibrated, tmp_path, capsys, monkeypatch) -> None:
+    code, stdout, _, out = check(calibrated, calibrated[1], tmp_path, capsys, monkeypatch)
+    assert code == 0
+    result = CheckResult.model_validate_json(out.read_bytes())
+    assert result.verdict == "holds"
+    assert stdout.splitlines()[-1].startswith("check: holds: ")
+    assert len(result.poses) == 10 and not any(p.bad_sample for p in result.poses)
+    assert result.located is None
+    assert {s.name for s in result.stated_sizes} >= {
+        "panda_joint1 offset",
+        "base translation",
+        "tool rotation",
+    }
+    assert f"  {out}  check of 10 poses" in stdout
+
+
+def test_a_joint_reading_off_by_2_mrad_drifts_and_is_located(
+    calibrated, tmp_path, capsys, monkeypatch
+) -> None:
+    rows = calibrated[1].copy()
+    rows["q3"] += 0.002
+    code, stdout, _, out = check(calibrated, rows, tmp_path, capsys, monkeypatch)
+    assert code == 3
+    result = CheckResult.model_validate_json(out.read_bytes())
+    assert result.verdict == "drifted"
+    assert result.located is not None and result.located.name == "panda_joint3 offset"
+    offset = result.located.components[0]
+    assert offset.unit == "rad"
+    assert offset.low95 <= -0.002 <= offset.high95  # the joint stands 2 mrad short of it
+    assert "--free joint_offsets" in result.advice
+    assert "located: panda_joint3 offset" in stdout
+
+
+def test_a_bad_row_of_the_recording_is_named(calibrated, tmp_path, capsys, monkeypatch) -> None:
+    """The FR3's own bad row 112 (about 8 mm off) among 9 good ones: named, the rest hold."""
+    bad = pd.read_csv(FR3).query("sample_id == 112")
+    rows = pd.concat([calibrated[1].iloc[:9], bad])
+    code, stdout, _, out = check(calibrated, rows, tmp_path, capsys, monkeypatch)
+    assert code == 0
+    result = CheckResult.model_validate_json(out.read_bytes())
+    assert result.verdict == "holds"
+    assert [p.index for p in result.poses if p.bad_sample] == [10]
+    assert result.poses[9].sample_id == "112"
+    assert "re-measure" in stdout
+
+
+def test_another_robot_is_refused(calibrated, tmp_path, capsys, monkeypatch) -> None:
+    ur10 = pd.read_csv(REAL_DATA / "figaroh_ur10_experiment" / "calibration.csv")
+    code, _, stderr, _ = check(calibrated, ur10, tmp_path, capsys, monkeypatch)
+    assert code == 2
+    assert stderr.startswith("kincal: error: check recording: not a recording of the calibrated")
+    assert "panda_joint1" in stderr and len(stderr.strip().splitlines()) == 1
+
+
+def test_another_measurement_type_is_refused(calibrated, tmp_path, capsys, monkeypatch) -> None:
+    rows = calibrated[1].drop(columns=["qx", "qy", "qz", "qw"])
+    code, _, stderr, _ = check(calibrated, rows, tmp_path, capsys, monkeypatch)
+    assert code == 2
+    assert "holds positions only" in stderr and "full poses" in stderr
+
+
+def test_other_frames_are_refused(calibrated, tmp_path, capsys, monkeypatch) -> None:
+    rows = calibrated[1].copy()
+    rows["x"] += 0.5  # a check recorded with the camera 0.5 m elsewhere
+    code, _, stderr, _ = check(calibrated, rows, tmp_path, capsys, monkeypatch)
+    assert code == 2
+    assert "not in the calibration's measurement frame" in stderr
+
+
+def test_a_result_without_predictive_covariance_is_refused(calibrated) -> None:
+    result = read_result(calibrated[0]).model_copy(update={"predictive": None})
+    with pytest.raises(KincalError, match=r"no Cov\(θ̂\) and the model-error part"):
+        run_check(result, FR3)
+
+
+def test_level_outside_zero_one_is_refused(calibrated) -> None:
+    with pytest.raises(KincalError, match=r"--level 1\.5"):
+        run_check(read_result(calibrated[0]), FR3, level=1.5)
+
+
+def test_two_poses_are_inconclusive(calibrated, tmp_path, capsys, monkeypatch) -> None:
+    code, stdout, _, out = check(calibrated, calibrated[1].iloc[:2], tmp_path, capsys, monkeypatch)
+    assert code == 0
+    result = CheckResult.model_validate_json(out.read_bytes())  # reads back: no inf in it
+    assert result.verdict == "inconclusive" and result.max_threshold is None
+    assert result.stated_sizes == [] and result.global_test is None
+    assert stdout.splitlines()[-1].startswith("check: inconclusive: 2 check pose(s)")
