@@ -173,3 +173,18 @@ def test_every_shell_block_of_the_readme_runs_as_written(tmp_path: Path) -> None
     ]
     ranking = json.loads((out / "http_tour/ranking.json").read_text())
     assert len(ranking) == 5
+
+
+def test_ci_runs_the_readmes_test_command_with_the_browser_the_tests_need() -> None:
+    """CI runs `.ci/run` on a fresh clone: it ends in the README's test command, and installs
+    Debian's chromium first where it is missing, so the headless-browser tests run there rather
+    than skip (tests/service/api/test_docs_browser.py)."""
+    script = (REPO / ".ci" / "run").read_text(encoding="utf-8")
+    commands = [line.strip() for line in script.splitlines() if line.strip()]
+    test_command = next(
+        line.split("#")[0].strip()
+        for line in shell_blocks(README)[0].splitlines()
+        if line.startswith("make test")
+    )
+    assert commands[-1] == test_command
+    assert "apt-get install -y -qq chromium" in script
