@@ -12,11 +12,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 import pytest
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation, Slerp
 
 from schemas.dataset import PoseDataset, read_dataset
-from schemas.dataset.tf_tree import compose, invert, slerp
 from tests.conftest import REAL_DATA, computed_once
 
 FR3_POSES = REAL_DATA / "philnad_fr3_eye_in_hand" / "fr3_poses.csv"
@@ -33,6 +34,11 @@ DETOUR_RAD = 0.1  # every joint swings out and back between captures (two captur
 FINGERS = ("panda_finger_joint1", "panda_finger_joint2")
 CAMERA_M_MID = (np.array([0.1, -0.05, 0.3]), np.array([0.2, -0.1, 0.3, 0.9]) / np.sqrt(0.95))
 SHORT_AFTER, UNMEASURED_AFTER = 20, 50  # the extra holds follow these rows
+
+
+def _se3(pose: tuple[NDArray[np.float64], NDArray[np.float64]]) -> pin.SE3:
+    """A (translation m, quaternion x, y, z, w) pose as Pinocchio's SE3."""
+    return pin.XYZQUATToSE3(np.concatenate([pose[0], pose[1]]))
 
 
 @dataclass(frozen=True)
@@ -68,7 +74,8 @@ def _move(q0: Any, q1: Any, pose0: Any, pose1: Any) -> _Stretch:
     def pose(u: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         s = np.array([(1 - np.cos(np.pi * u)) / 2])
         p = pose0[0] + s[0] * (pose1[0] - pose0[0])
-        return p, slerp(pose0[1][None], pose1[1][None], s)[0]
+        ends = Rotation.from_quat(np.stack([pose0[1], pose1[1]]))
+        return p, Slerp([0.0, 1.0], ends)(s).as_quat()[0]
 
     return _Stretch(MOVE, joints, pose, True)
 
@@ -202,9 +209,11 @@ def write_bag(
         )
         for stamp, q in joint_msgs
     ]
-    mid_m_camera = invert(CAMERA_M_MID)
+    # composed by Pinocchio, not by the reader's own tf maths (schemas/dataset/tf_tree.py)
+    mid_m_camera = _se3(CAMERA_M_MID).inverse()
     for stamp, pose in tf_msgs:
-        mid_m_board = compose(mid_m_camera, pose)
+        mid_m_board_xyzquat = pin.SE3ToXYZQUAT(mid_m_camera * _se3(pose))
+        mid_m_board = (mid_m_board_xyzquat[:3], mid_m_board_xyzquat[3:])
         position = types["geometry_msgs/msg/Point"](x=pose[0][0], y=pose[0][1], z=pose[0][2])
         x, y, z, w = pose[1]
         rotation = types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)
