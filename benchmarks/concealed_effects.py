@@ -34,15 +34,19 @@ the load (``os.getloadavg`` is printed with them).
 
 Usage::
 
-    python benchmarks/concealed_effects.py [--seeds 50] [--n 200] [--workers 2]
+    python -m benchmarks.concealed_effects [--seeds 50] [--n 200] [--workers 2]
         [--scenarios null,compliance,...] [--out out/concealed_effects] [--timing-n 500]
-    python benchmarks/concealed_effects.py --real [--seeds 10] [--workers 2]
+        [--write-results]
+    python -m benchmarks.concealed_effects --real [--seeds 10] [--workers 2]
         [--recordings fr3,ur10e,talos,tiago,positioner,platonics] [--scenarios backlash_load,...]
-        [--sizes 1,2,4] [--out out/concealed_real]
+        [--sizes 1,2,4] [--out out/concealed_real] [--write-results]
 
 ``--real`` runs the semi-real benchmark instead (:mod:`benchmarks.concealed_real`): the
 mechanism simulator conceals each library effect in the shipped real recordings at 1, 2 and 4
-(``--sizes``) times the detectability their discovery report states.
+(``--sizes``) times the detectability their discovery report states. ``--write-results``:
+``docs/results/discovery_simulated.{json,md}`` (``--real``: ``discovery_real.{json,md}``), the
+tables docs/discovery_benchmark.md and docs/discovery_real_benchmark.md include, with every
+run, so tests/test_quoted_numbers.py can check each row against its runs and re-run one.
 """
 
 from __future__ import annotations
@@ -67,6 +71,7 @@ import solver  # noqa: F401
 import numpy as np
 import scipy.stats
 
+from benchmarks.results import Row, markdown_table, percent, write_results
 from schemas.robots import load_robot
 from service.app.simulate import marker_offset
 from solver import lie
@@ -329,6 +334,11 @@ def _chains(robot_name: str, virtual_at: tuple[int, ...]) -> KinematicChain:
     return build_chain(robot.urdf_xml, robot.base_frame, robot.tip_frame, virtual_axes_at=virtual)
 
 
+def scenarios_of(robot_name: str) -> dict[str, Scenario]:
+    """The scenario table on ``robot_name``'s joints."""
+    return scenarios(_chains(robot_name, ()).joint_names)
+
+
 def _spec(scenario: Scenario, seed: int, n: int) -> SimulationSpec:
     return SimulationSpec(
         n_samples=n,
@@ -451,39 +461,114 @@ def clopper_pearson(successes: int, trials: int, level: float = 0.95) -> tuple[f
     return float(interval.low), float(interval.high)
 
 
-def _pct(value: float, digits: int = 0) -> str:
-    return "–" if math.isnan(value) else f"{100 * value:.{digits}f} %"
+def _pct(value: float | None, digits: int = 0) -> str:
+    return "–" if value is None or math.isnan(value) else percent(value, digits)
 
 
-def table(rows: dict[str, dict[str, float]], described: dict[str, Scenario]) -> str:
-    """Markdown table, one row per scenario."""
-    header = (
-        "| Scenario | Group | Runs | Detected | Ambiguous (truth among them) | Wrong name | "
-        "False-discovery rate | Unexplained | CI coverage (95 %) | Median rel. error | "
-        "Held-out / true model | s/run |"
+def _term_text(item: Expected) -> str:
+    effect, joint = item
+    return f"{effect}@{'-' if joint is None else joint}"
+
+
+def _term(text: str) -> Expected:
+    effect, _, joint = text.rpartition("@")
+    return effect, None if joint == "-" else int(joint)
+
+
+def outcome(run: RunResult) -> Row:
+    """One run as the results file keeps it (terms as ``effect@joint index``; sizes rounded
+    far below what the table shows)."""
+    return {
+        "seed": run.seed,
+        "named": [_term_text(t) for t in run.named],
+        "ambiguous": [[_term_text(t) for t in entry] for entry in run.ambiguous],
+        "unexplained": run.unexplained,
+        "random": run.random,
+        "z_scores": [round(z, 4) for z in run.z_scores],
+        "relative_errors": [round(e, 6) for e in run.relative_errors],
+        "heldout_before_mm": round(run.heldout_before_mm, 6),
+        "heldout_after_mm": round(run.heldout_after_mm, 6),
+        "oracle_mm": round(run.oracle_mm, 6),
+        "seconds": round(run.seconds, 3),
+    }
+
+
+def run_of(scenario: str, n: int, record: Row) -> RunResult:
+    """The run :func:`outcome` kept."""
+    return RunResult(
+        scenario=scenario,
+        seed=record["seed"],
+        n=n,
+        named=[_term(t) for t in record["named"]],
+        ambiguous=[[_term(t) for t in entry] for entry in record["ambiguous"]],
+        unexplained=record["unexplained"],
+        random=record["random"],
+        z_scores=record["z_scores"],
+        relative_errors=record["relative_errors"],
+        heldout_before_mm=record["heldout_before_mm"],
+        heldout_after_mm=record["heldout_after_mm"],
+        oracle_mm=record["oracle_mm"],
+        seconds=record["seconds"],
     )
-    lines = [header, "|---" * 12 + "|"]
-    for name, r in rows.items():
-        s = described[name]
-        lines.append(
-            f"| {name}: {s.description} | {s.group} | {r['runs']:.0f} | {_pct(r['detected'])} | "
-            f"{_pct(r['ambiguous_truth'])} | {_pct(r['false_runs'])} | {_pct(r['fdr'])} | "
-            f"{_pct(r['unexplained'])} | {_pct(r['coverage'])} | {_pct(r['rel_error'], 1)} | "
-            f"{r['heldout_ratio']:.3f} | {r['seconds']:.1f} |"
+
+
+def scenario_row(name: str, scenario: Scenario, n: int, runs: list[RunResult]) -> Row:
+    """One results row: the scenario, :func:`summarise` of its kept runs (NaN as null) and the
+    runs (``outcomes``), so the row can be checked against them."""
+    outcomes = [outcome(r) for r in runs]
+    numbers = summarise(scenario, [run_of(name, n, o) for o in outcomes])
+    return {
+        "scenario": name,
+        "group": scenario.group,
+        "description": scenario.description,
+        "n": n,
+        **{k: None if math.isnan(v) else v for k, v in numbers.items()},
+        "outcomes": outcomes,
+    }
+
+
+def table(rows: list[Row]) -> str:
+    """Markdown table, one row per scenario row."""
+    header = (
+        "Scenario",
+        "Group",
+        "Runs",
+        "Detected",
+        "Ambiguous (truth among them)",
+        "Wrong name",
+        "False-discovery rate",
+        "Unexplained",
+        "CI coverage (95 %)",
+        "Median rel. error",
+        "Held-out / true model",
+        "s/run",
+    )
+    lines = [
+        (
+            f"{r['scenario']}: {r['description']}".replace("|", "\\|"),  # |τ| in a cell
+            r["group"],
+            f"{r['runs']:.0f}",
+            _pct(r["detected"]),
+            _pct(r["ambiguous_truth"]),
+            _pct(r["false_runs"]),
+            _pct(r["fdr"]),
+            _pct(r["unexplained"]),
+            _pct(r["coverage"]),
+            _pct(r["rel_error"], 1),
+            f"{r['heldout_ratio']:.3f}",
+            f"{r['seconds']:.1f}",
         )
-    return "\n".join(lines)
+        for r in rows
+    ]
+    return markdown_table(header, lines)
 
 
-def headline(
-    rows: dict[str, dict[str, float]],
-    described: dict[str, Scenario],
-    timing: list[float] | None,
-    timing_n: int,
-) -> tuple[str, dict[str, float]]:
-    """The issue's targets: pooled rates with exact 95 % intervals, and the N=500 timing."""
-    by_group: dict[str, list[dict[str, float]]] = {g: [] for g in GROUPS}
-    for name, r in rows.items():
-        by_group[described[name].group].append(r)
+def headline(rows: list[Row], timing: Row | None) -> tuple[str, dict[str, float]]:
+    """The issue's targets: pooled rates with exact 95 % intervals, and the timing runs
+    (``timing``: :func:`timing_row`)."""
+    by_group: dict[str, list[Row]] = {g: [] for g in GROUPS}
+    for r in rows:
+        by_group[r["group"]].append(r)
     out: dict[str, float] = {}
     lines = []
     null = by_group["null"]
@@ -500,27 +585,32 @@ def headline(
     single = by_group["single"]
     if single:
         worst = min(single, key=lambda r: r["detected"])
-        worst_name = next(n for n, r in rows.items() if r is worst)
         mean = float(np.mean([r["detected"] for r in single]))
         out["single_detection_min"] = worst["detected"]
         lines.append(
             f"- detection of single effects at a detectable size: mean {_pct(mean, 1)}, lowest "
-            f"{_pct(worst['detected'], 1)} ({worst_name}; target ≥ "
+            f"{_pct(worst['detected'], 1)} ({worst['scenario']}; target ≥ "
             f"{_pct(TARGETS['single_detection_min'])} each)"
         )
         count = int(sum(r["z_count"] for r in single))
         inside = int(sum(r["z_inside"] for r in single))
+        spread = [r["z_sd"] for r in single if r["z_sd"] is not None]
         if count:
             low, high = clopper_pearson(inside, count)
             out["single_coverage"] = inside / count
             lines.append(
                 f"- 95 % confidence intervals of the single effects' parameters hold the truth in "
                 f"{inside}/{count} = {_pct(inside / count, 1)} (95 % CI {_pct(low, 1)}–"
-                f"{_pct(high, 1)}); standard deviation of (estimate − truth)/stderr per scenario "
-                f"{min(r['z_sd'] for r in single):.2f}–{max(r['z_sd'] for r in single):.2f}"
+                f"{_pct(high, 1)})"
+                + (
+                    "; standard deviation of (estimate − truth)/stderr per scenario "
+                    f"{min(spread):.2f}–{max(spread):.2f}"
+                    if spread
+                    else ""
+                )
             )
-    names = sum(r["names"] for r in rows.values())
-    wrong = sum(r["wrong_names"] for r in rows.values())
+    names = sum(r["names"] for r in rows)
+    wrong = sum(r["wrong_names"] for r in rows)
     if names:
         low, high = clopper_pearson(int(wrong), int(names))
         out["fdr"] = wrong / names
@@ -529,33 +619,74 @@ def headline(
             f"{_pct(wrong / names, 1)} (95 % CI {_pct(low, 1)}–{_pct(high, 1)}; target ≤ "
             f"{_pct(TARGETS['fdr_max'])})"
         )
-    for name in [n for n in rows if described[n].group in ("collinear", "hard")]:
-        r = rows[name]
+    for r in [r for r in rows if r["group"] in ("collinear", "hard")]:
         lines.append(
-            f"- {name}: named right in {_pct(r['named_right'])} of runs, flagged ambiguous "
-            f"with the truth among the candidates in {_pct(r['ambiguous_truth'])}, a wrong "
-            f"name in {_pct(r['false_runs'])}"
+            f"- {r['scenario']}: named right in {_pct(r['named_right'])} of runs, flagged "
+            f"ambiguous with the truth among the candidates in {_pct(r['ambiguous_truth'])}, a "
+            f"wrong name in {_pct(r['false_runs'])}"
         )
-    off = [r for n, r in rows.items() if described[n].group == "off"]
+    off = by_group["off"]
     if off:
         lines.append(
             "- off-library effects reported unexplained at their joint: "
-            + ", ".join(
-                f"{n} {_pct(rows[n]['detected'])}" for n in rows if described[n].group == "off"
-            )
+            + ", ".join(f"{r['scenario']} {_pct(r['detected'])}" for r in off)
             + f"; given a library name in {_pct(float(np.mean([r['named_any'] for r in off])))}"
         )
-    if timing:
-        out["timing_median_s"] = float(np.median(timing))
-        out["timing_max_s"] = float(np.max(timing))
-        load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
+    if timing and timing["timing_seconds"]:
+        seconds = timing["timing_seconds"]
+        out["timing_median_s"] = float(np.median(seconds))
+        out["timing_max_s"] = float(np.max(seconds))
+        load = ", ".join(f"{v:.1f}" for v in timing["load_average"])
         lines.append(
-            f"- runtime at N = {timing_n}, full library: median {np.median(timing):.1f} s, "
-            f"max {np.max(timing):.1f} s over {len(timing)} runs (target < "
-            f"{TARGETS['timing_s_max']:.0f} s; load average "
-            f"{load} on this shared machine inflates it)"
+            f"- runtime at N = {timing['timing_n']}, full library with the detectable sizes: "
+            f"median {np.median(seconds):.1f} s, max {np.max(seconds):.1f} s over "
+            f"{len(seconds)} runs (target < {TARGETS['timing_s_max']:.0f} s; load average "
+            f"{load} when they ran)"
         )
     return "\n".join(lines), out
+
+
+def timing_row(
+    robot_name: str,
+    n: int,
+    seeds: int,
+    bootstrap: int,
+    workers: int,
+    discoveries: int,
+    timing_n: int,
+    timing_seconds: list[float],
+    total_s: float,
+) -> Row:
+    """The results file's last row: how the benchmark ran, the timing runs and the load."""
+    return {
+        "robot": robot_name,
+        "n": n,
+        "seeds": seeds,
+        "bootstrap": bootstrap,
+        "workers": workers,
+        "discoveries": discoveries,
+        "timing_n": timing_n,
+        "timing_seconds": [round(s, 3) for s in timing_seconds],
+        "load_average": [round(v, 2) for v in os.getloadavg()],
+        "total_s": round(total_s, 1),
+    }
+
+
+def footer(timing: Row) -> str:
+    return (
+        f"{timing['discoveries']} discoveries ({timing['robot']}, N = {timing['n']}, "
+        f"{timing['seeds']} seeds per scenario, {timing['bootstrap']} bootstrap replicates) + "
+        f"{len(timing['timing_seconds'])} timing runs at N = {timing['timing_n']}, "
+        f"{timing['workers']} worker(s), {timing['total_s']:.0f} s in total."
+    )
+
+
+def render(rows: list[Row]) -> str:
+    """``docs/results/discovery_simulated.md``: the table, the targets and how it ran."""
+    scenario_rows = [r for r in rows if "scenario" in r]
+    (timing,) = [r for r in rows if "scenario" not in r]
+    summary, _ = headline(scenario_rows, timing)
+    return f"{table(scenario_rows)}\n\n{summary}\n\n{footer(timing)}"
 
 
 def _write_csv(path: Path, rows: Iterable[dict[str, Any]]) -> None:
@@ -610,6 +741,9 @@ def _execute(
     return sorted(results, key=lambda r: order[(r.scenario, r.seed, r.n)])
 
 
+RESULTS_NAME = "discovery_simulated"
+
+
 def main(
     seeds: int = 50,
     n: int = 200,
@@ -622,8 +756,11 @@ def main(
     timing_seeds: int = 5,
     echo: Callable[[str], None] = print,
     first_seed: int = 0,
-) -> tuple[str, dict[str, dict[str, float]], dict[str, float]]:
-    """Run the benchmark; returns (markdown, per-scenario rows, headline numbers)."""
+    write_command: str | None = None,
+) -> tuple[str, dict[str, Row], dict[str, float]]:
+    """Run the benchmark; returns (markdown table, per-scenario rows, headline numbers).
+    ``write_command``: also write ``docs/results/discovery_simulated.{json,md}``, recording
+    this command."""
     joints = _chains(robot_name, ()).joint_names
     described = scenarios(joints)
     chosen = names or list(described)
@@ -641,20 +778,27 @@ def main(
     results = _execute(jobs + timing_jobs, workers, progress)
     runs, timed = results[: len(jobs)], results[len(jobs) :]
     rows = {
-        name: summarise(described[name], [r for r in runs if r.scenario == name]) for name in chosen
+        name: scenario_row(name, described[name], n, [r for r in runs if r.scenario == name])
+        for name in chosen
     }
-    text = table(rows, described)
-    summary, numbers = headline(rows, described, [r.seconds for r in timed], timing_n)
-    footer = (
-        f"{len(jobs)} discoveries ({robot_name}, N = {n}, {seeds} seeds per scenario, "
-        f"{bootstrap} bootstrap replicates) + {len(timed)} timing runs at N = {timing_n}, "
-        f"{workers} worker(s), {time.perf_counter() - started:.0f} s in total."
+    timing = timing_row(
+        robot_name,
+        n,
+        seeds,
+        bootstrap,
+        workers,
+        len(jobs),
+        timing_n,
+        [r.seconds for r in timed],
+        time.perf_counter() - started,
     )
+    text = table(list(rows.values()))
+    summary, numbers = headline(list(rows.values()), timing)
     echo(text)
     echo("")
     echo(summary)
     echo("")
-    echo(footer)
+    echo(footer(timing))
     if out_dir is not None:
         _write_csv(
             out_dir / "runs.csv",
@@ -662,10 +806,39 @@ def main(
         )
         _write_csv(
             out_dir / "scenarios.csv",
-            ({"scenario": k, "group": described[k].group, **v} for k, v in rows.items()),
+            (
+                {k: v for k, v in row.items() if k not in ("description", "outcomes")}
+                for row in rows.values()
+            ),
         )
-        (out_dir / "table.md").write_text(f"{text}\n\n{summary}\n\n{footer}\n", encoding="utf-8")
+        (out_dir / "table.md").write_text(
+            f"{text}\n\n{summary}\n\n{footer(timing)}\n", encoding="utf-8"
+        )
+    if write_command is not None:
+        for path in write_results(RESULTS_NAME, write_command, [*rows.values(), timing], render):
+            echo(f"wrote {path}")
     return text, rows, numbers
+
+
+def command_line(arguments: argparse.Namespace) -> str:
+    """The command that re-makes a results file: the options that change a number."""
+    flags = ["--real"] if arguments.real else []
+    flags += [f"--seeds {arguments.seeds}"]
+    if arguments.real:
+        flags += [f"--sizes {arguments.sizes}"]
+        if arguments.recordings:
+            flags += [f"--recordings {arguments.recordings}"]
+    else:
+        flags += [f"--n {arguments.n}", f"--bootstrap {arguments.bootstrap}"]
+        flags += [f"--timing-n {arguments.timing_n}", f"--timing-seeds {arguments.timing_seeds}"]
+        if arguments.robot != "kinova":
+            flags += [f"--robot {arguments.robot}"]
+        if arguments.first_seed:
+            flags += [f"--first-seed {arguments.first_seed}"]
+    if arguments.scenarios:
+        flags += [f"--scenarios {arguments.scenarios}"]
+    flags += [f"--workers {arguments.workers}", "--write-results"]
+    return "python -m benchmarks.concealed_effects " + " ".join(flags)
 
 
 if __name__ == "__main__":
@@ -685,7 +858,13 @@ if __name__ == "__main__":
     parser.add_argument(
         "--sizes", default="1,2,4", help="--real: multiples of the stated detectability."
     )
+    parser.add_argument(
+        "--write-results",
+        action="store_true",
+        help="docs/results/discovery_simulated.{json,md} (--real: discovery_real.{json,md})",
+    )
     arguments = parser.parse_args()
+    write_command = command_line(arguments) if arguments.write_results else None
     if arguments.real:
         from benchmarks import concealed_real
 
@@ -695,6 +874,7 @@ if __name__ == "__main__":
             recordings=arguments.recordings.split(",") if arguments.recordings else None,
             effects=arguments.scenarios.split(",") if arguments.scenarios else None,
             sizes=tuple(float(m) for m in arguments.sizes.split(",")),
+            write_command=write_command,
         )[0]
         arguments.out.mkdir(parents=True, exist_ok=True)
         (arguments.out / "real_table.md").write_text(real_text, encoding="utf-8")
@@ -710,4 +890,5 @@ if __name__ == "__main__":
         timing_n=arguments.timing_n,
         timing_seeds=arguments.timing_seeds,
         first_seed=arguments.first_seed,
+        write_command=write_command,
     )

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.results import Row, write_results
 from schemas.discovery import DiscoveryOptions as SchemaOptions
 from schemas.robots import RobotDescription, example_robot_data_dir, load_robot
 from service.app import discover as service_discovery
@@ -612,6 +613,151 @@ def _size(value: float, parameter: str) -> str:
     return f"{value:.3g} rad/N·m"
 
 
+RESULTS_NAME = "discovery_real"
+
+
+def _named_text(item: tuple[str, int | None, str]) -> str:
+    effect, joint, variant = item
+    return f"{effect}@{'-' if joint is None else joint}:{variant}"
+
+
+def _named(text: str) -> tuple[str, int | None, str]:
+    head, _, variant = text.partition(":")
+    effect, _, joint = head.rpartition("@")
+    return effect, None if joint == "-" else int(joint), variant
+
+
+def outcome(run: Run) -> Row:
+    """One run as the results file keeps it (names as ``effect@joint index:variant``)."""
+    return {
+        "seed": run.seed,
+        "joint": run.joint,
+        "truth": run.truth,
+        "named": [_named_text(n) for n in run.named],
+        "estimate": run.estimate,
+        "concealed_estimate": run.concealed_estimate,
+        "ambiguous": run.ambiguous,
+        "ambiguous_any": run.ambiguous_any,
+        "heldout_before_mm": round(run.heldout_before_mm, 6),
+        "heldout_after_mm": round(run.heldout_after_mm, 6),
+        "seconds": round(run.seconds, 3),
+    }
+
+
+def run_of(name: str, effect: str, multiple: float, record: Row) -> Run:
+    """The run :func:`outcome` kept."""
+    return Run(
+        recording=name,
+        effect=effect,
+        multiple=multiple,
+        seed=record["seed"],
+        joint=record["joint"],
+        truth=record["truth"],
+        named=[_named(n) for n in record["named"]],
+        estimate=record["estimate"],
+        concealed_estimate=record["concealed_estimate"],
+        ambiguous=record["ambiguous"],
+        ambiguous_any=record["ambiguous_any"],
+        heldout_before_mm=record["heldout_before_mm"],
+        heldout_after_mm=record["heldout_after_mm"],
+        seconds=record["seconds"],
+    )
+
+
+def row_of(name: str, effect: str, multiple: float, runs: list[Run]) -> Row:
+    """One table row of the results file: :func:`summarise` of its kept runs (NaN as null),
+    the stated detectability (median over the joints) and the runs (``outcomes``)."""
+    outcomes = [outcome(r) for r in runs]
+    numbers = summarise([run_of(name, effect, multiple, o) for o in outcomes])
+    return {
+        "recording": name,
+        "effect": effect,
+        "multiple": multiple,
+        "stated_median": stated_median(baseline(name), EFFECTS[effect]),
+        **{k: None if math.isnan(v) else v for k, v in numbers.items()},
+        "outcomes": outcomes,
+    }
+
+
+def recording_row(
+    name: str, wanted: list[str], beyond: dict[tuple[str, str, float, int], str]
+) -> Row:
+    """A recording's line of the results file: what its unmodified recording names, the
+    effects not concealed in it (with the reason) and the jobs past the mechanism."""
+    base = baseline(name)
+    not_run = []
+    for job, why in beyond.items():
+        if job[0] == name and why:
+            joint = placed(job)[0]
+            where = "" if joint is None else f" on {base.chain.joint_names[joint]}"
+            not_run.append(f"{job[1]} {job[2]:g}× seed {job[3]}{where} not run: {why}")
+    return {
+        "recording": name,
+        "unmodified_named": base.named,
+        "not_concealed": [f"{e} ({why})" for e in wanted if (why := no_size(base, EFFECTS[e]))],
+        "not_run": not_run,
+    }
+
+
+def report(rows: list[Row]) -> str:
+    """The table, the notes (unmodified recordings, what was not concealed or not run, the
+    2× summary) and the acceptance of the results rows (:func:`row_of`, :func:`recording_row`)."""
+    table_rows = {
+        (r["recording"], r["effect"], r["multiple"]): {
+            k: math.nan if v is None else v for k, v in r.items()
+        }
+        for r in rows
+        if "effect" in r
+    }
+    recordings = [r for r in rows if "unmodified_named" in r]
+    stated_shown = {
+        (r["recording"], r["effect"]): _size(r["stated_median"], EFFECTS[r["effect"]].parameter)
+        for r in rows
+        if "effect" in r
+    }
+    text = table(table_rows, stated_shown)
+    notes = [
+        f"- unmodified {RECORDINGS[r['recording']].label}: "
+        + (
+            "nothing named"
+            if not r["unmodified_named"]
+            else "named " + "; ".join(r["unmodified_named"])
+        )
+        for r in recordings
+    ]
+    for r in recordings:
+        label = RECORDINGS[r["recording"]].label
+        if r["not_concealed"]:
+            notes.append(f"- {label}, not concealed: " + "; ".join(r["not_concealed"]))
+        notes += [f"- {label}, {line}" for line in r["not_run"]]
+    at_two = [r for (n, e, m), r in table_rows.items() if m == ACCEPTANCE_MULTIPLE]
+    if at_two:
+        notes.append(
+            "- at twice the stated detectability: named with the right joint in "
+            f"{_pct(float(np.mean([r['detected'] for r in at_two])))} of runs (lowest "
+            f"{_pct(min(r['detected'] for r in at_two))}), anything else named in "
+            f"{_pct(float(np.mean([r['wrong_runs'] for r in at_two])))}, size within 25 % in "
+            f"{_pct(float(np.mean([r['within_25'] for r in at_two])))}, ambiguous in "
+            f"{_pct(float(np.mean([r['ambiguous'] for r in at_two])))}, nothing named in "
+            f"{_pct(float(np.mean([r['nothing'] for r in at_two])))}"
+        )
+    summary = acceptance(table_rows, {r["recording"]: r["unmodified_named"] for r in recordings})
+    return "\n\n".join([text, "\n".join(notes), *(["\n".join(summary)] if summary else [])])
+
+
+def footer(run: Row) -> str:
+    return (
+        f"{run['discoveries']} discoveries ({run['seeds']} seeds per row), {run['workers']} "
+        f"worker(s), {run['total_s']:.0f} s in total."
+    )
+
+
+def render(rows: list[Row]) -> str:
+    """``docs/results/discovery_real.md``: :func:`report` and how the benchmark ran."""
+    (run,) = [r for r in rows if "discoveries" in r]
+    return f"{report(rows)}\n\n{footer(run)}"
+
+
 def main(
     seeds: int = 10,
     workers: int = 2,
@@ -619,8 +765,10 @@ def main(
     effects: list[str] | None = None,
     sizes: tuple[float, ...] = SIZES,
     echo: Callable[[str], None] = print,
-) -> tuple[str, dict[tuple[str, str, float], dict[str, float]], list[Run]]:
-    """Run the semi-real benchmark; returns (markdown, rows, runs)."""
+    write_command: str | None = None,
+) -> tuple[str, dict[tuple[str, str, float], Row], list[Run]]:
+    """Run the semi-real benchmark; returns (markdown, rows, runs). ``write_command``: also
+    write ``docs/results/discovery_real.{json,md}``, recording this command."""
     chosen = recordings or list(RECORDINGS)
     wanted = effects or list(EFFECTS)
     started = time.perf_counter()
@@ -639,55 +787,29 @@ def main(
     else:
         with ProcessPoolExecutor(workers) as pool:
             runs = list(pool.map(run_one, jobs, chunksize=4))
-    rows: dict[tuple[str, str, float], dict[str, float]] = {}
+    rows: dict[tuple[str, str, float], Row] = {}
     for name in chosen:
         for e in wanted:
             for m in sizes:
                 picked = [r for r in runs if (r.recording, r.effect, r.multiple) == (name, e, m)]
                 if picked:
-                    rows[(name, e, m)] = summarise(picked)
-    stated_shown = {(n, e): _stated_median(baseline(n), EFFECTS[e]) for n, e, _ in rows}
-    text = table(rows, stated_shown)
-    notes = [
-        f"- unmodified {RECORDINGS[n].label}: "
-        + ("nothing named" if not baseline(n).named else "named " + "; ".join(baseline(n).named))
-        for n in chosen
-    ]
-    for n in chosen:
-        skipped = [
-            f"{e} ({reason})" for e in wanted if (reason := no_size(baseline(n), EFFECTS[e]))
-        ]
-        if skipped:
-            notes.append(f"- {RECORDINGS[n].label}, not concealed: " + "; ".join(skipped))
-        for job, why in beyond.items():
-            if job[0] == n and why:
-                joint = placed(job)[0]
-                where = "" if joint is None else f" on {baseline(n).chain.joint_names[joint]}"
-                notes.append(
-                    f"- {RECORDINGS[n].label}, {job[1]} {job[2]:g}× seed {job[3]}{where} "
-                    f"not run: {why}"
-                )
-    at_two = [r for (n, e, m), r in rows.items() if m == ACCEPTANCE_MULTIPLE]
-    if at_two:
-        notes.append(
-            "- at twice the stated detectability: named with the right joint in "
-            f"{_pct(float(np.mean([r['detected'] for r in at_two])))} of runs (lowest "
-            f"{_pct(min(r['detected'] for r in at_two))}), anything else named in "
-            f"{_pct(float(np.mean([r['wrong_runs'] for r in at_two])))}, size within 25 % in "
-            f"{_pct(float(np.mean([r['within_25'] for r in at_two])))}, ambiguous in "
-            f"{_pct(float(np.mean([r['ambiguous'] for r in at_two])))}, nothing named in "
-            f"{_pct(float(np.mean([r['nothing'] for r in at_two])))}"
-        )
-    summary = acceptance(rows, {n: baseline(n).named for n in chosen})
-    footer = (
-        f"{len(runs)} discoveries ({seeds} seeds per row), {workers} worker(s), "
-        f"{time.perf_counter() - started:.0f} s in total."
-    )
-    report = "\n\n".join([text, "\n".join(notes), *(["\n".join(summary)] if summary else [])])
-    echo(report)
+                    rows[(name, e, m)] = row_of(name, e, m, picked)
+    run_row = {
+        "seeds": seeds,
+        "sizes": list(sizes),
+        "workers": workers,
+        "discoveries": len(runs),
+        "total_s": round(time.perf_counter() - started, 1),
+    }
+    every = [*rows.values(), *(recording_row(n, wanted, beyond) for n in chosen), run_row]
+    text = report(every)
+    echo(text)
     echo("")
-    echo(footer)
-    return f"{report}\n\n{footer}\n", rows, runs
+    echo(footer(run_row))
+    if write_command is not None:
+        for path in write_results(RESULTS_NAME, write_command, every, render):
+            echo(f"wrote {path}")
+    return f"{text}\n\n{footer(run_row)}\n", rows, runs
 
 
 HEADER = (
@@ -717,10 +839,10 @@ def table(
     return "\n".join(lines)
 
 
-def _stated_median(base: Baseline, effect: Effect) -> str:
-    """The stated detectability of ``effect`` on ``base``, median over its joints, as shown."""
+def stated_median(base: Baseline, effect: Effect) -> float:
+    """The stated detectability of ``effect`` on ``base``, median over its joints."""
     sizes = [stated(base, effect, j) for j in candidate_joints(base, effect)]
-    return _size(float(np.median([s for s in sizes if s is not None])), effect.parameter)
+    return float(np.median([s for s in sizes if s is not None]))
 
 
 def accepted(row: dict[str, float], rate: float = ACCEPTANCE_RATE) -> bool:
