@@ -641,7 +641,7 @@ def headline(rows: list[Row], timing: Row | None) -> tuple[str, dict[str, float]
             f"- runtime at N = {timing['timing_n']}, full library with the detectable sizes: "
             f"median {np.median(seconds):.1f} s, max {np.max(seconds):.1f} s over "
             f"{len(seconds)} runs (target < {TARGETS['timing_s_max']:.0f} s; load average "
-            f"{load} when they ran)"
+            f"{load} as the benchmark ended)"
         )
     return "\n".join(lines), out
 
