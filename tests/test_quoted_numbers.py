@@ -75,6 +75,21 @@ PAGES: dict[str, str | tuple[str, ...]] = {
 }
 
 
+# The pages of the design, FIGAROH, paper-reproduction and scale benchmarks, kept together (their
+# checks are the last tests below; the paper study's is in tests/test_reproduce_paper.py, which
+# runs its quick study anyway).
+RENDER |= {
+    "scale_stages": scale.render_stages,
+    "scale_cpu": scale.render_cpu,
+}
+PAGES |= {
+    "scale": ("large-recordings.md", "scale.md"),
+    "scale_fleet": ("large-recordings.md", "scale.md"),
+    "scale_stages": "scale.md",
+    "scale_cpu": "scale.md",
+}
+
+
 @pytest.mark.parametrize("name", sorted(RENDER))
 def test_each_table_is_its_results_file_and_its_page_includes_it(name: str) -> None:
     _, rows = read_results(name)
@@ -345,3 +360,14 @@ def test_the_model_selection_table_holds_for_tiago() -> None:
         ]
         assert got["heldout_mm"] == pytest.approx(want["heldout_mm"][:2], abs=0.0005)
         assert got["largest_inner_rotation_rad"] <= want["largest_inner_rotation_rad"] + 0.0005
+
+
+def test_the_scale_details_are_its_runs() -> None:
+    """docs/scale.md's stage and CPU-fit tables are computed from the runs of ``scale.json``
+    (whose passes at 10³ poses are re-run above) by the benchmark's own functions."""
+    command, runs = scale.recorded_runs()
+    stages_command, stages = read_results("scale_stages")
+    cpu_command, cpu = read_results("scale_cpu")
+    assert stages_command == cpu_command == command
+    assert stages == scale.stage_rows(runs)
+    assert cpu == scale.cpu_rows(runs)
