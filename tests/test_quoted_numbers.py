@@ -27,6 +27,7 @@ from benchmarks import (
     design,
     design_measurements,
     evaluate_real,
+    figaroh_side_by_side,
     fleet_platonics,
     honest_covariance,
     model_selection,
@@ -86,6 +87,7 @@ RENDER |= {
     "design_timing": design.render_timing,
     "design_figaroh": design.render_figaroh,
     "design_measurements": design_measurements.render,
+    "figaroh_side_by_side": figaroh_side_by_side.render,
     "scale_stages": scale.render_stages,
     "scale_cpu": scale.render_cpu,
 }
@@ -95,6 +97,7 @@ PAGES |= {
     "design_timing": "design.md",
     "design_figaroh": "design.md",
     "design_measurements": "design.md",
+    "figaroh_side_by_side": ("figaroh.md", "real-robots.md"),
     "scale": ("large-recordings.md", "scale.md"),
     "scale_fleet": ("large-recordings.md", "scale.md"),
     "scale_stages": "scale.md",
@@ -467,6 +470,22 @@ def test_the_measurement_design_table_holds_for_the_markers() -> None:
         assert got[key] == want[key], key
     for key in ("value", "upper_bound", "efficiency", "random_median"):
         assert got[key] == pytest.approx(want[key], abs=0.0005), key
+
+
+def test_the_figaroh_table_holds_for_tiago_on_two_splits() -> None:
+    """kincal's ``--fix compliance`` fit of TIAGo (its 21 kept rows) re-run on splits 1 and 2
+    (about 1 s): each held-out error within 0.005 mm (the table shows 0.01 mm). FIGAROH's
+    columns are a recorded run (FIGAROH is not installed with kincal): each row names it, and
+    model_selection quotes the same FIGAROH errors."""
+    _, rows = read_results("figaroh_side_by_side")
+    (want,) = [r for r in rows if r["robot"] == "TIAGo"]
+    (tiago,) = [r for r in figaroh_side_by_side.RECORDINGS if r.name == "TIAGo"]
+    got = figaroh_side_by_side.same_model_heldout(tiago, np.array(want["kept"]), [1, 2])
+    assert got == pytest.approx(want["same_model_mm"][:2], abs=0.005)
+    for row in rows:
+        assert "--figaroh-python" in row["figaroh"]["run"], row["robot"]
+        mean, se = row["figaroh"]["held_out_mm"]
+        assert (round(mean, 2), round(se, 2)) == model_selection.FIGAROH_MM[row["robot"]]
 
 
 def test_the_scale_details_are_its_runs() -> None:
