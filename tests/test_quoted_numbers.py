@@ -34,6 +34,7 @@ from benchmarks import (
     platonics,
     scale,
 )
+from benchmarks.reproduce_paper import results as paper_results
 from benchmarks.results import RESULTS, read_results
 from schemas.calibration import CalibrationOptions
 from schemas.robots import load_robot
@@ -90,6 +91,7 @@ RENDER |= {
     "figaroh_side_by_side": figaroh_side_by_side.render,
     "scale_stages": scale.render_stages,
     "scale_cpu": scale.render_cpu,
+    **paper_results.RENDER,
 }
 PAGES |= {
     "design_poses": "design.md",
@@ -102,6 +104,8 @@ PAGES |= {
     "scale_fleet": ("large-recordings.md", "scale.md"),
     "scale_stages": "scale.md",
     "scale_cpu": "scale.md",
+    **{name: "reproduce_paper.md" for name in paper_results.RENDER},
+    "reproduce_paper_acceptance": ("reproduce_paper.md", "ranking.md"),
 }
 
 
