@@ -30,7 +30,7 @@ from service.api.results import CachedResult
 from service.api.robots import one_line
 from service.app import calibrate as pipeline
 from service.app import discover_carry
-from service.app.job_functions import CalibrationJobParams, DiscoveryRef
+from service.app.job_params import CalibrationJobParams, DiscoveryRef
 from service.app.measurement_input import refuse_file_measurement
 from service.render import exports
 from service.render.urdf_export import refusal as urdf_refusal

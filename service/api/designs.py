@@ -27,7 +27,8 @@ from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.robots import resolve_robot
-from service.app.job_functions import DatasetRef, DesignJobParams, RecordedRef, design_now
+from service.app.job_functions import design_now
+from service.app.job_params import DatasetRef, DesignJobParams, RecordedRef
 from service.storage import repository
 from service.storage.models import Job
 

@@ -22,7 +22,7 @@ from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, problem_responses
 from service.app import discover as discovery
-from service.app.job_functions import DiscoveryJobParams
+from service.app.job_params import DiscoveryJobParams
 from service.app.measurement_input import check_sensor_joint, refuse_file_measurement
 from service.storage.models import Job
 from solver.model import KinematicChain
