@@ -20,6 +20,7 @@ from fastapi.responses import HTMLResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
+from service import kincal_version
 from service.api import calibrations, datasets, designs, discoveries, health, rankings, robots
 from service.api.deps import ServiceState
 from service.api.metrics import Metrics
@@ -27,7 +28,6 @@ from service.api.middleware import BodyLimits, RequestContextMiddleware
 from service.api.problems import install_problem_handlers
 from service.api.results import ResultCache
 from service.jobs.runner import JobRegistry, JobRunner, RunnerHandle, default_registry
-from service.render.result_json import kincal_version
 from service.security import KeyVerifier, Principal
 from service.settings import Settings
 from service.storage import repository

@@ -44,7 +44,7 @@ from service.api.problems import (
     validation_errors,
 )
 from service.api.robots import ResolvedRobot, resolve_robot
-from service.app.job_functions import RobotRef
+from service.app.job_params import RobotRef
 from service.app.preflight import check_dataset
 from service.security import Principal
 from service.storage import repository
