@@ -12,10 +12,13 @@ Every problem is one :class:`~solver.errors.DatasetError` line naming the fix.
 
 from __future__ import annotations
 
+import io
+import tempfile
+import zipfile
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -40,6 +43,9 @@ if TYPE_CHECKING:
     from rosbags.highlevel import AnyReader
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+UPLOAD_SUFFIXES = (".bag", ".zip")
+"""A bag sent as bytes: a ROS 1 ``.bag`` file, or a rosbag2 folder in a ``.zip`` archive."""
+MAX_ARCHIVE_MEMBERS = 64
 JOINT_STATE = "sensor_msgs/msg/JointState"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/TransformStamped")
@@ -67,6 +73,19 @@ class MeasureSource:
         if kind in ("pose", "point") and len(parts) == 1 and parts[0]:
             return cls(kind, topic=parts[0])
         raise DatasetError(f"--measure {text!r}: give {SOURCE_FORMS}")
+
+
+class TooManyMessagesError(DatasetError):
+    """A bag holds more messages on the topics a recording reads than the caller's limit
+    (counted from the bag's index, before any message is decoded)."""
+
+    def __init__(self, source: str, n_messages: int, limit: int) -> None:
+        super().__init__(
+            f"{source}: {n_messages} messages on the topics read is more than the limit of "
+            f"{limit}; split the bag"
+        )
+        self.n_messages = n_messages
+        self.limit = limit
 
 
 @dataclass(frozen=True)
@@ -108,19 +127,29 @@ def read_bag(
     other_joint_names: Sequence[str] = (),
     settings: StillSettings | None = None,
     capture: str | None = None,
+    source: str | None = None,
+    max_messages: int | None = None,
 ) -> BagRecording:
     """The bag at ``path`` as a recording: one sample per still segment of ``joint_states``
     with ``measure`` averaged inside it. ``joint_names``: the chain's URDF joints, in chain
     order (None: every joint of the topic, in its order); ``other_joint_names``: URDF joints off
     the chain, accepted and left out; ``capture``: a topic of any type whose messages (header
-    stamp, else the time it was logged) mark the samples instead of the still segments."""
+    stamp, else the time it was logged) mark the samples instead of the still segments;
+    ``source``: the name messages give the bag (default: the path's); ``max_messages``: at most
+    this many messages on the topics read (:class:`TooManyMessagesError` before decoding)."""
     path, settings = Path(path), settings or StillSettings()
-    source = path.name
+    source = source or path.name
     with _open(path, source) as reader:
         topics = {name: info.msgtype or "?" for name, info in reader.topics.items()}
         counts = {name: info.msgcount for name, info in reader.topics.items()}
         listing = ", ".join(f"{t} ({topics[t]}, {counts[t]} messages)" for t in sorted(topics))
         _check_topic(joint_states, (JOINT_STATE,), "--joint-states", topics, listing, source)
+        if max_messages is not None:
+            read = {joint_states, *_measure_topics(measure, topics)}
+            read |= {capture} if capture is not None else set()
+            n_messages = sum(int(counts.get(topic, 0)) for topic in read)
+            if n_messages > max_messages:
+                raise TooManyMessagesError(source, n_messages, max_messages)
         measured = _measurements(reader, measure, topics, listing, source)  # the cheaper reads
         captures = None
         if capture is not None:
@@ -137,6 +166,74 @@ def read_bag(
     frame = _frame(names, samples, int(stamps[0]))
     dataset = dataset_from_frame(frame, names, source=source, other_joint_names=other_joint_names)
     return BagRecording(dataset, samples)
+
+
+def _measure_topics(measure: MeasureSource, topics: dict[str, str]) -> tuple[str, ...]:
+    """The topics ``measure`` reads in a bag with ``topics``."""
+    if measure.kind == "tf":
+        return tuple(topic for topic in TF_TOPICS if topic in topics)
+    return (measure.topic,)
+
+
+def read_bag_bytes(
+    data: bytes,
+    suffix: str,
+    joint_states: str,
+    measure: MeasureSource,
+    *,
+    source: str,
+    max_unpacked_bytes: int,
+    **options: Any,
+) -> BagRecording:
+    """A bag received as bytes (an upload) as a recording, read by :func:`read_bag` with
+    ``options`` from a temporary folder: ``suffix`` ``.bag`` (a ROS 1 bag file) or ``.zip`` (a
+    rosbag2 folder: its ``metadata.yaml`` and storage files, at the archive's top or in one
+    folder). An archive is refused before anything is unpacked when it holds more than
+    :data:`MAX_ARCHIVE_MEMBERS` files, more than ``max_unpacked_bytes`` unpacked, or a path
+    outside its folder."""
+    with tempfile.TemporaryDirectory(prefix="kincal-bag-") as folder:
+        if suffix == ".bag":
+            path = Path(folder) / "upload.bag"
+            path.write_bytes(data)
+        elif suffix == ".zip":
+            path = _unpack_rosbag2(data, Path(folder), source, max_unpacked_bytes)
+        else:
+            raise DatasetError(f"{source}: a bag is a .bag file or a rosbag2 folder as a .zip")
+        return read_bag(path, joint_states, measure, source=source, **options)
+
+
+def _unpack_rosbag2(data: bytes, folder: Path, source: str, max_unpacked_bytes: int) -> Path:
+    """The rosbag2 folder of a zip archive, unpacked into ``folder`` (checked first)."""
+    try:
+        archive = zipfile.ZipFile(io.BytesIO(data))
+    except zipfile.BadZipFile as exc:
+        raise DatasetError(f"{source}: not a zip archive ({exc}); zip the rosbag2 folder") from exc
+    with archive:
+        members = [info for info in archive.infolist() if not info.is_dir()]
+        if len(members) > MAX_ARCHIVE_MEMBERS:
+            raise DatasetError(
+                f"{source}: {len(members)} files in the archive; a rosbag2 folder holds its "
+                f"metadata.yaml and storage files (at most {MAX_ARCHIVE_MEMBERS})"
+            )
+        unpacked = sum(info.file_size for info in members)
+        if unpacked > max_unpacked_bytes:
+            raise DatasetError(
+                f"{source}: {unpacked} bytes unpacked is more than the limit of "
+                f"{max_unpacked_bytes}; split the bag"
+            )
+        for info in members:
+            name = PurePosixPath(info.filename)
+            if name.is_absolute() or ".." in name.parts:
+                raise DatasetError(f"{source}: {info.filename!r} points outside the archive")
+        metadata = [PurePosixPath(info.filename) for info in members]
+        metadata = [name for name in metadata if name.name == "metadata.yaml"]
+        if len(metadata) != 1:
+            raise DatasetError(
+                f"{source}: {len(metadata)} metadata.yaml files in the archive; zip one "
+                "rosbag2 folder (its metadata.yaml and storage files)"
+            )
+        archive.extractall(folder, members)
+    return folder.joinpath(*metadata[0].parent.parts)
 
 
 def _no_sample(samples: Samples, settings: StillSettings) -> str:

@@ -13,8 +13,10 @@ Every non-2xx answer raises :class:`KincalAPIError` carrying the problem documen
 
 from __future__ import annotations
 
+import io
 import time
 import uuid
+import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -134,22 +136,38 @@ class KincalClient:
         base_frame: str | None = None,
         tip_frame: str | None = None,
         name: str | None = None,
+        joint_states: str | None = None,
+        measure: str | None = None,
+        capture: str | None = None,
         idempotency_key: str | None = None,
     ) -> dict[str, Any]:
-        """Upload a CSV / Parquet / JSON recording; returns the dataset (the existing one if a
-        duplicate)."""
+        """Upload a CSV / Parquet / JSON recording, or a ROS bag (a ``.bag`` file or a rosbag2
+        folder, sent zipped) with ``joint_states`` and ``measure`` (and ``capture``) as
+        ``kincal import`` takes them; returns the dataset (the existing one if a duplicate)."""
         path = Path(path)
-        fields = {"robot": robot, "base_frame": base_frame, "tip_frame": tip_frame, "name": name}
+        fields = {
+            "robot": robot,
+            "base_frame": base_frame,
+            "tip_frame": tip_frame,
+            "name": name,
+            "joint_states": joint_states,
+            "measure": measure,
+            "capture": capture,
+        }
         data = {k: v for k, v in fields.items() if v is not None}
-        media = MEDIA_TYPES.get(path.suffix.lower(), "application/octet-stream")
-        with path.open("rb") as handle:
-            response = self._request(
-                "POST",
-                f"{API}/datasets",
-                files={"file": (path.name, handle, media)},
-                data=data,
-                headers=self._idempotency(idempotency_key),
-            )
+        if path.is_dir():  # a rosbag2 folder
+            content = _zipped_folder(path)
+            file = (f"{path.name}.zip", content, "application/zip")
+        else:
+            media = MEDIA_TYPES.get(path.suffix.lower(), "application/octet-stream")
+            file = (path.name, path.read_bytes(), media)
+        response = self._request(
+            "POST",
+            f"{API}/datasets",
+            files={"file": file},
+            data=data,
+            headers=self._idempotency(idempotency_key),
+        )
         return dict(response.json())
 
     def upload_rows(
@@ -352,3 +370,12 @@ class KincalClient:
     def discoveries(self, *, offset: int = 0, limit: int = 50) -> dict[str, Any]:
         params = {"offset": offset, "limit": limit}
         return dict(self._request("GET", f"{API}/discoveries", params=params).json())
+
+
+def _zipped_folder(folder: Path) -> bytes:
+    """``folder`` as a zip archive with the folder at its top (a rosbag2 bag for upload)."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for path in sorted(folder.rglob("*")):
+            archive.write(path, Path(folder.name) / path.relative_to(folder))
+    return buffer.getvalue()
