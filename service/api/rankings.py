@@ -88,14 +88,24 @@ def _require_covariance(entry: CachedResult, calibration_id: str) -> None:
         )
 
 
+def cached_context(
+    state: ServiceState, tenant_id: str, calibration_id: str
+) -> RankingContext | None:
+    """The calibration's ranking context if it is in memory already (no I/O), else None."""
+    entry = state.results.peek(tenant_id, calibration_id)
+    if entry is not None and entry.has(MEMO_KEY):
+        return entry.memo(MEMO_KEY, _build_context)
+    return None
+
+
 async def ranking_context(
     state: ServiceState, tenant_id: str, calibration_id: str
 ) -> RankingContext:
     """The calibration's ranking context; 404 (unknown or another tenant's), 409 (not
     succeeded, or without covariances)."""
-    entry = state.results.peek(tenant_id, calibration_id)
-    if entry is not None and entry.has(MEMO_KEY):
-        return entry.memo(MEMO_KEY, _build_context)
+    context = cached_context(state, tenant_id, calibration_id)
+    if context is not None:
+        return context
     return await run_in_threadpool(_loaded_context, state, tenant_id, calibration_id)
 
 
@@ -142,7 +152,7 @@ def joint_matrix(body: RankingCreate, joint_names: tuple[str, ...]) -> NDArray[n
     return np.array([[named[name] for name in joint_names] for named in body.configurations])
 
 
-def _count(body: RankingCreate) -> int:
+def count_candidates(body: RankingCreate) -> int:
     if body.joint_positions_rad is not None:
         return len(body.joint_positions_rad)
     if body.configurations is not None:
@@ -150,8 +160,8 @@ def _count(body: RankingCreate) -> int:
     return body.n_candidates
 
 
-def _check_limits(body: RankingCreate, limit: int) -> None:
-    n = _count(body)
+def check_limits(body: RankingCreate, limit: int) -> None:
+    n = count_candidates(body)
     if n > limit:
         raise ProblemException(
             413,
@@ -175,7 +185,7 @@ def _payload(body: RankingCreate) -> NDArray[np.float64] | float | None:
     return body.payload_kg
 
 
-def _rank_configurations(context: RankingContext, body: RankingCreate) -> bytes:
+def rank_configurations(context: RankingContext, body: RankingCreate) -> bytes:
     q = joint_matrix(body, context.joint_names)
     try:
         return ranking.rank_configurations_json(
@@ -295,13 +305,13 @@ async def create_ranking(
     body: RankingBodyDep, principal: PrincipalDep, state: StateDep
 ) -> Response:
     """Rank candidate configurations best first (kincal.ranking/1); synchronous."""
-    _check_limits(body, state.settings.max_ranking_candidates)
+    check_limits(body, state.settings.max_ranking_candidates)
     context = await ranking_context(state, principal.tenant_id, body.calibration_id)
     if body.target is not None:
         target = await run_in_threadpool(_rank_target, context, body)
         content = target.model_dump_json().encode()
-    elif _count(body) <= INLINE_MAX_CONFIGURATIONS:
-        content = _rank_configurations(context, body)
+    elif count_candidates(body) <= INLINE_MAX_CONFIGURATIONS:
+        content = rank_configurations(context, body)
     else:
-        content = await run_in_threadpool(_rank_configurations, context, body)
+        content = await run_in_threadpool(rank_configurations, context, body)
     return Response(content, media_type="application/json")
