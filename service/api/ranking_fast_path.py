@@ -52,7 +52,7 @@ class RankingFastPath:
         content = None
         if received[-1]["type"] == "http.request":
             body = b"".join(message.get("body", b"") for message in received)
-            content = self.answer(scope["headers"], body)
+            content = self.answer(scope, body)
         if content is None:
             await self.app(scope, _replay(received, receive), send)
             return
@@ -62,9 +62,11 @@ class RankingFastPath:
         await send({"type": "http.response.start", "status": 200, "headers": headers})
         await send({"type": "http.response.body", "body": content})
 
-    def answer(self, headers: Iterable[tuple[bytes, bytes]], body: bytes) -> bytes | None:
+    def answer(self, scope: Scope, body: bytes) -> bytes | None:
         """The route's 200 answer to this request, or None if it is not the common case or
-        the route would answer with a problem."""
+        the route would answer with a problem (a body parsed here is left in the scope's
+        state for the route)."""
+        headers = scope["headers"]
         key, media = _first(headers, b"x-api-key"), _first(headers, b"content-type")
         if media not in (None, _JSON):
             return None
@@ -75,6 +77,7 @@ class RankingFastPath:
             request = RankingCreate.model_validate_json(body)
         except pydantic.ValidationError:
             return None
+        scope.setdefault("state", {})[rankings.PARSED_BODY] = (body, request)
         if request.target is not None or (
             rankings.count_candidates(request) > rankings.INLINE_MAX_CONFIGURATIONS
         ):

@@ -8,7 +8,10 @@ does no database query, file read or JSON parsing of the result. Scoring a few h
 configurations takes well under a millisecond of numpy, less than a thread hop under load
 costs, so it runs in the event loop; larger batches and inverse kinematics run in a worker
 thread. The answer is serialised from plain data (:func:`service.app.rank.rank_configurations_json`:
-the RankingResult's exact JSON without a pydantic model per entry).
+the RankingResult's exact JSON without a pydantic model per entry). The common case — rows or
+named configurations, a key verified recently, the calibration cached — does not even reach this
+route: :mod:`service.api.ranking_fast_path` answers it with these functions, without FastAPI's
+routing and dependency injection, and passes everything else on to the route.
 
 Rankings change nothing, so a repeated request (with or without ``Idempotency-Key``) gets
 the same answer.
@@ -50,6 +53,9 @@ INLINE_PARSE_BYTES = 64 * 1024
 """Larger bodies (a few hundred candidates and more) are parsed in a worker thread: a 4 MB body
 takes ~50 ms to validate, which in the event loop would stall every other request."""
 MEMO_KEY = "ranking_context"
+PARSED_BODY = "kincal.ranking_body"
+"""Scope state key of (body, RankingCreate) that the fast path parsed before passing the
+request on (:mod:`service.api.ranking_fast_path`): the route does not parse it again."""
 
 
 @dataclass(frozen=True)
@@ -278,6 +284,9 @@ async def ranking_request(request: Request) -> RankingCreate:
             slug="unsupported-media-type",
         )
     body = await request.body()
+    parsed = request.scope.get("state", {}).get(PARSED_BODY)
+    if parsed is not None and parsed[0] == body:
+        return parsed[1]  # type: ignore[no-any-return]
     try:
         if len(body) <= INLINE_PARSE_BYTES:
             return RankingCreate.model_validate_json(body)
