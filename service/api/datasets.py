@@ -86,11 +86,12 @@ _MULTIPART_SCHEMA = {
         "joint_states": {
             "type": "string",
             "description": "ROS bag only (a .bag file, or a rosbag2 folder as .zip): the "
-            "sensor_msgs/JointState topic.",
+            "sensor_msgs/JointState topic (not for calibration-data).",
         },
         "measure": {
             "type": "string",
-            "description": "ROS bag only: tf:PARENT:CHILD, pose:TOPIC or point:TOPIC.",
+            "description": "ROS bag only: tf:PARENT:CHILD, pose:TOPIC, point:TOPIC or "
+            "calibration-data:TOPIC[:CAMERA[:CHAIN]] (robot_calibration's captures).",
         },
         "capture": {
             "type": "string",
@@ -222,12 +223,14 @@ def _bag_fields(form: Any, suffix: str) -> dict[str, str | None] | None:
                 slug="invalid-request",
             )
         return None
-    for field in ("joint_states", "measure"):
+    captures = (given["measure"] or "").startswith("calibration-data:")
+    for field in ("measure",) if captures else ("joint_states", "measure"):
         if given[field] is None:
             raise ProblemException(
                 422,
                 f"{field}: missing form field; a ROS bag needs joint_states (the JointState "
-                "topic) and measure (tf:PARENT:CHILD, pose:TOPIC or point:TOPIC)",
+                "topic) and measure (tf:PARENT:CHILD, pose:TOPIC or point:TOPIC), or measure "
+                "calibration-data:TOPIC alone",
                 slug="invalid-request",
             )
     return given
@@ -340,7 +343,7 @@ def _read_bag(
 
     assert upload.bag is not None and upload.file_bytes is not None and upload.suffix
     joint_states, measure = upload.bag["joint_states"], upload.bag["measure"]
-    assert joint_states is not None and measure is not None
+    assert measure is not None
     try:
         recording = read_bag_bytes(
             upload.file_bytes,

@@ -277,9 +277,12 @@ def test_a_bag_without_a_long_enough_hold_is_refused(bags: dict[str, tuple[Path,
         )
 
 
-@pytest.mark.parametrize("text", ["tf:a", "pose:", "camera:x", "tf:a:b:c"])
+@pytest.mark.parametrize(
+    "text", ["tf:a", "pose:", "camera:x", "tf:a:b:c", "calibration-data:/c:a:b:c"]
+)
 def test_a_malformed_source_is_refused(text: str) -> None:
-    with pytest.raises(DatasetError, match="give tf:PARENT:CHILD, pose:TOPIC or point:TOPIC"):
+    forms = "tf:PARENT:CHILD, pose:TOPIC, point:TOPIC or calibration-data:TOPIC"
+    with pytest.raises(DatasetError, match=f"give {forms}"):
         MeasureSource.parse(text)
 
 

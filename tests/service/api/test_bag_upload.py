@@ -17,7 +17,14 @@ from fastapi.testclient import TestClient
 
 from schemas.dataset import read_dataset
 from service.storage import repository
-from tests.schemas.bag_writer import PANDA_JOINTS, STORAGES, Truth, fr3_bags
+from tests.schemas.bag_writer import (
+    CAPTURE_TOPIC,
+    PANDA_JOINTS,
+    STORAGES,
+    Truth,
+    capture_bags,
+    fr3_bags,
+)
 from tests.schemas.test_rosbag import assert_same_rows
 from tests.service.api.conftest import AppFactory, assert_problem, client_api, recording_bytes
 from tests.service.cli_support import run_ok
@@ -141,3 +148,16 @@ def test_an_archive_that_is_not_one_small_rosbag2_folder_is_refused(
 ) -> None:
     client = make_client(max_request_bytes=MiB)  # 4 MiB unpacked at most
     assert_problem(_upload(client, data, "bag.zip", **TOPICS), 422, fragment)
+
+
+def test_a_robot_calibration_capture_bag_uploads_with_measure_only(
+    tmp_path_factory: pytest.TempPathFactory, make_client: AppFactory
+) -> None:
+    """A rosbag2 folder of robot_calibration captures, without message definitions (as Humble
+    records): the joint states are in the captures (tests/schemas/test_calibration_data.py)."""
+    api = client_api(make_client())
+    measure = f"calibration-data:{CAPTURE_TOPIC}"
+    dataset = api.upload_dataset(
+        capture_bags(tmp_path_factory)["sqlite3"], robot="panda", measure=measure
+    )
+    assert dataset["n_samples"] == 114 and dataset["joint_names"] == list(PANDA_JOINTS)
