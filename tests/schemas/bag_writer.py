@@ -7,6 +7,7 @@ a hold too short to count and a hold while the measurement is not published."""
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +36,13 @@ DETOUR_RAD = 0.1  # every joint swings out and back between captures (two captur
 FINGERS = ("panda_finger_joint1", "panda_finger_joint2")
 CAMERA_M_MID = (np.array([0.1, -0.05, 0.3]), np.array([0.2, -0.1, 0.3, 0.9]) / np.sqrt(0.95))
 SHORT_AFTER, UNMEASURED_AFTER = 20, 50  # the extra holds follow these rows
+
+
+def _header(types: Any, ros1: bool, stamp: int, frame: str) -> Any:
+    """A ``std_msgs/Header`` at ``stamp`` ns in ``frame`` (ROS 1's with its ``seq``)."""
+    time = types["builtin_interfaces/msg/Time"](sec=stamp // NS, nanosec=stamp % NS)
+    extra = {"seq": 0} if ros1 else {}
+    return types["std_msgs/msg/Header"](stamp=time, frame_id=frame, **extra)
 
 
 def _se3(pose: tuple[NDArray[np.float64], NDArray[np.float64]]) -> pin.SE3:
@@ -170,10 +178,7 @@ def write_bag(
     types = store.types
     serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
 
-    def header(stamp: int, frame: str) -> Any:
-        time = types["builtin_interfaces/msg/Time"](sec=stamp // NS, nanosec=stamp % NS)
-        extra = {"seq": 0} if ros1 else {}
-        return types["std_msgs/msg/Header"](stamp=time, frame_id=frame, **extra)
+    header = functools.partial(_header, types, ros1)
 
     def transform(stamp: int, parent: str, child: str, pose: Any) -> Any:
         p, q = pose
@@ -325,10 +330,7 @@ def write_capture_bag(path: Path, ds: PoseDataset, storage: str) -> int:
     types = store.types
     serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
 
-    def header(stamp: int, frame: str) -> Any:
-        time = types["builtin_interfaces/msg/Time"](sec=stamp // NS, nanosec=stamp % NS)
-        extra = {"seq": 0} if ros1 else {}
-        return types["std_msgs/msg/Header"](stamp=time, frame_id=frame, **extra)
+    header = functools.partial(_header, types, ros1)
 
     def features(stamp: int, frame: str, points: NDArray[np.float64]) -> list[Any]:
         point = types["geometry_msgs/msg/Point"]
