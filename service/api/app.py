@@ -23,6 +23,7 @@ from starlette.concurrency import run_in_threadpool
 
 from service import kincal_version
 from service.api import calibrations, datasets, designs, discoveries, health, rankings, robots
+from service.api.checks import router as checks_router
 from service.api.deps import ServiceState
 from service.api.metrics import Metrics
 from service.api.middleware import BodyLimits, RequestContextMiddleware
@@ -182,6 +183,7 @@ def create_app(
     install_problem_handlers(app)
     for module in (robots, datasets, calibrations, rankings, discoveries, designs, health):
         app.include_router(module.router)
+    app.include_router(checks_router)
     # The last added is the outermost: the fast path runs inside the request context.
     app.add_middleware(RankingFastPath, state=state, route=ranking_route())
     app.add_middleware(RequestContextMiddleware, metrics=state.metrics, limits=BodyLimits(settings))

@@ -7,6 +7,8 @@
 >>> result = client.result(calibration["id"])   # schemas.calibration.CalibrationResult
 >>> ranking = client.rank(calibration["id"], [[0.0, -1.2, 1.0, 0.0, 0.5, 0.0]])  # doctest: +SKIP
 >>> ranking.ranking[0].index   # RankingResult, best first           # doctest: +SKIP
+>>> poses = client.upload_dataset("check.csv", robot="panda")               # doctest: +SKIP
+>>> client.check(calibration["id"], poses["id"])["verdict"]   # holds / drifted  # doctest: +SKIP
 
 Every non-2xx answer raises :class:`KincalAPIError` carrying the problem document.
 """
@@ -24,6 +26,7 @@ from typing import Any
 import httpx
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.check import CheckOptions
 from schemas.discovery import DiscoveryOptions, FindingsResult
 from schemas.ranking import RankingOptions, RankingResult, TargetPose
 
@@ -277,6 +280,38 @@ class KincalClient:
         calibration = self.start_calibration(dataset["id"], options)
         self.wait(calibration["id"], on_progress=on_progress)
         return self.result(calibration["id"])
+
+    # checks (synchronous): is a calibration still valid?
+
+    def check(
+        self,
+        calibration_id: str,
+        dataset_id: str,
+        options: CheckOptions | Mapping[str, Any] | None = None,
+        *,
+        idempotency_key: str | None = None,
+    ) -> dict[str, Any]:
+        """Test a succeeded calibration against the poses of an uploaded dataset (``kincal
+        check`` over HTTP) and keep the check; returns it with its ``check`` document
+        (kincal.check/1: verdict, per-pose d², located drift). Retrying with the same
+        ``idempotency_key`` is safe."""
+        if isinstance(options, CheckOptions):
+            options = options.model_dump(mode="json", exclude_defaults=True)
+        body = {"dataset_id": dataset_id, "options": dict(options or {})}
+        headers = self._idempotency(idempotency_key)
+        url = f"{API}/calibrations/{calibration_id}/checks"
+        return dict(self._request("POST", url, json=body, headers=headers).json())
+
+    def checks(self, calibration_id: str, *, offset: int = 0, limit: int = 50) -> dict[str, Any]:
+        """A calibration's checks, newest first (time, verdict, statistic, threshold)."""
+        params = {"offset": offset, "limit": limit}
+        url = f"{API}/calibrations/{calibration_id}/checks"
+        return dict(self._request("GET", url, params=params).json())
+
+    def get_check(self, calibration_id: str, check_id: str) -> dict[str, Any]:
+        """One check with its document (``check``) and time."""
+        url = f"{API}/calibrations/{calibration_id}/checks/{check_id}"
+        return dict(self._request("GET", url).json())
 
     # rankings (synchronous; the planners' hot path)
 
