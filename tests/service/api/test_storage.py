@@ -56,7 +56,7 @@ def test_migrations_produce_exactly_the_models(database: Database) -> None:
         diff = compare_metadata(MigrationContext.configure(connection), Base.metadata)
     assert diff == []
     database.migrate()  # idempotent
-    assert database.current_revision() == "0002"
+    assert database.current_revision() == "0003"
 
 
 @pytest.mark.skipif(POSTGRES_URL is not None, reason="SQLite-specific pragma")
