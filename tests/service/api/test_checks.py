@@ -88,9 +88,7 @@ def checked(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Checked]:
                 client.get(f"{URL}/{calibration['id']}/result").content
             )
             dataset = api.upload_dataset(check_csv, robot="panda")
-            created = client.post(
-                checks_url(calibration["id"]), json={"dataset_id": dataset["id"]}
-            )
+            created = client.post(checks_url(calibration["id"]), json={"dataset_id": dataset["id"]})
             assert created.status_code == 201, created.text
         yield Checked(
             folder,
