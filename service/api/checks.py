@@ -35,6 +35,11 @@ HTTP_RECALIBRATE_FIX = (
     "'diag' and options.heldout true (both the defaults)"
 )
 
+MAX_CHECK_POSES = 200
+"""A check is a few new poses (ten is typical); its joint covariance grows with the square of
+their number (200 poses of 6 rows: a 1200 × 1200 matrix, a few seconds), so a larger dataset
+is refused rather than left to tie up a request thread and its memory."""
+
 CalibrationId = Annotated[str, Path(description="The calibration id.")]
 CheckId = Annotated[str, Path(description="The check id.")]
 
@@ -94,6 +99,12 @@ def run(state: ServiceState, tenant_id: str, calibration_id: str, body: CheckCre
             f"POST {DATASETS} or list yours with GET {DATASETS}",
             slug="not-found",
         )
+    if dataset.n_samples > MAX_CHECK_POSES:
+        raise invalid_dataset(
+            f"dataset {dataset.id} holds {dataset.n_samples} poses, more than the "
+            f"{MAX_CHECK_POSES} a check takes; a check is a few new poses (ten is typical): "
+            "upload a subset of them"
+        )
     try:
         document = checking.run_check(
             result,
@@ -103,6 +114,10 @@ def run(state: ServiceState, tenant_id: str, calibration_id: str, body: CheckCre
             source_name=dataset.name,
         )
     except KincalError as exc:
+        if not state.files.exists(dataset.data_path):  # deleted since it was looked up
+            raise ProblemException(
+                404, f"dataset_id: dataset {dataset.id} was deleted", slug="not-found"
+            ) from exc
         raise invalid_dataset(str(exc)) from exc
     check_id = repository.new_id("chk")
     path = state.files.write(

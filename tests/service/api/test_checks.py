@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 
 from schemas.calibration import CalibrationResult
 from schemas.check import CheckResult
-from service.api import create_app
+from service.api import checks, create_app
 from service.settings import Settings
 from service.storage import repository
 from service.storage.files import tenant_path
@@ -318,3 +318,29 @@ def test_another_tenant_sees_no_check(checked: Checked, restarted: TestClient) -
     assert_problem(posted, 404, checked.calibration_id)
     # ... nor can the calibration's tenant check with the other tenant's dataset
     assert_problem(restarted.post(url, json={"dataset_id": own_dataset}), 404, "dataset_id")
+
+
+def test_a_dataset_of_more_poses_than_a_check_takes_is_422(
+    checked: Checked, restarted: TestClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(checks, "MAX_CHECK_POSES", 5)
+    response = restarted.post(
+        checks_url(checked.calibration_id), json={"dataset_id": checked.dataset_id}
+    )
+    body = assert_problem(response, 422, "dataset_id: ", "10 poses, more than the 5")
+    assert body["errors"][0]["location"] == "body.dataset_id"
+
+
+def test_a_dataset_whose_file_went_away_is_404_without_a_server_path(
+    checked: Checked, restarted: TestClient
+) -> None:
+    """A dataset deleted between its lookup and its reading (here: its file only)."""
+    dataset_id = upload_rows(restarted, checked.held.iloc[:5], "gone.csv")
+    state = restarted.app.state.kincal  # type: ignore[attr-defined]
+    with database_of(restarted).sessions() as session:
+        row = repository.get_dataset(session, state.local_tenant.tenant_id, dataset_id)
+        assert row is not None
+    state.files.delete(row.data_path)
+    response = restarted.post(checks_url(checked.calibration_id), json={"dataset_id": dataset_id})
+    body = assert_problem(response, 404, f"dataset {dataset_id} was deleted")
+    assert str(checked.settings.data_dir) not in body["detail"]
