@@ -22,7 +22,6 @@ from service.api.deps import PrincipalDep, ServiceState, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.jobs_common import job_or_404, json_response
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
-from service.app import check as checking
 from service.storage import repository
 from service.storage.files import tenant_path
 from service.storage.models import Check
@@ -82,7 +81,11 @@ def invalid_dataset(detail: str) -> ProblemException:
 
 
 def run(state: ServiceState, tenant_id: str, calibration_id: str, body: CheckCreate) -> CheckPublic:
-    """Check the calibration against the dataset and store the check (committed on return)."""
+    """Check the calibration against the dataset and store the check (committed on return).
+    In a worker thread; the check's maths is imported by the first check a request process
+    answers, not when it starts."""
+    from service.app import check as checking
+
     result = cached_calibration(state, tenant_id, calibration_id).result  # 404, 409
     result_name = f"calibration {calibration_id}"
     try:
