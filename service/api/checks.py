@@ -1,10 +1,11 @@
 """Checks: is a succeeded calibration still valid? New poses (an uploaded dataset) tested
 against its total predictive covariance (``kincal check``, :func:`service.app.check.run_check`).
 
-A check takes well under a second, so POST runs it in a worker thread and answers 201 with the
-stored check (its ``kincal.check/1`` document); the row is committed before the answer, so a
-check that was answered is never lost. Checks are kept with their time in the ``checks`` table
-(the document in the tenant's folder) and listed per calibration, newest first.
+A check of ten poses takes well under a second, so POST runs it in a worker thread and answers
+201 with the stored check (its ``kincal.check/1`` document); the row is committed before the
+answer, so a check that was answered is never lost. Checks are kept with their time in the
+``checks`` table (the document in the tenant's folder) and listed per calibration, newest
+first.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from schemas.api import CheckCreate, CheckLinks, CheckPublic, ChecksPublic, Chec
 from schemas.check import CheckResult
 from service.api.calibrations import PREFIX as CALIBRATIONS
 from service.api.calibrations import cached_calibration
-from service.api.deps import PrincipalDep, ServiceState, StateDep
+from service.api.deps import API_PREFIX, PrincipalDep, ServiceState, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.jobs_common import job_or_404, json_response
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
@@ -28,7 +29,7 @@ from service.storage.models import Check
 from solver.errors import KincalError
 
 router = APIRouter(prefix=CALIBRATIONS, tags=["checks"])
-DATASETS = "/api/v1/datasets"
+DATASETS = f"{API_PREFIX}/datasets"
 HTTP_RECALIBRATE_FIX = (
     f"start a new calibration of its dataset (POST {CALIBRATIONS}) with options.covariance "
     "'diag' and options.heldout true (both the defaults)"
