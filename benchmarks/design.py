@@ -15,12 +15,18 @@ candidates — no K poses from them can have a lower variance (the argument of d
 FIGAROH runs only if a separate interpreter with figaroh is given (``--figaroh-python``); it is
 never a kincal dependency (``benchmarks/figaroh_posture_driver.py`` runs under it). Usage::
 
-    python benchmarks/design.py [--seeds 10] [--poses 15,25,50] [--figaroh-python PATH]
-    python benchmarks/design.py --volumes [--seeds 10] [--candidates 600]
+    python -m benchmarks.design [--seeds 10] [--poses 15,25,50] [--candidates 600]
+        [--figaroh-python PATH] [--skip-timing | --timing-only] [--write-results]
+    python -m benchmarks.design --volumes [--seeds 10] [--candidates 600] [--write-results]
 
 ``--volumes``: issue 16's bar (25 designed poses ≤ 50 random) in small sensor volumes at the
 edge of the reach (:func:`sensor_volumes`: a 25 cm tracker box, a camera's view cone), full pose
 and position-only, the calibration's default parameters.
+
+``--write-results`` writes the tables docs/design.md includes, each with the command that
+produced it: ``docs/results/design_poses.{json,md}`` (against random poses), or
+``design_figaroh`` when FIGAROH ran, ``design_volumes`` (``--volumes``) and ``design_timing``
+(the timing line: ``kincal design`` on 10⁴ candidates).
 """
 
 from __future__ import annotations
@@ -28,16 +34,19 @@ from __future__ import annotations
 import argparse
 import json
 import subprocess
+import sys
 import tempfile
 import time
 import xml.etree.ElementTree as ET
 from collections import defaultdict
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from benchmarks.results import Row, count_text, dash, markdown_table, write_results
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import PoseDataset
 from schemas.design import DesignOptions
@@ -174,79 +183,99 @@ class Settings:
     calibrate: bool = True
 
 
+Values = tuple[float, float, float, float]
+"""Per design: variance ratio, worst σ ratio (to 50 random poses), held-out mm, efficiency."""
+
+
 def compare_robot(
     name: str, robot: RobotDescription, settings: Settings
-) -> dict[tuple[int, str], list[tuple[float, ...]]]:
+) -> dict[tuple[int, str], list[Values]]:
     """Per (K, method): per seed (variance ratio, worst σ ratio to 50 random, held-out mm, the
     design's efficiency against its relaxation bound for kincal's designs)."""
     chain = robot_chain(robot)
+    rows: dict[tuple[int, str], list[Values]] = defaultdict(list)
+    for seed in range(settings.seeds):
+        for key, values in compare_seed(robot, chain, settings, seed).items():
+            rows[key].append(values)
+    return rows
+
+
+def compare_seed(
+    robot: RobotDescription,
+    chain: KinematicChain,
+    settings: Settings,
+    seed: int,
+    methods: tuple[str, ...] = ("random", "kincal-D", "kincal-I", "bound"),
+) -> dict[tuple[int, str], Values]:
+    """:func:`compare_robot` for one seed; ``methods`` picks what to compute (a subset gives
+    the same values: every draw is made whatever is computed)."""
     params = ChainParameters.nominal(chain)
     low, high = working_box(chain)
     volume = Volume(box=WorkspaceBox(low, high))
     box = {"low_m": tuple(low), "high_m": tuple(high)}
-    rows: dict[tuple[int, str], list[tuple[float, ...]]] = defaultdict(list)
-    for seed in range(settings.seeds):
-        rng = np.random.default_rng([seed, 7])
-        heldout = sample_candidates(chain, settings.heldout, rng, volume)
-        random_q = sample_candidates(chain, max(*settings.poses, REFERENCE_POSES), rng, volume)
-        candidates = sample_candidates(chain, settings.candidates, rng, volume)
-        loads = gravity_loads(chain, candidates)
-        yardstick = Yardstick.on(chain, params, heldout, gravity_loads(chain, heldout), NOISE)
-        reference = yardstick.score(
-            random_q[:REFERENCE_POSES], gravity_loads(chain, random_q[:REFERENCE_POSES])
+    rows: dict[tuple[int, str], Values] = {}
+    rng = np.random.default_rng([seed, 7])
+    heldout = sample_candidates(chain, settings.heldout, rng, volume)
+    random_q = sample_candidates(chain, max(*settings.poses, REFERENCE_POSES), rng, volume)
+    candidates = sample_candidates(chain, settings.candidates, rng, volume)
+    loads = gravity_loads(chain, candidates)
+    yardstick = Yardstick.on(chain, params, heldout, gravity_loads(chain, heldout), NOISE)
+    reference = yardstick.score(
+        random_q[:REFERENCE_POSES], gravity_loads(chain, random_q[:REFERENCE_POSES])
+    )
+    block = yardstick.block(candidates, loads)
+    figaroh = (
+        None
+        if settings.figaroh_python is None
+        else figaroh_designs(
+            settings.figaroh_python, robot, chain, candidates, list(settings.poses), seed
         )
-        block = yardstick.block(candidates, loads)
-        figaroh = (
-            None
-            if settings.figaroh_python is None
-            else figaroh_designs(
-                settings.figaroh_python, robot, chain, candidates, list(settings.poses), seed
+    )
+    for k in settings.poses:
+        designs: dict[str, FloatArray] = {}
+        if "random" in methods:
+            designs["random"] = random_q[:k]
+        efficiency: dict[str, float] = {}
+        for criterion in ("D", "I"):
+            if f"kincal-{criterion}" not in methods:
+                continue
+            options = DesignOptions(
+                n_poses=k, seed=seed, box=box, criterion=criterion,
+                calibration=CalibrationOptions(covariance="none"),
+            )  # fmt: skip
+            document = run_design(robot, options, candidates=candidates)
+            designs[f"kincal-{criterion}"] = candidates[[p.candidate for p in document.poses]]
+            efficiency[f"kincal-{criterion}"] = document.criterion.efficiency
+        if figaroh is not None:
+            designs["figaroh-socp"] = candidates[figaroh["ranking"][:k]]
+            designs["figaroh-detmax"] = candidates[figaroh["detmax"][str(k)]]
+        for method, q in designs.items():
+            variance, worst = yardstick.score(q, gravity_loads(chain, q))
+            error = heldout_error_mm(robot, q, heldout, seed) if settings.calibrate else np.nan
+            rows[(k, method)] = (
+                variance / reference[0],
+                worst / reference[1],
+                error,
+                efficiency.get(method, np.nan),
             )
-        )
-        for k in settings.poses:
-            designs: dict[str, FloatArray] = {"random": random_q[:k]}
-            efficiency: dict[str, float] = {}
-            for criterion in ("D", "I"):
-                options = DesignOptions(
-                    n_poses=k, seed=seed, box=box, criterion=criterion,
-                    calibration=CalibrationOptions(covariance="none"),
-                )  # fmt: skip
-                document = run_design(robot, options, candidates=candidates)
-                designs[f"kincal-{criterion}"] = candidates[[p.candidate for p in document.poses]]
-                efficiency[f"kincal-{criterion}"] = document.criterion.efficiency
-            if figaroh is not None:
-                designs["figaroh-socp"] = candidates[figaroh["ranking"][:k]]
-                designs["figaroh-detmax"] = candidates[figaroh["detmax"][str(k)]]
-            for method, q in designs.items():
-                variance, worst = yardstick.score(q, gravity_loads(chain, q))
-                error = heldout_error_mm(robot, q, heldout, seed) if settings.calibrate else np.nan
-                rows[(k, method)].append(
-                    (
-                        variance / reference[0],
-                        worst / reference[1],
-                        error,
-                        efficiency.get(method, np.nan),
-                    )
-                )
+        if "bound" in methods:
             relaxation = solve_first_order(
                 DesignProblem(
                     (block,), "I", k, task_root=task_root(yardstick.task), distinct=False
                 ),
                 gap_tolerance=1e-6,
             )
-            rows[(k, "bound")].append(
-                (-relaxation.upper_bound / reference[0], np.nan, np.nan, np.nan)
-            )
-        if settings.calibrate:
-            q50 = random_q[:REFERENCE_POSES]
-            rows[(REFERENCE_POSES, "random")].append(
-                (1.0, 1.0, heldout_error_mm(robot, q50, heldout, seed), np.nan)
-            )
-        if figaroh is not None:
-            rows[(len(figaroh["threshold_selection"]), "figaroh-threshold")].append(
-                (*_ratios(yardstick, chain, candidates[figaroh["threshold_selection"]], reference),
-                 np.nan, np.nan)
-            )  # fmt: skip
+            rows[(k, "bound")] = (-relaxation.upper_bound / reference[0], np.nan, np.nan, np.nan)
+    if settings.calibrate and "random" in methods and REFERENCE_POSES not in settings.poses:
+        q50 = random_q[:REFERENCE_POSES]
+        rows[(REFERENCE_POSES, "random")] = (
+            1.0, 1.0, heldout_error_mm(robot, q50, heldout, seed), np.nan,
+        )  # fmt: skip
+    if figaroh is not None:
+        selection = candidates[figaroh["threshold_selection"]]
+        rows[(len(figaroh["threshold_selection"]), "figaroh-threshold")] = (
+            *_ratios(yardstick, chain, selection, reference), np.nan, np.nan,
+        )  # fmt: skip
     return rows
 
 
@@ -257,21 +286,29 @@ def _ratios(
     return variance / reference[0], worst / reference[1]
 
 
-def compare(settings: Settings, names: list[str] | None = None) -> list[str]:
+def compare(
+    settings: Settings, names: list[str] | None = None, echo: Callable[[str], None] = print
+) -> tuple[list[str], list[Row]]:
+    """The table of :func:`compare_robot` (medians over seeds) for every robot; printed line by
+    line with ``echo``, and returned with its results rows (:func:`pose_rows`)."""
     lines = [
         "robot    K  method             variance/50rnd  worst-σ/50rnd  held-out mm  efficiency  "
         f"(median, {settings.seeds} seeds, {settings.candidates} candidates)"
     ]
+    echo(lines[0])
+    results: list[Row] = []
     for name, robot in robots().items():
         if names is not None and name not in names:
             continue
         rows = compare_robot(name, robot, settings)
+        results += pose_rows(name, rows)
         for (k, method), values in sorted(rows.items(), key=lambda item: item[0]):
             v, s, e, f = (_median(column) for column in np.array(values).T)
             lines.append(
                 f"{name:7} {k:3d}  {method:17}  {v:13.3f}  {s:13.3f}  {e:11.4f}  {f:10.4f}"
             )
-    return lines
+            echo(lines[-1])
+    return lines, results
 
 
 def _median(values: FloatArray) -> float:
@@ -322,16 +359,18 @@ def compare_volume(
     measurement: str,
     settings: Settings,
     k: int = 25,
+    seeds: Sequence[int] | None = None,
 ) -> list[dict[str, float]]:
     """Per seed, in one sensor volume with full-pose or position-only measurements and the
     calibration's default parameters (geometry + compliance): the I relaxation bound (repeats
     allowed), 25 random poses and kincal's D and I designs of 25 poses, as ratios to 50 random
-    poses from the volume (variance; worst σ), scored on held-out configurations in it."""
+    poses from the volume (variance; worst σ), scored on held-out configurations in it.
+    ``seeds``: these seeds only (default ``range(settings.seeds)``)."""
     chain = robot_chain(robot)
     params = ChainParameters.nominal(chain)
     noise = NOISE if measurement == "pose" else NOISE[:3]
     runs = []
-    for seed in range(settings.seeds):
+    for seed in range(settings.seeds) if seeds is None else seeds:
         options = DesignOptions(
             n_poses=k,
             seed=seed,
@@ -366,41 +405,215 @@ def compare_volume(
     return runs
 
 
-def compare_volumes(settings: Settings, names: list[str] | None = None) -> list[str]:
+def compare_volumes(
+    settings: Settings, names: list[str] | None = None, echo: Callable[[str], None] = print
+) -> tuple[list[str], list[Row]]:
     """The table of :func:`compare_volume` (medians over seeds) for every robot, volume of
-    :func:`sensor_volumes` and measurement."""
+    :func:`sensor_volumes` and measurement; printed line by line with ``echo``, and returned
+    with its results rows (:func:`volume_rows`)."""
     lines = [
         f"robot    volume       measured  {'  '.join(f'{c:>10}' for c in VOLUME_COLUMNS)}  "
         f"(median, {settings.seeds} seeds, {settings.candidates} candidates, K = 25, ratios "
         "to 50 random poses)"
     ]
+    echo(lines[0])
+    results: list[Row] = []
     for name, robot in robots().items():
         if names is not None and name not in names:
             continue
         for volume, fields in sensor_volumes(robot_chain(robot)).items():
             for measurement in ("pose", "position"):
                 runs = compare_volume(robot, fields, measurement, settings)
+                results.append(volume_rows(name, volume, measurement, runs))
                 medians = [float(np.median([r[c] for r in runs])) for c in VOLUME_COLUMNS]
                 lines.append(
                     f"{name:7}  {volume:11}  {measurement:8}  "
                     + "  ".join(f"{m:10.3f}" for m in medians)
                 )
-    return lines
+                echo(lines[-1])
+    return lines, results
 
 
-def timing(n_candidates: int = 10_000, n_poses: int = 30) -> str:
+@dataclass(frozen=True)
+class Timing:
+    candidates: int
+    poses: int
+    total_s: float
+    relaxation_s: float
+    iterations: int
+    efficiency: float
+
+    def line(self) -> str:
+        return (
+            f"D-optimal, {self.candidates} candidates, K={self.poses}: {self.total_s:.1f} s "
+            f"total (relaxation {self.relaxation_s:.1f} s, {self.iterations} iterations, "
+            f"efficiency {self.efficiency:.3f})"
+        )
+
+
+def timing(n_candidates: int = 10_000, n_poses: int = 30) -> Timing:
+    """``kincal design --robot kinova`` (D) on ``n_candidates`` sampled candidates, timed."""
     robot = load_robot("kinova")
     started = time.perf_counter()
     out = run_design(robot, DesignOptions(n_poses=n_poses, n_candidates=n_candidates))
-    return (
-        f"D-optimal, {n_candidates} candidates, K={n_poses}: "
-        f"{time.perf_counter() - started:.1f} s total "
-        f"(relaxation {out.criterion.elapsed_s:.1f} s, {out.criterion.iterations} iterations, "
-        f"efficiency {out.criterion.efficiency:.3f})"
+    return Timing(
+        n_candidates,
+        n_poses,
+        time.perf_counter() - started,
+        out.criterion.elapsed_s,
+        out.criterion.iterations,
+        out.criterion.efficiency,
     )
 
 
-def main() -> None:
+ROBOT_TITLES = {"jaco2": "Jaco2", "panda": "Panda", "ur10e": "UR10e"}
+METRICS = ("variance", "worst_sigma", "heldout_mm", "efficiency")
+"""The fields of :data:`Values`, as the results files name them."""
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+def pose_rows(name: str, rows: dict[tuple[int, str], list[Values]]) -> list[Row]:
+    """Results rows of :func:`compare_robot`: per (K, method) each seed's values (``None`` where
+    there is none: a random design's efficiency, a bound's σ) and their medians."""
+    out = []
+    for (k, method), values in sorted(rows.items()):
+        columns = np.array(values, dtype=float).T
+        out.append(
+            {
+                "robot": name,
+                "poses": k,
+                "method": method,
+                "seeds": len(values),
+                "median": {m: _finite(_median(c)) for m, c in zip(METRICS, columns, strict=True)},
+                "per_seed": {
+                    m: [_finite(v) for v in c] for m, c in zip(METRICS, columns, strict=True)
+                },
+            }
+        )
+    return out
+
+
+def _cell(row: Row | None, fields: Sequence[str]) -> str:
+    """The medians of ``fields`` of one design, "1.70 / 1.03 / 0.035 / 0.987"."""
+    if row is None:
+        return "–"
+    digits = {"variance": 2, "worst_sigma": 2, "heldout_mm": 3, "efficiency": 3}
+    return " / ".join(dash(row["median"][f], digits[f]) for f in fields)
+
+
+def _by_key(rows: Sequence[Row]) -> dict[tuple[str, int, str], Row]:
+    return {(r["robot"], r["poses"], r["method"]): r for r in rows}
+
+
+def _pose_table(rows: Sequence[Row], columns: Sequence[tuple[str, str, tuple[str, ...]]]) -> str:
+    keyed = _by_key(rows)
+    cells = []
+    for robot in dict.fromkeys(r["robot"] for r in rows):
+        sizes = sorted({r["poses"] for r in rows if (r["robot"], r["method"]) == (robot, "bound")})
+        for k in sizes:
+            designs = (_cell(keyed.get((robot, k, m)), fields) for _, m, fields in columns)
+            cells.append((ROBOT_TITLES.get(robot, robot), k, *designs))
+    return markdown_table(("robot", "K", *(title for title, _, _ in columns)), cells)
+
+
+def render_poses(rows: list[Row]) -> str:
+    """The table of ``docs/results/design_poses.md``: per robot and number of poses K the
+    medians over seeds of random poses and of kincal's D and I designs — variance and worst σ
+    as ratios to 50 random poses (to 0.01), the held-out position error of a simulated
+    calibration (mm, to 0.001), the design's efficiency (to 0.001) — and the I relaxation's
+    bound on the variance."""
+    return _pose_table(
+        rows,
+        (
+            ("random: var / σ / mm", "random", ("variance", "worst_sigma", "heldout_mm")),
+            ("kincal D: var / σ / mm / eff", "kincal-D", METRICS),
+            ("kincal I: var / σ / mm / eff", "kincal-I", METRICS),
+            ("bound (var)", "bound", ("variance",)),
+        ),
+    )
+
+
+def render_figaroh(rows: list[Row]) -> str:
+    """The table of ``docs/results/design_figaroh.md``: per robot and K the medians over seeds
+    of variance / worst σ (ratios to 50 random poses, to 0.01) of random poses, kincal's D
+    design, FIGAROH's SOCP weights' K largest and its Detmax, and the I relaxation's bound."""
+    pair = ("variance", "worst_sigma")
+    return _pose_table(
+        rows,
+        (
+            ("random", "random", pair),
+            ("kincal D", "kincal-D", pair),
+            ("FIGAROH SOCP, K largest", "figaroh-socp", pair),
+            ("FIGAROH Detmax", "figaroh-detmax", pair),
+            ("bound (var)", "bound", ("variance",)),
+        ),
+    )
+
+
+def volume_rows(name: str, volume: str, measurement: str, runs: list[dict[str, float]]) -> Row:
+    """A results row of :func:`compare_volume`: each seed's values and their medians."""
+    return {
+        "robot": name,
+        "volume": volume,
+        "measurement": measurement,
+        "seeds": len(runs),
+        "median": {c: float(np.median([r[c] for r in runs])) for c in VOLUME_COLUMNS},
+        "runs": runs,
+    }
+
+
+def render_volumes(rows: list[Row]) -> str:
+    """The table of ``docs/results/design_volumes.md``: per robot, sensor volume and
+    measurement the identifiable parameters p and the medians over seeds of 25 random poses,
+    kincal's D and I designs of 25 poses (variance / worst σ as ratios to 50 random poses, to
+    0.01; efficiency to 0.001) and the I relaxation's bound on the variance."""
+    cells = []
+    for r in rows:
+        m = r["median"]
+        cells.append(
+            (
+                ROBOT_TITLES.get(r["robot"], r["robot"]),
+                r["volume"],
+                r["measurement"],
+                f"{m['p']:.0f}",
+                f"{m['random25']:.2f} / {m['random25-σ']:.2f}",
+                f"{m['D']:.2f} / {m['D-σ']:.2f}",
+                f"{m['D-eff']:.3f}",
+                f"{m['I']:.2f} / {m['I-σ']:.2f}",
+                f"{m['I-eff']:.3f}",
+                f"{m['bound']:.2f}",
+            )
+        )
+    header = (
+        "robot", "volume", "measured", "p", "25 random", "D", "D eff", "I", "I eff",
+        "bound (var)",
+    )  # fmt: skip
+    return markdown_table(header, cells)
+
+
+def render_timing(rows: list[Row]) -> str:
+    """The table of ``docs/results/design_timing.md``: wall time of the whole design and of the
+    relaxation (to 0.1 s), the first-order iterations and the efficiency (to 0.001)."""
+    return markdown_table(
+        ("candidates", "poses K", "total s", "relaxation s", "iterations", "efficiency"),
+        [
+            (
+                count_text(r["candidates"]),
+                r["poses"],
+                f"{r['total_s']:.1f}",
+                f"{r['relaxation_s']:.1f}",
+                r["iterations"],
+                f"{r['efficiency']:.3f}",
+            )
+            for r in rows
+        ],
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--poses", default="15,25,50")
@@ -409,12 +622,19 @@ def main() -> None:
     parser.add_argument("--figaroh-python", default=None)
     parser.add_argument("--no-calibrate", action="store_true", help="skip held-out errors")
     parser.add_argument("--skip-timing", action="store_true")
+    parser.add_argument("--timing-only", action="store_true", help="only the timing line")
     parser.add_argument(
         "--volumes",
         action="store_true",
         help="instead: issue 16's bar in small sensor volumes at the reach's edge",
     )
-    args = parser.parse_args()
+    parser.add_argument(
+        "--write-results",
+        action="store_true",
+        help="write docs/results/design_{poses,figaroh,volumes,timing}.{json,md}: the tables "
+        "of this run (poses without FIGAROH, figaroh with it, volumes with --volumes, timing)",
+    )
+    args = parser.parse_args(argv)
     settings = Settings(
         seeds=args.seeds,
         poses=tuple(int(v) for v in args.poses.split(",")),
@@ -423,14 +643,28 @@ def main() -> None:
         calibrate=not args.no_calibrate,
     )
     names = None if args.robots is None else args.robots.split(",")
+    command = " ".join(["python -m benchmarks.design", *(argv or sys.argv[1:])])
+    written: list[Path] = []
     if args.volumes:
-        for line in compare_volumes(settings, names):
-            print(line, flush=True)
-        return
-    for line in compare(settings, names):
-        print(line, flush=True)
-    if not args.skip_timing:
-        print(timing())
+        lines, volume_results = compare_volumes(settings, names)
+        print("\n".join(lines), flush=True)
+        if args.write_results:
+            written += write_results("design_volumes", command, volume_results, render_volumes)
+    elif not args.timing_only:
+        lines, results = compare(settings, names)
+        print("\n".join(lines), flush=True)
+        if args.write_results:
+            name, render = ("design_poses", render_poses)
+            if settings.figaroh_python is not None:
+                name, render = ("design_figaroh", render_figaroh)
+            written += write_results(name, command, results, render)
+    if not args.volumes and (args.timing_only or not args.skip_timing):
+        measured = timing()
+        print(measured.line())
+        if args.write_results:
+            written += write_results("design_timing", command, [asdict(measured)], render_timing)
+    for path in written:
+        print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -20,14 +20,20 @@ it reproduces FIGAROH's held-out errors, so the solvers, frames and residuals ag
 gap of the "FIGAROH's model" column is which parameters each fits.
 
 Usage (from the repository root): ``python -m benchmarks.figaroh_side_by_side
---figaroh-python …/figaroh-venv/bin/python [--seeds 10] [--only TALOS]``.
+[--figaroh-python …/figaroh-venv/bin/python] [--seeds 10] [--only TALOS] [--write-results]``.
+With ``--write-results`` also ``docs/results/figaroh_side_by_side.{json,md}``, the table
+docs/figaroh.md includes. FIGAROH is not installed with kincal: without ``--figaroh-python``
+kincal's columns are re-run and FIGAROH's are kept from the results file, each recording's
+with the command and date of the run that produced them.
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import subprocess
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -38,6 +44,7 @@ import numpy as np
 
 import solver  # noqa: F401  (BLAS defaults)
 from benchmarks.design import figaroh_urdf
+from benchmarks.results import Row, markdown_table, read_results, write_results
 from schemas.calibration import CalibrationOptions
 from schemas.robots import RobotDescription, example_robot_data_dir, load_robot
 from service.app import calibrate as pipeline
@@ -118,6 +125,8 @@ class SideBySide:
     figaroh_fit_s: list[float]
     figaroh_parameters: int
     same_parameters_mm: list[float] | None = None
+    kept: list[int] | None = None
+    """The rows kincal's default calibration kept (0-based), which every fit uses."""
 
 
 def kincal_fit_seconds(recording: Recording, rows: np.ndarray) -> float:
@@ -234,7 +243,9 @@ def same_parameters_heldout(
     return errors
 
 
-def compare(recording: Recording, seeds: int, figaroh_python: str) -> SideBySide:
+def compare(recording: Recording, seeds: int, figaroh_python: str | None) -> SideBySide:
+    """kincal (default and ``--fix compliance``) and, with ``figaroh_python``, FIGAROH and
+    kincal on FIGAROH's parameters, on the same rows and splits of ``recording``."""
     robot = robot_of(recording)
     options = CalibrationOptions(seeds=list(range(1, seeds + 1)))
     setup = pipeline.check_calibration(robot, options)
@@ -252,9 +263,38 @@ def compare(recording: Recording, seeds: int, figaroh_python: str) -> SideBySide
     for seed in options.seeds:
         train, test = split_indices(kept.size, seed, options.train_fraction)
         splits.append({"seed": seed, "train": kept[train].tolist(), "test": kept[test].tolist()})
+    answer: list[dict[str, Any]] = []
+    if figaroh_python is not None:
+        answer = figaroh_answers(recording, robot, setup.chain, splits, figaroh_python)
+    first_train = np.array(splits[0]["train"])
+    return SideBySide(
+        recording.name,
+        result.outliers.n_input,
+        result.outliers.n_used,
+        [kincal_mm[seed] for seed in options.seeds],
+        same_model_mm,
+        [a["translation_mm"] for a in answer],
+        kincal_fit_seconds(recording, first_train),
+        kincal_run_s,
+        [a["fit_s"] for a in answer],
+        int(answer[0]["parameters"]) if answer else 0,
+        same_parameters_heldout(recording, splits, answer) if answer else None,
+        kept.tolist(),
+    )
+
+
+def figaroh_answers(
+    recording: Recording,
+    robot: RobotDescription,
+    chain: KinematicChain,
+    splits: list[dict[str, Any]],
+    figaroh_python: str,
+) -> list[dict[str, Any]]:
+    """FIGAROH's ``full_params`` fit of each split (its held-out error, fit time, parameter
+    names), through ``benchmarks/figaroh_calibration_driver.py`` under its own interpreter."""
     with tempfile.TemporaryDirectory() as folder:
         work = Path(folder)
-        (work / "robot.urdf").write_bytes(figaroh_urdf(robot, setup.chain))
+        (work / "robot.urdf").write_bytes(figaroh_urdf(robot, chain))
         request = {
             "urdf": str(work / "robot.urdf"),
             "base_frame": recording.base_frame,
@@ -269,21 +309,8 @@ def compare(recording: Recording, seeds: int, figaroh_python: str) -> SideBySide
             [figaroh_python, str(DRIVER), str(work / "request.json"), str(work / "answer.json")],
             check=True,
         )
-        answer = json.loads((work / "answer.json").read_text())["splits"]
-    first_train = np.array(splits[0]["train"])
-    return SideBySide(
-        recording.name,
-        result.outliers.n_input,
-        result.outliers.n_used,
-        [kincal_mm[seed] for seed in options.seeds],
-        same_model_mm,
-        [a["translation_mm"] for a in answer],
-        kincal_fit_seconds(recording, first_train),
-        kincal_run_s,
-        [a["fit_s"] for a in answer],
-        int(answer[0]["parameters"]),
-        same_parameters_heldout(recording, splits, answer),
-    )
+        answers: list[dict[str, Any]] = json.loads((work / "answer.json").read_text())["splits"]
+    return answers
 
 
 def mean_se(values: list[float]) -> tuple[float, float]:
@@ -292,12 +319,51 @@ def mean_se(values: list[float]) -> tuple[float, float]:
 
 
 def table(rows: list[SideBySide]) -> str:
+    """The comparison table of ``rows`` (FIGAROH's columns from the same run)."""
+    return render([result_row(row, "this run") for row in rows])
+
+
+def result_row(row: SideBySide, figaroh_run: str) -> Row:
+    """A results row: kincal's numbers per split and, when FIGAROH ran (``row.figaroh_mm``),
+    FIGAROH's summary (held-out mean and standard error, median fit time, kincal on FIGAROH's
+    parameters) with ``figaroh_run``, the command and date that produced it."""
+    out: Row = {
+        "robot": row.name,
+        "rows": row.n_rows,
+        "used": row.n_used,
+        "kept": row.kept,
+        "kincal_mm": row.kincal_mm,
+        "same_model_mm": row.same_model_mm,
+        "kincal_fit_s": row.kincal_fit_s,
+        "kincal_run_s": row.kincal_run_s,
+        "figaroh": None,
+    }
+    if row.figaroh_mm:
+        same = None if row.same_parameters_mm is None else mean_se(row.same_parameters_mm)
+        out["figaroh"] = {
+            "run": figaroh_run,
+            "held_out_mm": mean_se(row.figaroh_mm),
+            "fit_s": float(np.median(row.figaroh_fit_s)),
+            "parameters": row.figaroh_parameters,
+            "same_parameters_mm": same,
+        }
+    return out
+
+
+def render(rows: list[Row]) -> str:
+    """The table of ``docs/results/figaroh_side_by_side.md``: per recording the rows (used),
+    held-out mean position error ± one standard error over the splits (mm, to 0.01) of kincal's
+    default calibration, of kincal with FIGAROH's model (``--fix compliance``) and of FIGAROH,
+    whether each kincal column is within FIGAROH + 1 SE, kincal's fit time (to 0.001 s) and
+    FIGAROH's (median over splits, to 0.01 s), their ratio, kincal's whole default run (to 0.1
+    s), and kincal's fit on FIGAROH's parameters. FIGAROH's columns are "–" for a recording it
+    did not run on."""
     header = [
         "Robot",
         "Rows (used)",
         "kincal default: held-out mm",
-        "kincal, FIGAROH's model (--fix compliance)",
-        "FIGAROH full_params",
+        "kincal, FIGAROH's model (`--fix compliance`)",
+        "FIGAROH `full_params`",
         "≤ FIGAROH + 1 SE (default / same model)",
         "kincal fit s",
         "FIGAROH fit s",
@@ -305,27 +371,61 @@ def table(rows: list[SideBySide]) -> str:
         "kincal default run s",
         "kincal, FIGAROH's parameters",
     ]
-    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    cells = []
     for row in rows:
-        k_mean, k_se = mean_se(row.kincal_mm)
-        s_mean, s_se = mean_se(row.same_model_mm)
-        f_mean, f_se = mean_se(row.figaroh_mm)
-        f_fit = float(np.median(row.figaroh_fit_s))
-        same = "–"
-        if row.same_parameters_mm is not None:
-            same = "{:.2f} ± {:.2f}".format(*mean_se(row.same_parameters_mm))
-        holds = "yes" if k_mean <= f_mean + f_se else "no"
-        holds += " / " + ("yes" if s_mean <= f_mean + f_se else "no")
-        lines.append(
-            f"| {row.name} | {row.n_rows} ({row.n_used}) | {k_mean:.2f} ± {k_se:.2f} "
-            f"| {s_mean:.2f} ± {s_se:.2f} | {f_mean:.2f} ± {f_se:.2f} | {holds} "
-            f"| {row.kincal_fit_s:.3f} | {f_fit:.2f} | {f_fit / row.kincal_fit_s:.0f}× "
-            f"| {row.kincal_run_s:.1f} | {same} |"
+        k_mean, k_se = mean_se(row["kincal_mm"])
+        s_mean, s_se = mean_se(row["same_model_mm"])
+        figaroh = row["figaroh"]
+        mine = [
+            row["robot"],
+            f"{row['rows']} ({row['used']})",
+            f"{k_mean:.2f} ± {k_se:.2f}",
+            f"{s_mean:.2f} ± {s_se:.2f}",
+        ]
+        if figaroh is None:
+            theirs = ["–"] * 4
+            same = "–"
+        else:
+            f_mean, f_se = figaroh["held_out_mm"]
+            holds = " / ".join("yes" if m <= f_mean + f_se else "no" for m in (k_mean, s_mean))
+            theirs = [
+                f"{f_mean:.2f} ± {f_se:.2f}",
+                holds,
+                f"{figaroh['fit_s']:.2f}",
+                f"{figaroh['fit_s'] / row['kincal_fit_s']:.0f}×",
+            ]
+            same = "–"
+            if figaroh["same_parameters_mm"] is not None:
+                same = "{:.2f} ± {:.2f}".format(*figaroh["same_parameters_mm"])
+        cells.append(
+            [
+                *mine,
+                theirs[0],
+                theirs[1],
+                f"{row['kincal_fit_s']:.3f}",
+                theirs[2],
+                theirs[3],
+                f"{row['kincal_run_s']:.1f}",
+                same,
+            ]
         )
-    return "\n".join(lines)
+    return markdown_table(header, cells)
 
 
-def main(figaroh_python: str, seeds: int = 10, only: list[str] | None = None) -> str:
+def main(
+    figaroh_python: str | None,
+    seeds: int = 10,
+    only: list[str] | None = None,
+    *,
+    write: str | None = None,
+) -> str:
+    """Run the comparison and print its table. ``write``: the command line to record in
+    ``docs/results/figaroh_side_by_side.json`` (written with its table when given); without
+    ``figaroh_python`` each recording keeps FIGAROH's columns from that file, with the run
+    they came from."""
+    recorded: dict[str, Any] = {}
+    if figaroh_python is None and write is not None:
+        recorded = {r["robot"]: r["figaroh"] for r in read_results("figaroh_side_by_side")[1]}
     rows = []
     for recording in RECORDINGS:
         if only and recording.name not in only:
@@ -340,16 +440,38 @@ def main(figaroh_python: str, seeds: int = 10, only: list[str] | None = None) ->
             f"{np.round(row.same_parameters_mm or [], 2).tolist()}",
             flush=True,
         )
-        rows.append(row)
-    text = table(rows)
+        result = result_row(row, f"{write} ({datetime.date.today().isoformat()})")
+        if figaroh_python is None:
+            result["figaroh"] = recorded.get(row.name)
+        rows.append(result)
+    text = render(rows)
     print("\n" + text)
+    if write is not None:
+        for path in write_results("figaroh_side_by_side", write, rows, render):
+            print(f"wrote {path}")
     return text
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--figaroh-python", required=True, help="python of a venv with figaroh")
+    parser.add_argument(
+        "--figaroh-python",
+        default=None,
+        help="python of a venv with figaroh (without it: kincal's columns only, and with "
+        "--write-results FIGAROH's columns kept from the results file's recorded run)",
+    )
     parser.add_argument("--seeds", type=int, default=10, help="number of held-out splits")
     parser.add_argument("--only", action="append", help="robot name (repeatable)")
+    parser.add_argument(
+        "--write-results",
+        action="store_true",
+        help="write docs/results/figaroh_side_by_side.{json,md} (docs/figaroh.md)",
+    )
     arguments = parser.parse_args()
-    main(arguments.figaroh_python, arguments.seeds, arguments.only)
+    command = " ".join(["python -m benchmarks.figaroh_side_by_side", *sys.argv[1:]])
+    main(
+        arguments.figaroh_python,
+        arguments.seeds,
+        arguments.only,
+        write=command if arguments.write_results else None,
+    )

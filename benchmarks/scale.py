@@ -25,8 +25,10 @@ backend.
 
 Prints a table, writes ``scale.json`` in ``--out`` and the log-log plot to ``--plot``; with
 ``--write-results`` also ``docs/results/scale.{json,md}`` (wall time per backend, peak memory
-without the chunk cache, passes, per N) and ``docs/results/scale_fleet.{json,md}``, the tables
-docs/large-recordings.md includes.
+without the chunk cache, passes, per N), ``scale_stages`` (every run's stages, CPU and memory),
+``scale_cpu`` (the CPU-time fit and scaling exponents) and ``scale_fleet``, the tables
+docs/large-recordings.md and docs/scale.md include. ``--from-results`` runs nothing and
+re-writes those tables (not the fleet's) and the plot from ``docs/results/scale.json``.
 
 Usage: ``python -m benchmarks.scale [--sizes 1e3,1e4,1e5,1e6] [--backends inprocess,processes,
 dask] [--uncached inprocess] [--fleet-robots 100] [--fleet-poses 2000] [--cache-mb 512]
@@ -51,7 +53,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import solver  # noqa: F401  (BLAS defaults)
-from benchmarks.results import Row, count_text, markdown_table, write_results
+from benchmarks.results import Row, count_text, markdown_table, read_results, write_results
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import PoseDataset, dataset_to_frame, write_dataset
 from schemas.robots import load_robot
@@ -413,6 +415,108 @@ def render(rows: list[Row]) -> str:
     return markdown_table(["poses", *header, "passes", "other CPU s, at most"], table)
 
 
+def stage_rows(runs: Sequence[Run]) -> list[Row]:
+    """Per run (backend, cached or not, and N): seconds per stage and in all, CPU seconds of
+    all its processes, peak resident memory of its largest process, passes over the data and
+    the CPU seconds the rest of the machine used meanwhile."""
+    return [
+        {
+            "backend": r.label,
+            "n": r.n,
+            **{f"{stage}_s": r.stage_s[stage] for stage in STAGES},
+            "total_s": r.total_s,
+            "cpu_s": r.cpu_s,
+            "peak_mib": max(r.driver_mib, r.worker_mib),
+            "passes": r.passes,
+            "other_cpu_s": r.other_cpu_s,
+        }
+        for r in runs
+    ]
+
+
+def render_stages(rows: list[Row]) -> str:
+    """The table of ``docs/results/scale_stages.md``: per backend and N the seconds per stage
+    and in all (to 0.01 s), CPU seconds and the other work's (to 0.1 s), peak MiB, passes."""
+    return markdown_table(
+        (
+            "backend", "poses", "read s", "deterministic s", "covariance s", "total s",
+            "CPU s", "peak MiB", "passes", "other CPU s",
+        ),
+        [
+            (
+                r["backend"], count_text(r["n"]), f"{r['read_s']:.2f}",
+                f"{r['deterministic_s']:.2f}", f"{r['covariance_s']:.2f}", f"{r['total_s']:.2f}",
+                f"{r['cpu_s']:.1f}", f"{r['peak_mib']:.0f}", r["passes"],
+                f"{r['other_cpu_s']:.1f}",
+            )
+            for r in rows
+        ],
+    )  # fmt: skip
+
+
+FIT_FROM = 10_000
+"""The smallest N of the CPU-time fit and the scaling exponents."""
+
+
+def cpu_rows(runs: Sequence[Run]) -> list[Row]:
+    """Per backend (cached or not), over N ≥ :data:`FIT_FROM`: CPU time = a + b·N (least
+    squares), and the log-log slopes of wall time and peak memory against N."""
+    rows = []
+    for backend in dict.fromkeys(r.label for r in runs):
+        mine = [r for r in runs if r.label == backend and r.n >= FIT_FROM]
+        if len(mine) < 2:
+            continue
+        n = [r.n for r in mine]
+        b, a = np.polyfit(n, [r.cpu_s for r in mine], 1)
+        rows.append(
+            {
+                "backend": backend,
+                "sizes": n,
+                "cpu_fixed_s": float(a),
+                "cpu_per_pose_us": float(b * 1e6),
+                "wall_exponent": slope(n, [r.total_s for r in mine]),
+                "memory_exponent": slope(n, [max(r.driver_mib, r.worker_mib) for r in mine]),
+            }
+        )
+    return rows
+
+
+def render_cpu(rows: list[Row]) -> str:
+    """The table of ``docs/results/scale_cpu.md``: per backend the fixed CPU seconds a (to
+    0.1 s) and the CPU µs per pose b of CPU time = a + b·N, and the log-log slopes of wall
+    time and peak memory (to 0.01), over the sizes fitted."""
+    return markdown_table(
+        ("backend", "sizes", "a: fixed CPU s", "b: CPU µs per pose", "wall exponent",
+         "memory exponent"),
+        [
+            (
+                r["backend"], "–".join(count_text(n) for n in (r["sizes"][0], r["sizes"][-1])),
+                f"{r['cpu_fixed_s']:.1f}", f"{r['cpu_per_pose_us']:.1f}",
+                f"{r['wall_exponent']:.2f}", f"{r['memory_exponent']:.2f}",
+            )
+            for r in rows
+        ],
+    )  # fmt: skip
+
+
+def write_run_results(runs: Sequence[Run], command: str) -> tuple[Path, ...]:
+    """``docs/results/scale{,_stages,_cpu}.{json,md}`` of ``runs``, ``command`` recorded."""
+    return (
+        *write_results("scale", command, [asdict(r) for r in runs], render),
+        *write_results("scale_stages", command, stage_rows(runs), render_stages),
+        *write_results("scale_cpu", command, cpu_rows(runs), render_cpu),
+    )
+
+
+def recorded_runs() -> tuple[str, list[Run]]:
+    """The command and runs of ``docs/results/scale.json``."""
+    command, rows = read_results("scale")
+    runs = []
+    for row in rows:
+        runs.append(Run(**{**row, "load_average": tuple(row["load_average"])}))
+    return command, runs
+
+
 WORN = "SN0007:compliance."
 """The worn robot's flag (:func:`write_fleet`: robot 7, joint 3's compliance)."""
 
@@ -535,7 +639,7 @@ def main(
     if plot_path is not None and runs:
         plot(runs, plot_path)
     if write is not None:
-        written: tuple[Path, ...] = write_results("scale", write, [asdict(r) for r in runs], render)
+        written: tuple[Path, ...] = write_run_results(runs, write)
         if fleets:
             written += write_results(
                 "scale_fleet", write, [asdict(f) for f in fleets], render_fleet
@@ -570,7 +674,21 @@ if __name__ == "__main__":
         action="store_true",
         help="write docs/results/scale.{json,md} and scale_fleet.{json,md}",
     )
+    parser.add_argument(
+        "--from-results",
+        action="store_true",
+        help="run nothing: re-write docs/results/scale{,_stages,_cpu} and the plot (--plot) "
+        "from the runs recorded in docs/results/scale.json",
+    )
     args = parser.parse_args()
+    if args.from_results:
+        recorded, runs = recorded_runs()
+        for path in write_run_results(runs, recorded):
+            print(f"wrote {path}")
+        if args.plot is not None:
+            plot(runs, args.plot)
+            print(f"wrote {args.plot}")
+        sys.exit(0)
     report = main(
         [int(float(s)) for s in args.sizes.split(",")],
         args.backends.split(","),

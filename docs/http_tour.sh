@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The HTTP tour (docs/http.md): upload a recording shipped with kincal, calibrate it, read the
-# verdict, fetch the report, rank configurations and export for the controller — with curl and
-# jq against a running `kincal serve`. From the repository root:
+# verdict, fetch the report, rank configurations, export for the controller and check the
+# calibration against poses — with curl and jq against a running `kincal serve`. From the
+# repository root:
 #
 #   kincal serve &              # prints: kincal ... listening on http://127.0.0.1:8000 ...
 #   bash docs/http_tour.sh      # KINCAL_URL=http://host:port for another address
@@ -53,5 +54,13 @@ call -H 'content-type: application/json' "$API/rankings" \
 
 # 5. The calibrated URDF for the controller (refused with 409 when the verdict failed).
 call "$API/calibrations/$CALIBRATION/urdf" >"$OUT/fr3_calibrated.urdf"
+
+# 6. Is it still calibrated? Check it against new poses (kincal check, under a second, kept
+#    with its time: GET .../checks lists them). Ten rows of the recording stand in for poses
+#    recorded later here; rows the calibration used show the call, not the check's power.
+sed -n 1,11p "$RECORDING" >"$OUT/check_poses.csv"
+CHECK_SET=$(call -F robot=panda -F "file=@$OUT/check_poses.csv" "$API/datasets" | jq -r .id)
+call -H 'content-type: application/json' -d "{\"dataset_id\": \"$CHECK_SET\"}" \
+  "$API/calibrations/$CALIBRATION/checks" | jq -c '{verdict, statistic, threshold, located}'
 
 echo "wrote: $OUT/report.html $OUT/ranking.json $OUT/fr3_calibrated.urdf"

@@ -14,6 +14,7 @@ from typing import Annotated, Any, Literal, TypeVar
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from schemas.calibration import CalibrationOptions, Verdict
+from schemas.check import CheckOptions, CheckResult
 from schemas.discovery import DiscoveryOptions
 from schemas.limits import MAX_JOINT_POSITION, MAX_PAYLOAD_KG
 from schemas.ranking import RankingOptions, TargetPose
@@ -304,6 +305,52 @@ class DiscoveryPublic(BaseModel):
 
 class DiscoveriesPublic(Page):
     data: list[DiscoveryPublic]
+
+
+# --- checks ------------------------------------------------------------------------------------
+
+
+class CheckCreate(_In):
+    """Test a succeeded calibration against new poses: an uploaded dataset of the calibrated
+    robot, recorded in the same frames and of the same measurement type (``kincal check``)."""
+
+    dataset_id: str = Field(min_length=1, max_length=64)
+    options: CheckOptions = Field(default_factory=CheckOptions)
+
+
+class CheckLinks(BaseModel):
+    self: str
+    calibration: str
+    dataset: str
+
+
+class CheckSummary(BaseModel):
+    """A check as listed: when, on which dataset, its verdict and global test."""
+
+    id: str
+    calibration_id: str
+    dataset_id: str = Field(description="The dataset checked (it may have been deleted since).")
+    dataset_name: str
+    created_at: dt.datetime
+    level: float
+    n_poses: int
+    verdict: Literal["holds", "drifted", "inconclusive"]
+    statistic: float | None = Field(
+        description="Σ d² of the global test (null: too few poses for a test)."
+    )
+    threshold: float | None = Field(description="Its limit at the level (null with it).")
+    located: str | None = Field(description="The located change of a drift, if any.")
+    links: CheckLinks
+
+
+class CheckPublic(CheckSummary):
+    """A check with its document (the ``kincal check -o`` JSON)."""
+
+    check: CheckResult
+
+
+class ChecksPublic(Page):
+    data: list[CheckSummary]
 
 
 # --- health ------------------------------------------------------------------------------------

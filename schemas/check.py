@@ -16,10 +16,24 @@ from pydantic import BaseModel, ConfigDict, Field
 from schemas.ranking import CalibrationReference
 
 CHECK_FORMAT: Literal["kincal.check/1"] = "kincal.check/1"
+DEFAULT_LEVEL = 0.05
+"""Family-wise false-alarm probability of the verdict (``kincal check --level``)."""
 
 
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid")
+
+
+class CheckOptions(_Model):
+    """The options of a check (``kincal check``'s flags)."""
+
+    level: float = Field(
+        DEFAULT_LEVEL,
+        gt=0.0,
+        lt=1.0,
+        allow_inf_nan=False,
+        description="Family-wise probability of a false alarm when the calibration holds.",
+    )
 
 
 class CheckPose(_Model):

@@ -117,6 +117,12 @@ class Settings(BaseSettings):
         "cancellations, GETs).",
     )
     max_rows: int = Field(100_000, ge=1, description="Most samples in one dataset.")
+    max_bag_messages: int = Field(
+        2_000_000,
+        ge=1,
+        description="Most messages an uploaded ROS bag may hold on the topics read (joint "
+        "states, measurement, capture), counted from its index before any is decoded.",
+    )
     max_joints: int = Field(32, ge=1, description="Most joints in a calibrated chain.")
     max_urdf_bytes: int = Field(2 * MiB, ge=1024, description="Largest uploaded URDF.")
     max_urdf_joints: int = Field(

@@ -24,9 +24,10 @@ def test_design_benchmark_table_on_a_tiny_input() -> None:
         assert np.isfinite([variance, sigma, error_mm]).all() and error_mm > 0
         assert variance >= bound * (1 - 1e-9)  # no 8 poses go below the relaxation
         assert np.isnan(efficiency) if method == "random" else 0.0 < efficiency <= 1.0
-    lines = design.compare(TINY, ["jaco2"])
+    lines, results = design.compare(TINY, ["jaco2"], echo=lambda _: None)
     assert lines[0].startswith("robot") and any("kincal-D" in line for line in lines)
-    assert "60 candidates" in design.timing(n_candidates=60, n_poses=8)
+    assert "| Jaco2 | 8 |" in design.render_poses(results)
+    assert "60 candidates" in design.timing(n_candidates=60, n_poses=8).line()
 
 
 def test_sensor_volume_table_on_a_tiny_input() -> None:
@@ -45,8 +46,10 @@ def test_sensor_volume_table_on_a_tiny_input() -> None:
         for method in ("random25", "D", "I"):
             assert run[method] >= run["bound"] * (1 - 1e-9)
         assert 0.0 < run["D-eff"] <= 1.0 and 0.0 < run["I-eff"] <= 1.0
-    lines = design.compare_volumes(design.Settings(seeds=1, candidates=60, heldout=40), ["x"])
-    assert lines[0].startswith("robot") and len(lines) == 1
+    lines, results = design.compare_volumes(
+        design.Settings(seeds=1, candidates=60, heldout=40), ["x"], echo=lambda _: None
+    )
+    assert lines[0].startswith("robot") and len(lines) == 1 and results == []
 
 
 def test_figaroh_gets_the_same_kinematics_without_continuous_joints() -> None:
@@ -83,12 +86,10 @@ def test_measurement_design_table_on_a_tiny_input() -> None:
     """benchmarks/design_measurements.py: the markers row (auto: first-order, the offsets as
     nuisance columns), its criterion below the bound, and Clarabel's LMI on the same
     relaxation agreeing with the first-order method."""
-    header, row = design_measurements.table(design_measurements.CASES[1:2], 30, 10, 12)
-    assert header.startswith("case") and row.startswith("3 markers")
-    fields = row.split("|")[0].split()  # "3 markers" is two fields
-    assert int(fields[3].split("+")[1]) > 0 and fields[4] == "first_order"
-    value, bound = float(fields[8]), float(fields[9])
-    assert value <= bound
-    solvers = row.split("|")[1].split()
-    first, conic = float(solvers[4].rstrip(",")), float(solvers[8])
-    assert first == pytest.approx(conic, rel=1e-4)
+    row = design_measurements.run_case(design_measurements.CASES[1], 30, 10, 12)
+    assert design_measurements.line(row).startswith("3 markers")
+    assert row["nuisance"] > 0 and row["method"] == "first_order"
+    assert row["value"] <= row["upper_bound"]
+    small = row["small"]
+    assert small["first_order_value"] == pytest.approx(small["clarabel_value"], rel=1e-4)
+    assert "3 markers" in design_measurements.render([row])

@@ -63,16 +63,18 @@ recordings, the true Σ on the calibrated geometry) to show where the gap to the
 
 Usage (from the repository root): ``python -m benchmarks.reproduce_paper [--out
 out/reproduce_paper] [--figures DIR] [--runs 150] [--recordings 4] [--executions 500]
-[--quick]``. Writes ``reproduce_paper.md`` to ``--out`` and the figures
+[--quick] [--write-results]``. Writes ``reproduce_paper.md`` to ``--out`` and the figures
 ``reproduce_paper_sigma.png`` (Fig. 4b) and ``reproduce_paper_runs.png`` (Fig. 6) to
-``--figures`` (default: ``--out``). The committed report is ``python -m
-benchmarks.reproduce_paper --out docs``.
+``--figures`` (default: ``--out``). ``--write-results`` also writes the tables of
+docs/reproduce_paper.md, ``docs/results/reproduce_paper_*.{json,md}`` (``results``), and the
+figures to ``docs/`` (unless ``--figures`` is given).
 
 Modules, in the order the study uses them: ``settings`` (sizes and seeds), ``paper`` (the
 published numbers), ``simulation`` (the true robot and its recording), ``calibration`` (Table II,
 Fig. 4b), ``manipulation`` (approach runs and their scores), ``selection`` (statistics and
 verdicts), ``docking`` (the task's own score), ``ablations``, ``known_noise`` (the §V-B variant),
-``study`` (all of it), ``plots``, ``tables`` and ``report`` (the markdown), ``cli`` and
+``study`` (all of it), ``plots``, ``tables`` and ``report`` (the markdown), ``results`` (the
+results files), ``cli`` and
 ``__main__`` (the command line).
 """
 

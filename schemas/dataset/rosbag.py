@@ -6,16 +6,23 @@ Joint readings come from a ``sensor_msgs/JointState`` topic; the measured pose f
 ``/tf`` and ``/tf_static``, :mod:`schemas.dataset.tf_tree`), ``pose:TOPIC``
 (``geometry_msgs/PoseStamped`` or ``TransformStamped``) or ``point:TOPIC``
 (``geometry_msgs/PointStamped``: a position-only recording). Header stamps are the time.
-Samples are the still segments of the joint readings (:mod:`schemas.dataset.still`).
+Samples are the still segments of the joint readings (:mod:`schemas.dataset.still`). A
+robot_calibration capture bag (``calibration-data:TOPIC[:CAMERA[:CHAIN]]``) is read message by
+message instead: each ``CalibrationData`` holds the joint states and, per sensor, the features
+seen; the pose of the target (a checkerboard) in the camera frame is the rigid fit of the CHAIN
+sensor's features (the target's own points) to the CAMERA sensor's.
 Every problem is one :class:`~solver.errors.DatasetError` line naming the fix.
 """
 
 from __future__ import annotations
 
+import io
+import tempfile
+import zipfile
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -24,6 +31,7 @@ from numpy.typing import NDArray
 
 from schemas.dataset.columns import one_line
 from schemas.dataset.records import POSITION_COLUMNS, QUATERNION_COLUMNS, PoseDataset
+from schemas.dataset.ros_types import CALIBRATION_DATA
 from schemas.dataset.still import (
     NS_PER_S,
     Measurements,
@@ -40,18 +48,24 @@ if TYPE_CHECKING:
     from rosbags.highlevel import AnyReader
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+UPLOAD_SUFFIXES = (".bag", ".zip")
+"""A bag sent as bytes: a ROS 1 ``.bag`` file, or a rosbag2 folder in a ``.zip`` archive."""
+MAX_ARCHIVE_MEMBERS = 64
 JOINT_STATE = "sensor_msgs/msg/JointState"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/TransformStamped")
 POINT_TYPE = "geometry_msgs/msg/PointStamped"
 TF_TOPICS = ("/tf", "/tf_static")
-SOURCE_FORMS = "tf:PARENT:CHILD, pose:TOPIC or point:TOPIC"
+SOURCE_FORMS = "tf:PARENT:CHILD, pose:TOPIC, point:TOPIC or calibration-data:TOPIC[:CAMERA[:CHAIN]]"
+CAPTURE_SENSORS = ("camera", "arm")
+"""robot_calibration's checkerboard finder's default sensor names (camera, chain)."""
+MIN_FEATURES = 3
 
 
 @dataclass(frozen=True)
 class MeasureSource:
     """Where the measured pose comes from: ``kind`` tf (``frames`` = parent, child), pose or
-    point (``topic``)."""
+    point (``topic``), calibration-data (``topic``; ``frames`` = camera and chain sensors)."""
 
     kind: str
     topic: str = ""
@@ -66,7 +80,23 @@ class MeasureSource:
             return cls("tf", frames=(frames[0], frames[1]))
         if kind in ("pose", "point") and len(parts) == 1 and parts[0]:
             return cls(kind, topic=parts[0])
+        if kind == "calibration-data" and 1 <= len(parts) <= 3 and all(parts):
+            sensors = (*parts[1:], *CAPTURE_SENSORS[len(parts) - 1 :])
+            return cls(kind, topic=parts[0], frames=(sensors[0], sensors[1]))
         raise DatasetError(f"--measure {text!r}: give {SOURCE_FORMS}")
+
+
+class TooManyMessagesError(DatasetError):
+    """A bag holds more messages on the topics a recording reads than the caller's limit
+    (counted from the bag's index, before any message is decoded)."""
+
+    def __init__(self, source: str, n_messages: int, limit: int) -> None:
+        super().__init__(
+            f"{source}: {n_messages} messages on the topics read is more than the limit of "
+            f"{limit}; split the bag"
+        )
+        self.n_messages = n_messages
+        self.limit = limit
 
 
 @dataclass(frozen=True)
@@ -101,26 +131,52 @@ def is_bag(path: Path) -> bool:
 
 def read_bag(
     path: str | Path,
-    joint_states: str,
+    joint_states: str | None,
     measure: MeasureSource,
     *,
     joint_names: Sequence[str] | None = None,
     other_joint_names: Sequence[str] = (),
     settings: StillSettings | None = None,
     capture: str | None = None,
+    source: str | None = None,
+    max_messages: int | None = None,
 ) -> BagRecording:
     """The bag at ``path`` as a recording: one sample per still segment of ``joint_states``
     with ``measure`` averaged inside it. ``joint_names``: the chain's URDF joints, in chain
     order (None: every joint of the topic, in its order); ``other_joint_names``: URDF joints off
     the chain, accepted and left out; ``capture``: a topic of any type whose messages (header
-    stamp, else the time it was logged) mark the samples instead of the still segments."""
+    stamp, else the time it was logged) mark the samples instead of the still segments;
+    ``source``: the name messages give the bag (default: the path's); ``max_messages``: at most
+    this many messages on the topics read (:class:`TooManyMessagesError` before decoding)."""
     path, settings = Path(path), settings or StillSettings()
-    source = path.name
+    source = source or path.name
     with _open(path, source) as reader:
         topics = {name: info.msgtype or "?" for name, info in reader.topics.items()}
         counts = {name: info.msgcount for name, info in reader.topics.items()}
         listing = ", ".join(f"{t} ({topics[t]}, {counts[t]} messages)" for t in sorted(topics))
-        _check_topic(joint_states, (JOINT_STATE,), "--joint-states", topics, listing, source)
+        captured = measure.kind == "calibration-data"
+        if not captured:
+            if joint_states is None:
+                raise DatasetError(f"{source}: give --joint-states, the JointState topic")
+            _check_topic(joint_states, (JOINT_STATE,), "--joint-states", topics, listing, source)
+        if max_messages is not None:
+            read = {*_measure_topics(measure, topics)}
+            read |= {t for t in (joint_states, capture) if t is not None and not captured}
+            n_messages = sum(int(counts.get(topic, 0)) for topic in read)
+            if n_messages > max_messages:
+                raise TooManyMessagesError(source, n_messages, max_messages)
+        if captured:
+            _check_topic(measure.topic, (CALIBRATION_DATA,), "--measure", topics, listing, source)
+            names, samples = _calibration_data(reader, measure, joint_names, source)
+            start_ns = int(samples.stamps_ns[0]) if samples.n_samples else 0
+            if samples.n_samples == 0:
+                raise DatasetError(f"{source}: {_no_capture(samples, measure)}")
+            frame = _frame(names, samples, start_ns)
+            data = dataset_from_frame(
+                frame, names, source=source, other_joint_names=other_joint_names
+            )
+            return BagRecording(data, samples)
+        assert joint_states is not None
         measured = _measurements(reader, measure, topics, listing, source)  # the cheaper reads
         captures = None
         if capture is not None:
@@ -137,6 +193,160 @@ def read_bag(
     frame = _frame(names, samples, int(stamps[0]))
     dataset = dataset_from_frame(frame, names, source=source, other_joint_names=other_joint_names)
     return BagRecording(dataset, samples)
+
+
+def _measure_topics(measure: MeasureSource, topics: dict[str, str]) -> tuple[str, ...]:
+    """The topics ``measure`` reads in a bag with ``topics``."""
+    if measure.kind == "tf":
+        return tuple(topic for topic in TF_TOPICS if topic in topics)
+    return (measure.topic,)  # pose, point, calibration-data
+
+
+def read_bag_bytes(
+    data: bytes,
+    suffix: str,
+    joint_states: str | None,
+    measure: MeasureSource,
+    *,
+    source: str,
+    max_unpacked_bytes: int,
+    **options: Any,
+) -> BagRecording:
+    """A bag received as bytes (an upload) as a recording, read by :func:`read_bag` with
+    ``options`` from a temporary folder: ``suffix`` ``.bag`` (a ROS 1 bag file) or ``.zip`` (a
+    rosbag2 folder: its ``metadata.yaml`` and storage files, at the archive's top or in one
+    folder). An archive is refused before anything is unpacked when it holds more than
+    :data:`MAX_ARCHIVE_MEMBERS` files, more than ``max_unpacked_bytes`` unpacked, or a path
+    outside its folder."""
+    with tempfile.TemporaryDirectory(prefix="kincal-bag-") as folder:
+        if suffix == ".bag":
+            path = Path(folder) / "upload.bag"
+            path.write_bytes(data)
+        elif suffix == ".zip":
+            path = _unpack_rosbag2(data, Path(folder), source, max_unpacked_bytes)
+        else:
+            raise DatasetError(f"{source}: a bag is a .bag file or a rosbag2 folder as a .zip")
+        return read_bag(path, joint_states, measure, source=source, **options)
+
+
+def _unpack_rosbag2(data: bytes, folder: Path, source: str, max_unpacked_bytes: int) -> Path:
+    """The rosbag2 folder of a zip archive, unpacked into ``folder`` (checked first)."""
+    try:
+        archive = zipfile.ZipFile(io.BytesIO(data))
+    except zipfile.BadZipFile as exc:
+        raise DatasetError(f"{source}: not a zip archive ({exc}); zip the rosbag2 folder") from exc
+    with archive:
+        members = [info for info in archive.infolist() if not info.is_dir()]
+        if len(members) > MAX_ARCHIVE_MEMBERS:
+            raise DatasetError(
+                f"{source}: {len(members)} files in the archive; a rosbag2 folder holds its "
+                f"metadata.yaml and storage files (at most {MAX_ARCHIVE_MEMBERS})"
+            )
+        unpacked = sum(info.file_size for info in members)
+        if unpacked > max_unpacked_bytes:
+            raise DatasetError(
+                f"{source}: {unpacked} bytes unpacked is more than the limit of "
+                f"{max_unpacked_bytes}; split the bag"
+            )
+        for info in members:
+            name = PurePosixPath(info.filename)
+            if name.is_absolute() or ".." in name.parts:
+                raise DatasetError(f"{source}: {info.filename!r} points outside the archive")
+        metadata = [PurePosixPath(info.filename) for info in members]
+        metadata = [name for name in metadata if name.name == "metadata.yaml"]
+        if len(metadata) != 1:
+            raise DatasetError(
+                f"{source}: {len(metadata)} metadata.yaml files in the archive; zip one "
+                "rosbag2 folder (its metadata.yaml and storage files)"
+            )
+        archive.extractall(folder, members)
+    return folder.joinpath(*metadata[0].parent.parts)
+
+
+def _calibration_data(
+    reader: AnyReader, measure: MeasureSource, joint_names: Sequence[str] | None, source: str
+) -> tuple[tuple[str, ...], Samples]:
+    """One sample per ``CalibrationData`` message of ``measure.topic`` that holds every wanted
+    joint and both sensors' features (the same number, at least :data:`MIN_FEATURES`): its
+    joint positions and the target's pose in the camera frame (:func:`rigid_fit`)."""
+    camera, chain = measure.frames
+    wanted: tuple[str, ...] | None = None if joint_names is None else tuple(joint_names)
+    seen_joints: set[str] = set()
+    seen_sensors: set[str] = set()
+    stamps: list[int] = []
+    rows: list[NDArray[np.float64]] = []
+    placements: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
+    n_messages = 0
+    for logged_ns, msg in _messages(reader, measure.topic):
+        n_messages += 1
+        names = tuple(msg.joint_states.name)
+        seen_joints.update(names)
+        wanted = wanted or names
+        index = _columns_of(wanted, names)
+        features = {o.sensor_name: o.features for o in msg.observations}
+        seen_sensors.update(features)
+        seen, model = features.get(camera, []), features.get(chain, [])
+        if index is None or len(msg.joint_states.position) != len(names):
+            continue
+        if len(seen) != len(model) or len(seen) < MIN_FEATURES:
+            continue
+        stamp = _stamp_ns(msg.joint_states.header)
+        stamps.append(stamp if stamp > 0 else logged_ns)
+        rows.append(np.asarray(msg.joint_states.position, dtype=float)[index])
+        placements.append(rigid_fit(_points(model), _points(seen)))
+    if wanted is None or (not rows and not set(wanted) <= seen_joints):
+        raise DatasetError(
+            f"{source}: the captures of {measure.topic} name joints "
+            f"{', '.join(sorted(seen_joints)) or '(none)'}; the robot's chain joints are "
+            f"{', '.join(wanted or ())}; pass the robot the bag was recorded with"
+        )
+    if not rows and not {camera, chain} <= seen_sensors:
+        raise DatasetError(
+            f"{source}: the captures of {measure.topic} hold the sensors "
+            f"{', '.join(sorted(seen_sensors)) or '(none)'}, not {camera} and {chain}; give "
+            "--measure calibration-data:TOPIC:CAMERA:CHAIN with the camera's sensor and the "
+            "sensor whose features are the target's own points"
+        )
+    by_time = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
+    n = len(rows)
+    samples = Samples(
+        joint_positions=np.asarray(rows, dtype=float).reshape(n, len(wanted))[by_time],
+        position_m=np.asarray([p for p, _ in placements], dtype=float).reshape(n, 3)[by_time],
+        quaternion_xyzw=np.asarray([q for _, q in placements]).reshape(n, 4)[by_time],
+        stamps_ns=np.asarray(stamps, dtype=np.int64)[by_time],
+        n_messages=n_messages,
+        n_moving=0,
+        n_too_short=0,
+        n_no_measurement=n_messages - n,
+        n_captures=n_messages,
+    )
+    return wanted, samples
+
+
+def _points(features: Sequence[Any]) -> NDArray[np.float64]:
+    return np.array([[f.point.x, f.point.y, f.point.z] for f in features], dtype=float)
+
+
+def rigid_fit(
+    model_m: NDArray[np.float64], seen_m: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The rigid transform ``cameraMtarget`` that best maps the target's own points (k, 3) m onto
+    the same points as the camera sees them (k, 3) m in least squares: translation (3,) m and
+    quaternion x,y,z,w (scipy's ``Rotation.align_vectors`` on the centred points)."""
+    from scipy.spatial.transform import Rotation
+
+    model_centre, seen_centre = model_m.mean(axis=0), seen_m.mean(axis=0)
+    rotation, _ = Rotation.align_vectors(seen_m - seen_centre, model_m - model_centre)
+    return seen_centre - rotation.apply(model_centre), rotation.as_quat()
+
+
+def _no_capture(samples: Samples, measure: MeasureSource) -> str:
+    camera, chain = measure.frames
+    return (
+        f"none of the {samples.n_messages} captures of {measure.topic} holds the robot's joints "
+        f"and at least {MIN_FEATURES} features of both {camera} and {chain} (the same number); "
+        "check the capture run's finder"
+    )
 
 
 def _no_sample(samples: Samples, settings: StillSettings) -> str:
@@ -179,6 +389,8 @@ def _open(path: Path, source: str) -> Iterator[AnyReader]:
     folder."""
     from rosbags.highlevel import AnyReader
 
+    from schemas.dataset.ros_types import typestore
+
     if path.is_file() and path.suffix.lower() in (".mcap", ".db3"):
         if not (path.parent / "metadata.yaml").is_file():
             raise DatasetError(
@@ -188,7 +400,7 @@ def _open(path: Path, source: str) -> Iterator[AnyReader]:
     if not path.exists():
         raise DatasetError(f"{source}: file not found ({path}); check the path")
     try:
-        reader = AnyReader([path])
+        reader = AnyReader([path], default_typestore=typestore())
         reader.open()
     except Exception as exc:  # rosbags' reader errors, a truncated file: one line
         raise DatasetError(

@@ -4,7 +4,8 @@ the tree (``/tf`` and ``/tf_static``, ``tf2_msgs/TFMessage``).
 An edge ``parentMchild`` is the pose of ``child`` in ``parent`` (translation m, unit quaternion
 ``x, y, z, w``, scalar last). A static edge is constant; a dynamic edge is known between its
 first and last stamp and interpolated in between: linearly in translation, by slerp in
-rotation (:func:`interpolate`). A frame has at most one parent, as in tf2.
+rotation (:func:`interpolate`); rotations are scipy's :class:`Rotation`. A frame has at most
+one parent, as in tf2.
 """
 
 from __future__ import annotations
@@ -13,12 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from solver.errors import DatasetError
-
-SLERP_LINEAR_BELOW_RAD = 1e-9
-"""Below this angle between neighbouring rotations slerp is replaced by a normalised lerp
-(the two agree to rounding; slerp's sin(θ) would divide by ~0)."""
 
 
 @dataclass(frozen=True)
@@ -44,73 +42,40 @@ class Poses:
     valid: NDArray[np.bool_]
 
 
-def quaternion_multiply(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Hamilton product a·b of (..., 4) quaternions, scalar last."""
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        axis=-1,
-    )
+Placement = tuple[NDArray[np.float64], Rotation]
+"""A rigid transform ``aMb`` per sample: translation (n, 3) m and the rotations (n of them)."""
 
 
-def quaternion_rotate(q_xyzw: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The (..., 3) vectors ``v`` rotated by the unit quaternions ``q_xyzw`` (..., 4)."""
-    u, w = q_xyzw[..., :3], q_xyzw[..., 3:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
+def compose(aMb: Placement, bMc: Placement) -> Placement:
+    """``aMc = aMb · bMc``, sample by sample."""
+    (p_ab, r_ab), (p_bc, r_bc) = aMb, bMc
+    return p_ab + r_ab.apply(p_bc), r_ab * r_bc
 
 
-def compose(
-    aMb: tuple[NDArray[np.float64], NDArray[np.float64]],
-    bMc: tuple[NDArray[np.float64], NDArray[np.float64]],
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``aMc = aMb · bMc`` for (translation, quaternion) pairs (broadcast over leading axes)."""
-    (p_ab, q_ab), (p_bc, q_bc) = aMb, bMc
-    return p_ab + quaternion_rotate(q_ab, p_bc), quaternion_multiply(q_ab, q_bc)
-
-
-def invert(
-    aMb: tuple[NDArray[np.float64], NDArray[np.float64]],
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def invert(aMb: Placement) -> Placement:
     """``bMa`` from ``aMb``."""
-    p, q = aMb
-    q_inv = q * np.array([-1.0, -1.0, -1.0, 1.0])
-    return -quaternion_rotate(q_inv, p), q_inv
+    p, r = aMb
+    r_inv = r.inv()
+    return -r_inv.apply(p), r_inv
 
 
-def slerp(
-    q0: NDArray[np.float64], q1: NDArray[np.float64], u: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """Spherical interpolation from ``q0`` (u = 0, exactly) to ``q1`` (u = 1) of (n, 4) unit
-    quaternions along the shorter arc."""
-    dot = np.sum(q0 * q1, axis=-1)
-    q1 = np.where(dot[:, None] < 0.0, -q1, q1)
-    theta = np.arccos(np.clip(np.abs(dot), -1.0, 1.0))
-    small = theta < SLERP_LINEAR_BELOW_RAD
-    sin_theta = np.where(small, 1.0, np.sin(theta))
-    w0 = np.where(small, 1.0 - u, np.sin((1.0 - u) * theta) / sin_theta)
-    w1 = np.where(small, u, np.sin(u * theta) / sin_theta)
-    q = w0[:, None] * q0 + w1[:, None] * q1
-    return np.where((u == 0.0)[:, None], q0, q / np.linalg.norm(q, axis=-1, keepdims=True))
+def slerp(r0: Rotation, r1: Rotation, u: NDArray[np.float64]) -> Rotation:
+    """Per sample, the rotation a fraction ``u`` (n,) of the shorter arc from ``r0`` (u = 0)
+    to ``r1`` (u = 1), to rounding (scipy normalises the products)."""
+    return r0 * Rotation.from_rotvec(u[:, None] * (r0.inv() * r1).as_rotvec())
 
 
 def interpolate(
     edge: Edge, stamps_ns: NDArray[np.int64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
-    """The edge at ``stamps_ns`` (n,): translation (n, 3), quaternion (n, 4), and whether each
+) -> tuple[NDArray[np.float64], Rotation, NDArray[np.bool_]]:
+    """The edge at ``stamps_ns`` (n,): translation (n, 3), rotations (n), and whether each
     time lies within the edge's stamps (always, for a static edge)."""
     n = len(stamps_ns)
     if edge.static or len(edge.stamps_ns) == 1:
         valid = np.ones(n, bool) if edge.static else stamps_ns == edge.stamps_ns[0]
         return (
             np.broadcast_to(edge.translation_m[-1], (n, 3)).copy(),
-            np.broadcast_to(edge.quaternion_xyzw[-1], (n, 4)).copy(),
+            Rotation.from_quat(np.broadcast_to(edge.quaternion_xyzw[-1], (n, 4))),
             valid,
         )
     stamps = edge.stamps_ns
@@ -121,8 +86,8 @@ def interpolate(
     p0, p1 = edge.translation_m[i], edge.translation_m[i + 1]
     translation = p0 + u[:, None] * (p1 - p0)
     translation = np.where((u == 0.0)[:, None], p0, translation)
-    quaternion = slerp(edge.quaternion_xyzw[i], edge.quaternion_xyzw[i + 1], u)
-    return translation, quaternion, valid
+    rotation = Rotation.from_quat(edge.quaternion_xyzw)
+    return translation, slerp(rotation[i], rotation[i + 1], u), valid
 
 
 class TfTree:
@@ -188,15 +153,15 @@ class TfTree:
     def pose(self, parent: str, child: str, stamps_ns: NDArray[np.int64]) -> Poses:
         """``parentMchild`` at ``stamps_ns``, each dynamic edge interpolated at those times."""
         n = len(stamps_ns)
-        identity = (np.zeros((n, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)))
+        identity: Placement = (np.zeros((n, 3)), Rotation.identity(n))
         valid = np.ones(n, bool)
-        down: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
+        down: list[Placement] = []
         for path in self.chain(parent, child):
             pose = identity
             for edge in path:
-                translation, quaternion, covered = interpolate(edge, stamps_ns)
-                pose = compose(pose, (translation, quaternion))
+                translation, rotation, covered = interpolate(edge, stamps_ns)
+                pose = compose(pose, (translation, rotation))
                 valid &= covered
             down.append(pose)
-        translation, quaternion = compose(invert(down[0]), down[1])
-        return Poses(translation, quaternion, valid)
+        translation, rotation = compose(invert(down[0]), down[1])
+        return Poses(translation, rotation.as_quat(), valid)

@@ -17,17 +17,20 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse
+from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
+from service import kincal_version
 from service.api import calibrations, datasets, designs, discoveries, health, rankings, robots
+from service.api.checks import router as checks_router
 from service.api.deps import ServiceState
 from service.api.metrics import Metrics
 from service.api.middleware import BodyLimits, RequestContextMiddleware
 from service.api.problems import install_problem_handlers
+from service.api.ranking_fast_path import RankingFastPath
 from service.api.results import ResultCache
 from service.jobs.runner import JobRegistry, JobRunner, RunnerHandle, default_registry
-from service.render.result_json import kincal_version
 from service.security import KeyVerifier, Principal
 from service.settings import Settings
 from service.storage import repository
@@ -178,7 +181,18 @@ def create_app(
     install_docs(app)
     app.state.kincal = state
     install_problem_handlers(app)
-    app.add_middleware(RequestContextMiddleware, metrics=state.metrics, limits=BodyLimits(settings))
     for module in (robots, datasets, calibrations, rankings, discoveries, designs, health):
         app.include_router(module.router)
+    app.include_router(checks_router)
+    # The last added is the outermost: the fast path runs inside the request context.
+    app.add_middleware(RankingFastPath, state=state, route=ranking_route())
+    app.add_middleware(RequestContextMiddleware, metrics=state.metrics, limits=BodyLimits(settings))
     return app
+
+
+def ranking_route() -> APIRoute:
+    """The route of ``POST /api/v1/rankings`` (what the router puts in ``scope["route"]``)."""
+    for route in rankings.router.routes:
+        if isinstance(route, APIRoute) and route.path == rankings.PREFIX:
+            return route
+    raise LookupError(rankings.PREFIX)

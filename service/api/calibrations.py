@@ -28,9 +28,7 @@ from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.results import CachedResult
 from service.api.robots import one_line
-from service.app import calibrate as pipeline
-from service.app import discover_carry
-from service.app.job_functions import CalibrationJobParams, DiscoveryRef
+from service.app.job_params import CalibrationJobParams, DiscoveryRef
 from service.app.measurement_input import refuse_file_measurement
 from service.render import exports
 from service.render.urdf_export import refusal as urdf_refusal
@@ -134,6 +132,8 @@ def carried_discovery(
             slug="not-ready",
             headers=jobs_common.poll_headers(job) or None,
         )
+    from service.app import discover_carry  # the discovery code: on the first such request
+
     findings = FindingsResult.model_validate_json(state.files.read(job.artifacts["result"]))
     try:
         discover_carry.findings_chain(findings, robot)
@@ -176,6 +176,8 @@ def create_calibration(
     Location for progress."""
 
     def check(robot: RobotDescription) -> DiscoveryRef | None:
+        from service.app import calibrate as pipeline  # on the first calibration, not at start
+
         carried, findings = None, None
         if body.discovery_id is not None:
             carried, findings = carried_discovery(state, principal.tenant_id, body, robot)

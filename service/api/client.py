@@ -7,14 +7,18 @@
 >>> result = client.result(calibration["id"])   # schemas.calibration.CalibrationResult
 >>> ranking = client.rank(calibration["id"], [[0.0, -1.2, 1.0, 0.0, 0.5, 0.0]])  # doctest: +SKIP
 >>> ranking.ranking[0].index   # RankingResult, best first           # doctest: +SKIP
+>>> poses = client.upload_dataset("check.csv", robot="panda")               # doctest: +SKIP
+>>> client.check(calibration["id"], poses["id"])["verdict"]   # holds / drifted  # doctest: +SKIP
 
 Every non-2xx answer raises :class:`KincalAPIError` carrying the problem document.
 """
 
 from __future__ import annotations
 
+import io
 import time
 import uuid
+import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -22,6 +26,7 @@ from typing import Any
 import httpx
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
+from schemas.check import CheckOptions
 from schemas.discovery import DiscoveryOptions, FindingsResult
 from schemas.ranking import RankingOptions, RankingResult, TargetPose
 
@@ -134,22 +139,38 @@ class KincalClient:
         base_frame: str | None = None,
         tip_frame: str | None = None,
         name: str | None = None,
+        joint_states: str | None = None,
+        measure: str | None = None,
+        capture: str | None = None,
         idempotency_key: str | None = None,
     ) -> dict[str, Any]:
-        """Upload a CSV / Parquet / JSON recording; returns the dataset (the existing one if a
-        duplicate)."""
+        """Upload a CSV / Parquet / JSON recording, or a ROS bag (a ``.bag`` file or a rosbag2
+        folder, sent zipped) with ``joint_states`` and ``measure`` (and ``capture``) as
+        ``kincal import`` takes them; returns the dataset (the existing one if a duplicate)."""
         path = Path(path)
-        fields = {"robot": robot, "base_frame": base_frame, "tip_frame": tip_frame, "name": name}
+        fields = {
+            "robot": robot,
+            "base_frame": base_frame,
+            "tip_frame": tip_frame,
+            "name": name,
+            "joint_states": joint_states,
+            "measure": measure,
+            "capture": capture,
+        }
         data = {k: v for k, v in fields.items() if v is not None}
-        media = MEDIA_TYPES.get(path.suffix.lower(), "application/octet-stream")
-        with path.open("rb") as handle:
-            response = self._request(
-                "POST",
-                f"{API}/datasets",
-                files={"file": (path.name, handle, media)},
-                data=data,
-                headers=self._idempotency(idempotency_key),
-            )
+        if path.is_dir():  # a rosbag2 folder
+            content = _zipped_folder(path)
+            file = (f"{path.name}.zip", content, "application/zip")
+        else:
+            media = MEDIA_TYPES.get(path.suffix.lower(), "application/octet-stream")
+            file = (path.name, path.read_bytes(), media)
+        response = self._request(
+            "POST",
+            f"{API}/datasets",
+            files={"file": file},
+            data=data,
+            headers=self._idempotency(idempotency_key),
+        )
         return dict(response.json())
 
     def upload_rows(
@@ -260,6 +281,38 @@ class KincalClient:
         self.wait(calibration["id"], on_progress=on_progress)
         return self.result(calibration["id"])
 
+    # checks (synchronous): is a calibration still valid?
+
+    def check(
+        self,
+        calibration_id: str,
+        dataset_id: str,
+        options: CheckOptions | Mapping[str, Any] | None = None,
+        *,
+        idempotency_key: str | None = None,
+    ) -> dict[str, Any]:
+        """Test a succeeded calibration against the poses of an uploaded dataset (``kincal
+        check`` over HTTP) and keep the check; returns it with its ``check`` document
+        (kincal.check/1: verdict, per-pose d², located drift). Retrying with the same
+        ``idempotency_key`` is safe."""
+        if isinstance(options, CheckOptions):
+            options = options.model_dump(mode="json", exclude_defaults=True)
+        body = {"dataset_id": dataset_id, "options": dict(options or {})}
+        headers = self._idempotency(idempotency_key)
+        url = f"{API}/calibrations/{calibration_id}/checks"
+        return dict(self._request("POST", url, json=body, headers=headers).json())
+
+    def checks(self, calibration_id: str, *, offset: int = 0, limit: int = 50) -> dict[str, Any]:
+        """A calibration's checks, newest first (time, verdict, statistic, threshold)."""
+        params = {"offset": offset, "limit": limit}
+        url = f"{API}/calibrations/{calibration_id}/checks"
+        return dict(self._request("GET", url, params=params).json())
+
+    def get_check(self, calibration_id: str, check_id: str) -> dict[str, Any]:
+        """One check with its document (``check``) and time."""
+        url = f"{API}/calibrations/{calibration_id}/checks/{check_id}"
+        return dict(self._request("GET", url).json())
+
     # rankings (synchronous; the planners' hot path)
 
     def rank(
@@ -352,3 +405,12 @@ class KincalClient:
     def discoveries(self, *, offset: int = 0, limit: int = 50) -> dict[str, Any]:
         params = {"offset": offset, "limit": limit}
         return dict(self._request("GET", f"{API}/discoveries", params=params).json())
+
+
+def _zipped_folder(folder: Path) -> bytes:
+    """``folder`` as a zip archive with the folder at its top (a rosbag2 bag for upload)."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for path in sorted(folder.rglob("*")):
+            archive.write(path, Path(folder.name) / path.relative_to(folder))
+    return buffer.getvalue()

@@ -1,7 +1,9 @@
 """Datasets: upload (multipart file or JSON rows), list, get, delete.
 
 Uploads are validated by the same readers as the CLI (:func:`schemas.dataset.read_dataset`,
-:func:`schemas.dataset.dataset_from_frame`), stored as Parquet (exact float64) in the tenant's
+:func:`schemas.dataset.dataset_from_frame`; a ROS bag by
+:func:`schemas.dataset.rosbag.read_bag_bytes` with the form's ``joint_states``, ``measure`` and
+``capture``, as ``kincal import``), stored as Parquet (exact float64) in the tenant's
 folder, and deduplicated per tenant by a hash of the robot reference and the validated arrays:
 uploading the same data again (even as another file format) returns the existing dataset (200).
 """
@@ -35,6 +37,7 @@ from schemas.dataset import (
     dataset_to_frame,
     read_dataset_bytes,
 )
+from schemas.dataset.rosbag import UPLOAD_SUFFIXES
 from service.api.deps import API_PREFIX, PrincipalDep, SessionDep, StateDep
 from service.api.idempotency import Idempotency, fingerprint
 from service.api.problems import (
@@ -44,7 +47,7 @@ from service.api.problems import (
     validation_errors,
 )
 from service.api.robots import ResolvedRobot, resolve_robot
-from service.app.job_functions import RobotRef
+from service.app.job_params import RobotRef
 from service.app.preflight import check_dataset
 from service.security import Principal
 from service.storage import repository
@@ -61,7 +64,11 @@ MEDIA_SUFFIX = {
     "application/vnd.apache.parquet": ".parquet",
     "application/x-parquet": ".parquet",
     "application/yaml": ".yaml",
+    "application/zip": ".zip",
 }
+BAG_FIELDS = ("joint_states", "measure", "capture")
+"""Form fields of a ROS bag upload (``kincal import``'s --joint-states, --measure, --capture)."""
+OPTION_FIELDS = {"--joint-states": "joint_states", "--measure": "measure", "--capture": "capture"}
 _MULTIPART_SCHEMA = {
     "type": "object",
     "required": ["file", "robot"],
@@ -69,12 +76,27 @@ _MULTIPART_SCHEMA = {
         "file": {
             "type": "string",
             "format": "binary",
-            "description": "The recording: .csv, .parquet or .json (dataset contract).",
+            "description": "The recording: .csv, .parquet or .json (dataset contract), or a "
+            "ROS bag (.bag, or a rosbag2 folder as .zip; docs/ros.md).",
         },
         "robot": {"type": "string", "description": "Built-in robot name or uploaded robot id."},
         "base_frame": {"type": "string"},
         "tip_frame": {"type": "string"},
         "name": {"type": "string", "description": "Name shown in results (default: file name)."},
+        "joint_states": {
+            "type": "string",
+            "description": "ROS bag only (a .bag file, or a rosbag2 folder as .zip): the "
+            "sensor_msgs/JointState topic (not for calibration-data).",
+        },
+        "measure": {
+            "type": "string",
+            "description": "ROS bag only: tf:PARENT:CHILD, pose:TOPIC, point:TOPIC or "
+            "calibration-data:TOPIC[:CAMERA[:CHAIN]] (robot_calibration's captures).",
+        },
+        "capture": {
+            "type": "string",
+            "description": "ROS bag only: a topic whose messages mark the samples.",
+        },
     },
 }
 
@@ -90,9 +112,12 @@ class Upload:
     file_bytes: bytes | None = None
     suffix: str | None = None
     rows: list[dict[str, Any]] | None = None
+    bag: dict[str, str | None] | None = None
+    """``BAG_FIELDS`` of a ROS bag upload."""
 
     def fingerprint(self) -> str:
         fields = [self.robot, self.base_frame, self.tip_frame, self.name, self.suffix]
+        fields += [(self.bag or {}).get(field) for field in BAG_FIELDS]
         if self.file_bytes is not None:
             return fingerprint(fields, self.file_bytes)
         return fingerprint(fields, self.rows)
@@ -169,7 +194,7 @@ def _form_text(form: Any, field: str, *, required: bool = False) -> str | None:
 
 def _suffix(upload: UploadFile) -> str:
     suffix = Path(upload.filename or "").suffix.lower()
-    if suffix in READ_SUFFIXES:
+    if suffix in READ_SUFFIXES or suffix in UPLOAD_SUFFIXES:
         return suffix
     media = (upload.content_type or "").split(";")[0].strip().lower()
     if media in MEDIA_SUFFIX:
@@ -178,15 +203,42 @@ def _suffix(upload: UploadFile) -> str:
         415,
         f"file: cannot tell the format of {upload.filename or 'the upload'!r} (content type "
         f"{media or 'none'}); send a .csv, .parquet, .json or industrial_calibration .yaml "
-        "file, or set the part's content type to text/csv, application/vnd.apache.parquet, "
-        "application/json or application/yaml",
+        "file, a ROS bag (.bag, or a rosbag2 folder as .zip), or set the part's content type "
+        "to text/csv, application/vnd.apache.parquet, application/json or application/yaml",
         slug="unsupported-file-type",
     )
 
 
+def _bag_fields(form: Any, suffix: str) -> dict[str, str | None] | None:
+    """The ROS bag fields of a bag upload (joint_states and measure required); 422 when a bag
+    lacks them or another file has them."""
+    given = {field: _form_text(form, field) for field in BAG_FIELDS}
+    if suffix not in UPLOAD_SUFFIXES:
+        extra = [field for field, value in given.items() if value is not None]
+        if extra:
+            raise ProblemException(
+                422,
+                f"{extra[0]}: only for a ROS bag (.bag, or a rosbag2 folder as .zip); leave it "
+                "out for a recording file",
+                slug="invalid-request",
+            )
+        return None
+    captures = (given["measure"] or "").startswith("calibration-data:")
+    for field in ("measure",) if captures else ("joint_states", "measure"):
+        if given[field] is None:
+            raise ProblemException(
+                422,
+                f"{field}: missing form field; a ROS bag needs joint_states (the JointState "
+                "topic) and measure (tf:PARENT:CHILD, pose:TOPIC or point:TOPIC), or measure "
+                "calibration-data:TOPIC alone",
+                slug="invalid-request",
+            )
+    return given
+
+
 async def _parse_multipart(request: Request) -> Upload:
     try:
-        async with request.form(max_files=1, max_fields=10) as form:
+        async with request.form(max_files=1, max_fields=16) as form:
             file = form.get("file")
             if not isinstance(file, UploadFile):
                 raise ProblemException(
@@ -196,13 +248,15 @@ async def _parse_multipart(request: Request) -> Upload:
                 )
             robot = _form_text(form, "robot", required=True)
             assert robot is not None
+            suffix = _suffix(file)
             return Upload(
                 robot=robot,
                 base_frame=_form_text(form, "base_frame"),
                 tip_frame=_form_text(form, "tip_frame"),
                 name=_form_text(form, "name") or Path(file.filename or "upload").name or "upload",
                 file_bytes=await file.read(),
-                suffix=_suffix(file),
+                suffix=suffix,
+                bag=_bag_fields(form, suffix),
             )
     except (HTTPException, ProblemException):  # 413 from the body limit is an HTTPException
         raise
@@ -240,7 +294,13 @@ async def _parse_json(request: Request) -> Upload:
 # --- validation and storage (runs in a worker thread) ------------------------------------------
 
 
-def _validate(upload: Upload, robot: ResolvedRobot, max_rows: int) -> PoseDataset:
+def _validate(
+    upload: Upload,
+    robot: ResolvedRobot,
+    max_rows: int,
+    max_bag_messages: int,
+    max_unpacked_bytes: int,
+) -> PoseDataset:
     chain = robot.chain
     if upload.rows is not None:
         if len(upload.rows) > max_rows:
@@ -249,6 +309,8 @@ def _validate(upload: Upload, robot: ResolvedRobot, max_rows: int) -> PoseDatase
         dataset = dataset_from_frame(
             frame, chain.joint_names, source=upload.name, other_joint_names=chain.other_joint_names
         )
+    elif upload.bag is not None:
+        dataset = _read_bag(upload, robot, max_rows, max_bag_messages, max_unpacked_bytes)
     else:
         assert upload.file_bytes is not None and upload.suffix is not None
         try:
@@ -266,6 +328,49 @@ def _validate(upload: Upload, robot: ResolvedRobot, max_rows: int) -> PoseDatase
         raise _too_many_rows(dataset.n_samples, max_rows)
     check_dataset(dataset, chain)  # the CLI's pre-flight checks: units, limits, repeated rows
     return dataset
+
+
+def _read_bag(
+    upload: Upload,
+    robot: ResolvedRobot,
+    max_rows: int,
+    max_messages: int,
+    max_unpacked_bytes: int,
+) -> PoseDataset:
+    """A ROS bag upload as ``kincal import`` reads it (the CLI's still-segment defaults); 413
+    beyond the message or row limits, 422 naming the fix otherwise."""
+    from schemas.dataset.rosbag import MeasureSource, TooManyMessagesError, read_bag_bytes
+
+    assert upload.bag is not None and upload.file_bytes is not None and upload.suffix
+    joint_states, measure = upload.bag["joint_states"], upload.bag["measure"]
+    assert measure is not None
+    try:
+        recording = read_bag_bytes(
+            upload.file_bytes,
+            upload.suffix,
+            joint_states,
+            MeasureSource.parse(measure),
+            source=upload.name,
+            max_unpacked_bytes=max_unpacked_bytes,
+            joint_names=robot.chain.joint_names,
+            other_joint_names=robot.chain.other_joint_names,
+            capture=upload.bag["capture"],
+            max_messages=max_messages,
+        )
+    except TooManyMessagesError as exc:
+        raise ProblemException(
+            413,
+            f"file: {exc}, or ask the operator to raise KINCAL_MAX_BAG_MESSAGES",
+            slug="too-many-messages",
+        ) from exc
+    except DatasetError as exc:  # the reader names the CLI's options: name the form's fields
+        detail = str(exc)
+        for option, field in OPTION_FIELDS.items():
+            detail = detail.replace(option, field)
+        raise ProblemException(422, detail, slug="invalid-dataset") from exc
+    if recording.dataset.n_samples > max_rows:
+        raise _too_many_rows(recording.dataset.n_samples, max_rows)
+    return recording.dataset
 
 
 def _too_many_rows(n: int, limit: int) -> ProblemException:
@@ -286,7 +391,14 @@ def _store(state: StateDep, principal: Principal, upload: Upload) -> Response:
             state, session, principal.tenant_id, upload.robot, upload.base_frame, upload.tip_frame
         )
     try:
-        dataset = _validate(upload, robot, state.settings.max_rows)
+        settings = state.settings
+        dataset = _validate(
+            upload,
+            robot,
+            settings.max_rows,
+            settings.max_bag_messages,
+            max_unpacked_bytes=4 * settings.max_request_bytes,
+        )
     except DatasetError as exc:
         raise ProblemException(422, str(exc), slug="invalid-dataset") from exc
     sha = content_sha256(dataset, robot.ref)

@@ -27,8 +27,9 @@ from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.robots import resolve_robot
-from service.app.job_functions import DatasetRef, DesignJobParams, RecordedRef, design_now
+from service.app.job_params import DatasetRef, DesignJobParams, RecordedRef
 from service.storage import repository
+from service.storage.files import FileStore
 from service.storage.models import Job
 
 PREFIX = f"{API_PREFIX}/designs"
@@ -173,6 +174,14 @@ def _matrix(rows: list[list[float]] | None, field: str, k: int) -> np.ndarray | 
     return np.array(rows, dtype=float).reshape(-1, k)
 
 
+def _design_now(files: FileStore, params: DesignJobParams) -> DesignResult:
+    """A small design answered in the request (in a worker thread). The design pipeline is
+    imported by the first design a request process answers, not when the process starts."""
+    from service.app.job_functions import design_now
+
+    return design_now(files, params, _matrix)
+
+
 @router.post(
     "",
     response_model=DesignResult,
@@ -194,7 +203,7 @@ async def create_design(
     recordings), a job (202 + Location) otherwise."""
     params, recorded_rows = await run_in_threadpool(_params, state, principal.tenant_id, body)
     if _work(body, params, recorded_rows) <= SYNC_MAX_CANDIDATES:
-        result = await run_in_threadpool(design_now, state.files, params, _matrix)
+        result = await run_in_threadpool(_design_now, state.files, params)
         return Response(result.model_dump_json(), media_type="application/json")
 
     def submit() -> Response:

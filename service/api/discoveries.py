@@ -21,9 +21,9 @@ from service.api.deps import API_PREFIX, PrincipalDep, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS
 from service.api.jobs_common import Artifact, JobResource
 from service.api.problems import STANDARD_PROBLEMS, problem_responses
-from service.app import discover as discovery
-from service.app.job_functions import DiscoveryJobParams
+from service.app.job_params import DiscoveryJobParams
 from service.app.measurement_input import check_sensor_joint, refuse_file_measurement
+from service.render.chain import chain_for
 from service.storage.models import Job
 from solver.model import KinematicChain
 
@@ -57,7 +57,7 @@ RESOURCE = JobResource(
 def _checked(robot: RobotDescription, options: DiscoveryOptions) -> KinematicChain:
     """The user's chain; measurements the service cannot read from one dataset refused."""
     refuse_file_measurement(options.measurement, "discover")
-    chain = discovery.chain_for(robot, options)
+    chain = chain_for(robot, options)
     check_sensor_joint(options.measurement, chain)
     return chain
 

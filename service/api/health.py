@@ -52,6 +52,6 @@ def readyz(state: StateDep) -> JSONResponse:
 
 @router.get("/metrics", response_class=Response, responses=STANDARD_PROBLEMS)
 async def metrics(state: StateDep, _: PrincipalDep) -> Response:
-    """Prometheus metrics: requests, latency, jobs by state, job durations."""
+    """Prometheus metrics: requests, latency, jobs by state, job durations, latest checks."""
     body = await run_in_threadpool(state.metrics.render)
     return Response(body, media_type=CONTENT_TYPE)

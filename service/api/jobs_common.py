@@ -20,7 +20,7 @@ from service.api.deps import PrincipalDep, ServiceState, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
 from service.api.robots import ResolvedRobot, one_line, resolve_robot
-from service.app.job_functions import DatasetRef, RobotRef
+from service.app.job_params import DatasetRef, RobotRef
 from service.storage import repository
 from service.storage.models import Job
 from solver.errors import ModelError

@@ -8,7 +8,10 @@ does no database query, file read or JSON parsing of the result. Scoring a few h
 configurations takes well under a millisecond of numpy, less than a thread hop under load
 costs, so it runs in the event loop; larger batches and inverse kinematics run in a worker
 thread. The answer is serialised from plain data (:func:`service.app.rank.rank_configurations_json`:
-the RankingResult's exact JSON without a pydantic model per entry).
+the RankingResult's exact JSON without a pydantic model per entry). The common case — rows or
+named configurations, a key verified recently, the calibration cached — does not even reach this
+route: :mod:`service.api.ranking_fast_path` answers it with these functions, without FastAPI's
+routing and dependency injection, and passes everything else on to the route.
 
 Rankings change nothing, so a repeated request (with or without ``Idempotency-Key``) gets
 the same answer.
@@ -50,6 +53,9 @@ INLINE_PARSE_BYTES = 64 * 1024
 """Larger bodies (a few hundred candidates and more) are parsed in a worker thread: a 4 MB body
 takes ~50 ms to validate, which in the event loop would stall every other request."""
 MEMO_KEY = "ranking_context"
+PARSED_BODY = "kincal.ranking_body"
+"""Scope state key of (body, RankingCreate) that the fast path parsed before passing the
+request on (:mod:`service.api.ranking_fast_path`): the route does not parse it again."""
 
 
 @dataclass(frozen=True)
@@ -88,14 +94,24 @@ def _require_covariance(entry: CachedResult, calibration_id: str) -> None:
         )
 
 
+def cached_context(
+    state: ServiceState, tenant_id: str, calibration_id: str
+) -> RankingContext | None:
+    """The calibration's ranking context if it is in memory already (no I/O), else None."""
+    entry = state.results.peek(tenant_id, calibration_id)
+    if entry is not None and entry.has(MEMO_KEY):
+        return entry.memo(MEMO_KEY, _build_context)
+    return None
+
+
 async def ranking_context(
     state: ServiceState, tenant_id: str, calibration_id: str
 ) -> RankingContext:
     """The calibration's ranking context; 404 (unknown or another tenant's), 409 (not
     succeeded, or without covariances)."""
-    entry = state.results.peek(tenant_id, calibration_id)
-    if entry is not None and entry.has(MEMO_KEY):
-        return entry.memo(MEMO_KEY, _build_context)
+    context = cached_context(state, tenant_id, calibration_id)
+    if context is not None:
+        return context
     return await run_in_threadpool(_loaded_context, state, tenant_id, calibration_id)
 
 
@@ -142,7 +158,7 @@ def joint_matrix(body: RankingCreate, joint_names: tuple[str, ...]) -> NDArray[n
     return np.array([[named[name] for name in joint_names] for named in body.configurations])
 
 
-def _count(body: RankingCreate) -> int:
+def count_candidates(body: RankingCreate) -> int:
     if body.joint_positions_rad is not None:
         return len(body.joint_positions_rad)
     if body.configurations is not None:
@@ -150,8 +166,8 @@ def _count(body: RankingCreate) -> int:
     return body.n_candidates
 
 
-def _check_limits(body: RankingCreate, limit: int) -> None:
-    n = _count(body)
+def check_limits(body: RankingCreate, limit: int) -> None:
+    n = count_candidates(body)
     if n > limit:
         raise ProblemException(
             413,
@@ -175,7 +191,7 @@ def _payload(body: RankingCreate) -> NDArray[np.float64] | float | None:
     return body.payload_kg
 
 
-def _rank_configurations(context: RankingContext, body: RankingCreate) -> bytes:
+def rank_configurations(context: RankingContext, body: RankingCreate) -> bytes:
     q = joint_matrix(body, context.joint_names)
     try:
         return ranking.rank_configurations_json(
@@ -268,6 +284,9 @@ async def ranking_request(request: Request) -> RankingCreate:
             slug="unsupported-media-type",
         )
     body = await request.body()
+    parsed = request.scope.get("state", {}).get(PARSED_BODY)
+    if parsed is not None and parsed[0] == body:
+        return parsed[1]  # type: ignore[no-any-return]
     try:
         if len(body) <= INLINE_PARSE_BYTES:
             return RankingCreate.model_validate_json(body)
@@ -295,13 +314,13 @@ async def create_ranking(
     body: RankingBodyDep, principal: PrincipalDep, state: StateDep
 ) -> Response:
     """Rank candidate configurations best first (kincal.ranking/1); synchronous."""
-    _check_limits(body, state.settings.max_ranking_candidates)
+    check_limits(body, state.settings.max_ranking_candidates)
     context = await ranking_context(state, principal.tenant_id, body.calibration_id)
     if body.target is not None:
         target = await run_in_threadpool(_rank_target, context, body)
         content = target.model_dump_json().encode()
-    elif _count(body) <= INLINE_MAX_CONFIGURATIONS:
-        content = _rank_configurations(context, body)
+    elif count_candidates(body) <= INLINE_MAX_CONFIGURATIONS:
+        content = rank_configurations(context, body)
     else:
-        content = await run_in_threadpool(_rank_configurations, context, body)
+        content = await run_in_threadpool(rank_configurations, context, body)
     return Response(content, media_type="application/json")

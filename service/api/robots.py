@@ -16,7 +16,7 @@ from schemas.urdf_outline import UrdfLimitError, check_urdf_limits
 from service.api.deps import API_PREFIX, PrincipalDep, SessionDep, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
-from service.app.job_functions import RobotRef
+from service.app.job_params import RobotRef
 from service.jobs.isolated import IsolatedFailure, run_isolated
 from service.settings import Settings
 from service.storage import repository

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from schemas.calibration import CalibrationResult
 from schemas.check import (
+    DEFAULT_LEVEL,
     CandidateTest,
     ChangeComponent,
     CheckPose,
@@ -40,8 +41,8 @@ from solver.verdict import reach_m
 
 FloatArray = NDArray[np.float64]
 
-DEFAULT_LEVEL = 0.05
-"""Family-wise false-alarm probability of the verdict."""
+RECALIBRATE_FIX = "re-run kincal calibrate with --covariance diag (the default) and --heldout"
+"""How to get a result the check can take (the HTTP service words it for its options)."""
 
 FAR_OFF_SHARE_OF_REACH = 0.1
 """Check poses whose median predicted-to-measured distance exceeds this share of the robot's
@@ -76,23 +77,26 @@ def refuse_unsupported(result: CalibrationResult, result_name: str) -> None:
     if missing:
         raise KincalError(
             f"{result_name} has no {' nor '.join(missing)}: the check needs the total "
-            "predictive covariance; re-run kincal calibrate with --covariance diag (the default) "
-            "and --heldout"
+            f"predictive covariance; {RECALIBRATE_FIX}"
         )
 
 
 def read_check_recording(
-    source: str | Path | PoseDataset, result: CalibrationResult, result_name: str
+    source: str | Path | PoseDataset,
+    result: CalibrationResult,
+    result_name: str,
+    name: str | None = None,
 ) -> PoseDataset:
-    """The check recording, read and checked like a calibration's (units, limits, repeated
-    rows); :class:`KincalError` naming the mismatch when it is of another robot or another
-    measurement type than the calibration."""
+    """The check recording (called ``name`` in messages and the document, default its path),
+    read and checked like a calibration's (units, limits, repeated rows); :class:`KincalError`
+    naming the mismatch when it is of another robot or another measurement type than the
+    calibration."""
     chain, _ = result_json.result_chain(result)
     if isinstance(source, PoseDataset):
         dataset = source
     else:
         try:
-            dataset = read_chain_dataset(source, chain)
+            dataset = read_chain_dataset(source, chain, name=name)
         except DatasetError as exc:
             raise KincalError(
                 f"check recording: not a recording of the calibrated robot "
@@ -225,12 +229,14 @@ def run_check(
     *,
     level: float = DEFAULT_LEVEL,
     result_name: str = "the calibration result",
+    source_name: str | None = None,
 ) -> CheckResult:
-    """Check ``result`` against the poses of ``source`` at family-wise ``level``."""
+    """Check ``result`` against the poses of ``source`` (called ``source_name`` in messages
+    and the document, default its path) at family-wise ``level``."""
     if not 0.0 < level < 1.0:
         raise KincalError(f"--level {level}: give a probability between 0 and 1, e.g. 0.05")
     refuse_unsupported(result, result_name)
-    dataset = read_check_recording(source, result, result_name)
+    dataset = read_check_recording(source, result, result_name, source_name)
     arrays = check_arrays(result, dataset)
     refuse_other_frames(arrays.residuals, result, dataset)
     model = checks.DriftModel.build(arrays.covariance, arrays.candidates, level)

@@ -33,6 +33,7 @@ from schemas.discovery import (
     Step,
 )
 from schemas.robots import RobotDescription
+from service import kincal_version
 from service.app import measurement_input
 from service.render.chain import chain_for
 from service.render.findings import (
@@ -47,7 +48,6 @@ from service.render.findings import (
     slug,
     unexplained_schema,
 )
-from service.render.result_json import kincal_version
 from solver import discovery as solver_discovery
 from solver import lie
 from solver.discovery.explain import describe

@@ -20,15 +20,20 @@ from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict
 
-from schemas.calibration import CalibrationOptions, CalibrationResult
-from schemas.design import DesignCreate, DesignResult
-from schemas.discovery import DiscoveryOptions, FindingsResult
+from schemas.calibration import CalibrationResult
+from schemas.design import DesignResult
+from schemas.discovery import FindingsResult
 from schemas.robots import RobotDescription, load_robot
 from service.app import calibrate as pipeline
 from service.app import discover as discovery
 from service.app.design import design_model, recorded_design, run_design, socket_candidates
+from service.app.job_params import (
+    CalibrationJobParams,
+    DesignJobParams,
+    DiscoveryJobParams,
+    RobotRef,
+)
 from service.render.discovery_html import render_discovery_report
 from service.settings import load_settings
 from service.storage.files import FileStore
@@ -50,56 +55,6 @@ class JobContext(Protocol):
     ) -> None: ...
 
     def write_artifact(self, name: str, filename: str, data: bytes) -> str: ...
-
-
-class RobotRef(BaseModel):
-    """A built-in robot (``robot_id`` None) or an uploaded URDF, with the calibrated chain."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    name: str
-    robot_id: str | None = None
-    urdf_path: str | None = None
-    base_frame: str
-    tip_frame: str
-
-
-class DatasetRef(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    id: str
-    name: str
-    data_path: str
-
-
-class DiscoveryRef(BaseModel):
-    """A succeeded discovery whose findings a calibration carries (``calibrate --model``)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    id: str
-    findings_path: str
-
-
-class CalibrationJobParams(BaseModel):
-    """``jobs.params`` of a calibration: everything resolved when the job was accepted."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    dataset: DatasetRef
-    robot: RobotRef
-    options: CalibrationOptions
-    discovery: DiscoveryRef | None = None
-
-
-class DiscoveryJobParams(BaseModel):
-    """``jobs.params`` of a discovery: everything resolved when the job was accepted."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    dataset: DatasetRef
-    robot: RobotRef
-    options: DiscoveryOptions
 
 
 @functools.lru_cache(maxsize=16)
@@ -206,29 +161,6 @@ def discovery_job(ctx: JobContext) -> None:
         plots = {name: (plot_dir / name).read_bytes() for name in findings.plots}
     ctx.write_artifact("result", "findings.json", findings.model_dump_json(indent=1).encode())
     ctx.write_artifact("report", "report.html", render_discovery_report(findings, plots).encode())
-
-
-class RecordedRef(BaseModel):
-    """A sequential design's prior in the service: a succeeded calibration's result file and
-    the dataset it calibrated."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    calibration_id: str
-    result_path: str
-    dataset: DatasetRef
-
-
-class DesignJobParams(BaseModel):
-    """``jobs.params`` of a design: the robot resolved when the job was accepted (none for a
-    sequential design: the calibration's), the recording and its calibration for a
-    sequential design, and the request as sent."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    robot: RobotRef | None = None
-    recorded: RecordedRef | None = None
-    request: DesignCreate
 
 
 JointRows = Callable[[list[list[float]] | None, str, int], NDArray[np.float64] | None]

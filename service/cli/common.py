@@ -185,8 +185,9 @@ MeasureOpt = Annotated[
     typer.Option(
         "--measure",
         help="A ROS bag: the measured pose. tf:PARENT:CHILD (CHILD in PARENT, from /tf and "
-        "/tf_static), pose:TOPIC (PoseStamped or TransformStamped) or point:TOPIC "
-        "(PointStamped: positions only).",
+        "/tf_static), pose:TOPIC (PoseStamped or TransformStamped), point:TOPIC "
+        "(PointStamped: positions only) or calibration-data:TOPIC[:CAMERA[:CHAIN]] "
+        "(robot_calibration's captures; no --joint-states).",
         metavar="SOURCE",
         rich_help_panel=ROS_BAG,
     ),
@@ -484,10 +485,12 @@ def read_bag(
     from schemas.dataset.rosbag import MeasureSource, read_bag
     from schemas.dataset.still import StillSettings
 
-    if joint_states is None or measure is None:
+    captures = measure is not None and measure.startswith("calibration-data:")
+    if measure is None or (joint_states is None and not captures):
         raise KincalError(
             f"{bag.name} is a ROS bag: give --joint-states TOPIC and --measure SOURCE "
-            "(e.g. --joint-states /joint_states --measure tf:camera_link:board)"
+            "(e.g. --joint-states /joint_states --measure tf:camera_link:board), or --measure "
+            "calibration-data:/calibration_data for robot_calibration's captures"
         )
     return read_bag(
         bag,

@@ -159,6 +159,9 @@ SERVE_SETTINGS: tuple[str, ...] = ('Settings (environment variables, [default]):
  '    Largest body of the other requests (calibration and discovery options, cancellations, GETs).',
  'KINCAL_MAX_ROWS [100000]',
  '    Most samples in one dataset.',
+ 'KINCAL_MAX_BAG_MESSAGES [2000000]',
+ '    Most messages an uploaded ROS bag may hold on the topics read (joint states, measurement, '
+ 'capture), counted from its index before any is decoded.',
  'KINCAL_MAX_JOINTS [32]',
  '    Most joints in a calibrated chain.',
  'KINCAL_MAX_URDF_BYTES [2097152]',

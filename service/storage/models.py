@@ -165,6 +165,36 @@ class Job(Base):
     finished_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
 
+class Check(Base):
+    """A check of a succeeded calibration against new poses (``kincal check`` over HTTP).
+
+    The ``kincal.check/1`` document is a file (``document_path``); the row holds what a list
+    and the metrics show without reading it: the verdict and the global test's statistic and
+    threshold (None when the check was inconclusive: too few poses for a test).
+    """
+
+    __tablename__ = "checks"
+    __table_args__ = (
+        Index("ix_checks_tenant_calibration_created", "tenant_id", "calibration_id", "created_at"),
+        Index("ix_checks_created", "created_at"),
+    )
+
+    id: Mapped[str] = mapped_column(String(40), primary_key=True)
+    tenant_id: Mapped[str] = mapped_column(ForeignKey("tenants.id", ondelete="CASCADE"))
+    calibration_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"))
+    # No foreign key: a dataset may be deleted, its checks stay.
+    dataset_id: Mapped[str] = mapped_column(String(40))
+    dataset_name: Mapped[str] = mapped_column(String(200))
+    level: Mapped[float] = mapped_column(Float)
+    n_poses: Mapped[int] = mapped_column(Integer)
+    verdict: Mapped[str] = mapped_column(String(16))
+    statistic: Mapped[float | None] = mapped_column(Float, nullable=True)
+    threshold: Mapped[float | None] = mapped_column(Float, nullable=True)
+    located: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    document_path: Mapped[str] = mapped_column(String(300))
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
 class IdempotencyRecord(Base):
     """The stored answer to a POST made with an ``Idempotency-Key`` header.
 

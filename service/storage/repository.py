@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session
 
 from service.storage.models import (
     ApiKey,
+    Check,
     Dataset,
     IdempotencyRecord,
     Job,
@@ -344,6 +345,60 @@ def fail_job(session: Session, job_id: str, error: str) -> None:
         .where(Job.id == job_id, Job.state.in_(ACTIVE_STATES))
         .values(state=FAILED, error=error, finished_at=utcnow(), heartbeat_at=None)
     )
+
+
+# --- checks ------------------------------------------------------------------------------------
+
+
+def get_check(session: Session, tenant_id: str, calibration_id: str, check_id: str) -> Check | None:
+    return session.scalar(
+        select(Check).where(
+            Check.tenant_id == tenant_id,
+            Check.calibration_id == calibration_id,
+            Check.id == check_id,
+        )
+    )
+
+
+def list_checks(
+    session: Session, tenant_id: str, calibration_id: str, *, offset: int, limit: int
+) -> tuple[Sequence[Check], int]:
+    """One page of a calibration's checks, newest first, and the total count."""
+    where = (Check.tenant_id == tenant_id, Check.calibration_id == calibration_id)
+    count = session.scalar(select(func.count()).select_from(Check).where(*where)) or 0
+    query = (
+        select(Check)
+        .where(*where)
+        .order_by(Check.created_at.desc(), Check.id.desc())
+        .offset(offset)
+        .limit(limit)
+    )
+    return session.scalars(query).all(), count
+
+
+def latest_checks(session: Session, limit: int) -> list[Check]:
+    """The latest check of each calibration (every tenant), for the calibrations checked most
+    recently, at most ``limit`` of them."""
+    newest = (
+        select(Check.calibration_id, func.max(Check.created_at).label("created_at"))
+        .group_by(Check.calibration_id)
+        .order_by(func.max(Check.created_at).desc())
+        .limit(limit)
+        .subquery()
+    )
+    rows = session.scalars(
+        select(Check)
+        .join(
+            newest,
+            (Check.calibration_id == newest.c.calibration_id)
+            & (Check.created_at == newest.c.created_at),
+        )
+        .order_by(Check.created_at.desc(), Check.id.desc())
+    ).all()
+    seen: dict[str, Check] = {}
+    for row in rows:  # two checks of one calibration in the same instant: the first wins
+        seen.setdefault(row.calibration_id, row)
+    return list(seen.values())
 
 
 # --- idempotency -------------------------------------------------------------------------------

@@ -6,6 +6,8 @@ a hold too short to count and a hold while the measurement is not published."""
 
 from __future__ import annotations
 
+import contextlib
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +36,13 @@ DETOUR_RAD = 0.1  # every joint swings out and back between captures (two captur
 FINGERS = ("panda_finger_joint1", "panda_finger_joint2")
 CAMERA_M_MID = (np.array([0.1, -0.05, 0.3]), np.array([0.2, -0.1, 0.3, 0.9]) / np.sqrt(0.95))
 SHORT_AFTER, UNMEASURED_AFTER = 20, 50  # the extra holds follow these rows
+
+
+def _header(types: Any, ros1: bool, stamp: int, frame: str) -> Any:
+    """A ``std_msgs/Header`` at ``stamp`` ns in ``frame`` (ROS 1's with its ``seq``)."""
+    time = types["builtin_interfaces/msg/Time"](sec=stamp // NS, nanosec=stamp % NS)
+    extra = {"seq": 0} if ros1 else {}
+    return types["std_msgs/msg/Header"](stamp=time, frame_id=frame, **extra)
 
 
 def _se3(pose: tuple[NDArray[np.float64], NDArray[np.float64]]) -> pin.SE3:
@@ -169,10 +178,7 @@ def write_bag(
     types = store.types
     serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
 
-    def header(stamp: int, frame: str) -> Any:
-        time = types["builtin_interfaces/msg/Time"](sec=stamp // NS, nanosec=stamp % NS)
-        extra = {"seq": 0} if ros1 else {}
-        return types["std_msgs/msg/Header"](stamp=time, frame_id=frame, **extra)
+    header = functools.partial(_header, types, ros1)
 
     def transform(stamp: int, parent: str, child: str, pose: Any) -> Any:
         p, q = pose
@@ -267,3 +273,144 @@ def write_bag(
             if topic in connections:
                 writer.write(connections[topic], stamp, serialize(message, kinds[topic]))
     return truth
+
+
+CAPTURE_TOPIC = "/calibration_data"
+BOARD_CORNERS_M = np.array(
+    [[0.025 * i, 0.025 * j, 0.0] for j in range(3) for i in range(4)], dtype=float
+)
+"""A 4 × 3 checkerboard's inner corners in its own frame (robot_calibration's 'arm' sensor)."""
+
+
+def capture_bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The real FR3 recording as a capture bag of each storage (ros1, sqlite3), once per run."""
+
+    def write_all(folder: Path) -> dict[str, Path]:
+        ds = read_dataset(FR3_POSES, PANDA_JOINTS)
+        bags = {"ros1": folder / "captures.bag", "sqlite3": folder / "captures_sqlite3"}
+        for storage, path in bags.items():
+            assert write_capture_bag(path, ds, storage) == 115
+        return bags
+
+    return computed_once(tmp_path_factory, "capture-bags", write_all)
+
+
+def write_capture_bag(path: Path, ds: PoseDataset, storage: str) -> int:
+    """``ds`` as robot_calibration records a checkerboard capture run: one
+    ``robot_calibration_msgs/CalibrationData`` per row on :data:`CAPTURE_TOPIC` (joint states
+    in another order with the fingers; the 'camera' sensor's features are the corners the
+    camera sees, placed by Pinocchio's SE3 from the row's pose; the 'arm' sensor's are the
+    corners in the board frame), plus one capture whose camera saw two corners only. ``storage``
+    ros1 (a .bag, its message definitions inside, as ROS 1 writes them) or sqlite3 (a rosbag2
+    folder of version 5, without definitions, as ROS 2 Humble writes it). Returns the number of
+    captures."""
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    ros1 = storage == "ros1"
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    upstream = {  # robot_calibration_msgs 0.8 as published
+        "robot_calibration_msgs/msg/CameraParameter": "string name\nfloat64 value",
+        "robot_calibration_msgs/msg/ExtendedCameraInfo": (
+            "sensor_msgs/CameraInfo  camera_info\nCameraParameter[]       parameters"
+        ),
+        "robot_calibration_msgs/msg/Observation": (
+            "string sensor_name\ngeometry_msgs/PointStamped[] features\n"
+            "ExtendedCameraInfo ext_camera_info\nsensor_msgs/PointCloud2 cloud\n"
+            "sensor_msgs/Image image"
+        ),
+        "robot_calibration_msgs/msg/CalibrationData": (
+            "sensor_msgs/JointState  joint_states\nObservation[]           observations"
+        ),
+    }
+    for name, text in upstream.items():
+        store.register(get_types_from_msg(text, name))
+    types = store.types
+    serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
+
+    header = functools.partial(_header, types, ros1)
+
+    def features(stamp: int, frame: str, points: NDArray[np.float64]) -> list[Any]:
+        point = types["geometry_msgs/msg/Point"]
+        return [
+            types["geometry_msgs/msg/PointStamped"](
+                header=header(stamp, frame), point=point(x=p[0], y=p[1], z=p[2])
+            )
+            for p in points
+        ]
+
+    def empty(kind: str) -> Any:
+        fields = store.fielddefs[kind][1]
+        return types[kind](**{name: _empty_field(store, f) for name, f in fields})
+
+    def capture(stamp: int, q: NDArray[np.float64], seen: NDArray[np.float64]) -> Any:
+        observation = types["robot_calibration_msgs/msg/Observation"]
+        extras = {
+            "ext_camera_info": empty("robot_calibration_msgs/msg/ExtendedCameraInfo"),
+            "cloud": empty("sensor_msgs/msg/PointCloud2"),
+            "image": empty("sensor_msgs/msg/Image"),
+        }
+        return types["robot_calibration_msgs/msg/CalibrationData"](
+            joint_states=types["sensor_msgs/msg/JointState"](
+                header=header(stamp, ""),
+                name=[*reversed(ds.joint_names), *FINGERS],
+                position=np.concatenate([q[::-1], [0.04, 0.04]]),
+                velocity=np.zeros(0),
+                effort=np.zeros(0),
+            ),
+            observations=[
+                observation(
+                    sensor_name="camera",
+                    features=features(stamp, "camera_link", seen),
+                    **extras,
+                ),
+                observation(
+                    sensor_name="arm",
+                    features=features(stamp, "checkerboard", BOARD_CORNERS_M[: len(seen)]),
+                    **extras,
+                ),
+            ],
+        )
+
+    assert ds.quaternion_xyzw is not None
+    messages = []
+    for i, q in enumerate(ds.joint_positions):
+        camera_m_board = _se3((ds.position_m[i], ds.quaternion_xyzw[i]))
+        seen = np.array([camera_m_board.act(corner) for corner in BOARD_CORNERS_M])
+        messages.append(capture(START_NS + i * NS, q, seen))
+    messages.insert(5, capture(START_NS + 5 * NS - NS // 2, ds.joint_positions[5], seen[:2]))
+    kind = "robot_calibration_msgs/msg/CalibrationData"
+    writer: Any = (
+        Writer1(path) if ros1 else Writer2(path, version=8, storage_plugin=StoragePlugin.SQLITE3)
+    )
+    with writer:
+        connection = writer.add_connection(CAPTURE_TOPIC, kind, typestore=store)
+        for message in messages:
+            stamp = message.joint_states.header.stamp
+            writer.write(connection, stamp.sec * NS + stamp.nanosec, serialize(message, kind))
+    if not ros1:  # as Humble records: no definitions, no type hash
+        import sqlite3
+
+        (database,) = path.glob("*.db3")
+        with contextlib.closing(sqlite3.connect(database)) as connection, connection:
+            connection.execute("DELETE FROM message_definitions")
+            connection.execute("UPDATE topics SET type_description_hash = ''")
+    return len(messages)
+
+
+def _empty_field(store: Any, field: Any) -> Any:
+    """A field's empty value (0, '', an empty array or an empty message) from its definition."""
+    from rosbags.typesys.base import Nodetype
+
+    node, detail = field
+    if node == Nodetype.BASE:
+        return "" if detail[0] == "string" else 0
+    if node == Nodetype.NAME:
+        return store.types[detail](
+            **{n: _empty_field(store, f) for n, f in store.fielddefs[detail][1]}
+        )
+    if node in (Nodetype.ARRAY,):
+        return np.zeros(detail[1]) if detail[0][0] == Nodetype.BASE else []
+    return np.zeros(0) if detail[0][0] == Nodetype.BASE else []

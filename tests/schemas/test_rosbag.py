@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from schemas.dataset import PoseDataset, read_dataset
 from schemas.dataset.rosbag import BagRecording, MeasureSource, read_bag
@@ -18,7 +19,15 @@ from schemas.dataset.still import (
     still_segments,
     synchronise,
 )
-from schemas.dataset.tf_tree import Edge, TfTree, compose, interpolate, invert, slerp
+from schemas.dataset.tf_tree import (
+    Edge,
+    Placement,
+    TfTree,
+    compose,
+    interpolate,
+    invert,
+    slerp,
+)
 from service.cli import common
 from solver.errors import DatasetError
 from tests.schemas.bag_writer import FINGERS, FR3_POSES, PANDA_JOINTS, STORAGES, Truth, fr3_bags
@@ -26,41 +35,43 @@ from tests.schemas.bag_writer import FINGERS, FR3_POSES, PANDA_JOINTS, STORAGES,
 RNG = np.random.default_rng(34)
 
 
-def _random_poses(n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _random_quaternions(n: int) -> NDArray[np.float64]:
     q = RNG.normal(size=(n, 4))
-    return RNG.normal(size=(n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def _matrix(pose: tuple[NDArray[np.float64], NDArray[np.float64]]) -> NDArray[np.float64]:
-    from scipy.spatial.transform import Rotation
+def _random_placements(n: int) -> Placement:
+    return RNG.normal(size=(n, 3)), Rotation.from_quat(_random_quaternions(n))
 
-    p, q = pose
+
+def _matrix(pose: Placement) -> NDArray[np.float64]:
+    p, r = pose
     m = np.tile(np.eye(4), (len(p), 1, 1))
-    m[:, :3, :3] = Rotation.from_quat(q).as_matrix()
+    m[:, :3, :3] = r.as_matrix()
     m[:, :3, 3] = p
     return m
 
 
 def test_compose_and_invert_are_the_homogeneous_matrices_product_and_inverse() -> None:
-    a, b = _random_poses(50), _random_poses(50)
+    a, b = _random_placements(50), _random_placements(50)
     np.testing.assert_allclose(_matrix(compose(a, b)), _matrix(a) @ _matrix(b), atol=1e-12)
     np.testing.assert_allclose(_matrix(invert(a)), np.linalg.inv(_matrix(a)), atol=1e-12)
 
 
-def test_slerp_ends_exactly_at_its_ends_and_keeps_unit_length() -> None:
-    _, q0 = _random_poses(20)
-    _, q1 = _random_poses(20)
-    np.testing.assert_array_equal(slerp(q0, q1, np.zeros(20)), q0)
-    ends = slerp(q0, q1, np.ones(20))
-    np.testing.assert_allclose(np.abs(np.sum(ends * q1, axis=1)), 1.0, atol=1e-12)
-    middle = slerp(q0, q1, np.full(20, 0.5))
-    np.testing.assert_allclose(np.linalg.norm(middle, axis=1), 1.0, atol=1e-12)
-    same = slerp(q0, q0, np.full(20, 0.3))  # the small-angle branch
-    np.testing.assert_allclose(same, q0, atol=1e-15)
+def test_slerp_ends_at_its_ends_and_halves_the_arc() -> None:
+    r0 = Rotation.from_quat(_random_quaternions(20))
+    r1 = Rotation.from_quat(_random_quaternions(20))
+    np.testing.assert_allclose(slerp(r0, r1, np.zeros(20)).as_quat(), r0.as_quat(), atol=1e-15)
+    np.testing.assert_allclose((slerp(r0, r1, np.ones(20)).inv() * r1).magnitude(), 0, atol=1e-7)
+    arc = (r0.inv() * r1).magnitude()  # the shorter arc, ≤ π
+    middle = slerp(r0, r1, np.full(20, 0.5))
+    np.testing.assert_allclose((r0.inv() * middle).magnitude(), arc / 2, atol=1e-12)
+    np.testing.assert_allclose((middle.inv() * r1).magnitude(), arc / 2, atol=1e-12)
 
 
 def _edge(parent: str, child: str, stamps: list[int], static: bool = False) -> Edge:
-    p, q = _random_poses(len(stamps))
+    p = RNG.normal(size=(len(stamps), 3))
+    q = _random_quaternions(len(stamps))
     return Edge(parent, child, np.array(stamps, dtype=np.int64), p, q, static)
 
 
@@ -78,7 +89,8 @@ def test_a_chain_composes_up_to_the_common_ancestor_and_down() -> None:
     world_board = compose(*(interpolate(edges[f], stamps)[:2] for f in ("mid", "board")))
     want = compose(invert(world_camera), world_board)
     np.testing.assert_allclose(poses.translation_m, want[0], atol=1e-12)
-    np.testing.assert_allclose(poses.quaternion_xyzw, want[1], atol=1e-12)
+    got = Rotation.from_quat(poses.quaternion_xyzw)
+    np.testing.assert_allclose(got.as_matrix(), want[1].as_matrix(), atol=1e-12)
     assert poses.valid.all()
     np.testing.assert_array_equal(tree.dynamic_stamps("camera", "board"), stamps)
     assert not tree.pose("camera", "board", np.array([25], dtype=np.int64)).valid[0]
@@ -95,7 +107,7 @@ def test_frames_of_two_trees_are_refused_naming_the_roots() -> None:
 
 
 def test_mean_quaternion_ignores_signs_and_keeps_the_first_ones() -> None:
-    _, q = _random_poses(1)
+    q = _random_quaternions(1)
     flipped = np.vstack([q, -q, q, -q])
     np.testing.assert_allclose(mean_quaternion(flipped), q[0], atol=1e-15)
     np.testing.assert_allclose(mean_quaternion(-flipped), -q[0], atol=1e-15)
@@ -265,9 +277,12 @@ def test_a_bag_without_a_long_enough_hold_is_refused(bags: dict[str, tuple[Path,
         )
 
 
-@pytest.mark.parametrize("text", ["tf:a", "pose:", "camera:x", "tf:a:b:c"])
+@pytest.mark.parametrize(
+    "text", ["tf:a", "pose:", "camera:x", "tf:a:b:c", "calibration-data:/c:a:b:c"]
+)
 def test_a_malformed_source_is_refused(text: str) -> None:
-    with pytest.raises(DatasetError, match="give tf:PARENT:CHILD, pose:TOPIC or point:TOPIC"):
+    forms = "tf:PARENT:CHILD, pose:TOPIC, point:TOPIC or calibration-data:TOPIC"
+    with pytest.raises(DatasetError, match=f"give {forms}"):
         MeasureSource.parse(text)
 
 

@@ -50,6 +50,8 @@ PATHS = st.sampled_from(
         "/api/v1/calibrations/{id}",
         "/api/v1/calibrations/{id}/result",
         "/api/v1/calibrations/{id}/cancel",
+        "/api/v1/calibrations/{id}/checks",
+        "/api/v1/calibrations/{id}/checks/{id}",
         "/api/v1/robots/{id}",
     ]
 )
@@ -236,6 +238,23 @@ def flatmap_body(context: Any, body: Any) -> st.SearchStrategy[Any]:
         return st.just(body)
     seeded = FUZZED[-1]
     return steered_bodies(body, seeded.dataset_id, seeded.calibration_id, plausible_rankings=True)
+
+
+@SCHEMA.hook
+def flatmap_path_parameters(context: Any, path_parameters: Any) -> st.SearchStrategy[Any]:
+    """A check's routes half of the time on the seeded calibration, so that the fuzzer gets
+    past the 404 to the dataset and the refusals (it has no predictive covariance: 409)."""
+    operation = context.operation
+    if (
+        not FUZZED
+        or operation is None
+        or "/checks" not in operation.path
+        or not isinstance(path_parameters, dict)
+        or "calibration_id" not in path_parameters
+    ):
+        return st.just(path_parameters)
+    steered = {**path_parameters, "calibration_id": FUZZED[-1].calibration_id}
+    return st.sampled_from([path_parameters, steered])
 
 
 @SCHEMA.parametrize()

@@ -16,7 +16,7 @@ from sqlalchemy import text, update
 from service.storage import repository
 from service.storage.db import Database
 from service.storage.files import FileStore
-from service.storage.models import Base, Job, utcnow
+from service.storage.models import Base, Check, Job, utcnow
 from tests.service.api.conftest import POSTGRES_URL
 
 
@@ -56,7 +56,7 @@ def test_migrations_produce_exactly_the_models(database: Database) -> None:
         diff = compare_metadata(MigrationContext.configure(connection), Base.metadata)
     assert diff == []
     database.migrate()  # idempotent
-    assert database.current_revision() == "0002"
+    assert database.current_revision() == "0003"
 
 
 @pytest.mark.skipif(POSTGRES_URL is not None, reason="SQLite-specific pragma")
@@ -159,3 +159,48 @@ def test_file_store_refuses_paths_outside_the_data_folder(tmp_path: Path) -> Non
     store = FileStore(tmp_path / "data")
     with pytest.raises(ValueError, match="leaves the data folder"):
         store.path("../outside.txt")
+
+
+def test_the_latest_check_per_calibration_for_the_most_recently_checked(
+    database: Database,
+) -> None:
+    """What the check gauges show: one row per calibration, its newest check, and only the
+    ``limit`` calibrations checked most recently (bounded label cardinality)."""
+    calibrations = _queue(database, 3)
+    start = utcnow()
+    times = {  # calibration -> minutes of its checks
+        calibrations[0]: (0, 5),
+        calibrations[1]: (1, 2),
+        calibrations[2]: (3,),
+    }
+    with database.session() as session:
+        tenant = repository.ensure_tenant(session, "t")
+        for calibration_id, minutes in times.items():
+            for minute in minutes:
+                session.add(
+                    Check(
+                        id=f"chk_{calibration_id[-6:]}_{minute}",
+                        tenant_id=tenant.id,
+                        calibration_id=calibration_id,
+                        dataset_id="ds_x",
+                        dataset_name="check.csv",
+                        level=0.05,
+                        n_poses=10,
+                        verdict="holds",
+                        statistic=float(minute),
+                        threshold=81.6,
+                        located=None,
+                        document_path="tenants/x/checks/x.json",
+                        created_at=start + dt.timedelta(minutes=minute),
+                    )
+                )
+    with database.sessions() as session:
+        latest = repository.latest_checks(session, 2)
+        page, count = repository.list_checks(
+            session, tenant.id, calibrations[0], offset=0, limit=10
+        )
+    assert [(c.calibration_id, c.statistic) for c in latest] == [
+        (calibrations[0], 5.0),
+        (calibrations[2], 3.0),
+    ]
+    assert count == 2 and [c.statistic for c in page] == [5.0, 0.0]  # newest first
