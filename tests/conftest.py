@@ -7,6 +7,7 @@ import functools
 import math
 import os
 import pickle
+import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -82,6 +83,35 @@ def assert_documents_close(got: Any, want: Any, where: str = "", rel: float = 1e
         assert math.isclose(got, want, rel_tol=rel, abs_tol=1e-15), (where, got, want)
     else:
         assert got == want, (where, got, want)
+
+
+NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
+
+
+def assert_quoted_output(quoted: str, printed: str) -> None:
+    """Every non-blank line of ``quoted`` (output a page quotes; a line "..." stands for lines
+    left out) is a line of ``printed``: the same words, and each number within one unit of the
+    last digit the page shows (a rounding on the edge may fall either way on another CPU)."""
+    by_shape: dict[str, list[str]] = {}
+    for line in printed.splitlines():
+        by_shape.setdefault(NUMBER.sub("#", line.rstrip()), []).append(line)
+    for line in quoted.splitlines():
+        if not line.strip() or line.strip() == "...":
+            continue
+        shape = NUMBER.sub("#", line.rstrip())
+        if shape.endswith("; ..."):  # a line quoted up to its "..."
+            matches = [p for s, ps in by_shape.items() if s.startswith(shape[:-3]) for p in ps]
+        else:
+            matches = by_shape.get(shape, [])
+        assert any(_numbers_agree(line, match) for match in matches), line
+
+
+def _numbers_agree(quoted: str, printed: str) -> bool:
+    for shown, got in zip(NUMBER.findall(quoted), NUMBER.findall(printed), strict=False):
+        unit = 10.0 ** -len(shown.partition(".")[2]) if "." in shown else 1.0
+        if abs(float(shown) - float(got)) > unit * 1.000001:
+            return False
+    return True
 
 
 def computed_once(

@@ -15,7 +15,12 @@ from schemas.calibration import CalibrationResult
 from schemas.ranking import RankingOptions, RankingResult
 from service.app import rank as ranking_pipeline
 from service.cli.demo import run_demo
-from tests.conftest import assert_documents_close, comparable_result, computed_once
+from tests.conftest import (
+    assert_documents_close,
+    assert_quoted_output,
+    comparable_result,
+    computed_once,
+)
 from tests.service.cli_support import run_ok
 
 
@@ -71,35 +76,15 @@ def test_demo_runs_and_calibration_beats_nominal(
     assert any(re.match(rf"^ +1 +{best.index} +{best.score * 1e6:.4f} ", line) for line in lines)
 
 
-NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
-
-
 def test_the_demo_output_docs_demo_md_quotes_is_what_the_demo_prints(
     demo: tuple[Path, dict[str, float], list[str]],
 ) -> None:
-    """Every line of docs/demo.md's example output is a line the demo prints: the same words,
-    and each number within one unit of the last digit the page shows (a rounding on the edge
-    may fall either way on another CPU)."""
+    """Every line of docs/demo.md's example output is a line the demo prints
+    (:func:`tests.conftest.assert_quoted_output`)."""
     _, _, lines = demo
     page = (Path(__file__).parents[1] / "docs" / "demo.md").read_text(encoding="utf-8")
     (block,) = re.findall(r"```\n(.*?)```", page, re.S)
-    printed = {}
-    for line in lines:
-        for part in line.splitlines():
-            printed.setdefault(NUMBER.sub("#", part.rstrip()), []).append(part)
-    for quoted in filter(str.strip, block.splitlines()):
-        candidates = printed.get(NUMBER.sub("#", quoted.rstrip()), [])
-        assert any(_numbers_agree(quoted, line) for line in candidates), quoted
-
-
-def _numbers_agree(quoted: str, printed: str) -> bool:
-    """Each number of ``quoted`` within one unit of its last shown digit of ``printed``'s."""
-    pairs = zip(NUMBER.findall(quoted), NUMBER.findall(printed), strict=True)
-    for shown, got in pairs:
-        unit = 10.0 ** -len(shown.partition(".")[2]) if "." in shown else 1.0
-        if abs(float(shown) - float(got)) > unit * 1.000001:
-            return False
-    return True
+    assert_quoted_output(block, "\n".join(lines))
 
 
 def test_cli_http_fleet_and_demo_calibrate_alike(

@@ -17,6 +17,7 @@ import pytest
 
 from benchmarks.results import read_results
 from schemas.calibration import CalibrationResult
+from tests.conftest import assert_quoted_output
 
 REPO = Path(__file__).parents[1]
 README = (REPO / "README.md").read_text(encoding="utf-8")
@@ -163,6 +164,8 @@ def test_every_shell_block_of_the_readme_runs_as_written(tmp_path: Path) -> None
     assert {p.parts[0] for p in created} == {"out"}, "the tour writes under out/ only"
     assert f"listening on http://127.0.0.1:{port}" in done.stdout
     assert "verdict: ok: fit to use (exit code 0)" in done.stdout
+    # the calibration output the README quotes is the tour's own
+    assert_quoted_output(re.findall(r"```text\n(.*?)```", README, re.S)[0], done.stdout)
     # the README quotes the tour's own calibration (2 decimals mm, 3 deg)
     result = CalibrationResult.model_validate_json((out / "fr3_poses/calibration.json").read_text())
     before_fit, after_fit = result.fit.before.heldout, result.fit.after.heldout
