@@ -89,27 +89,33 @@ NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
 
 
 def assert_quoted_output(quoted: str, printed: str) -> None:
-    """Every non-blank line of ``quoted`` (output a page quotes; a line "..." stands for lines
-    left out) is a line of ``printed``: the same words, and each number within one unit of the
-    last digit the page shows (a rounding on the edge may fall either way on another CPU)."""
-    by_shape: dict[str, list[str]] = {}
-    for line in printed.splitlines():
-        by_shape.setdefault(NUMBER.sub("#", line.rstrip()), []).append(line)
+    """Every non-blank line of ``quoted`` (output a page quotes; "..." stands for what it
+    leaves out, a whole line or part of one) is a line of ``printed``: the same words, and
+    each number within one unit of the last digit the page shows (a rounding on the edge may
+    fall either way on another CPU)."""
+    lines = [line.rstrip() for line in printed.splitlines()]
     for line in quoted.splitlines():
         if not line.strip() or line.strip() == "...":
             continue
-        shape = NUMBER.sub("#", line.rstrip())
-        if shape.endswith("; ..."):  # a line quoted up to its "..."
-            matches = [p for s, ps in by_shape.items() if s.startswith(shape[:-3]) for p in ps]
-        else:
-            matches = by_shape.get(shape, [])
-        assert any(_numbers_agree(line, match) for match in matches), line
+        pattern = re.compile(_line_pattern(line.rstrip()))
+        shown = NUMBER.findall(line.replace("...", " "))
+        found = [m.groups() for m in map(pattern.fullmatch, lines) if m is not None]
+        assert any(_within_last_digit(shown, got) for got in found), line
 
 
-def _numbers_agree(quoted: str, printed: str) -> bool:
-    for shown, got in zip(NUMBER.findall(quoted), NUMBER.findall(printed), strict=False):
-        unit = 10.0 ** -len(shown.partition(".")[2]) if "." in shown else 1.0
-        if abs(float(shown) - float(got)) > unit * 1.000001:
+def _line_pattern(line: str) -> str:
+    """A regex of ``line``: its numbers captured, each "..." any text."""
+    pieces = []
+    for piece in line.split("..."):
+        parts = NUMBER.split(piece)
+        pieces.append(r"([-+]?\d+(?:\.\d+)?)".join(re.escape(part) for part in parts))
+    return ".*?".join(pieces)
+
+
+def _within_last_digit(shown: list[str], got: tuple[str, ...]) -> bool:
+    for quoted, printed in zip(shown, got, strict=True):
+        unit = 10.0 ** -len(quoted.partition(".")[2]) if "." in quoted else 1.0
+        if abs(float(quoted) - float(printed)) > unit * 1.000001:
             return False
     return True
 

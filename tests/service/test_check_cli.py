@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import re
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +18,8 @@ from schemas.check import CheckResult
 from service.app.check import run_check
 from service.cli.common import read_result
 from solver.errors import KincalError
-from tests.conftest import REAL_DATA, computed_once
-from tests.service.cli_support import run, run_ok
+from tests.conftest import REAL_DATA, REPO, assert_quoted_output, computed_once
+from tests.service.cli_support import real_calibration, run, run_ok
 
 FR3 = REAL_DATA / "philnad_fr3_eye_in_hand" / "fr3_poses.csv"
 BAD_ROWS = (43, 112, 113)
@@ -143,3 +144,28 @@ def test_two_poses_are_inconclusive(calibrated, tmp_path, capsys, monkeypatch) -
     assert result.verdict == "inconclusive" and result.max_threshold is None
     assert result.stated_sizes == [] and result.global_test is None
     assert stdout.splitlines()[-1].startswith("check: inconclusive: 2 check pose(s)")
+
+
+def test_the_output_docs_check_md_quotes_is_what_kincal_check_prints(
+    tmp_path_factory: pytest.TempPathFactory,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """docs/check.md's example: the README's calibration of the whole FR3 recording checked
+    against its first 8 and last 2 rows, as the page's commands make them."""
+    page = (REPO / "docs" / "check.md").read_text(encoding="utf-8")
+    quoted = re.findall(r"```text\n(.*?)```", page, re.S)[0]
+    monkeypatch.chdir(tmp_path)
+    folder = Path("out/fr3_poses")
+    folder.mkdir(parents=True)
+    (folder / "calibration.json").write_text(
+        real_calibration(tmp_path_factory, "fr3").model_dump_json()
+    )
+    lines = FR3.read_text().splitlines()
+    (folder / "check.csv").write_text("\n".join(lines[:9] + lines[-2:]) + "\n")
+    code, stdout, _ = run(
+        ["check", folder / "calibration.json", folder / "check.csv"], capsys, monkeypatch
+    )
+    assert code == 0
+    assert_quoted_output(quoted, stdout)
