@@ -16,6 +16,7 @@ import html
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 
 from schemas.api import CheckSummary
 from schemas.check import LocatedChange
@@ -36,7 +37,7 @@ svg.chart .grid { stroke: #e3e3e3; } svg.chart .axis { stroke: #888; }
 svg.chart .threshold { stroke: #e69500; stroke-width: 2; stroke-dasharray: 6 4; fill: none; }
 svg.chart .holds { fill: #3a3; } svg.chart .drifted { fill: #c00; stroke: #600; stroke-width: 2; }
 svg.chart .inconclusive { fill: #999; }
-tr.drifted td { background: #fdecec; } td.text { text-align: left; }
+tr.drifted td { background: #fdecec; } td.text, th.text { text-align: left; }
 """
 
 
@@ -106,8 +107,8 @@ def located_text(entry: CheckEntry) -> str:
 def table(entries: Sequence[CheckEntry]) -> str:
     e = html.escape
     header = (
-        "<tr><th>Time</th><th>Check</th><th>Dataset</th><th>Poses</th><th>Verdict</th>"
-        "<th>Σ d²</th><th>Threshold</th><th>Level</th><th>Located change</th></tr>"
+        '<tr><th>Time</th><th>Check</th><th class="text">Dataset</th><th>Poses</th>'
+        '<th>Verdict</th><th>Σ d²</th><th>Threshold</th><th>Level</th><th class="text">Located change</th></tr>'
     )
     rows = []
     for entry in entries:
@@ -116,7 +117,8 @@ def table(entries: Sequence[CheckEntry]) -> str:
             f'<tr class="check {e(s.verdict)}" data-check-id="{e(s.id)}">'
             f"<td>{e(_when(s.created_at))}</td>"
             f'<td><a href="{e(s.links.self)}">{e(s.id)}</a></td>'
-            f"<td>{e(s.dataset_name)}</td><td>{s.n_poses}</td><td>{e(s.verdict)}</td>"
+            f'<td class="text">{e(s.dataset_name)}</td>'
+            f"<td>{s.n_poses}</td><td>{e(s.verdict)}</td>"
             f"<td>{_number(s.statistic)}</td><td>{_number(s.threshold)}</td><td>{s.level:g}</td>"
             f'<td class="text">{e(located_text(entry))}</td></tr>'
         )
@@ -164,7 +166,7 @@ def chart(entries: Sequence[CheckEntry]) -> str:
     axes = _axes(oldest_first)
     bottom, right = HEIGHT - BOTTOM, WIDTH - RIGHT
     parts = [
-        f'<svg class="chart" xmlns="http://www.w3.org/2000/svg" width="{WIDTH}" '
+        f'<svg class="chart" width="{WIDTH}" '
         f'height="{HEIGHT}" viewBox="0 0 {WIDTH} {HEIGHT}" role="img" '
         'aria-label="Each check\'s statistic against time, with the threshold">'
     ]
@@ -198,7 +200,8 @@ def _time_labels(oldest_first: Sequence[CheckEntry], axes: _Axes) -> list[str]:
 
 
 def _threshold_line(oldest_first: Sequence[CheckEntry], axes: _Axes) -> str:
-    """Through each check's own threshold, held flat to the plot's sides."""
+    """Each check's own threshold held flat from half-way to its neighbours (the plot's sides
+    for the first and last): a step wherever the number of poses changes it."""
     points = [
         (axes.x(c.summary.created_at), axes.y(c.summary.threshold))
         for c in oldest_first
@@ -206,8 +209,12 @@ def _threshold_line(oldest_first: Sequence[CheckEntry], axes: _Axes) -> str:
     ]
     if not points:
         return ""
-    points = [(float(LEFT), points[0][1]), *points, (float(WIDTH - RIGHT), points[-1][1])]
-    coordinates = " ".join(f"{x:.1f},{y:.1f}" for x, y in points)
+    xs = [x for x, _ in points]
+    edges = [float(LEFT), *((a + b) / 2 for a, b in pairwise(xs)), WIDTH - RIGHT]
+    steps = []
+    for i, (_, y) in enumerate(points):
+        steps += [(edges[i], y), (edges[i + 1], y)]
+    coordinates = " ".join(f"{x:.1f},{y:.1f}" for x, y in steps)
     return f'<polyline class="threshold" points="{coordinates}"/>'
 
 
