@@ -108,7 +108,8 @@ def table(entries: Sequence[CheckEntry]) -> str:
     e = html.escape
     header = (
         '<tr><th>Time</th><th>Check</th><th class="text">Dataset</th><th>Poses</th>'
-        '<th>Verdict</th><th>Σ d²</th><th>Threshold</th><th>Level</th><th class="text">Located change</th></tr>'
+        "<th>Verdict</th><th>Σ d²</th><th>Threshold</th><th>Level</th>"
+        '<th class="text">Located change</th></tr>'
     )
     rows = []
     for entry in entries:
