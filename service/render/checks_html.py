@@ -65,7 +65,7 @@ def render_checks_page(
         )
         return html_page(title, sections, _CHART_STYLE)
     shown = (
-        f"{count} checks"
+        f"{count} check{'' if count == 1 else 's'}"
         if count == len(entries)
         else f"the newest {len(entries)} of {count} checks"
     )
