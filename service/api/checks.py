@@ -5,7 +5,7 @@ A check of ten poses takes well under a second, so POST runs it in a worker thre
 201 with the stored check (its ``kincal.check/1`` document); the row is committed before the
 answer, so a check that was answered is never lost. Checks are kept with their time in the
 ``checks`` table (the document in the tenant's folder) and listed per calibration, newest
-first.
+first. ``GET .../checks/report`` is their HTML page (:mod:`service.render.checks_html`).
 """
 
 from __future__ import annotations
@@ -18,11 +18,12 @@ from starlette.concurrency import run_in_threadpool
 from schemas.api import CheckCreate, CheckLinks, CheckPublic, ChecksPublic, CheckSummary
 from schemas.check import CheckResult
 from service.api.calibrations import PREFIX as CALIBRATIONS
-from service.api.calibrations import cached_calibration
+from service.api.calibrations import REPORT_HEADERS, cached_calibration
 from service.api.deps import API_PREFIX, PrincipalDep, ServiceState, StateDep
 from service.api.idempotency import IDEMPOTENCY_PROBLEMS, Idempotency, fingerprint
 from service.api.jobs_common import job_or_404, json_response
 from service.api.problems import STANDARD_PROBLEMS, ProblemException, problem_responses
+from service.render.checks_html import CheckEntry, render_checks_page
 from service.storage import repository
 from service.storage.files import tenant_path
 from service.storage.models import Check
@@ -39,6 +40,9 @@ MAX_CHECK_POSES = 200
 """A check is a few new poses (ten is typical); its joint covariance grows with the square of
 their number (200 poses of 6 rows: a 1200 × 1200 matrix, a few seconds), so a larger dataset
 is refused rather than left to tie up a request thread and its memory."""
+
+REPORT_CHECKS = 200
+"""The HTML page shows a calibration's newest 200 checks (and says how many it has)."""
 
 CalibrationId = Annotated[str, Path(description="The calibration id.")]
 CheckId = Annotated[str, Path(description="The check id.")]
@@ -204,6 +208,53 @@ async def list_checks(
         )
 
     return await run_in_threadpool(page)
+
+
+def page_entry(state: ServiceState, row: Check) -> CheckEntry:
+    """The row, and for a located drift the located change of its document (its size)."""
+    if row.located is None:
+        return CheckEntry(summary(row))
+    document = CheckResult.model_validate_json(state.files.read(row.document_path))
+    return CheckEntry(summary(row), document.located)
+
+
+# Named "report" like a calibration's and a discovery's HTML; registered before
+# /{check_id}, which it would otherwise match (check ids all start with "chk_").
+@router.get(
+    "/{calibration_id}/checks/report",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"text/html; charset=utf-8": {}},
+            "description": "A self-contained HTML page (no scripts, no external resources).",
+        },
+        **STANDARD_PROBLEMS,
+        **problem_responses(404),
+    },
+)
+async def checks_report(
+    calibration_id: CalibrationId, principal: PrincipalDep, state: StateDep
+) -> Response:
+    """HTML page of the calibration's checks over time: each check's statistic against its
+    threshold, the drifts and the changes located."""
+
+    def page() -> bytes:
+        with state.database.sessions() as session:
+            job_or_404(session, principal.tenant_id, "calibration", calibration_id, "calibration")
+            rows, count = repository.list_checks(
+                session, principal.tenant_id, calibration_id, offset=0, limit=REPORT_CHECKS
+            )
+        how_to_check = (
+            f"To check it, POST {checks_url(calibration_id)} with the dataset_id of a few new "
+            f"poses (upload them with POST {DATASETS})."
+        )
+        entries = [page_entry(state, row) for row in rows]
+        return render_checks_page(
+            calibration_id, entries, count=count, how_to_check=how_to_check
+        ).encode()
+
+    body = await run_in_threadpool(page)
+    return Response(body, media_type="text/html; charset=utf-8", headers=REPORT_HEADERS)
 
 
 @router.get(

@@ -60,6 +60,8 @@ def check(
 
 def summary(out: CheckResult) -> str:
     """The per-pose table (when short), the located change and the stated sizes."""
+    from service.render.text import check_size, located_sizes
+
     lines = []
     if len(out.poses) <= SHORT_TABLE:
         limit = "" if out.max_threshold is None else f"(one pose's limit {out.max_threshold:.1f})"
@@ -72,13 +74,9 @@ def summary(out: CheckResult) -> str:
             )
     if out.located is not None:
         located = out.located
-        parts = ", ".join(
-            f"{c.name} {_shown(c.value, c.unit)} [{_shown(c.low95, c.unit)}, "
-            f"{_shown(c.high95, c.unit)}]"
-            for c in located.components
-        )
         lines.append(
-            f"located: {located.name}: {parts} (95 %; adjusted p = {located.adjusted_p_value:.2g})"
+            f"located: {located.name}: {located_sizes(located)} "
+            f"(95 %; adjusted p = {located.adjusted_p_value:.2g})"
         )
         if located.indistinguishable_from:
             lines.append(
@@ -88,21 +86,10 @@ def summary(out: CheckResult) -> str:
     elif out.verdict == "drifted":
         lines.append("located: no single candidate change is significant")
     sizes = ", ".join(
-        f"{s.name} {_shown(s.size, s.unit)}{'' if s.located else ' (detected only)'}"
+        f"{s.name} {check_size(s.size, s.unit)}{'' if s.located else ' (detected only)'}"
         for s in out.stated_sizes
     )
     if out.stated_sizes:
         lines.append(f"detected and located with {out.power:.0%} probability: {sizes}")
     lines.append(f"advice: {out.advice}")
     return "\n".join(lines)
-
-
-def _shown(value: float | None, unit: str) -> str:
-    """A size in display units: mm, mrad, or ppm for a scale."""
-    if value is None:
-        return "not detectable"
-    if unit == "m":
-        return f"{value * 1000:.2f} mm"
-    if unit == "rad":
-        return f"{value * 1000:.2f} mrad"
-    return f"{value * 1e6:.0f} ppm"

@@ -17,7 +17,8 @@ from collections.abc import Mapping
 
 from schemas.discovery import ErrorPair, FindingsResult, Health
 from service.render.findings import detectability_groups, display_size
-from service.render.report_html import html_page, png_img
+from service.render.page import html_page
+from service.render.report_html import png_img
 
 
 def render_discovery_report(findings: FindingsResult, plots: Mapping[str, bytes]) -> str:

@@ -25,6 +25,7 @@ from schemas.calibration import (
     OutlierReport,
     PredictiveCovariance,
 )
+from service.render.page import html_page
 from service.render.plots import coverage_figure, residual_histograms
 from service.render.result_json import ResidualSample
 from service.render.text import (
@@ -36,19 +37,6 @@ from service.render.text import (
     table_ii,
     verdict_line,
 )
-
-_STYLE = """
-body { font: 14px/1.45 system-ui, sans-serif; margin: 2rem auto; max-width: 72rem; color: #222; }
-h1 { font-size: 1.5rem; } h2 { font-size: 1.15rem; margin-top: 2rem; }
-table { border-collapse: collapse; margin: .5rem 0; }
-th, td { border: 1px solid #ccc; padding: .25rem .6rem; text-align: right; }
-th:first-child, td:first-child { text-align: left; }
-table.text td { text-align: left; }
-.warn { background: #fff4e0; border-left: 4px solid #e69500; padding: .4rem .8rem; }
-.ok { background: #eaf6ea; border-left: 4px solid #3a3; padding: .4rem .8rem; }
-img { max-width: 100%; } pre { background: #f6f6f6; padding: .6rem; overflow-x: auto; }
-code { background: #f2f2f2; padding: 0 .2rem; }
-"""
 
 
 def _verdict(result: CalibrationResult) -> list[str]:
@@ -120,15 +108,6 @@ def _coverage(predictive: PredictiveCovariance) -> str:
         png_img(buffer.getvalue(), "Coverage: expected vs observed share inside the ellipsoid")
         + text
         + f"<p>{e(coverage.protocol)}</p>"
-    )
-
-
-def html_page(title: str, sections: list[str]) -> str:
-    """A self-contained HTML page (inline style, no scripts) from HTML ``sections``."""
-    return (
-        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
-        f"<title>{html.escape(title)}</title><style>{_STYLE}</style></head>"
-        f"<body>{''.join(sections)}</body></html>\n"
     )
 
 

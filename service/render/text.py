@@ -12,6 +12,7 @@ from schemas.calibration import (
     SolverReport,
     Verdict,
 )
+from schemas.check import LocatedChange
 from schemas.ranking import RankingResult
 
 METHOD_LABELS = {"before": "Init.", "calibrated": "Cal. Ours", "gp": "Cal. GP"}
@@ -247,3 +248,23 @@ def compliance_status(compliance: ComplianceCalibration) -> str:
     if compliance.significant:
         return "significant"
     return "not significant (within 2 standard errors of 0)"
+
+
+def check_size(value: float | None, unit: str) -> str:
+    """A check's size in display units: mm, mrad, or ppm for a scale (``unit``: m, rad, 1)."""
+    if value is None:
+        return "not detectable"
+    if unit == "m":
+        return f"{value * 1000:.2f} mm"
+    if unit == "rad":
+        return f"{value * 1000:.2f} mrad"
+    return f"{value * 1e6:.0f} ppm"
+
+
+def located_sizes(located: LocatedChange) -> str:
+    """Each component of a located change with its 95 % interval, in the CLI and the page."""
+    return ", ".join(
+        f"{c.name} {check_size(c.value, c.unit)} [{check_size(c.low95, c.unit)}, "
+        f"{check_size(c.high95, c.unit)}]"
+        for c in located.components
+    )

@@ -51,6 +51,7 @@ PATHS = st.sampled_from(
         "/api/v1/calibrations/{id}/result",
         "/api/v1/calibrations/{id}/cancel",
         "/api/v1/calibrations/{id}/checks",
+        "/api/v1/calibrations/{id}/checks/report",
         "/api/v1/calibrations/{id}/checks/{id}",
         "/api/v1/robots/{id}",
     ]
