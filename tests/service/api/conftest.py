@@ -14,12 +14,15 @@ import contextlib
 import functools
 import io
 import os
+import threading
+import time
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+import uvicorn
 from fastapi.testclient import TestClient
 from sqlalchemy.engine import make_url
 
@@ -201,3 +204,25 @@ def assert_problem(response: Any, status: int, *fragments: str) -> dict[str, Any
 
 def client_api(client: TestClient, key: str | None = None) -> KincalClient:
     return KincalClient(api_key=key, client=client)
+
+
+@contextlib.contextmanager
+def uvicorn_in_thread(settings: Settings) -> Iterator[str]:
+    """The app for ``settings`` under uvicorn on a free loopback port, in a thread of this
+    process (for a real browser); its URL."""
+    config = uvicorn.Config(
+        create_app(settings), host="127.0.0.1", port=0, log_config=None, lifespan="on"
+    )
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "server did not start"
+        time.sleep(0.05)
+    port = server.servers[0].sockets[0].getsockname()[1]
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(15)

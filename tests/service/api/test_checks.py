@@ -6,6 +6,7 @@ naming ``dataset_id``; another tenant sees none of it."""
 
 from __future__ import annotations
 
+import contextlib
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ from fastapi.testclient import TestClient
 from schemas.calibration import CalibrationResult
 from schemas.check import CheckResult
 from service.api import checks, create_app
+from service.api.client import KincalClient
 from service.settings import Settings
 from service.storage import repository
 from service.storage.files import tenant_path
@@ -73,32 +75,52 @@ def split(folder: Path) -> tuple[Path, Path, pd.DataFrame]:
     return train, check, data.loc[held]
 
 
+@dataclass
+class Calibrated:
+    """The FR3 (all but its 10 held-out rows) calibrated through a running service."""
+
+    client: TestClient
+    api: KincalClient
+    calibration_id: str
+    check_csv: Path
+    held: pd.DataFrame
+
+
+@contextlib.contextmanager
+def calibrated_service(folder: Path, database_url: str) -> Iterator[Calibrated]:
+    """A service with one worker on ``database_url`` and ``folder`` that has calibrated the FR3
+    without its held-out rows (:func:`split`); stopped on exit."""
+    train, check_csv, held = split(folder)
+    with TestClient(
+        create_app(make_settings(folder, database_url, workers=1)), raise_server_exceptions=False
+    ) as client:
+        api = client_api(client)
+        calibration = api.start_calibration(api.upload_dataset(train, robot="panda")["id"])
+        api.wait(calibration["id"], poll_s=0.05)
+        yield Calibrated(client, api, calibration["id"], check_csv, held)
+
+
 @pytest.fixture(scope="module")
 def checked(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Checked]:
     folder = tmp_path_factory.mktemp("checks")
-    train, check_csv, held = split(folder)
     with fresh_database_url(folder) as url:
-        with TestClient(
-            create_app(make_settings(folder, url, workers=1)), raise_server_exceptions=False
-        ) as client:
-            api = client_api(client)
-            calibration = api.start_calibration(api.upload_dataset(train, robot="panda")["id"])
-            api.wait(calibration["id"], poll_s=0.05)
+        with calibrated_service(folder, url) as service:
+            client, calibration_id = service.client, service.calibration_id
             (folder / "result.json").write_bytes(
-                client.get(f"{URL}/{calibration['id']}/result").content
+                client.get(f"{URL}/{calibration_id}/result").content
             )
-            dataset = api.upload_dataset(check_csv, robot="panda")
-            created = client.post(checks_url(calibration["id"]), json={"dataset_id": dataset["id"]})
+            dataset = service.api.upload_dataset(service.check_csv, robot="panda")
+            created = client.post(checks_url(calibration_id), json={"dataset_id": dataset["id"]})
             assert created.status_code == 201, created.text
         yield Checked(
             folder,
             make_settings(folder, url, workers=0),
-            calibration["id"],
+            calibration_id,
             dataset["id"],
             created.json(),
             created.headers["location"],
-            check_csv,
-            held,
+            service.check_csv,
+            service.held,
         )
 
 

@@ -11,8 +11,6 @@ import io
 import re
 import shutil
 import subprocess
-import threading
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,7 +18,6 @@ from typing import Any
 
 import httpx
 import pytest
-import uvicorn
 from fastapi.testclient import TestClient
 
 from service.api import create_app
@@ -31,8 +28,9 @@ from tests.service.api.conftest import (
     fresh_database_url,
     make_settings,
     new_key,
+    uvicorn_in_thread,
 )
-from tests.service.api.test_checks import split
+from tests.service.api.test_checks import calibrated_service
 
 URL = "/api/v1/calibrations"
 HOSTILE = '<script>alert("x")</script> & <b>bold</b>.csv'
@@ -66,21 +64,16 @@ def upload(client: TestClient, data: bytes, name: str) -> str:
 @pytest.fixture(scope="module")
 def checked(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Page]:
     folder = tmp_path_factory.mktemp("checks_page")
-    train, _, held_rows = split(folder)
     with fresh_database_url(folder) as url:
-        with TestClient(
-            create_app(make_settings(folder, url, workers=1)), raise_server_exceptions=False
-        ) as client:
-            api = client_api(client)
-            calibration = api.start_calibration(api.upload_dataset(train, robot="panda")["id"])
-            api.wait(calibration["id"], poll_s=0.05)
-            as_recorded = held_rows.to_csv(index=False, float_format="%.17g").encode()
-            held = api.check(calibration["id"], upload(client, as_recorded, HOSTILE))
-            moved = held_rows.copy()
+        with calibrated_service(folder, url) as service:
+            client, api, calibration_id = service.client, service.api, service.calibration_id
+            as_recorded = service.held.to_csv(index=False, float_format="%.17g").encode()
+            held = api.check(calibration_id, upload(client, as_recorded, HOSTILE))
+            moved = service.held.copy()
             moved["q3"] += 0.002  # joint 3 reads 2 mrad off
             data = moved.to_csv(index=False, float_format="%.17g").encode()
-            drifted = api.check(calibration["id"], upload(client, data, "drifted.csv"))
-        yield Page(make_settings(folder, url, workers=0), calibration["id"], held, drifted)
+            drifted = api.check(calibration_id, upload(client, data, "drifted.csv"))
+        yield Page(make_settings(folder, url, workers=0), calibration_id, held, drifted)
 
 
 @pytest.fixture(scope="module")
@@ -168,20 +161,8 @@ def test_a_calibration_without_checks_gets_a_page_that_says_so(client: TestClien
 def served(checked: Page, client: TestClient) -> Iterator[str]:
     """The app on the same database under uvicorn on a free loopback port, in a thread of this
     process (as in test_docs_browser.py)."""
-    config = uvicorn.Config(
-        create_app(checked.settings), host="127.0.0.1", port=0, log_config=None, lifespan="on"
-    )
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "server did not start"
-        time.sleep(0.05)
-    port = server.servers[0].sockets[0].getsockname()[1]
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(15)
+    with uvicorn_in_thread(checked.settings) as url:
+        yield url
 
 
 @pytest.mark.skipif(

@@ -6,17 +6,13 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
-import uvicorn
 
-from service.api import create_app
-from tests.service.api.conftest import make_settings
+from tests.service.api.conftest import make_settings, uvicorn_in_thread
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = pytest.mark.skipif(
@@ -27,21 +23,8 @@ pytestmark = pytest.mark.skipif(
 @pytest.fixture
 def served(tmp_path: Path) -> Iterator[str]:
     """The app under uvicorn on a free loopback port, in a thread of this process."""
-    settings = make_settings(tmp_path, f"sqlite:///{tmp_path / 'kincal.db'}")
-    config = uvicorn.Config(
-        create_app(settings), host="127.0.0.1", port=0, log_config=None, lifespan="on"
-    )
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "server did not start"
-        time.sleep(0.05)
-    port = server.servers[0].sockets[0].getsockname()[1]
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(15)
+    with uvicorn_in_thread(make_settings(tmp_path, f"sqlite:///{tmp_path / 'kincal.db'}")) as url:
+        yield url
 
 
 def rendered_dom(url: str, profile: Path) -> str:
