@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import io
 import re
-import shutil
-import subprocess
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,10 +29,10 @@ from tests.service.api.conftest import (
     uvicorn_in_thread,
 )
 from tests.service.api.test_checks import calibrated_service
+from tests.service.api.test_docs_browser import CHROMIUM, rendered_dom
 
 URL = "/api/v1/calibrations"
 HOSTILE = '<script>alert("x")</script> & <b>bold</b>.csv'
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
 def report_url(calibration_id: str) -> str:
@@ -171,24 +169,7 @@ def served(checked: Page, client: TestClient) -> Iterator[str]:
 def test_the_page_renders_in_headless_chromium(checked: Page, served: str, tmp_path: Path) -> None:
     url = served + report_url(checked.calibration_id)
     assert httpx.get(url).status_code == 200
-    assert CHROMIUM is not None
-    command = [
-        CHROMIUM,
-        "--headless",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--disable-quic",
-        "--no-first-run",
-        "--disable-background-networking",
-        "--disable-component-update",
-        "--disable-sync",
-        f"--user-data-dir={tmp_path / 'profile'}",
-        "--dump-dom",
-        url,
-    ]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
-    assert done.returncode == 0, done.stderr[-2000:]
-    dom = done.stdout
+    dom = rendered_dom(url, tmp_path / "profile")
     assert "<svg" in dom and '<polyline class="threshold"' in dom
     for check in (checked.held, checked.drifted):
         assert f'<tr class="check {check["verdict"]}" data-check-id="{check["id"]}">' in dom
