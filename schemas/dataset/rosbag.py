@@ -150,47 +150,42 @@ def read_bag(
     this many messages on the topics read (:class:`TooManyMessagesError` before decoding)."""
     path, settings = Path(path), settings or StillSettings()
     source = source or path.name
+    captured = measure.kind == "calibration-data"
     with _open(path, source) as reader:
         topics = {name: info.msgtype or "?" for name, info in reader.topics.items()}
         counts = {name: info.msgcount for name, info in reader.topics.items()}
         listing = ", ".join(f"{t} ({topics[t]}, {counts[t]} messages)" for t in sorted(topics))
-        captured = measure.kind == "calibration-data"
-        if not captured:
+        read = set(_measure_topics(measure, topics))
+        if not captured:  # a capture bag's joint states are in its captures
             if joint_states is None:
                 raise DatasetError(f"{source}: give --joint-states, the JointState topic")
             _check_topic(joint_states, (JOINT_STATE,), "--joint-states", topics, listing, source)
-        if max_messages is not None:
-            read = {*_measure_topics(measure, topics)}
-            read |= {t for t in (joint_states, capture) if t is not None and not captured}
-            n_messages = sum(int(counts.get(topic, 0)) for topic in read)
-            if n_messages > max_messages:
-                raise TooManyMessagesError(source, n_messages, max_messages)
+            read |= {t for t in (joint_states, capture) if t is not None}
+        n_messages = sum(int(counts.get(topic, 0)) for topic in read)
+        if max_messages is not None and n_messages > max_messages:
+            raise TooManyMessagesError(source, n_messages, max_messages)
         if captured:
             _check_topic(measure.topic, (CALIBRATION_DATA,), "--measure", topics, listing, source)
             names, samples = _calibration_data(reader, measure, joint_names, source)
-            start_ns = int(samples.stamps_ns[0]) if samples.n_samples else 0
-            if samples.n_samples == 0:
-                raise DatasetError(f"{source}: {_no_capture(samples, measure)}")
-            frame = _frame(names, samples, start_ns)
-            data = dataset_from_frame(
-                frame, names, source=source, other_joint_names=other_joint_names
+            start_ns, empty = None, _no_capture(samples, measure)
+        else:
+            assert joint_states is not None
+            measured = _measurements(reader, measure, topics, listing, source)  # cheaper reads
+            captures = None
+            if capture is not None:
+                _check_topic(capture, (), "--capture", topics, listing, source)
+                captures = _capture_stamps(reader, capture)
+            names, stamps, joints = _joint_states(reader, joint_states, joint_names, source)
+            samples = (
+                synchronise(stamps, joints, measured, settings)
+                if captures is None
+                else synchronise_captures(stamps, joints, measured, captures, settings)
             )
-            return BagRecording(data, samples)
-        assert joint_states is not None
-        measured = _measurements(reader, measure, topics, listing, source)  # the cheaper reads
-        captures = None
-        if capture is not None:
-            _check_topic(capture, (), "--capture", topics, listing, source)
-            captures = _capture_stamps(reader, capture)
-        names, stamps, joints = _joint_states(reader, joint_states, joint_names, source)
-    samples = (
-        synchronise(stamps, joints, measured, settings)
-        if captures is None
-        else synchronise_captures(stamps, joints, measured, captures, settings)
-    )
+            start_ns, empty = int(stamps[0]), _no_sample(samples, settings)
     if samples.n_samples == 0:
-        raise DatasetError(f"{source}: {_no_sample(samples, settings)}")
-    frame = _frame(names, samples, int(stamps[0]))
+        raise DatasetError(f"{source}: {empty}")
+    start_ns = int(samples.stamps_ns[0]) if start_ns is None else start_ns
+    frame = _frame(names, samples, start_ns)
     dataset = dataset_from_frame(frame, names, source=source, other_joint_names=other_joint_names)
     return BagRecording(dataset, samples)
 

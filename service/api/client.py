@@ -15,6 +15,7 @@ Every non-2xx answer raises :class:`KincalAPIError` carrying the problem documen
 
 from __future__ import annotations
 
+import contextlib
 import io
 import time
 import uuid
@@ -158,19 +159,23 @@ class KincalClient:
             "capture": capture,
         }
         data = {k: v for k, v in fields.items() if v is not None}
-        if path.is_dir():  # a rosbag2 folder
-            content = _zipped_folder(path)
-            file = (f"{path.name}.zip", content, "application/zip")
-        else:
-            media = MEDIA_TYPES.get(path.suffix.lower(), "application/octet-stream")
-            file = (path.name, path.read_bytes(), media)
-        response = self._request(
-            "POST",
-            f"{API}/datasets",
-            files={"file": file},
-            data=data,
-            headers=self._idempotency(idempotency_key),
-        )
+        with contextlib.ExitStack() as stack:
+            if path.is_dir():  # a rosbag2 folder
+                file: tuple[str, Any, str] = (
+                    f"{path.name}.zip",
+                    _zipped_folder(path),
+                    "application/zip",
+                )
+            else:  # streamed from the file
+                media = MEDIA_TYPES.get(path.suffix.lower(), "application/octet-stream")
+                file = (path.name, stack.enter_context(path.open("rb")), media)
+            response = self._request(
+                "POST",
+                f"{API}/datasets",
+                files={"file": file},
+                data=data,
+                headers=self._idempotency(idempotency_key),
+            )
         return dict(response.json())
 
     def upload_rows(

@@ -37,7 +37,12 @@ from schemas.dataset import (
     dataset_to_frame,
     read_dataset_bytes,
 )
-from schemas.dataset.rosbag import UPLOAD_SUFFIXES
+from schemas.dataset.rosbag import (
+    UPLOAD_SUFFIXES,
+    MeasureSource,
+    TooManyMessagesError,
+    read_bag_bytes,
+)
 from service.api.deps import API_PREFIX, PrincipalDep, SessionDep, StateDep
 from service.api.idempotency import Idempotency, fingerprint
 from service.api.problems import (
@@ -339,8 +344,6 @@ def _read_bag(
 ) -> PoseDataset:
     """A ROS bag upload as ``kincal import`` reads it (the CLI's still-segment defaults); 413
     beyond the message or row limits, 422 naming the fix otherwise."""
-    from schemas.dataset.rosbag import MeasureSource, TooManyMessagesError, read_bag_bytes
-
     assert upload.bag is not None and upload.file_bytes is not None and upload.suffix
     joint_states, measure = upload.bag["joint_states"], upload.bag["measure"]
     assert measure is not None
