@@ -23,10 +23,13 @@ and ``docs/results/coverage_rules.{json,md}``, the calibration's own coverage un
 rule; docs/coverage.md includes both and tests/test_quoted_numbers.py checks them. A third,
 ``docs/results/coverage_measurements.{json,md}``: the calibration's own coverage of the other
 measurement types (ball in socket, markers; :data:`MEASURED`) with ``kincal calibrate``'s
-defaults, which docs/coverage.md and docs/measurements.md include.
+defaults, which docs/coverage.md and docs/measurements.md include. A fourth,
+``docs/results/coverage_partitions.{json,md}`` (issue 31): the 10-fold protocol over
+``--partitions`` random partitions of each recording (partition 0 is the acceptance table's),
+so a coverage that holds on one partition only shows as such.
 
-Usage: ``python -m benchmarks.coverage [--seeds 10] [--folds 10] [--recordings fr3,ur10e,...]
-[--measured panda_right,...] [--write-results]``.
+Usage: ``python -m benchmarks.coverage [--seeds 10] [--folds 10] [--partitions 3]
+[--recordings fr3,ur10e,...] [--measured panda_right,...] [--write-results]``.
 """
 
 from __future__ import annotations
@@ -569,21 +572,106 @@ def render_folds(rows: list[Row]) -> str:
     )
 
 
+PARTITIONS = 3
+"""Issue 31: the 10-fold protocol repeated over this many random partitions of the recording
+(seeds 0, 1, ...; partition 0 is :data:`coverage_folds`'s)."""
+
+
+def partition_row(partitions: list[FoldCoverage], seeds: list[int]) -> Row:
+    """The numbers of the results file ``coverage_partitions``: per partition (its seed, the
+    scored and screened poses, the share inside the 95 % ellipsoid, the mean and largest d²,
+    each fold's counts) and pooled over the partitions (each pose scored once per
+    partition)."""
+    d = partitions[0].found.dimension
+    every = np.concatenate([s.total for p in partitions for s in p.folds])
+    pooled = coverage(every, d)
+    return {
+        "recording": partitions[0].label,
+        "poses": partitions[0].n_input,
+        "dimension": d,
+        "partitions": [
+            {
+                "seed": seed,
+                "scored": p.found.n,
+                "screened": p.screened,
+                "inside_95": p.found.at(0.95),
+                "mean_d2": p.found.mean_d2,
+                "max_d2": float(max((s.total.max() for s in p.folds if s.total.size), default=0)),
+                "failed_folds": len(p.failed),
+                "folds": [fold.row(d) for fold in p.folds],
+            }
+            for seed, p in zip(seeds, partitions, strict=True)
+        ],
+        "inside_95": pooled.at(0.95),
+        "mean_d2": pooled.mean_d2,
+    }
+
+
+def in_band(share: float, mean_d2: float, dimension: int) -> bool:
+    """Issue 13's band (:data:`BAND_95`, :data:`BAND_MEAN`)."""
+    return BAND_95[0] <= share <= BAND_95[1] and abs(mean_d2 - dimension) <= BAND_MEAN * dimension
+
+
+PARTITIONS_HEADER = (
+    "Recording",
+    "d",
+    "Partition (seed): in 95 % / mean d² / largest d² (screened)",
+    "Spread of in 95 %",
+    "Pooled: in 95 % / mean d²",
+    "In the band",
+)
+
+
+def render_partitions(rows: list[Row]) -> str:
+    """The table of ``docs/results/coverage_partitions.md``: the 10-fold protocol over several
+    random partitions, each partition's coverage, its spread and the pooled coverage."""
+
+    def one(p: Row, d: int) -> str:
+        mark = "" if in_band(p["inside_95"], p["mean_d2"], d) else " ✗"
+        return (
+            f"{p['seed']}: {100 * p['inside_95']:.0f} % / {p['mean_d2']:.2f} / "
+            f"{p['max_d2']:.0f} ({p['screened']}){mark}"
+        )
+
+    body = []
+    for r in rows:
+        d, parts = r["dimension"], r["partitions"]
+        shares = [100 * p["inside_95"] for p in parts]
+        held = sum(in_band(p["inside_95"], p["mean_d2"], d) for p in parts)
+        body.append(
+            (
+                r["recording"],
+                d,
+                "; ".join(one(p, d) for p in parts),
+                f"{min(shares):.0f}–{max(shares):.0f} %",
+                f"{100 * r['inside_95']:.0f} % / {r['mean_d2']:.2f}",
+                f"{held} of {len(parts)} partitions"
+                + ("" if in_band(r["inside_95"], r["mean_d2"], d) else "; pooled: **no**"),
+            )
+        )
+    return markdown_table(PARTITIONS_HEADER, body)
+
+
 def main(
     seeds: int = 10,
     names: list[str] | None = None,
     folds: int = FOLDS,
     *,
     measured: list[str] | None = None,
+    partitions: int = PARTITIONS,
     write: bool = False,
-) -> tuple[list[Row], list[Row], list[Row]]:
-    """The three tables (printed; written as results files with ``write``): the rows of
-    ``coverage_folds``, ``coverage_rules`` and ``coverage_measurements``."""
+) -> tuple[list[Row], list[Row], list[Row], list[Row]]:
+    """The four tables (printed; written as results files with ``write``): the rows of
+    ``coverage_folds``, ``coverage_rules``, ``coverage_measurements`` and
+    ``coverage_partitions``."""
     chosen = names or list(RECORDINGS)
     chosen_measured = list(MEASURED) if measured is None else measured
     validated: list[Row] = []
+    spread: list[Row] = []
     for name in chosen:
         fold = cross_validate(RECORDINGS[name], folds)
+        more = [cross_validate(RECORDINGS[name], folds, seed) for seed in range(1, partitions)]
+        spread.append(partition_row([fold, *more], list(range(partitions))))
         print(
             f"{fold.label}: {folds}-fold, {fold.found.n} poses scored ({fold.screened} "
             f"screened, {len(fold.failed)} folds failed): {100 * fold.found.at(0.95):.0f} % in "
@@ -625,9 +713,11 @@ def main(
         + render_rules(rows)
         + "\n\n"
         + render_measured(others)
+        + "\n\n"
+        + render_partitions(spread)
     )
     if write:
-        arguments = f"--seeds {seeds} --folds {folds}"
+        arguments = f"--seeds {seeds} --folds {folds} --partitions {partitions}"
         if names is not None and names != list(RECORDINGS):
             arguments += f" --recordings {','.join(names)}"
         if chosen_measured != list(MEASURED):
@@ -637,9 +727,10 @@ def main(
             *write_results("coverage_folds", command, validated, render_folds),
             *write_results("coverage_rules", command, rows, render_rules),
             *write_results("coverage_measurements", command, others, render_measured),
+            *write_results("coverage_partitions", command, spread, render_partitions),
         ):
             print("wrote", path)
-    return validated, rows, others
+    return validated, rows, others, spread
 
 
 if __name__ == "__main__":
@@ -657,9 +748,15 @@ if __name__ == "__main__":
         help="other measurement types, comma-separated: " + ", ".join(MEASURED),
     )
     parser.add_argument(
+        "--partitions",
+        type=int,
+        default=PARTITIONS,
+        help="random partitions of the K-fold protocol (seeds 0, 1, ...)",
+    )
+    parser.add_argument(
         "--write-results",
         action="store_true",
-        help="write docs/results/coverage_{folds,rules,measurements}.{json,md}",
+        help="write docs/results/coverage_{folds,rules,measurements,partitions}.{json,md}",
     )
     arguments = parser.parse_args()
     main(
@@ -667,5 +764,6 @@ if __name__ == "__main__":
         arguments.recordings.split(","),
         arguments.folds,
         measured=arguments.measured.split(","),
+        partitions=arguments.partitions,
         write=arguments.write_results,
     )

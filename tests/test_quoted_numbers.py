@@ -55,6 +55,7 @@ RENDER = {
     "coverage_folds": coverage.render_folds,
     "coverage_rules": coverage.render_rules,
     "coverage_measurements": coverage.render_measured,
+    "coverage_partitions": coverage.render_partitions,
     "default_calibrate": default_calibrate.render,
     "scale": scale.render,
     "scale_fleet": scale.render_fleet,
@@ -74,6 +75,7 @@ PAGES: dict[str, str | tuple[str, ...]] = {
     "coverage_folds": "coverage.md",
     "coverage_rules": "coverage.md",
     "coverage_measurements": ("coverage.md", "measurements.md"),
+    "coverage_partitions": "coverage.md",
     "default_calibrate": "large-recordings.md",
     "scale": "large-recordings.md",
     "scale_fleet": "large-recordings.md",
@@ -211,6 +213,48 @@ def test_the_cross_validation_table_is_the_sum_of_its_folds() -> None:
         for key in ("mean_d2", "before_mean_d2"):
             pooled = sum(f["scored"] * f[key] for f in folds if f["scored"]) / scored
             assert pooled == pytest.approx(row[key], rel=1e-9), (row["recording"], key)
+
+
+def test_the_partitions_table_pools_its_partitions_and_starts_with_the_acceptance_table() -> None:
+    """Each ``coverage_partitions`` row: its partition 0 is the ``coverage_folds`` row (the
+    same folds, count for count), each partition pools its folds, and the pooled numbers pool
+    the partitions (issue 31)."""
+    _, folds_rows = read_results("coverage_folds")
+    _, rows = read_results("coverage_partitions")
+    acceptance = {r["recording"]: r for r in folds_rows}
+    assert [r["recording"] for r in rows] == list(acceptance)
+    for row in rows:
+        first = row["partitions"][0]
+        assert first["seed"] == 0 and first["folds"] == acceptance[row["recording"]]["folds"]
+        scored_all = 0
+        for part in row["partitions"]:
+            folds = part["folds"]
+            scored = sum(f["scored"] for f in folds)
+            assert scored == part["scored"] and len(folds) == coverage.FOLDS
+            assert sum(f["screened"] for f in folds) == part["screened"]
+            assert sum(f["inside_95"] for f in folds) == round(scored * part["inside_95"])
+            pooled = sum(f["scored"] * f["mean_d2"] for f in folds if f["scored"]) / scored
+            assert pooled == pytest.approx(part["mean_d2"], rel=1e-9)
+            scored_all += scored
+        inside = sum(round(p["scored"] * p["inside_95"]) for p in row["partitions"])
+        assert inside == round(scored_all * row["inside_95"]), row["recording"]
+        mean = sum(p["scored"] * p["mean_d2"] for p in row["partitions"]) / scored_all
+        assert mean == pytest.approx(row["mean_d2"], rel=1e-9), row["recording"]
+
+
+@pytest.mark.slow
+def test_the_partitions_table_holds_for_a_tiago_fold_of_another_partition() -> None:
+    """Fold 3 of the TIAGo Vicon recording's partition 1 (about 1 s) re-run through
+    calibrate → predict: its counts exactly, its mean d² within 0.005."""
+    _, rows = read_results("coverage_partitions")
+    recording = coverage.RECORDINGS["tiago"]
+    (row,) = [r for r in rows if r["recording"] == recording.label]
+    (part,) = [p for p in row["partitions"] if p["seed"] == 1]
+    _, dimension, (fold,) = coverage.fold_scores(recording, seed=1, only=3)
+    got, want = fold.row(dimension), part["folds"][3]
+    for key in ("test_rows", "scored", "screened", "failed", "inside_95", "inside_99"):
+        assert got[key] == want[key], key
+    assert got["mean_d2"] == pytest.approx(want["mean_d2"], abs=0.005)
 
 
 @pytest.mark.slow
