@@ -33,7 +33,7 @@ tr.bad-sample td { background: #fdecec; } td.text, th.text { text-align: left; }
 def render_check_report(check: CheckResult) -> str:
     """The HTML report of ``check`` (a ``kincal.check/1`` document)."""
     e = html.escape
-    holds = check.verdict != "drifted"
+    holds = check.verdict == "holds"
     sections = [
         f"<h1>kincal check: {e(check.recording)}</h1>",
         f"<h2>Verdict: {e(check.verdict)}</h2>",
@@ -123,7 +123,8 @@ def _located(check: CheckResult) -> str:
     e = html.escape
     lines = text.check_located_lines(check)
     if not lines:
-        return '<p id="located">No change located: the check did not find drift.</p>'
+        why = "too few poses for a test" if check.verdict == "inconclusive" else "no drift"
+        return f'<p id="located">No change located: {why}.</p>'
     parts = [f'<p id="located">{e(lines[0])}</p>']
     parts += [f'<p class="indistinct">{e(line)}</p>' for line in lines[1:]]
     located = check.located

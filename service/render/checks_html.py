@@ -14,6 +14,7 @@ import datetime as dt
 import html
 import io
 import re
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -26,6 +27,9 @@ from service.render.text import located_sizes
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
+_DRAWING = threading.Lock()
+"""One chart drawn at a time: the service draws pages in worker threads, and matplotlib's font
+caches (text is drawn as paths) are not thread-safe."""
 SVG_METADATA = ("Creator", "Date", "Format", "Type")
 """matplotlib's SVG metadata, left out (its RDF names other hosts)."""
 
@@ -128,13 +132,14 @@ def chart(entries: Sequence[CheckEntry]) -> str:
     from service.render.plots import checks_over_time_figure
 
     oldest_first = sorted(entries, key=lambda c: (c.summary.created_at, c.summary.id))
-    figure = checks_over_time_figure(
-        [c.summary.created_at for c in oldest_first],
-        [c.summary.statistic for c in oldest_first],
-        [c.summary.threshold for c in oldest_first],
-        [c.summary.verdict for c in oldest_first],
-    )
-    svg = inline_svg(figure, "Each check's statistic against time, with the threshold")
+    with _DRAWING:
+        figure = checks_over_time_figure(
+            [c.summary.created_at for c in oldest_first],
+            [c.summary.statistic for c in oldest_first],
+            [c.summary.threshold for c in oldest_first],
+            [c.summary.verdict for c in oldest_first],
+        )
+        svg = inline_svg(figure, "Each check's statistic against time, with the threshold")
     for i, entry in enumerate(oldest_first):
         svg = svg.replace(f'<g id="check-{i}">', _point_group(i, entry), 1)
     return svg

@@ -180,9 +180,14 @@ def test_level_outside_zero_one_is_refused(calibrated) -> None:
 
 
 def test_two_poses_are_inconclusive(calibrated, tmp_path, capsys, monkeypatch) -> None:
-    code, stdout, _, out = check(calibrated, calibrated[1].iloc[:2], tmp_path, capsys, monkeypatch)
+    report = tmp_path / "check.html"
+    rows = calibrated[1].iloc[:2]
+    code, stdout, _, out = check(
+        calibrated, rows, tmp_path, capsys, monkeypatch, "--report", report
+    )
     assert code == 0
     result = CheckResult.model_validate_json(out.read_bytes())  # reads back: no inf in it
+    assert_report_agrees(stdout, result, report)  # no limits to draw: the report still says so
     assert result.verdict == "inconclusive" and result.max_threshold is None
     assert result.stated_sizes == [] and result.global_test is None
     assert stdout.splitlines()[-1].startswith("check: inconclusive: 2 check pose(s)")
