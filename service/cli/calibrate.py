@@ -38,6 +38,7 @@ from service.cli.common import (
     OutDirOpt,
     Outputs,
     PointDistanceOpt,
+    ReportOpt,
     RobotOpt,
     StillToleranceOpt,
     StillWindowOpt,
@@ -257,13 +258,7 @@ def calibrate(
             rich_help_panel=OUTPUT,
         ),
     ] = False,
-    report: Annotated[
-        Path | None,
-        typer.Option(
-            help="Also write the HTML report (figures embedded) to this file.",
-            rich_help_panel=OUTPUT,
-        ),
-    ] = None,
+    report: ReportOpt = None,
     show_options: Annotated[
         bool,
         typer.Option(

@@ -7,7 +7,13 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from service.cli.common import Outputs, ResultOutDirOpt, output_option, read_result
+from service.cli.common import (
+    Outputs,
+    ReportOpt,
+    ResultOutDirOpt,
+    output_option,
+    read_result,
+)
 
 if TYPE_CHECKING:
     from schemas.check import CheckResult
@@ -34,6 +40,7 @@ def check(
     level: Annotated[
         float, typer.Option(help="Family-wise probability of a false alarm when it holds.")
     ] = 0.05,
+    report: ReportOpt = None,
 ) -> None:
     """Test new poses against the calibration's own predictive uncertainty: holds (exit 0),
     drifted (exit 3, with the change located and sized) or inconclusive (exit 0).
@@ -45,51 +52,45 @@ def check(
     size and 95 % interval, and the smallest changes the check detects with 90 % probability
     (docs/check.md)."""
     from service.app.check import run_check
+    from service.render.text import check_verdict_line
 
     outputs = Outputs(out_dir if out_dir is not None else result_path.parent)
     path = outputs.path(output, "check.json", "kincal.check/1")
+    report_path = None if report is None else outputs.path(report, "check.html", None)
     result = read_result(result_path)
     out = run_check(result, recording, level=level, result_name=str(result_path))
     outputs.write_text(path, f"check of {len(out.poses)} poses", out.model_dump_json(indent=1))
+    if report_path is not None:
+        from service.render.check_report_html import render_check_report
+
+        outputs.write_text(report_path, "HTML report", render_check_report(out))
     typer.echo(summary(out))
     typer.echo(outputs.listing())
-    typer.echo(f"check: {out.verdict}: {out.reason}")
+    typer.echo(check_verdict_line(out))
     if out.verdict == "drifted":
         raise typer.Exit(EXIT_DRIFTED)
 
 
 def summary(out: CheckResult) -> str:
     """The per-pose table (when short), the located change and the stated sizes."""
-    from service.render.text import check_size, located_sizes
+    from service.render import text
 
     lines = []
     if len(out.poses) <= SHORT_TABLE:
-        limit = "" if out.max_threshold is None else f"(one pose's limit {out.max_threshold:.1f})"
-        lines.append(f"pose  {'d²':>8}  {'mm':>7}  {'mrad':>7}   {limit}".rstrip())
+        limit = text.check_pose_limit(out)
+        lines.append(
+            f"pose  {'d²':>8}  {'mm':>7}  {'mrad':>7}   {f'({limit})' if limit else ''}".rstrip()
+        )
         for pose in out.poses:
             mrad = "" if pose.rotation_mrad is None else f"{pose.rotation_mrad:7.2f}"
-            flag = "  bad sample: re-measure" if pose.bad_sample else ""
+            flag = f"  {text.BAD_SAMPLE}" if pose.bad_sample else ""
             lines.append(
                 f"{pose.index:4d}  {pose.d2:8.2f}  {pose.translation_mm:7.2f}  {mrad:>7}{flag}"
             )
-    if out.located is not None:
-        located = out.located
-        lines.append(
-            f"located: {located.name}: {located_sizes(located)} "
-            f"(95 %; adjusted p = {located.adjusted_p_value:.2g})"
-        )
-        if located.indistinguishable_from:
-            lines.append(
-                "  these check poses cannot tell it apart from: "
-                + ", ".join(located.indistinguishable_from)
-            )
-    elif out.verdict == "drifted":
-        lines.append("located: no single candidate change is significant")
-    sizes = ", ".join(
-        f"{s.name} {check_size(s.size, s.unit)}{'' if s.located else ' (detected only)'}"
-        for s in out.stated_sizes
-    )
-    if out.stated_sizes:
-        lines.append(f"detected and located with {out.power:.0%} probability: {sizes}")
+    located = text.check_located_lines(out)
+    lines += located[:1] + [f"  {line}" for line in located[1:]]
+    sizes = text.check_sizes_line(out)
+    if sizes is not None:
+        lines.append(sizes)
     lines.append(f"advice: {out.advice}")
     return "\n".join(lines)

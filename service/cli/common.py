@@ -308,6 +308,14 @@ ResultOutDirOpt = Annotated[
     ),
 ]
 """``--out-dir`` of the commands that read a result (predict, rank, check)."""
+ReportOpt = Annotated[
+    Path | None,
+    typer.Option(
+        help="Also write the HTML report (figures embedded) to this file.",
+        rich_help_panel=OUTPUT,
+    ),
+]
+"""``--report`` of the commands that write an HTML report (calibrate, discover, check)."""
 
 
 @dataclass

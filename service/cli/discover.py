@@ -16,6 +16,7 @@ from service.cli.common import (
     OutDirOpt,
     Outputs,
     PointDistanceOpt,
+    ReportOpt,
     RobotOpt,
     TipOpt,
     UrdfOpt,
@@ -72,13 +73,7 @@ def discover(
     plots: Annotated[
         bool, typer.Option(help="Write a PNG per finding next to -o.", rich_help_panel=OUTPUT)
     ] = True,
-    report: Annotated[
-        Path | None,
-        typer.Option(
-            help="Also write the HTML report (figures embedded) to this file.",
-            rich_help_panel=OUTPUT,
-        ),
-    ] = None,
+    report: ReportOpt = None,
 ) -> None:
     """Find what the model leaves out, name the physics, model it, show the held-out gain."""
     import pydantic

@@ -1,9 +1,8 @@
 """One calibration's checks over time as one self-contained HTML page (issue 33).
 
-An inline SVG chart drawn here from the stored checks — each check's global statistic Σ d²
-against its time, on a log scale (a drift's statistic is often a hundred times its threshold),
-with the threshold as a dashed line (it depends on each check's number of poses, so it is a
-line through every check's own threshold, not one constant) and drifted checks marked — then a
+A chart drawn with matplotlib and inlined as SVG (:func:`service.render.plots.
+checks_over_time_figure`: each check's global statistic Σ d² against its time, on a log scale,
+with each check's own threshold as a dashed step line and drifted checks marked) — then a
 table of the checks, newest first: time, dataset, poses, verdict, statistic, threshold and the
 located change with its size. No scripts, no external resources: it renders under a
 Content-Security-Policy of ``default-src 'none'``. Every string from the data is escaped.
@@ -13,30 +12,29 @@ from __future__ import annotations
 
 import datetime as dt
 import html
-import math
+import io
+import re
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
-from itertools import pairwise
+from typing import TYPE_CHECKING
 
 from schemas.api import CheckSummary
 from schemas.check import LocatedChange
 from service.render.page import html_page
 from service.render.text import located_sizes
 
-WIDTH, HEIGHT = 720, 280
-LEFT, RIGHT, TOP, BOTTOM = 64, 16, 28, 48
-"""Margins of the plot area inside the SVG, px."""
-X_PAD = 16
-"""Space between the plot area's sides and the first and last check, px."""
-SMALLEST = 1e-3
-"""A statistic or threshold drawn at no less than this (the log scale has no 0)."""
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+_DRAWING = threading.Lock()
+"""One chart drawn at a time: the service draws pages in worker threads, and matplotlib's font
+caches (text is drawn as paths) are not thread-safe."""
+SVG_METADATA = ("Creator", "Date", "Format", "Type")
+"""matplotlib's SVG metadata, left out (its RDF names other hosts)."""
 
 _CHART_STYLE = """
-svg.chart { display: block; max-width: 100%; height: auto; font: 12px system-ui, sans-serif; }
-svg.chart .grid { stroke: #e3e3e3; } svg.chart .axis { stroke: #888; }
-svg.chart .threshold { stroke: #e69500; stroke-width: 2; stroke-dasharray: 6 4; fill: none; }
-svg.chart .holds { fill: #3a3; } svg.chart .drifted { fill: #c00; stroke: #600; stroke-width: 2; }
-svg.chart .inconclusive { fill: #999; }
+svg.chart { display: block; max-width: 100%; height: auto; }
 tr.drifted td { background: #fdecec; } td.text, th.text { text-align: left; }
 """
 
@@ -126,127 +124,49 @@ def table(entries: Sequence[CheckEntry]) -> str:
     return f'<table class="checks">{header}{"".join(rows)}</table>'
 
 
-@dataclass(frozen=True)
-class _Axes:
-    """Time → x and log10 value → y of the plot area, px."""
-
-    t_first: float
-    t_span: float
-    log_low: float
-    log_high: float
-
-    def x(self, created_at: dt.datetime) -> float:
-        if self.t_span == 0:
-            return (LEFT + WIDTH - RIGHT) / 2
-        inner = WIDTH - LEFT - RIGHT - 2 * X_PAD
-        return LEFT + X_PAD + (created_at.timestamp() - self.t_first) / self.t_span * inner
-
-    def y(self, value: float) -> float:
-        fraction = (math.log10(max(value, SMALLEST)) - self.log_low) / (
-            self.log_high - self.log_low
-        )
-        return HEIGHT - BOTTOM - fraction * (HEIGHT - TOP - BOTTOM)
-
-
-def _axes(entries: Sequence[CheckEntry]) -> _Axes:
-    times = [c.summary.created_at.timestamp() for c in entries]
-    values = [
-        max(v, SMALLEST)
-        for c in entries
-        for v in (c.summary.statistic, c.summary.threshold)
-        if v is not None
-    ] or [1.0]
-    low = math.floor(math.log10(min(values)))
-    high = max(math.ceil(math.log10(max(values))), low + 1)
-    return _Axes(min(times), max(times) - min(times), low, high)
-
-
 def chart(entries: Sequence[CheckEntry]) -> str:
-    """The SVG: decades of Σ d², the threshold line, one marker per check (oldest first)."""
+    """The chart as inline SVG drawn by matplotlib (:func:`service.render.plots.
+    checks_over_time_figure`, imported here: a request process loads matplotlib with its
+    first page, not at start), every check's point a group ``<g id="check-<i>" class="point
+    <verdict>" data-check-id="...">`` (oldest first) with a ``<title>`` saying what it is."""
+    from service.render.plots import checks_over_time_figure
+
     oldest_first = sorted(entries, key=lambda c: (c.summary.created_at, c.summary.id))
-    axes = _axes(oldest_first)
-    bottom, right = HEIGHT - BOTTOM, WIDTH - RIGHT
-    parts = [
-        f'<svg class="chart" width="{WIDTH}" '
-        f'height="{HEIGHT}" viewBox="0 0 {WIDTH} {HEIGHT}" role="img" '
-        'aria-label="Each check\'s statistic against time, with the threshold">'
-    ]
-    for decade in range(int(axes.log_low), int(axes.log_high) + 1):
-        y = axes.y(10.0**decade)
-        parts.append(
-            f'<line class="grid" x1="{LEFT}" y1="{y:.1f}" x2="{right}" y2="{y:.1f}"/>'
-            f'<text x="{LEFT - 6}" y="{y + 4:.1f}" text-anchor="end">{10.0**decade:g}</text>'
+    with _DRAWING:
+        figure = checks_over_time_figure(
+            [c.summary.created_at for c in oldest_first],
+            [c.summary.statistic for c in oldest_first],
+            [c.summary.threshold for c in oldest_first],
+            [c.summary.verdict for c in oldest_first],
         )
-    parts.append(
-        f'<line class="axis" x1="{LEFT}" y1="{bottom}" x2="{right}" y2="{bottom}"/>'
-        f'<text x="{LEFT}" y="{TOP - 10}">Σ d² (log scale)</text>'
+        svg = inline_svg(figure, "Each check's statistic against time, with the threshold")
+    for i, entry in enumerate(oldest_first):
+        svg = svg.replace(f'<g id="check-{i}">', _point_group(i, entry), 1)
+    return svg
+
+
+def inline_svg(figure: Figure, label: str) -> str:
+    """``figure`` as an ``<svg class="chart">`` element to put in an HTML page: no XML
+    prologue, document type or metadata, no namespace declarations (an HTML parser puts
+    ``<svg>`` in its namespace), so the page names no other host."""
+    buffer = io.StringIO()
+    figure.savefig(buffer, format="svg", metadata=dict.fromkeys(SVG_METADATA))
+    svg = buffer.getvalue()
+    svg = svg[svg.index("<svg") :]
+    svg = re.sub(r' xmlns(:xlink)?="[^"]*"', "", svg, count=2)
+    return svg.replace(
+        "<svg ", f'<svg class="chart" role="img" aria-label="{html.escape(label)}" ', 1
     )
-    parts += _time_labels(oldest_first, axes)
-    parts.append(_threshold_line(oldest_first, axes))
-    parts += [_marker(entry, axes) for entry in oldest_first]
-    parts.append(_legend())
-    parts.append("</svg>")
-    return "".join(parts)
 
 
-def _time_labels(oldest_first: Sequence[CheckEntry], axes: _Axes) -> list[str]:
-    first, last = oldest_first[0].summary.created_at, oldest_first[-1].summary.created_at
-    y = HEIGHT - BOTTOM + 18
-    if axes.t_span == 0:
-        return [f'<text x="{axes.x(first):.1f}" y="{y}" text-anchor="middle">{_when(first)}</text>']
-    return [
-        f'<text x="{axes.x(first):.1f}" y="{y}" text-anchor="start">{_when(first)}</text>',
-        f'<text x="{axes.x(last):.1f}" y="{y}" text-anchor="end">{_when(last)}</text>',
-    ]
-
-
-def _threshold_line(oldest_first: Sequence[CheckEntry], axes: _Axes) -> str:
-    """Each check's own threshold held flat from half-way to its neighbours (the plot's sides
-    for the first and last): a step wherever the number of poses changes it."""
-    points = [
-        (axes.x(c.summary.created_at), axes.y(c.summary.threshold))
-        for c in oldest_first
-        if c.summary.threshold is not None
-    ]
-    if not points:
-        return ""
-    xs = [x for x, _ in points]
-    edges = [float(LEFT), *((a + b) / 2 for a, b in pairwise(xs)), WIDTH - RIGHT]
-    steps = []
-    for i, (_, y) in enumerate(points):
-        steps += [(edges[i], y), (edges[i + 1], y)]
-    coordinates = " ".join(f"{x:.1f},{y:.1f}" for x, y in steps)
-    return f'<polyline class="threshold" points="{coordinates}"/>'
-
-
-def _marker(entry: CheckEntry, axes: _Axes) -> str:
-    """A dot at the check's statistic (larger and red when it drifted); a grey triangle on the
-    time axis for an inconclusive check, which has no statistic."""
+def _point_group(index: int, entry: CheckEntry) -> str:
     e = html.escape
     s = entry.summary
-    x = axes.x(s.created_at)
     title = (
-        f"<title>{e(_when(s.created_at))}: {e(s.verdict)}, Σ d² {_number(s.statistic)} "
-        f"(threshold {_number(s.threshold)}); {e(located_text(entry))}</title>"
+        f"{_when(s.created_at)}: {s.verdict}, Σ d² {_number(s.statistic)} "
+        f"(threshold {_number(s.threshold)}); {located_text(entry)}"
     )
-    data = f'class="point {e(s.verdict)}" data-check-id="{e(s.id)}"'
-    if s.statistic is None:
-        bottom = HEIGHT - BOTTOM
-        triangle = f"{x - 5:.1f},{bottom:.1f} {x + 5:.1f},{bottom:.1f} {x:.1f},{bottom - 9:.1f}"
-        return f'<polygon {data} points="{triangle}">{title}</polygon>'
-    radius = 7 if s.verdict == "drifted" else 4.5
-    y = axes.y(s.statistic)
-    return f'<circle {data} cx="{x:.1f}" cy="{y:.1f}" r="{radius}">{title}</circle>'
-
-
-def _legend() -> str:
-    y = HEIGHT - 10
     return (
-        f'<circle class="holds" cx="{LEFT + 6}" cy="{y - 4}" r="4.5"/>'
-        f'<text x="{LEFT + 16}" y="{y}">holds</text>'
-        f'<circle class="drifted" cx="{LEFT + 76}" cy="{y - 4}" r="6"/>'
-        f'<text x="{LEFT + 88}" y="{y}">drifted</text>'
-        f'<line class="threshold" x1="{LEFT + 150}" y1="{y - 4}" x2="{LEFT + 180}" y2="{y - 4}"/>'
-        f'<text x="{LEFT + 186}" y="{y}">threshold at the level</text>'
-        f'<text x="{LEFT + 340}" y="{y}">▲ inconclusive (no test)</text>'
+        f'<g id="check-{index}" class="point {e(s.verdict)}" data-check-id="{e(s.id)}">'
+        f"<title>{e(title)}</title>"
     )

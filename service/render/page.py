@@ -1,7 +1,7 @@
 """The frame of the HTML pages kincal writes and serves: one inline style sheet, no scripts, no
 external resources (the reports and the checks page render offline and under a
-Content-Security-Policy of ``default-src 'none'``). Standard library only, so a request process
-that serves a page loads no plotting library."""
+Content-Security-Policy of ``default-src 'none'``). Standard library only: a request process
+loads matplotlib with the first page that draws a figure, not when it starts."""
 
 from __future__ import annotations
 

@@ -102,10 +102,8 @@ def _coverage(predictive: PredictiveCovariance) -> str:
         title=f"{coverage.n_heldout} held-out poses, {coverage.dimension}-D, "
         f"{coverage.n_splits} splits",
     )
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=110)
     return (
-        png_img(buffer.getvalue(), "Coverage: expected vs observed share inside the ellipsoid")
+        figure_img(figure, "Coverage: expected vs observed share inside the ellipsoid")
         + text
         + f"<p>{e(coverage.protocol)}</p>"
     )
@@ -240,8 +238,6 @@ def _random_effects(covariance: CovarianceResult | None) -> str:
         f"{covariance.estimator})",
         fontsize=10,
     )
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=110)
     warnings = "".join(f'<p class="warn">{e(w)}</p>' for w in covariance.identifiability.warnings)
     fixed = ", ".join(e(f) for f in covariance.identifiability.fixed)
     unseen = "".join(
@@ -251,7 +247,7 @@ def _random_effects(covariance: CovarianceResult | None) -> str:
         if reason is not None
     )
     return (
-        png_img(buffer.getvalue(), "Standard deviation per frame")
+        figure_img(figure, "Standard deviation per frame")
         + (
             f"<p>σ not shown (the data cannot see these axes):</p><ul>{unseen}</ul>"
             if unseen
@@ -260,6 +256,13 @@ def _random_effects(covariance: CovarianceResult | None) -> str:
         + (f"<p>Fixed entries: {fixed}</p>" if fixed else "")
         + warnings
     )
+
+
+def figure_img(figure: Figure, alt: str) -> str:
+    """``figure`` as an ``<img>`` of its PNG (110 dpi) embedded as a data URI."""
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110)
+    return png_img(buffer.getvalue(), alt)
 
 
 def png_img(png: bytes, alt: str) -> str:

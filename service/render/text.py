@@ -12,7 +12,7 @@ from schemas.calibration import (
     SolverReport,
     Verdict,
 )
-from schemas.check import LocatedChange
+from schemas.check import CheckResult, LocatedChange
 from schemas.ranking import RankingResult
 
 METHOD_LABELS = {"before": "Init.", "calibrated": "Cal. Ours", "gp": "Cal. GP"}
@@ -268,3 +268,49 @@ def located_sizes(located: LocatedChange) -> str:
         f"{check_size(c.high95, c.unit)}]"
         for c in located.components
     )
+
+
+BAD_SAMPLE = "bad sample: re-measure"
+"""How the CLI table and the HTML report flag a pose set aside as a bad sample."""
+
+
+def check_verdict_line(check: CheckResult) -> str:
+    """The line ``kincal check`` ends with, the top of its report: the verdict and why."""
+    return f"check: {check.verdict}: {check.reason}"
+
+
+def check_pose_limit(check: CheckResult) -> str:
+    """The max-type test's per-pose limit, as the per-pose table's header says it."""
+    return "" if check.max_threshold is None else f"one pose's limit {check.max_threshold:.1f}"
+
+
+def check_located_lines(check: CheckResult) -> list[str]:
+    """The located change with its 95 % intervals and the candidates these poses cannot tell
+    apart from it (or that none is significant), in the CLI and the report."""
+    located = check.located
+    if located is None:
+        if check.verdict == "drifted":
+            return ["located: no single candidate change is significant"]
+        return []
+    lines = [
+        f"located: {located.name}: {located_sizes(located)} "
+        f"(95 %; adjusted p = {located.adjusted_p_value:.2g})"
+    ]
+    if located.indistinguishable_from:
+        lines.append(
+            "these check poses cannot tell it apart from: "
+            + ", ".join(located.indistinguishable_from)
+        )
+    return lines
+
+
+def check_sizes_line(check: CheckResult) -> str | None:
+    """The stated sizes: the smallest change of each kind the check detects and locates with
+    its power ("detected only" where it is not located that often)."""
+    if not check.stated_sizes:
+        return None
+    sizes = ", ".join(
+        f"{s.name} {check_size(s.size, s.unit)}{'' if s.located else ' (detected only)'}"
+        for s in check.stated_sizes
+    )
+    return f"detected and located with {check.power:.0%} probability: {sizes}"

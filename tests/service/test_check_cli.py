@@ -1,11 +1,13 @@
 """``kincal check`` through the CLI on the real FR3 recording (issue 33): calibrated on the
 other rows, 10 held-out rows hold; the same rows with a joint reading 2 mrad off drift, located
-to that joint; a bad row is named; another robot, another measurement type and other frames
-are refused with exit code 2."""
+to that joint; a bad row is named (the HTML report of both, ``--report``, says what the
+terminal and check.json say); another robot, another measurement type and other frames are
+refused with exit code 2."""
 
 from __future__ import annotations
 
 import contextlib
+import html
 import io
 import re
 from pathlib import Path
@@ -17,6 +19,7 @@ import pytest
 from schemas.check import CheckResult
 from service.app.check import run_check
 from service.cli.common import read_result
+from service.render.text import BAD_SAMPLE, check_size
 from solver.errors import KincalError
 from tests.conftest import REAL_DATA, REPO, assert_quoted_output, computed_once
 from tests.service.cli_support import real_calibration, run, run_ok
@@ -49,12 +52,43 @@ def check(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
+    *options: str | Path,
 ) -> tuple[int, str, str, Path]:
     recording = tmp_path / "check.csv"
     rows.to_csv(recording, index=False, float_format="%.17g")
     out = tmp_path / "check.json"
-    code, stdout, stderr = run(["check", calibrated[0], recording, "-o", out], capsys, monkeypatch)
+    code, stdout, stderr = run(
+        ["check", calibrated[0], recording, "-o", out, *options], capsys, monkeypatch
+    )
     return code, stdout, stderr, out
+
+
+def assert_report_agrees(stdout: str, result: CheckResult, report: Path) -> None:
+    """The terminal, check.json and the HTML report (``--report``, listed among the files
+    written) say the same verdict, located change and bad-sample poses; the page loads
+    nothing and runs nothing."""
+    page = report.read_text(encoding="utf-8")
+    assert f"  {report}  HTML report" in stdout
+    assert "<script" not in page and "http://" not in page and "https://" not in page
+    assert 'src="data:image/png;base64,' in page  # the d² figure, embedded
+    verdict_line = stdout.splitlines()[-1]
+    assert verdict_line == f"check: {result.verdict}: {result.reason}"
+    shown = re.search(r'<p class="(?:ok|warn)" id="verdict">(.*?)</p>', page)
+    assert shown and html.unescape(shown.group(1)) == verdict_line
+    assert f"<h2>Verdict: {result.verdict}</h2>" in page
+    flagged = [int(line.split()[0]) for line in stdout.splitlines() if line.endswith(BAD_SAMPLE)]
+    in_page = [int(i) for i in re.findall(r'<tr class="pose bad-sample" data-pose="(\d+)"', page)]
+    assert flagged == [p.index for p in result.poses if p.bad_sample] == in_page
+    located_lines = [line for line in stdout.splitlines() if line.startswith("located: ")]
+    in_report = re.search(r'<p id="located">(.*?)</p>', page)
+    assert in_report
+    if result.located is None:
+        assert located_lines == [] and in_report.group(1).startswith("No change located")
+        return
+    component = result.located.components[0]
+    assert located_lines == [html.unescape(in_report.group(1))]
+    assert located_lines[0].startswith(f"located: {result.located.name}: {component.name} ")
+    assert check_size(component.value, component.unit) in located_lines[0]
 
 
 def test_held_out_rows_hold(calibrated, tmp_path, capsys, monkeypatch) -> None:
@@ -78,9 +112,13 @@ def test_a_joint_reading_off_by_2_mrad_drifts_and_is_located(
 ) -> None:
     rows = calibrated[1].copy()
     rows["q3"] += 0.002
-    code, stdout, _, out = check(calibrated, rows, tmp_path, capsys, monkeypatch)
+    report = tmp_path / "check.html"
+    code, stdout, _, out = check(
+        calibrated, rows, tmp_path, capsys, monkeypatch, "--report", report
+    )
     assert code == 3
     result = CheckResult.model_validate_json(out.read_bytes())
+    assert_report_agrees(stdout, result, report)
     assert result.verdict == "drifted"
     assert result.located is not None and result.located.name == "panda_joint3 offset"
     offset = result.located.components[0]
@@ -94,9 +132,13 @@ def test_a_bad_row_of_the_recording_is_named(calibrated, tmp_path, capsys, monke
     """The FR3's own bad row 112 (about 8 mm off) among 9 good ones: named, the rest hold."""
     bad = pd.read_csv(FR3).query("sample_id == 112")
     rows = pd.concat([calibrated[1].iloc[:9], bad])
-    code, stdout, _, out = check(calibrated, rows, tmp_path, capsys, monkeypatch)
+    report = tmp_path / "report.html"
+    code, stdout, _, out = check(
+        calibrated, rows, tmp_path, capsys, monkeypatch, "--report", report
+    )
     assert code == 0
     result = CheckResult.model_validate_json(out.read_bytes())
+    assert_report_agrees(stdout, result, report)
     assert result.verdict == "holds"
     assert [p.index for p in result.poses if p.bad_sample] == [10]
     assert result.poses[9].sample_id == "112"
@@ -138,9 +180,14 @@ def test_level_outside_zero_one_is_refused(calibrated) -> None:
 
 
 def test_two_poses_are_inconclusive(calibrated, tmp_path, capsys, monkeypatch) -> None:
-    code, stdout, _, out = check(calibrated, calibrated[1].iloc[:2], tmp_path, capsys, monkeypatch)
+    report = tmp_path / "check.html"
+    rows = calibrated[1].iloc[:2]
+    code, stdout, _, out = check(
+        calibrated, rows, tmp_path, capsys, monkeypatch, "--report", report
+    )
     assert code == 0
     result = CheckResult.model_validate_json(out.read_bytes())  # reads back: no inf in it
+    assert_report_agrees(stdout, result, report)  # no limits to draw: the report still says so
     assert result.verdict == "inconclusive" and result.max_threshold is None
     assert result.stated_sizes == [] and result.global_test is None
     assert stdout.splitlines()[-1].startswith("check: inconclusive: 2 check pose(s)")

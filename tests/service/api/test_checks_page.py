@@ -1,9 +1,10 @@
 """The checks page (issue 33): one calibration's checks over time as HTML served by the service
 with no CDN. The real FR3 recording calibrated through the service once, its 10 held-out rows
 checked as recorded (holds; the dataset under a hostile name) and with joint 3 reading 2 mrad
-off (drifted, located). The page shows both checks' values in its table and SVG, escapes the
-name, is 404 for another tenant and an unknown calibration, says so when there is no check,
-and renders in headless Chromium with nothing but the service to load from."""
+off (drifted, located). The page shows both checks' values in its table and its chart
+(matplotlib's SVG, inline), escapes the name, is 404 for another tenant and an unknown
+calibration, says so when there is no check, and renders in headless Chromium with nothing but
+the service to load from."""
 
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ from tests.service.api.conftest import (
 )
 from tests.service.api.test_checks import calibrated_service
 from tests.service.api.test_docs_browser import CHROMIUM, rendered_dom
+from tests.service.test_checks_html import points
 
 URL = "/api/v1/calibrations"
 HOSTILE = '<script>alert("x")</script> & <b>bold</b>.csv'
@@ -80,19 +82,6 @@ def client(checked: Page) -> Iterator[TestClient]:
         yield client
 
 
-def points(page: str) -> dict[str, dict[str, str]]:
-    """The SVG markers by check id: their element, class and attributes."""
-    found = {}
-    for match in re.finditer(r'<(circle|polygon) class="point ([a-z]+)" ([^>]*)>', page):
-        attributes = dict(re.findall(r'([a-z-]+)="([^"]*)"', match.group(3)))
-        found[attributes["data-check-id"]] = {
-            "element": match.group(1),
-            "verdict": match.group(2),
-            **attributes,
-        }
-    return found
-
-
 def test_the_page_shows_each_check_in_the_table_and_the_chart(
     checked: Page, client: TestClient
 ) -> None:
@@ -124,11 +113,11 @@ def test_the_page_shows_each_check_in_the_table_and_the_chart(
     assert set(markers) == {held["id"], drifted["id"]}
     assert markers[held["id"]]["verdict"] == "holds"
     assert markers[drifted["id"]]["verdict"] == "drifted"
-    assert float(markers[drifted["id"]]["r"]) > float(markers[held["id"]]["r"])  # marked
+    assert float(markers[drifted["id"]]["size"]) > float(markers[held["id"]]["size"])  # marked
     # the drift's Σ d² is above the threshold, the held check's below: higher on the chart
-    assert float(markers[drifted["id"]]["cy"]) < float(markers[held["id"]]["cy"])
-    assert float(markers[drifted["id"]]["cx"]) > float(markers[held["id"]]["cx"])  # later
-    assert '<polyline class="threshold"' in page
+    assert float(markers[drifted["id"]]["y"]) < float(markers[held["id"]]["y"])
+    assert float(markers[drifted["id"]]["x"]) > float(markers[held["id"]]["x"])  # later
+    assert '<g id="threshold">' in page
 
 
 def test_a_hostile_dataset_name_is_escaped(checked: Page, client: TestClient) -> None:
@@ -170,7 +159,7 @@ def test_the_page_renders_in_headless_chromium(checked: Page, served: str, tmp_p
     url = served + report_url(checked.calibration_id)
     assert httpx.get(url).status_code == 200
     dom = rendered_dom(url, tmp_path / "profile")
-    assert "<svg" in dom and '<polyline class="threshold"' in dom
+    assert "<svg" in dom and '<g id="threshold">' in dom
     for check in (checked.held, checked.drifted):
         assert f'<tr class="check {check["verdict"]}" data-check-id="{check["id"]}">' in dom
         assert f'data-check-id="{check["id"]}"' in dom.split("</svg>")[0]  # its point
