@@ -76,7 +76,9 @@ class UrdfOutline:
             children.setdefault(parent, []).append((joint, kind, link))
         leading: set[str] = set()  # joints that are movable or have a movable joint after them
         for link, (_, kind, _) in self.parent_of_link.items():
-            above = link if kind != "fixed" else ""
+            if kind == "fixed":
+                continue
+            above = link  # mark the joints up to the root, or to one already marked
             while above in self.parent_of_link and self.parent_of_link[above][0] not in leading:
                 leading.add(self.parent_of_link[above][0])
                 above = self.parent_of_link[above][2]
@@ -87,16 +89,17 @@ class UrdfOutline:
             onward = [step for step in children.get(link, []) if step[0] in leading]
             if len(onward) != 1:
                 break
-            joint, kind, link = onward[0]
+            _, kind, link = onward[0]
             tip = link if kind != "fixed" else tip
-        if not tip:
-            where = f"it branches at {link} into {', '.join(j for j, _, _ in onward)}"
+        if tip:
+            return roots[0], tip
+        if onward:
             raise ModelError(
-                f"urdf: no movable joint on the trunk from {roots[0]} "
-                f"({where if len(onward) > 1 else 'no movable joint'}); give --base FRAME and "
-                "--tip FRAME"
+                f"urdf: the tree branches at {link} into {', '.join(j for j, _, _ in onward)} "
+                "before any movable joint, so which arm is meant is not clear; give --base FRAME "
+                "and --tip FRAME"
             )
-        return roots[0], tip
+        raise ModelError(f"urdf: no movable joint below the root link {roots[0]}: not an arm")
 
 
 def outline_urdf(urdf_xml: str) -> UrdfOutline:

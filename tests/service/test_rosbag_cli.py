@@ -208,8 +208,7 @@ def test_import_of_a_bag_without_a_robot_names_the_columns_by_the_topic(
         (
             "<robot name='x'><link name='a'/><link name='b'/><joint name='j' type='fixed'>"
             "<parent link='a'/><child link='b'/></joint></robot>",
-            ": no movable joint on the trunk from a (no movable joint); give --base FRAME and "
-            "--tip FRAME",
+            ": no movable joint below the root link a: not an arm",
         ),
     ],
 )
