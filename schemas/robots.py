@@ -1,4 +1,5 @@
-"""Where robot descriptions come from: built-in names or a user URDF file."""
+"""Where robot descriptions come from: built-in names, a user URDF file (or a URDF's text, e.g.
+the one a ROS bag carries) or a DH table."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from schemas.urdf_outline import check_urdf_limits
+from schemas.urdf_outline import UrdfOutline, check_urdf_limits
 from solver.errors import ModelError
 
 
@@ -72,8 +73,7 @@ def load_robot(
             raise ModelError(
                 f"cannot read URDF {path}: {getattr(exc, 'strerror', None) or exc}"
             ) from exc
-        check_urdf_limits(xml, base_frame, tip_frame)  # before Pinocchio can crash on it
-        return RobotDescription(name or path.stem, xml, base_frame, tip_frame)
+        return urdf_robot(xml, name or path.stem, base_frame, tip_frame)[0]
     if name is None:
         raise ModelError(
             "give --robot NAME (one of: " + ", ".join(BUILTIN_ROBOTS) + ") or --urdf FILE"
@@ -83,6 +83,24 @@ def load_robot(
     relative, default_base, default_tip = BUILTIN_ROBOTS[name]
     xml = (example_robot_data_dir() / relative).read_text(encoding="utf-8")
     return RobotDescription(name, xml, base_frame or default_base, tip_frame or default_tip)
+
+
+def urdf_robot(
+    urdf_xml: str,
+    name: str | None,
+    base_frame: str | None = None,
+    tip_frame: str | None = None,
+) -> tuple[RobotDescription, UrdfOutline]:
+    """The robot of a URDF's text and its outline, measured (:func:`check_urdf_limits`) before
+    Pinocchio can crash on it; ``name`` None: the URDF's ``<robot name>``; a frame not given is
+    the arm's (:meth:`UrdfOutline.arm_frames`: the root link, the link of the last joint before
+    the tree branches)."""
+    outline = check_urdf_limits(urdf_xml, base_frame or "", tip_frame or "")
+    if base_frame is None or tip_frame is None:
+        arm_base, arm_tip = outline.arm_frames()
+        base_frame, tip_frame = base_frame or arm_base, tip_frame or arm_tip
+    description = RobotDescription(name or outline.name or "robot", urdf_xml, base_frame, tip_frame)
+    return description, outline
 
 
 def load_dh_robot(path: Path) -> RobotDescription:

@@ -35,6 +35,8 @@ class UrdfOutline:
     parent_of_link: dict[str, tuple[str, str, str]] = field(repr=False)
     """child link -> (joint name, joint type, parent link)."""
     child_of_joint: dict[str, str] = field(repr=False)
+    name: str = ""
+    """The ``<robot name>``."""
 
     def movable_joints_between(self, base_frame: str, tip_frame: str) -> list[str] | None:
         """Non-fixed joints on the path from ``base_frame`` up to ``tip_frame``, base first;
@@ -52,6 +54,53 @@ class UrdfOutline:
                 joints.append(name)
         return joints[::-1]
 
+    def root_links(self) -> list[str]:
+        """Links that are a joint's parent and no joint's child, sorted."""
+        parents = {parent for _, _, parent in self.parent_of_link.values()}
+        return sorted(parents - self.parent_of_link.keys())
+
+    def arm_frames(self) -> tuple[str, str]:
+        """The base and tip frames of the arm when none are named: the root link, and the child
+        link of the last movable joint on the trunk, the path from the root that goes on while
+        exactly one child joint leads to movable joints (a gripper's fingers or a second arm
+        branch off: the trunk ends there). :class:`ModelError` naming ``--base``/``--tip`` when
+        the tree has not one root or no movable joint on its trunk."""
+        roots = self.root_links()
+        if len(roots) != 1:
+            raise ModelError(
+                f"urdf: {len(roots)} root links ({', '.join(roots) or 'none'}), not one; "
+                "give --base FRAME and --tip FRAME"
+            )
+        children: dict[str, list[tuple[str, str, str]]] = {}
+        for link, (joint, kind, parent) in self.parent_of_link.items():
+            children.setdefault(parent, []).append((joint, kind, link))
+        leading: set[str] = set()  # joints that are movable or have a movable joint after them
+        for link, (_, kind, _) in self.parent_of_link.items():
+            if kind == "fixed":
+                continue
+            above = link  # mark the joints up to the root, or to one already marked
+            while above in self.parent_of_link and self.parent_of_link[above][0] not in leading:
+                leading.add(self.parent_of_link[above][0])
+                above = self.parent_of_link[above][2]
+        link, tip, seen = roots[0], "", set()
+        onward: list[tuple[str, str, str]] = []
+        while link not in seen:
+            seen.add(link)
+            onward = [step for step in children.get(link, []) if step[0] in leading]
+            if len(onward) != 1:
+                break
+            _, kind, link = onward[0]
+            tip = link if kind != "fixed" else tip
+        if tip:
+            return roots[0], tip
+        if onward:
+            raise ModelError(
+                f"urdf: the tree branches at {link} into {', '.join(j for j, _, _ in onward)} "
+                "before any movable joint, so which arm is meant is not clear; give --base FRAME "
+                "and --tip FRAME"
+            )
+        raise ModelError(f"urdf: no movable joint below the root link {roots[0]}: not an arm")
+
 
 def outline_urdf(urdf_xml: str) -> UrdfOutline:
     """Stream through ``urdf_xml`` and collect its joints and links; :class:`ModelError` naming
@@ -59,6 +108,7 @@ def outline_urdf(urdf_xml: str) -> UrdfOutline:
     parent_of_link: dict[str, tuple[str, str, str]] = {}
     child_of_joint: dict[str, str] = {}
     n_joints = n_links = depth = 0
+    name = ""
     try:
         events = SafeET.iterparse(
             io.BytesIO(urdf_xml.encode("utf-8")), events=("start", "end"), forbid_dtd=True
@@ -71,6 +121,8 @@ def outline_urdf(urdf_xml: str) -> UrdfOutline:
                         f"urdf: the root element is <{element.tag}>, expected <robot>; send a "
                         "URDF document"
                     )
+                if depth == 1:
+                    name = element.get("name", "")
                 continue
             depth -= 1
             if depth == 1 and element.tag == "link":
@@ -87,7 +139,7 @@ def outline_urdf(urdf_xml: str) -> UrdfOutline:
         ) from exc
     except ParseError as exc:
         raise ModelError(f"urdf: not well-formed XML ({exc}); fix the XML") from exc
-    return UrdfOutline(n_joints, n_links, parent_of_link, child_of_joint)
+    return UrdfOutline(n_joints, n_links, parent_of_link, child_of_joint, name)
 
 
 def _record_joint(

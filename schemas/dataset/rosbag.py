@@ -60,6 +60,8 @@ SOURCE_FORMS = "tf:PARENT:CHILD, pose:TOPIC, point:TOPIC or calibration-data:TOP
 CAPTURE_SENSORS = ("camera", "arm")
 """robot_calibration's checkerboard finder's default sensor names (camera, chain)."""
 MIN_FEATURES = 3
+ROBOT_DESCRIPTION_TOPIC = "/robot_description"
+STRING = "std_msgs/msg/String"
 
 
 @dataclass(frozen=True)
@@ -188,6 +190,27 @@ def read_bag(
     frame = _frame(names, samples, start_ns)
     dataset = dataset_from_frame(frame, names, source=source, other_joint_names=other_joint_names)
     return BagRecording(dataset, samples)
+
+
+def read_robot_description(path: str | Path, *, source: str | None = None) -> str | None:
+    """The URDF a bag carries on :data:`ROBOT_DESCRIPTION_TOPIC` (``std_msgs/String``, as
+    robot_calibration records it: usually one latched message): the text of its last message;
+    None when the bag has no such topic or no message on it."""
+    path = Path(path)
+    source = source or path.name
+    with _open(path, source) as reader:
+        info = reader.topics.get(ROBOT_DESCRIPTION_TOPIC)
+        if info is None:
+            return None
+        if info.msgtype != STRING:
+            raise DatasetError(
+                f"{source}: topic {ROBOT_DESCRIPTION_TOPIC!r} holds {info.msgtype}, not {STRING} "
+                "(a URDF); pass --robot NAME or --urdf FILE"
+            )
+        text = None
+        for _, msg in _messages(reader, ROBOT_DESCRIPTION_TOPIC):
+            text = str(msg.data)
+    return text
 
 
 def _measure_topics(measure: MeasureSource, topics: dict[str, str]) -> tuple[str, ...]:

@@ -55,6 +55,7 @@ from service.cli.common import (
     read_bag,
     read_findings,
     read_noise_covariance,
+    robot_for,
 )
 from service.cli.flags import (
     CALIBRATION_FLAGS,
@@ -275,7 +276,7 @@ def calibrate(
     rows: exit code 2 with the fix), then writes the result JSON (and the files asked for) to
     -o/--out-dir, lists every file written and ends with the verdict: exit code 0 when it is ok
     or a warning, 3 when it failed."""
-    description = _robot(robot, urdf, base, tip, dh)
+    description = robot_for(data, robot, urdf, base, tip, dh, to_stderr=show_options)
     if rigid and compliant_joints is not None:
         raise KincalError("give --rigid or --compliant-joints, not both")
     options = calibration_options(

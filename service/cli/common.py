@@ -11,9 +11,9 @@ from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import typer
 
-from schemas.robots import BUILTIN_ROBOTS, RobotDescription, load_robot
+from schemas.robots import BUILTIN_ROBOTS, RobotDescription, load_robot, urdf_robot
 from service.cli.flags import numbers, option_help
-from solver.errors import KincalError
+from solver.errors import KincalError, ModelError
 
 if TYPE_CHECKING:  # imported where used: ``kincal --help`` stays light (docs/architecture.md)
     import pydantic
@@ -105,7 +105,8 @@ DataOrBagArg = Annotated[
     Path,
     typer.Argument(
         help=f"{_DATA_HELP}; or a ROS bag (.bag file, rosbag2 folder) with --joint-states and "
-        "--measure.",
+        "--measure (without --robot/--urdf/--dh, the URDF it carries on /robot_description is "
+        "the robot).",
         metavar="RECORDING",
         show_default=False,
     ),
@@ -382,6 +383,63 @@ def _robot(
     dh: Path | None = None,
 ) -> RobotDescription:
     return load_robot(robot, urdf_path=urdf, base_frame=base, tip_frame=tip, dh_path=dh)
+
+
+def robot_for(
+    recording: Path,
+    robot: str | None,
+    urdf: Path | None,
+    base: str | None,
+    tip: str | None,
+    dh: Path | None,
+    *,
+    to_stderr: bool = False,
+) -> RobotDescription:
+    """The robot of the robot options (--robot, --urdf, --dh); without one, the URDF a ROS bag
+    ``recording`` carries (:func:`bag_robot`, said in one line, on stderr if ``to_stderr``);
+    neither: :class:`KincalError` naming both fixes."""
+    if robot is not None or urdf is not None or dh is not None:
+        return _robot(robot, urdf, base, tip, dh)
+    from schemas.dataset.rosbag import ROBOT_DESCRIPTION_TOPIC, is_bag
+
+    if not is_bag(recording):
+        return _robot(robot, urdf, base, tip, dh)  # the error that names the robot options
+    description = bag_robot(recording, base, tip, to_stderr=to_stderr)
+    if description is None:
+        raise KincalError(
+            f"{recording.name}: no robot given and no URDF on {ROBOT_DESCRIPTION_TOPIC} in the "
+            "bag; pass --robot NAME or --urdf FILE --base FRAME --tip FRAME, or record "
+            f"{ROBOT_DESCRIPTION_TOPIC} (std_msgs/String) with the bag"
+        )
+    return description
+
+
+def bag_robot(
+    bag: Path, base: str | None, tip: str | None, *, to_stderr: bool = False
+) -> RobotDescription | None:
+    """The robot of the URDF the ROS bag ``bag`` carries on /robot_description (its last
+    message), checked as a --urdf file is and built once by Pinocchio so that a bad one is
+    refused naming the bag; ``base``/``tip`` as given, else the arm's (the root link, the link
+    of the last joint before the tree branches). Says so in one line; None without the topic."""
+    from schemas.dataset.rosbag import ROBOT_DESCRIPTION_TOPIC, read_robot_description
+    from solver.model import build_chain
+
+    urdf_xml = read_robot_description(bag)
+    if urdf_xml is None:
+        return None
+    where = f"the URDF on {ROBOT_DESCRIPTION_TOPIC} in {bag.name}"
+    try:
+        description, outline = urdf_robot(urdf_xml, None, base, tip)
+        chain = build_chain(urdf_xml, description.base_frame, description.tip_frame)
+    except ModelError as exc:
+        detail = str(exc).removeprefix("urdf: ")
+        raise ModelError(f"{where}: {detail}, or pass --robot NAME / --urdf FILE instead") from exc
+    typer.echo(
+        f"robot: {where} ({outline.n_links} links; chain {description.base_frame} → "
+        f"{description.tip_frame}, {len(chain.joint_names)} joints)",
+        err=to_stderr,
+    )
+    return description
 
 
 def _names(text: str | None) -> list[str] | None:

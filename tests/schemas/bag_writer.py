@@ -2,7 +2,9 @@
 ``/joint_states`` that hold each recorded configuration still (with jitter far below the still
 tolerance) and move between captures, 30 Hz ``/tf`` camera_link → mid → board (the first edge
 static on ``/tf_static``, the second carrying the recorded pose composed with its inverse), plus
-a hold too short to count and a hold while the measurement is not published."""
+a hold too short to count and a hold while the measurement is not published; and the robot's
+URDF on ``/robot_description`` (``std_msgs/String``, one latched message), as robot_calibration
+records it."""
 
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
 from schemas.dataset import PoseDataset, read_dataset
-from tests.conftest import REAL_DATA, computed_once
+from tests.conftest import REAL_DATA, computed_once, robot
 
 FR3_POSES = REAL_DATA / "philnad_fr3_eye_in_hand" / "fr3_poses.csv"
 PANDA_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
@@ -143,31 +145,29 @@ def _streams(ds: PoseDataset, seed: int) -> tuple[list[Any], list[Any], list[int
     return joint_msgs, tf_msgs, captures, Truth(len(joint_msgs), moving, n_captures=len(captures))
 
 
+ROBOT_DESCRIPTION = "/robot_description"
 STORAGES = {"ros1": "fr3.bag", "sqlite3": "fr3_sqlite3", "mcap": "fr3_mcap"}
 """Each storage and the name of its bag (a file for ROS 1, a rosbag2 folder otherwise)."""
 
 
 def fr3_bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[Path, Truth]]:
-    """The real FR3 recording written as a bag of each storage, once per test run."""
+    """The real FR3 recording written as a bag of each storage, once per test run, with the
+    built-in panda's URDF (the FR3's joints) on /robot_description."""
 
     def write_all(folder: Path) -> dict[str, tuple[Path, Truth]]:
         ds = read_dataset(FR3_POSES, PANDA_JOINTS)
+        urdf_xml = robot("panda").urdf_xml
         return {
-            storage: (folder / name, write_bag(folder / name, ds, storage))
+            storage: (folder / name, write_bag(folder / name, ds, storage, urdf_xml=urdf_xml))
             for storage, name in STORAGES.items()
         }
 
     return computed_once(tmp_path_factory, "fr3-bags", write_all)
 
 
-def write_bag(
-    path: Path, ds: PoseDataset, storage: str, *, seed: int = 34, skip: tuple[str, ...] = ()
-) -> Truth:
-    """``ds`` (the panda's joints) as a bag: ``storage`` ros1 (``path`` a .bag file), sqlite3 or
-    mcap (``path`` a rosbag2 folder); ``skip``: topics left out (a bad bag)."""
-    from rosbags.rosbag1 import Writer as Writer1
-    from rosbags.rosbag2 import StoragePlugin
-    from rosbags.rosbag2 import Writer as Writer2
+def _store(storage: str) -> tuple[Any, Callable[[Any, str], Any]]:
+    """The typestore a ``storage`` (ros1, sqlite3, mcap) bag is written with (ROS 1 Noetic's, with
+    tf2_msgs; else ROS 2 Humble's) and its serializer."""
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     ros1 = storage == "ros1"
@@ -175,8 +175,46 @@ def write_bag(
     if ros1:  # noetic's store lacks tf2_msgs
         tf_msg = "geometry_msgs/TransformStamped[] transforms"
         store.register(get_types_from_msg(tf_msg, "tf2_msgs/msg/TFMessage"))
+    return store, store.serialize_ros1 if ros1 else store.serialize_cdr
+
+
+def _writer(path: Path, storage: str) -> Any:
+    """rosbags' writer of a ``storage`` bag at ``path`` (ROS 1 file; rosbag2 folder, version 9)."""
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+
+    if storage == "ros1":
+        return Writer1(path)
+    plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
+    return Writer2(path, version=9, storage_plugin=plugin)
+
+
+def write_robot_description_bag(path: Path, storage: str, text: str) -> None:
+    """A bag holding only ``text`` on /robot_description (a bad URDF's bag: the robot is read
+    before any other topic)."""
+    store, serialize = _store(storage)
+    kind = "std_msgs/msg/String"
+    with _writer(path, storage) as writer:
+        connection = writer.add_connection(ROBOT_DESCRIPTION, kind, typestore=store)
+        writer.write(connection, START_NS, serialize(store.types[kind](data=text), kind))
+
+
+def write_bag(
+    path: Path,
+    ds: PoseDataset,
+    storage: str,
+    *,
+    seed: int = 34,
+    skip: tuple[str, ...] = (),
+    urdf_xml: str | None = None,
+) -> Truth:
+    """``ds`` (the panda's joints) as a bag: ``storage`` ros1 (``path`` a .bag file), sqlite3 or
+    mcap (``path`` a rosbag2 folder); ``skip``: topics left out (a bad bag); ``urdf_xml``: the
+    robot's URDF, on /robot_description twice (an outdated one first: the last one counts)."""
+    ros1 = storage == "ros1"
+    store, serialize = _store(storage)
     types = store.types
-    serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
 
     header = functools.partial(_header, types, ros1)
 
@@ -201,6 +239,12 @@ def write_bag(
         transform(START_NS, "world", "robot_base", (np.zeros(3), np.array([0, 0, 0, 1.0]))),
     ]
     messages: list[tuple[str, int, Any]] = [("/tf_static", START_NS, tf_message(static))]
+    if urdf_xml is not None:
+        description = types["std_msgs/msg/String"]
+        messages += [
+            (ROBOT_DESCRIPTION, START_NS - 2, description(data="<robot name='outdated'/>")),
+            (ROBOT_DESCRIPTION, START_NS - 1, description(data=urdf_xml)),
+        ]
     messages += [
         (
             "/joint_states",
@@ -253,21 +297,13 @@ def write_bag(
         "/board_transform": "geometry_msgs/msg/TransformStamped",
         "/tracker_point": "geometry_msgs/msg/PointStamped",
         "/capture": "std_msgs/msg/Empty",
+        ROBOT_DESCRIPTION: "std_msgs/msg/String",
     }
-    writer: Any = (
-        Writer1(path)
-        if ros1
-        else Writer2(
-            path,
-            version=9,
-            storage_plugin=StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP,
-        )
-    )
-    with writer:
+    with _writer(path, storage) as writer:
         connections = {
             topic: writer.add_connection(topic, kind, typestore=store)
             for topic, kind in kinds.items()
-            if topic not in skip
+            if topic not in skip and (topic != ROBOT_DESCRIPTION or urdf_xml is not None)
         }
         for topic, stamp, message in messages:
             if topic in connections:

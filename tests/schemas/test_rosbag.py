@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from schemas.dataset import PoseDataset, read_dataset
-from schemas.dataset.rosbag import BagRecording, MeasureSource, read_bag
+from schemas.dataset.rosbag import BagRecording, MeasureSource, read_bag, read_robot_description
 from schemas.dataset.still import (
     Measurements,
     StillSettings,
@@ -30,6 +30,7 @@ from schemas.dataset.tf_tree import (
 )
 from service.cli import common
 from solver.errors import DatasetError
+from tests.conftest import robot
 from tests.schemas.bag_writer import FINGERS, FR3_POSES, PANDA_JOINTS, STORAGES, Truth, fr3_bags
 
 RNG = np.random.default_rng(34)
@@ -164,6 +165,13 @@ def assert_same_rows(got: PoseDataset, want: PoseDataset, *, atol: float = 1e-9)
     assert got.quaternion_xyzw is not None
     sign = np.sign(np.sum(got.quaternion_xyzw * want.quaternion_xyzw, axis=1))[:, None]
     np.testing.assert_allclose(sign * got.quaternion_xyzw, want.quaternion_xyzw, atol=atol)
+
+
+@pytest.mark.parametrize("storage", STORAGES)
+def test_every_bag_storage_carries_the_robots_urdf_the_last_message_counting(
+    bags: dict[str, tuple[Path, Truth]], storage: str
+) -> None:
+    assert read_robot_description(bags[storage][0]) == robot("panda").urdf_xml
 
 
 @pytest.mark.parametrize("storage", STORAGES)
