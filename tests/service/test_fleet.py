@@ -118,7 +118,10 @@ def test_a_dozen_units_flag_the_worn_joint_and_no_healthy_unit(tmp_path: Path) -
         (WORN, f"compliance.{WORN_JOINT}")
     ]
     assert report.outliers[0].robust_z > report.outliers[0].z_threshold
+    gauge = report.link_gauge  # every unit's links compared in one gauge (issue 31)
+    assert gauge is not None and len(gauge.robots) == 12 and gauge.compared
     spread = {p.parameter: p for p in report.population}
+    assert all(f"link.{name}" in spread for name in gauge.compared)
     assert all(p.min >= 0.0 for name, p in spread.items() if name.startswith("compliance."))
     for outcome in outcomes:
         assert outcome.result is not None
