@@ -298,7 +298,9 @@ class FleetReport:
 
 
 @dataclass(frozen=True)
-class _Parameter:
+class FleetParameter:
+    """One comparable value of a robot: its name, joint, unit, value and standard error."""
+
     name: str
     joint: str | None
     unit: str
@@ -307,12 +309,12 @@ class _Parameter:
     needs_stderr: bool = True  # flag only deviations significant against ``stderr``
 
 
-def robot_parameters(result: CalibrationResult) -> list[_Parameter]:
+def robot_parameters(result: CalibrationResult) -> list[FleetParameter]:
     """The comparable parameters of one calibrated robot in its own fit (see the module
     docstring); its link corrections are compared in the fleet's common gauge
     (:func:`link_parameters`)."""
     out = [
-        _Parameter(
+        FleetParameter(
             f"compliance.{c.axis}", c.joint, "rad/N·m", c.value_rad_per_nm, c.stderr_rad_per_nm
         )
         for c in result.compliance
@@ -326,9 +328,9 @@ def robot_parameters(result: CalibrationResult) -> list[_Parameter]:
                 if std is None:  # not identifiable: nothing to compare
                     continue
                 unit = "m" if axis.startswith("v") else "rad"
-                out.append(_Parameter(f"sigma.{frame.name}.{axis}", frame.name, unit, std, se))
+                out.append(FleetParameter(f"sigma.{frame.name}.{axis}", frame.name, unit, std, se))
     after = result.fit.after.train.translation_rms_mm
-    out.append(_Parameter("rms_after_mm", None, "mm", after, needs_stderr=False))
+    out.append(FleetParameter("rms_after_mm", None, "mm", after, needs_stderr=False))
     return out
 
 
@@ -339,7 +341,7 @@ subspace every robot identifies: below, its common-gauge value is mostly other c
 
 def link_parameters(
     outcomes: Sequence[RobotOutcome],
-) -> tuple[dict[str, list[_Parameter]], LinkGauge | None]:
+) -> tuple[dict[str, list[FleetParameter]], LinkGauge | None]:
     """Every robot's link corrections in the fleet's common gauge, by serial, and the gauge
     (None with fewer than two robots linearised again). A column is compared when it was
     pruned on no robot and at least :data:`MIN_SHARE` of it lies in the common gauge; its
@@ -359,16 +361,16 @@ def link_parameters(
     left_out: dict[str, str] = {}
     for j, column in enumerate(columns):
         if column in pruned:
-            left_out[column] = f"pruned (held at nominal) on {', '.join(pruned[column])}"
+            left_out[column] = f"held at nominal (pruned) on {', '.join(pruned[column])}"
         elif gauge.share[j] < MIN_SHARE:
-            left_out[column] = f"{gauge.share[j]:.0%} of it in the gauge every robot identifies"
+            left_out[column] = f"{gauge.share[j]:.1%} in the common gauge, below {MIN_SHARE:.0%}"
     compared = [j for j, column in enumerate(columns) if column not in left_out]
-    out: dict[str, list[_Parameter]] = {}
+    out: dict[str, list[FleetParameter]] = {}
     for o in units:
         assert o.information is not None
         values, errors = common_gauge_values(gauge, o.information)
         out[o.serial] = [
-            _Parameter(
+            FleetParameter(
                 f"link.{columns[j]}",
                 columns[j].rsplit(".", 1)[0],
                 "m" if columns[j].rsplit(".", 1)[1].startswith("t") else "rad",
@@ -442,7 +444,7 @@ def summarise_fleet(
         if o.result is not None
     }
     other_gauge = {o.serial for o in done if o.serial not in links}
-    table: dict[str, dict[str, _Parameter]] = {}
+    table: dict[str, dict[str, FleetParameter]] = {}
     meta: dict[str, tuple[str | None, str]] = {}
     for serial, robot_values in params.items():
         for p in robot_values:
