@@ -111,7 +111,8 @@ def calibrate_one(job: FleetJob, item: tuple[str, str]) -> RobotOutcome:
         return RobotOutcome(serial, path, None, str(exc))
     try:
         information = unit_information(path, setup, run.result, job.marker)
-    except KincalError as exc:
+    except (KincalError, ValueError, np.linalg.LinAlgError) as exc:
+        # the calibration stands; only its link corrections stay out of the comparison
         return RobotOutcome(serial, path, run.result, information_error=str(exc))
     return RobotOutcome(serial, path, run.result, information=information)
 
@@ -265,8 +266,9 @@ class RobotSummary:
 class LinkGauge:
     """The common gauge the link corrections are compared in (:mod:`solver.fleet_gauge`):
     its dimension among the ``n_columns`` inner-link twist components, the robots that span
-    it, the compared columns with the share of each the gauge holds, and the columns left out
-    with the reason."""
+    it, the compared columns with the share of each the gauge holds, the columns left out
+    with the reason, and the calibrated robots whose fit could not be linearised again (their
+    link corrections are not compared) with the reason."""
 
     dimension: int
     n_columns: int
@@ -275,6 +277,7 @@ class LinkGauge:
     robots: list[str]
     compared: dict[str, float]
     left_out: dict[str, str]
+    robots_left_out: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -387,6 +390,11 @@ def link_parameters(
         [o.serial for o in units],
         {columns[j]: float(gauge.share[j]) for j in compared},
         left_out,
+        {
+            o.serial: o.information_error or "not linearised again"
+            for o in outcomes
+            if o.result is not None and o.information is None
+        },
     )
     return out, report
 
@@ -602,6 +610,10 @@ def link_gauge_lines(gauge: LinkGauge | None) -> list[str]:
             + ", ".join(f"{name} ({share:.0%})" for name, share in gauge.compared.items())
         )
     lines += [f"  left out {name}: {reason}" for name, reason in gauge.left_out.items()]
+    lines += [
+        f"  robot {serial} not compared: {reason}"
+        for serial, reason in gauge.robots_left_out.items()
+    ]
     return lines
 
 

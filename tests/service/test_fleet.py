@@ -6,6 +6,7 @@ import json
 import re
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ from service.app.fleet import (
     fleet_datasets,
     robot_parameters,
     robust_z,
+    summarise_fleet,
 )
 from solver.errors import KincalError
 from solver.simulate import SimulationSpec, look_at, simulate_recording
@@ -130,6 +132,12 @@ def test_a_dozen_units_flag_the_worn_joint_and_no_healthy_unit(tmp_path: Path) -
     assert gauge is not None and len(gauge.robots) == 12 and gauge.compared
     spread = {p.parameter: p for p in report.population}
     assert all(f"link.{name}" in spread for name in gauge.compared)
+    partial = [replace(outcomes[0], information=None, information_error="unread"), *outcomes[1:]]
+    without = summarise_fleet(partial, ROBOT)
+    assert without.link_gauge is not None
+    assert without.link_gauge.robots_left_out == {outcomes[0].serial: "unread"}
+    assert without.robots[0].gauge_differs
+    assert not any(name.startswith("link.") for name in without.robots[0].parameters)
     assert all(p.min >= 0.0 for name, p in spread.items() if name.startswith("compliance."))
     for outcome in outcomes:
         assert outcome.result is not None
