@@ -48,7 +48,11 @@ IntArray = NDArray[np.intp]
 
 DIRECTION_TOLERANCE = 1e-2
 """Gauge directions (unit-norm, scaled) whose span adds less than this singular value to the
-others' are the same direction."""
+others' are the same direction. Each unit is linearised at its own geometry, so one structural
+direction (e.g. a translation along two parallel joint axes) differs between units by about
+the corrections over the link lengths (mm over decimetres); counted apart, they leave almost
+nothing in common. A function within this angle of a unit's gauge direction picks up at most
+this fraction of the held parameter's true value."""
 
 
 @dataclass(frozen=True)

@@ -17,14 +17,24 @@ def _unit(
     *,
     n_rows: int = 400,
     noise: np.ndarray | None = None,
+    slope: float = 2.0,
 ) -> tuple[UnitInformation, np.ndarray, np.ndarray]:
     """A linear unit over 5 compared columns and one nuisance column: column 1 = 2·column 0 −
     column 2 on every unit (a structural gauge direction), and columns 3, 4 trade with the
     nuisance column on a unit that holds 4 (a data gauge direction, when it holds it).
+    ``slope`` replaces the 2 (a unit whose structural direction is turned a little, as when
+    it is linearised at its own geometry).
     Fitted by least squares over the columns not ``held``; its design and targets."""
     base = rng.normal(size=(n_rows, 4))
     design = np.column_stack(
-        [base[:, 0], 2 * base[:, 0] - base[:, 1], base[:, 1], base[:, 2], base[:, 3], base[:, 3]]
+        [
+            base[:, 0],
+            slope * base[:, 0] - base[:, 1],
+            base[:, 1],
+            base[:, 2],
+            base[:, 3],
+            base[:, 3],
+        ]
     )
     design[:, 3] += 0.3 * base[:, 3]
     target = design @ theta + (0.0 if noise is None else noise)
@@ -81,3 +91,13 @@ def test_the_projected_standard_error_is_the_scatter_of_the_value() -> None:
     predicted = np.mean(errors, axis=0)
     moved = gauge.share > 0.0
     assert scatter[moved] == pytest.approx(predicted[moved], rel=0.15)
+
+
+@pytest.mark.parametrize(("slope", "dimension"), [(2.001, 4), (2.5, 3)])
+def test_nearly_parallel_gauge_directions_count_once(slope: float, dimension: int) -> None:
+    """Two units whose structural directions differ by a small angle (well below the
+    tolerance) leave one common direction out; clearly different ones leave out two."""
+    rng = np.random.default_rng(8)
+    theta = rng.normal(size=6)
+    units = [_unit(rng, theta, [1])[0], _unit(rng, theta, [1], slope=slope)[0]]
+    assert common_gauge(units).dimension == dimension
