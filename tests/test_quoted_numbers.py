@@ -136,7 +136,7 @@ def test_the_fleet_table_holds_for_the_two_60_row_pandas() -> None:
     """panda_left and panda_right, re-run as ``kincal fleet`` runs them (about 5 s)."""
     _, rows = read_results("fleet_platonics")
     quoted = {r["robot"]: r for r in rows if "robot" in r}
-    fresh, _ = fleet_platonics.run(["panda_left", "panda_right"])
+    fresh, _, _ = fleet_platonics.run(["panda_left", "panda_right"])
     for row in fresh:
         want = quoted[row["robot"]]
         for key in ("rows", "used", "link_corrections", "largest_translation"):

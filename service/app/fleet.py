@@ -11,9 +11,14 @@ comparable between robots of one model:
 - per robot: RMS translation error after calibration (mm, training data).
 
 The measurement frame and tool are each robot's own mounting and are not compared. Link
-corrections are only comparable in one gauge: the pruning QR may drop a different one of two
-interchangeable columns on different data, so a robot whose removed columns differ from the
-fleet's most common set is left out of the link-correction comparison (and listed).
+corrections are only comparable in one gauge: the pruning QR drops a different one of two
+interchangeable columns on different data, and the kept columns absorb what the dropped ones
+would have done. Each robot's fit is linearised again at its solution
+(:func:`unit_information`, in the worker) and the link corrections are compared in the gauge
+every robot identifies (:mod:`solver.fleet_gauge`): each robot's estimate projected onto the
+subspace orthogonal to every robot's gauge directions, its standard error through the same
+projection. A column pruned on any robot, or mostly outside that subspace (share below
+:data:`MIN_SHARE`), is left out and listed with the reason (``link_gauge`` of the report).
 
 Only estimated values are compared: a compliance fixed at 0 as implausible (negative, or not
 identified in any physical range: ``pruned``) and a σ the data cannot see (``std`` null) are not
@@ -47,13 +52,19 @@ from pathlib import Path
 import numpy as np
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
-from schemas.dataset import SUFFIXES
+from schemas.dataset import SUFFIXES, PoseDataset
 from schemas.dataset.constraints import is_socket_folder
 from schemas.robots import RobotDescription
 from service.app import calibrate as pipeline
 from solver.errors import KincalError
 from solver.executors import Executor, InProcessExecutor
-from solver.kinematics import TWIST_COMPONENTS
+from solver.fleet_gauge import (
+    DIRECTION_TOLERANCE,
+    UnitInformation,
+    common_gauge,
+    common_gauge_values,
+)
+from solver.kinematics import TWIST_COMPONENTS, parameter_names
 
 FLEET_FORMAT = "kincal.fleet/1"
 MAD_TO_SIGMA = 1.4826
@@ -83,10 +94,13 @@ class RobotOutcome:
     source: str
     result: CalibrationResult | None
     error: str | None = None
+    information: UnitInformation | None = None  # its fit linearised again, for the link gauge
+    information_error: str | None = None
 
 
 def calibrate_one(job: FleetJob, item: tuple[str, str]) -> RobotOutcome:
-    """Calibrate one robot's dataset (runs in a worker; its passes in that worker)."""
+    """Calibrate one robot's dataset (runs in a worker; its passes in that worker) and
+    linearise its fit again at the solution (:func:`unit_information`)."""
     serial, path = item
     try:
         setup = pipeline.check_calibration(job.robot, job.options)
@@ -95,7 +109,92 @@ def calibrate_one(job: FleetJob, item: tuple[str, str]) -> RobotOutcome:
         )
     except KincalError as exc:
         return RobotOutcome(serial, path, None, str(exc))
-    return RobotOutcome(serial, path, run.result)
+    try:
+        information = unit_information(path, setup, run.result, job.marker)
+    except (KincalError, ValueError, np.linalg.LinAlgError) as exc:
+        # the calibration stands; only its link corrections stay out of the comparison
+        return RobotOutcome(serial, path, run.result, information_error=str(exc))
+    return RobotOutcome(serial, path, run.result, information=information)
+
+
+def compared_link_columns(result: CalibrationResult) -> list[str]:
+    """The link columns the fleet compares, in stacked-Jacobian order: every twist component
+    of the inner links ``L_2..L_k`` (the measurement frame and the tool are each robot's own
+    mounting), as ``<link>.<tx..rz>``."""
+    return [f"{link.link}.{c}" for link in result.links[1:-1] for c in TWIST_COMPONENTS]
+
+
+def unit_information(
+    source: str, setup: pipeline.CalibrationSetup, result: CalibrationResult, marker: int | None
+) -> UnitInformation:
+    """The robot's fit linearised again at its solution over the rows it used (the Gram of
+    the weighted design over its free columns and the compared link columns, its residual
+    variance, its link corrections) for the fleet's common gauge (:mod:`solver.fleet_gauge`).
+    Every recording is read as a measurement model's rows (a pose/position recording as
+    :func:`~solver.measurement.pose_measurement`), so both fit paths give one design."""
+    from service.app import measurement_input
+    from solver.calibration import free_columns
+    from solver.measurement import ModelParameters
+    from solver.measurement.fit import weighted_system
+    from solver.measurement.models import chain_column_count
+    from solver.measurement.pose import pose_measurement
+
+    chain, options = (
+        setup.chain,
+        pipeline.fit_options(setup.options, free_columns=setup.free_columns),
+    )
+    model = measurement_input.measurement_for(setup.options, chain, source, marker)
+    recording_source: str | PoseDataset = source
+    if model is None:
+        recording_source = measurement_input.read_chain_dataset(source, chain, marker)
+        model = pose_measurement(position_only=recording_source.is_position_only)
+    recording = measurement_input.read_measured(
+        recording_source, chain, setup.options, model, marker=marker
+    )
+    model, rows = recording.model, recording.rows.take(np.asarray(result.outliers.kept_indices()))
+    names = parameter_names(chain) + model.extra_names()
+    unknowns = {u.name: u.value for u in result.measurement.unknowns} if result.measurement else {}
+    extra = (
+        np.array([unknowns[n] for n in model.extra_names()])
+        if all(n in unknowns for n in model.extra_names())
+        else model.start(chain, rows).extra
+    )
+    params = ModelParameters(
+        np.array([link.placement for link in result.links], dtype=float),
+        np.array([c.value_rad_per_nm for c in result.compliance], dtype=float),
+        extra,
+    )
+    design, target = weighted_system(chain, model, params, rows, options)
+    free = free_columns(chain, options, len(names))
+    free[: chain_column_count(chain)] &= model.visible_columns(chain)
+    compared = compared_link_columns(result)
+    position = {n: i for i, n in enumerate(compared)}
+    identifiability = result.identifiability
+    held = {*identifiability.removed, *identifiability.pruned, *identifiability.fixed}
+    # a nuisance column fixed by choice (a compliance pruned at 0 as unphysical) is part of
+    # the unit's model, not of its gauge; a compared column the fit held is a gauge direction
+    chosen = np.isin(names, [*identifiability.pruned, *identifiability.fixed])
+    columns = np.flatnonzero((free & ~chosen) | np.isin(names, compared))
+    kept = np.array([free[i] and names[i] not in held for i in columns])
+    a = design[:, columns]
+    estimate = np.zeros(len(compared))
+    for link in result.links[1:-1]:
+        assert link.correction_translation_m is not None and link.correction_rotation_rad
+        for c, value in zip(
+            TWIST_COMPONENTS,
+            [*link.correction_translation_m, *link.correction_rotation_rad],
+            strict=True,
+        ):
+            estimate[position[f"{link.link}.{c}"]] = value
+    estimate[[position[n] for n in held if n in position]] = 0.0
+    return UnitInformation(
+        gram=a.T @ a,
+        kept=kept,
+        compared=np.array([position.get(names[i], -1) for i in columns], dtype=np.intp),
+        estimate_compared=estimate,
+        sigma2=float(target @ target) / max(1, target.size - int(kept.sum())),
+        n_rows=int(target.size),
+    )
 
 
 def fleet_datasets(directory: str | Path) -> dict[str, str]:
@@ -164,6 +263,24 @@ class RobotSummary:
 
 
 @dataclass(frozen=True)
+class LinkGauge:
+    """The common gauge the link corrections are compared in (:mod:`solver.fleet_gauge`):
+    its dimension among the ``n_columns`` inner-link twist components, the robots that span
+    it, the compared columns with the share of each the gauge holds, the columns left out
+    with the reason, and the calibrated robots whose fit could not be linearised again (their
+    link corrections are not compared) with the reason."""
+
+    dimension: int
+    n_columns: int
+    direction_tolerance: float
+    min_share: float
+    robots: list[str]
+    compared: dict[str, float]
+    left_out: dict[str, str]
+    robots_left_out: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class FleetReport:
     """Per-robot parameters, their population spread and the outliers (JSON via
     :meth:`to_json`)."""
@@ -177,13 +294,16 @@ class FleetReport:
     failures: dict[str, str] = field(default_factory=dict)
     false_alarm: float = FALSE_ALARM
     format: str = FLEET_FORMAT
+    link_gauge: LinkGauge | None = None
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=1, allow_nan=False)
 
 
 @dataclass(frozen=True)
-class _Parameter:
+class FleetParameter:
+    """One comparable value of a robot: its name, joint, unit, value and standard error."""
+
     name: str
     joint: str | None
     unit: str
@@ -192,25 +312,17 @@ class _Parameter:
     needs_stderr: bool = True  # flag only deviations significant against ``stderr``
 
 
-def robot_parameters(result: CalibrationResult) -> list[_Parameter]:
-    """The comparable parameters of one calibrated robot (see the module docstring)."""
+def robot_parameters(result: CalibrationResult) -> list[FleetParameter]:
+    """The comparable parameters of one calibrated robot in its own fit (see the module
+    docstring); its link corrections are compared in the fleet's common gauge
+    (:func:`link_parameters`)."""
     out = [
-        _Parameter(
+        FleetParameter(
             f"compliance.{c.axis}", c.joint, "rad/N·m", c.value_rad_per_nm, c.stderr_rad_per_nm
         )
         for c in result.compliance
         if c.estimated
     ]
-    for link in result.links:
-        if link.correction_translation_m is None or link.correction_rotation_rad is None:
-            continue
-        values = [*link.correction_translation_m, *link.correction_rotation_rad]
-        errors = [*link.stderr_translation_m, *link.stderr_rotation_rad]
-        for component, value, stderr in zip(TWIST_COMPONENTS, values, errors, strict=True):
-            if stderr is not None:  # estimated
-                unit = "m" if component.startswith("t") else "rad"
-                name = f"link.{link.link}.{component}"
-                out.append(_Parameter(name, link.link, unit, value, stderr))
     if result.covariance is not None:
         for frame in result.covariance.frames:
             axes = ("vx", "vy", "vz", "wx", "wy", "wz")
@@ -219,10 +331,72 @@ def robot_parameters(result: CalibrationResult) -> list[_Parameter]:
                 if std is None:  # not identifiable: nothing to compare
                     continue
                 unit = "m" if axis.startswith("v") else "rad"
-                out.append(_Parameter(f"sigma.{frame.name}.{axis}", frame.name, unit, std, se))
+                out.append(FleetParameter(f"sigma.{frame.name}.{axis}", frame.name, unit, std, se))
     after = result.fit.after.train.translation_rms_mm
-    out.append(_Parameter("rms_after_mm", None, "mm", after, needs_stderr=False))
+    out.append(FleetParameter("rms_after_mm", None, "mm", after, needs_stderr=False))
     return out
+
+
+MIN_SHARE = 0.5
+"""A link column is compared when at least this share of it (``P_jj``, scaled) lies in the
+subspace every robot identifies: below, its common-gauge value is mostly other columns."""
+
+
+def link_parameters(
+    outcomes: Sequence[RobotOutcome],
+) -> tuple[dict[str, list[FleetParameter]], LinkGauge | None]:
+    """Every robot's link corrections in the fleet's common gauge, by serial, and the gauge
+    (None with fewer than two robots linearised again). A column is compared when it was
+    pruned on no robot and at least :data:`MIN_SHARE` of it lies in the common gauge; its
+    value and standard error are the projections of
+    :func:`solver.fleet_gauge.common_gauge_values`."""
+    units = [o for o in outcomes if o.result is not None and o.information is not None]
+    if len(units) < 2:
+        return {}, None
+    assert units[0].result is not None
+    columns = compared_link_columns(units[0].result)
+    gauge = common_gauge([o.information for o in units if o.information is not None])
+    pruned: dict[str, list[str]] = {}
+    for o in units:
+        assert o.result is not None
+        for name in o.result.identifiability.pruned:
+            pruned.setdefault(name, []).append(o.serial)
+    left_out: dict[str, str] = {}
+    for j, column in enumerate(columns):
+        if column in pruned:
+            left_out[column] = f"held at nominal (pruned) on {', '.join(pruned[column])}"
+        elif gauge.share[j] < MIN_SHARE:
+            left_out[column] = f"{gauge.share[j]:.1%} in the common gauge, below {MIN_SHARE:.0%}"
+    compared = [j for j, column in enumerate(columns) if column not in left_out]
+    out: dict[str, list[FleetParameter]] = {}
+    for o in units:
+        assert o.information is not None
+        values, errors = common_gauge_values(gauge, o.information)
+        out[o.serial] = [
+            FleetParameter(
+                f"link.{columns[j]}",
+                columns[j].rsplit(".", 1)[0],
+                "m" if columns[j].rsplit(".", 1)[1].startswith("t") else "rad",
+                float(values[j]),
+                float(errors[j]),
+            )
+            for j in compared
+        ]
+    report = LinkGauge(
+        gauge.dimension,
+        len(columns),
+        DIRECTION_TOLERANCE,
+        MIN_SHARE,
+        [o.serial for o in units],
+        {columns[j]: float(gauge.share[j]) for j in compared},
+        left_out,
+        {
+            o.serial: o.information_error or "not linearised again"
+            for o in outcomes
+            if o.result is not None and o.information is None
+        },
+    )
+    return out, report
 
 
 def robust_z(values: np.ndarray) -> tuple[float, float, np.ndarray]:
@@ -271,18 +445,17 @@ def summarise_fleet(
     """Population spread and robust-z outliers over the calibrated robots (thresholds: the
     module docstring)."""
     done = [o for o in outcomes if o.result is not None]
-    params = {o.serial: robot_parameters(o.result) for o in done if o.result is not None}
-    gauges = {
-        o.serial: tuple(o.result.identifiability.removed) for o in done if o.result is not None
+    links, link_gauge = link_parameters(done)
+    params = {
+        o.serial: robot_parameters(o.result) + links.get(o.serial, [])
+        for o in done
+        if o.result is not None
     }
-    common = Counter(gauges.values()).most_common(1)[0][0] if gauges else ()
-    other_gauge = {serial for serial, gauge in gauges.items() if gauge != common}
-    table: dict[str, dict[str, _Parameter]] = {}
+    other_gauge = {o.serial for o in done if o.serial not in links}
+    table: dict[str, dict[str, FleetParameter]] = {}
     meta: dict[str, tuple[str | None, str]] = {}
     for serial, robot_values in params.items():
         for p in robot_values:
-            if p.name.startswith("link.") and serial in other_gauge:
-                continue
             table.setdefault(p.name, {})[serial] = p
             meta[p.name] = (p.joint, p.unit)
     population, outliers = [], []
@@ -341,7 +514,15 @@ def summarise_fleet(
         )
     failures = {o.serial: o.error or "" for o in outcomes if o.result is None}
     return FleetReport(
-        robot, len(outcomes), z_threshold, robots, population, outliers, failures, false_alarm
+        robot,
+        len(outcomes),
+        z_threshold,
+        robots,
+        population,
+        outliers,
+        failures,
+        false_alarm,
+        link_gauge=link_gauge,
     )
 
 
@@ -374,7 +555,7 @@ def fleet_table(report: FleetReport, *, max_parameters: int | None = None) -> st
     ]
     lines += [
         f"{r.serial:<16} {r.n_samples:>8} {r.n_used:>8} {r.rms_after_mm:>13.4f}"
-        + ("  (other gauge: link corrections not compared)" if r.gauge_differs else "")
+        + ("  (not linearised again: link corrections not compared)" if r.gauge_differs else "")
         for r in report.robots
     ]
     lines += [f"{serial:<16} FAILED: {error}" for serial, error in report.failures.items()]
@@ -394,6 +575,7 @@ def fleet_table(report: FleetReport, *, max_parameters: int | None = None) -> st
             f"{o.median:>12.4g} {o.robust_z:>7.1f} {o.z_threshold:>7.1f}"
             for o in report.outliers
         ]
+    lines += link_gauge_lines(report.link_gauge)
     shown = report.population[:max_parameters] if max_parameters else report.population
     lines += [
         "",
@@ -409,6 +591,30 @@ def fleet_table(report: FleetReport, *, max_parameters: int | None = None) -> st
     if max_parameters and len(report.population) > max_parameters:
         lines.append(f"... {len(report.population) - max_parameters} more in the JSON")
     return "\n".join(lines)
+
+
+def link_gauge_lines(gauge: LinkGauge | None) -> list[str]:
+    """The table's paragraph on the link corrections: the common gauge, the columns compared
+    and those left out with the reason."""
+    if gauge is None:
+        return ["", "link corrections: not compared (fewer than two robots linearised again)"]
+    lines = [
+        "",
+        f"link corrections in the gauge every robot identifies ({gauge.dimension} of "
+        f"{gauge.n_columns} inner-link directions; {len(gauge.robots)} robots): "
+        f"{len(gauge.compared)} compared, {len(gauge.left_out)} left out",
+    ]
+    if gauge.compared:
+        lines.append(
+            "  compared (share in the gauge): "
+            + ", ".join(f"{name} ({share:.0%})" for name, share in gauge.compared.items())
+        )
+    lines += [f"  left out {name}: {reason}" for name, reason in gauge.left_out.items()]
+    lines += [
+        f"  robot {serial} not compared: {reason}"
+        for serial, reason in gauge.robots_left_out.items()
+    ]
+    return lines
 
 
 def fleet_verdict_line(report: FleetReport) -> str:

@@ -96,6 +96,20 @@ def _stacked(
     return design, target, jacobian
 
 
+def weighted_system(
+    chain: KinematicChain,
+    model: MeasurementModel,
+    params: ModelParameters,
+    rows: MeasurementRows,
+    options: FitOptions,
+) -> tuple[FloatArray, FloatArray]:
+    """The fit's weighted design (N·d + c, P + E) over every column of the chain and the
+    model, and its target (N·d + c,) at ``params`` (rows as :func:`fit_measurement` weighs
+    them, known distances last), e.g. to linearise a finished fit again."""
+    design, target, _ = _stacked(chain, model, params, rows, row_weights(model, options))
+    return design, target
+
+
 def fit_measurement(
     chain: KinematicChain,
     model: MeasurementModel,
