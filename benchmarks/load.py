@@ -20,11 +20,12 @@ What it does:
    latency, the server's own view (share of ranking requests under 20 ms from ``/metrics``), the
    calibration jobs that ran meanwhile, and the machine's load average.
 
-Usage: ``python benchmarks/load.py [--clients 200] [--duration-s 30] [--candidates 100]
-[--interval-s 1.0] [--web-processes N] [--runs 20] [--json report.json]``; ``--quick`` is a
-smoke test (a few clients, 3 s). ``--runs N`` repeats the whole measurement (a fresh server each
-time) and ends with a table of the runs and how many met p99 < 20 ms (the acceptance is 19 of 20
-runs of 30 s).
+Usage: ``python -m benchmarks.load [--clients 200] [--duration-s 30] [--candidates 100]
+[--interval-s 1.0] [--web-processes N] [--runs 20] [--json report.json] [--write-results]``;
+``--quick`` is a smoke test (a few clients, 3 s). ``--runs N`` repeats the whole measurement (a
+fresh server each time) and ends with a table of the runs and how many met p99 < 20 ms (the
+acceptance is 19 of 20 runs of 30 s). ``--write-results`` writes ``docs/results/load.{json,md}``
+(one row per run, the table docs/http.md includes).
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from benchmarks.results import Row, markdown_table, write_results
 from schemas.calibration import CalibrationOptions
 from schemas.dataset import write_dataset
 from schemas.robots import load_robot
@@ -513,6 +515,63 @@ def format_runs(reports: list[LoadReport]) -> str:
     return "\n".join(lines)
 
 
+def result_row(report: LoadReport) -> Row:
+    """One run as a row of ``docs/results/load.json``."""
+    return {
+        "requests": report.requests,
+        "errors": report.errors,
+        "p50_ms": round(report.latency_ms["p50"], 2),
+        "p99_ms": round(report.latency_ms["p99"], 2),
+        "max_ms": round(report.latency_ms["max"], 2),
+        "calibrations_finished": report.calibration_jobs_finished,
+        "calibration_running_share": round(report.calibration_job_running_share, 3),
+        "web_processes": len(report.web_process_cpu_s),
+        "server_cpu_ms_per_request": round(report.server_cpu_ms_per_request, 2),
+        "load_average_1min": round(report.load_average[0], 2),
+        "meets_target": report.meets_target,
+    }
+
+
+def render(rows: list[Row]) -> str:
+    """The runs' summary line and one table row per run (docs/http.md includes it)."""
+    met = sum(row["meets_target"] for row in rows)
+    p99 = sorted(row["p99_ms"] for row in rows)
+    summary = (
+        f"p99 < {TARGET_P99_MS:g} ms with 0 errors in **{met} of {len(rows)}** runs; "
+        f"p99 from {p99[0]:.1f} to {p99[-1]:.1f} ms (median {float(np.median(p99)):.1f} ms)."
+    )
+    table = markdown_table(
+        (
+            "run",
+            "requests",
+            "errors",
+            "p50 ms",
+            "p99 ms",
+            "max ms",
+            "calibrations finished",
+            "calibration running",
+            "server CPU ms / request",
+            "load average (1 min)",
+        ),
+        [
+            (
+                number,
+                row["requests"],
+                row["errors"],
+                f"{row['p50_ms']:.1f}",
+                f"{row['p99_ms']:.1f}",
+                f"{row['max_ms']:.1f}",
+                row["calibrations_finished"],
+                f"{100 * row['calibration_running_share']:.0f} %",
+                f"{row['server_cpu_ms_per_request']:.2f}",
+                f"{row['load_average_1min']:.1f}",
+            )
+            for number, row in enumerate(rows, start=1)
+        ],
+    )
+    return summary + "\n\n" + table
+
+
 def main(argv: list[str] | None = None) -> list[LoadReport]:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--clients", type=int, default=LoadSettings.clients)
@@ -539,6 +598,11 @@ def main(argv: list[str] | None = None) -> list[LoadReport]:
     parser.add_argument("--quick", action="store_true", help="Smoke test: 8 planners, 3 s.")
     parser.add_argument("--json", type=Path, help="Also write the report as JSON here.")
     parser.add_argument("--keep", type=Path, help="Work in this folder (server log, data).")
+    parser.add_argument(
+        "--write-results",
+        action="store_true",
+        help="Write docs/results/load.{json,md} (one row per run; docs/http.md includes it).",
+    )
     args = parser.parse_args(argv)
     settings = (
         QUICK
@@ -572,6 +636,12 @@ def main(argv: list[str] | None = None) -> list[LoadReport]:
     if args.json:
         document = asdict(reports[0]) if args.runs == 1 else [asdict(r) for r in reports]
         args.json.write_text(json.dumps(document, indent=1), encoding="utf-8")
+    if args.write_results:
+        given = argv if argv is not None else sys.argv[1:]
+        command = " ".join(["python -m benchmarks.load", *given])
+        rows = [result_row(report) for report in reports]
+        for path in write_results("load", command, rows, render):
+            print(f"wrote {path}")
     return reports
 
 
