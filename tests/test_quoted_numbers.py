@@ -33,6 +33,7 @@ from benchmarks import (
     figaroh_side_by_side,
     fleet_platonics,
     honest_covariance,
+    load,
     model_selection,
     platonics,
     scale,
@@ -63,6 +64,7 @@ RENDER = {
     "compare_solvers": compare_solvers.render,
     "compare_solvers_timing": compare_solvers.render_timing,
     "model_selection": model_selection.render,
+    "load": load.render,
     "discovery_simulated": concealed_effects.render,
     "discovery_real": concealed_real.render,
 }
@@ -83,6 +85,7 @@ PAGES: dict[str, str | tuple[str, ...]] = {
     "compare_solvers": "covariance.md",
     "compare_solvers_timing": "covariance.md",
     "model_selection": "figaroh.md",
+    "load": "http.md",
     "discovery_simulated": "discovery_benchmark.md",
     "discovery_real": "discovery_real_benchmark.md",
 }
