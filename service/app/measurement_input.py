@@ -215,10 +215,8 @@ def read_measured(
     q = dataset.joint_positions
     pose = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
     needs_rotation = isinstance(model, PoseComponents) and bool(model.rotation_rows)
-    if isinstance(model, (RelativeBase, EyeOnHead)) and not dataset.is_position_only:
-        model = dataclasses.replace(model, measure_position_only=False)
-    elif isinstance(model, (RelativeBase, EyeOnHead)):
-        model = dataclasses.replace(model, measure_position_only=True)
+    if isinstance(model, (RelativeBase, EyeOnHead)):
+        model = dataclasses.replace(model, rotation=not dataset.is_position_only)
     if needs_rotation and dataset.is_position_only:
         raise KincalError(
             f"measurement {options.measurement}: the rotation components need quaternion "

@@ -123,7 +123,7 @@ class StreamProblem:
     @property
     def position_only(self) -> bool:
         """Whether the rows are positions (:class:`~solver.measurement.Position`)."""
-        return self.measurement.position_only
+        return not self.measurement.measures_rotation
 
     @property
     def residual_dim(self) -> int:

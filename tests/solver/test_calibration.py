@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from solver import lie
-from solver.alignment import align_full_pose, align_position_only
+from solver.alignment import align_full_pose, align_positions
 from solver.calibration import FitOptions, outlier_mask, pose_errors
 from solver.errors import CalibrationError
 from solver.evaluation import PAPER_SEEDS, split_indices
@@ -138,7 +138,7 @@ def test_closed_form_alignment_is_exact_on_noiseless_data() -> None:
     measured = world @ nominal @ tool
     w, t = align_full_pose(nominal, measured)
     assert np.allclose(w, world, atol=1e-9) and np.allclose(t, tool, atol=1e-9)
-    w, t = align_position_only(nominal, measured[:, :3, 3])
+    w, t = align_positions(nominal, measured[:, :3, 3])
     assert np.allclose(w, world, atol=1e-8) and np.allclose(t[:3, 3], tool[:3, 3], atol=1e-8)
 
 

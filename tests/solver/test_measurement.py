@@ -201,9 +201,9 @@ JACOBIAN_MODELS: list[MeasurementModel] = [
     MultiMarker(2),
     FullPose(),
     Position(),
-    RelativeBase(measure_position_only=False),
+    RelativeBase(rotation=True),
     EyeOnHead(sensor_joint=2),
-    EyeOnHead(sensor_joint=0, measure_position_only=True),
+    EyeOnHead(sensor_joint=0, rotation=False),
 ]
 
 
