@@ -380,7 +380,7 @@ def run_one(job: tuple[str, str, int, int, int, bool]) -> RunResult:
             error = finding.estimate.stderr.get(parameter, float("nan"))
             z_scores.append((value - true_value) / error)
             relative.append(abs(value - true_value) / scale)
-    oracle = pose_errors(recording.true_mean_pose, recording.measured_pose, position_only=False)[0]
+    oracle = pose_errors(recording.true_mean_pose, recording.measured_pose, rotation=True)[0]
     kept = np.setdiff1d(np.arange(n), result.outlier_rows)
     return RunResult(
         scenario=name,

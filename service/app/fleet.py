@@ -147,7 +147,7 @@ def unit_information(
     recording_source: str | PoseDataset = source
     if model is None:
         recording_source = measurement_input.read_chain_dataset(source, chain, marker)
-        model = pose_measurement(position_only=recording_source.is_position_only)
+        model = pose_measurement(rotation=not recording_source.is_position_only)
     recording = measurement_input.read_measured(
         recording_source, chain, setup.options, model, marker=marker
     )

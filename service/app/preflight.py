@@ -320,13 +320,14 @@ def check_row_count(
     """Fewer equations than the parameters the fit would estimate (generic rank)."""
     from solver.calibration import check_sample_count
     from solver.errors import CalibrationError
+    from solver.measurement.pose import pose_measurement
 
-    position_only = view.position_only or options.measurement == "position"
+    rotation = not view.position_only and options.measurement != "position"
     try:
         check_sample_count(
             chain,
             view.n_rows,
-            position_only=position_only,
+            dim=pose_measurement(rotation=rotation).dim,
             options=fit_options(options, free_columns=chosen_columns(chain, options)),
         )
     except CalibrationError as exc:

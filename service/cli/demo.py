@@ -251,9 +251,7 @@ def _compare_with_truth(
         echo(f"  {entry.axis:<28} {shown}   true {true_value: .2e}")
     clean = np.setdiff1d(np.arange(n_samples), recording.outliers)
     predicted = result_json.predict_poses(result, recording.joint_positions[clean])
-    error_mm, error_deg = pose_errors(
-        predicted, recording.true_mean_pose[clean], position_only=False
-    )
+    error_mm, error_deg = pose_errors(predicted, recording.true_mean_pose[clean], rotation=True)
     assert error_deg is not None
     echo(
         f"calibrated model vs the true robot's mean pose: {error_mm.mean():.3f} mm, "

@@ -43,7 +43,7 @@ from solver.errors import CalibrationError
 from solver.kinematics import ChainParameters, evaluate_chain, pose_residuals
 from solver.measurement.models import ModelParameters as MeasuredParameters
 from solver.measurement.models import chain_column_count, seen_from_sensor
-from solver.measurement.pose import initial_parameters
+from solver.measurement.pose import initial_parameters, pose_measurement
 from solver.model import ComplianceAxis, KinematicChain
 from solver.pivoting import tiered_pivoted_qr
 from solver.simulate import depth_direction
@@ -449,7 +449,10 @@ def start_parameters(ctx: Context) -> ModelParameters:
         own = model.start(ctx.chain, rows)
         return ModelParameters(own.links, np.zeros(0), own.extra)
     start = initial_parameters(
-        ctx.chain, data.joint_positions, data.measured_pose, position_only=data.position_only
+        ctx.chain,
+        data.joint_positions,
+        data.measured_pose,
+        measurement=pose_measurement(rotation=not data.position_only),
     )
     return ModelParameters(start.links, np.zeros(0))
 

@@ -70,7 +70,7 @@ def cross_validate(
         sse += float(errors.sum())
         if ctx.data.is_pose:
             t_mm, r_deg = pose_errors(
-                design.pose, ctx.data.measured_pose[test], position_only=ctx.data.position_only
+                design.pose, ctx.data.measured_pose[test], rotation=not ctx.data.position_only
             )
         else:
             model = ctx.data.model

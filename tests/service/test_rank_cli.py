@@ -28,6 +28,7 @@ from solver import lie
 from solver.evaluation import cross_validate
 from solver.executors import InProcessExecutor
 from solver.gp_baseline import gp_calibration_method
+from solver.measurement import FullPose
 from solver.model import sample_configurations
 from solver.ranking import TaskMetric, ee_covariance
 from solver.stream.calibrate import (
@@ -309,20 +310,20 @@ def test_gp_calibration_method_is_a_table_ii_column() -> None:
                 data.joint_positions,
                 data.measured_pose,
                 data.loads_nm,
-                position_only=False,
+                measurement=FullPose(),
                 baseline_options=pipeline.fit_options(
                     options, baseline=True, n_links=data.chain.n_links
                 ),
             )
         },
-        position_only=False,
+        rotation=True,
         seeds=options.seeds,
     )
     sample = RowSample(data.joint_positions, data.measured_pose, data.loads_nm, used)
     problem = HeldoutProblem(
         data.chain,
         sample,
-        False,
+        data.measurement,
         pipeline.fit_options(options),
         pipeline.fit_options(options, baseline=True, n_links=data.chain.n_links),
         HeldoutSettings(tuple(options.seeds)),

@@ -128,9 +128,7 @@ CASES = [("kinova", 11), ("kinova", 12), ("panda", 21)]
 def test_eq12_equals_the_sample_covariance_of_simulated_poses(robot: str, config_seed: int):
     d = draws(robot, config_seed)
     k = d.chain.n_joints
-    residuals = pose_residuals(
-        np.broadcast_to(d.mean_pose, d.measured_pose.shape), d.measured_pose, position_only=False
-    )
+    residuals = pose_residuals(np.broadcast_to(d.mean_pose, d.measured_pose.shape), d.measured_pose)
     sample = sample_covariance(residuals)
     # The mean residual is second order in σ: negligible against the spread.
     assert np.all(np.abs(residuals.mean(axis=0)) < 0.05 * np.sqrt(np.diag(sample)))

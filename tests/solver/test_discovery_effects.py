@@ -121,7 +121,7 @@ def _run(name: str, seed: int = 1) -> tuple[DiscoveryResult, float]:
         recording.joint_positions, recording.measured_pose, False, recording.time_s
     )
     result = discover(model, data, OPTIONS)
-    oracle = pose_errors(recording.true_mean_pose, recording.measured_pose, position_only=False)
+    oracle = pose_errors(recording.true_mean_pose, recording.measured_pose, rotation=True)
     return result, float(oracle[0].mean())
 
 
