@@ -125,7 +125,7 @@ class MeasuredRecording:
     rows: MeasurementRows
     source: str
     labels: tuple[str, ...]
-    position_only: bool
+    rotation: bool
     notes: tuple[str, ...] = ()
 
 
@@ -198,7 +198,7 @@ def read_measured(
         points = FixedPoints(len(sockets.sockets), tuple(distances))
         q = sockets.joint_positions
         rows = MeasurementRows.of(q, _loads(chain, options, q), None, sockets.socket)
-        return MeasuredRecording(points, rows, name or sockets.source, sockets.sockets, True)
+        return MeasuredRecording(points, rows, name or sockets.source, sockets.sockets, False)
     if isinstance(source, PoseDataset):
         dataset = source
     elif isinstance(model, MultiMarker):
@@ -209,7 +209,7 @@ def read_measured(
         model = dataclasses.replace(model, n_markers=len(keep))
         rows = MeasurementRows.of(q, _loads(chain, options, q), positions[:, keep])
         labels = tuple(f"marker {j + 1}" for j in keep)
-        return MeasuredRecording(model, rows, name or markers.source, labels, True, notes)
+        return MeasuredRecording(model, rows, name or markers.source, labels, False, notes)
     else:
         dataset = read_chain_dataset(source, chain, marker, name)
     q = dataset.joint_positions
@@ -225,7 +225,7 @@ def read_measured(
     if isinstance(model, MultiMarker):
         raise KincalError("measurement 'markers' needs a FIGAROH file with several markers")
     rows = MeasurementRows.of(q, _loads(chain, options, q), pose)
-    return MeasuredRecording(model, rows, name or dataset.source, (), dataset.is_position_only)
+    return MeasuredRecording(model, rows, name or dataset.source, (), not dataset.is_position_only)
 
 
 def distinct_markers(positions_m: np.ndarray) -> tuple[list[int], tuple[str, ...]]:
