@@ -35,7 +35,7 @@ from service.render import corrections, result_json
 from solver import check as checks
 from solver import lie
 from solver.errors import DatasetError, KincalError
-from solver.kinematics import pose_residuals
+from solver.measurement.pose import pose_measurement
 from solver.ranking import ee_covariance
 from solver.verdict import reach_m
 
@@ -104,11 +104,13 @@ def read_check_recording(
                 f"{', '.join(chain.joint_names)}): {exc}"
             ) from exc
     check_dataset(dataset, chain)
-    if dataset.is_position_only != result.dataset.position_only:
-        kinds = {True: "positions only (x,y,z)", False: "full poses (x,y,z,qx,qy,qz,qw)"}
+    recorded = pose_measurement(rotation=not dataset.is_position_only)
+    calibrated = result_json.result_measurement(result)
+    if recorded != calibrated:
+        kinds = {"position": "positions only (x,y,z)", "pose": "full poses (x,y,z,qx,qy,qz,qw)"}
         raise KincalError(
-            f"check recording {dataset.source}: holds {kinds[dataset.is_position_only]} but "
-            f"{result_name} was calibrated on {kinds[result.dataset.position_only]}; check with "
+            f"check recording {dataset.source}: holds {kinds[recorded.name]} but "
+            f"{result_name} was calibrated on {kinds[calibrated.name]}; check with "
             "a recording of the same measurement type"
         )
     return dataset
@@ -126,9 +128,10 @@ def check_arrays(result: CalibrationResult, dataset: PoseDataset) -> CheckArrays
     point = predictive.point(q, model.loads(q, payload))
     local = ee_covariance(model, q, payload_kg=payload, include_noise=True)
     local = local + predictive.model_error(point)
-    d = 3 if dataset.is_position_only else 6
+    measurement = pose_measurement(rotation=not dataset.is_position_only)
+    d = measurement.dim
     measured = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
-    residuals = pose_residuals(point.pose, measured, position_only=d == 3)
+    residuals = measurement.residuals(point.pose, measured)
     covariance = checks.joint_covariance(
         local[:, :d, :d], point.parameter_jacobian[:, :d], predictive.parameter_covariance
     )

@@ -148,7 +148,7 @@ def run_demo(output_dir: Path, *, echo: Callable[[str], None] = print) -> dict[s
         noise_rotation_deg=0.2,
     )
     data_path = output_dir / "jaco2_recording.csv"
-    write_dataset(scenarios.recording_dataset(recording, scn.chain, position_only=False), data_path)
+    write_dataset(scenarios.recording_dataset(recording, scn.chain, rotation=True), data_path)
     truth = scenarios.truth_document(scn, recording, robot)
     (output_dir / "truth.json").write_text(json.dumps(truth, indent=1), encoding="utf-8")
     echo(f"simulated {scn.spec.n_samples} Jaco2 camera measurements -> {data_path}")

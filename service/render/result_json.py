@@ -92,6 +92,13 @@ def prepare(
     )
 
 
+def result_measurement(result: CalibrationResult) -> FullPose:
+    """What the rows of a pose or position calibration measured, as the model the pose paths
+    take (:class:`~solver.measurement.FullPose` or :class:`~solver.measurement.Position`),
+    from the document's ``dataset`` (:attr:`schemas.calibration.DatasetInfo.measures_rotation`)."""
+    return pose_measurement(rotation=result.dataset.measures_rotation)
+
+
 def result_chain(
     result: CalibrationResult, *, baseline: bool = False
 ) -> tuple[KinematicChain, ChainParameters]:
@@ -440,9 +447,9 @@ def assemble_result(
 ) -> CalibrationResult:
     """The result JSON of a recording calibrated by
     :func:`solver.stream.calibrate.calibrate_recording`; ``frame_index``: the chain joint of
-    each covariance frame; ``measurement``: what its rows measured (the document's
-    ``dataset.position_only`` says whether it was :class:`~solver.measurement.Position`);
-    ``free_columns``: the columns the fit could move (None: all)."""
+    each covariance frame; ``measurement``: what its rows measured (written into the
+    document's public ``dataset`` field); ``free_columns``: the columns the fit could move
+    (None: all)."""
     fixed = fixed_names(chain, free_columns)
     fits = calibrated.fits
     fit, baseline = fits.fit, fits.baseline

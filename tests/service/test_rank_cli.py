@@ -61,7 +61,7 @@ def result(tmp_path_factory: pytest.TempPathFactory) -> CalibrationResult:
     scn, recording = scenarios.simulate(
         robot, n_samples=50, seed=4, effects=("geometry", "compliance", "camera", "marker")
     )
-    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=True)
     calibrated = pipeline.calibrate(dataset, robot, CalibrationOptions(heldout=False))
     k = len(calibrated.robot.joint_names)
     std = np.zeros((k, 6))
@@ -298,7 +298,7 @@ def test_gp_calibration_method_is_a_table_ii_column() -> None:
     scn, recording = scenarios.simulate(
         robot, n_samples=60, seed=3, effects=("compliance", "camera", "marker")
     )
-    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=True)
     options = CalibrationOptions(heldout=False, seeds=[1, 2])
     data = result_json.prepare(result_json.chain_for(robot, options), dataset, options)
     used = np.arange(dataset.n_samples)

@@ -19,7 +19,7 @@ from solver.gp_baseline import (
     gp_method,
     gp_scores,
 )
-from solver.kinematics import pose_residuals
+from solver.kinematics import pose_residuals, position_residuals
 from solver.measurement import FullPose
 from solver.ranking import TaskMetric
 
@@ -100,11 +100,11 @@ def test_gp_method_refits_the_baseline_on_training_rows_only() -> None:
 
 def test_position_only_gp_corrects_translation_only() -> None:
     q, before, measured = _data()
-    residuals = pose_residuals(before, measured, position_only=True)
+    residuals = position_residuals(before, measured)
     model = fit_gp_error_model(q, residuals, SETTINGS)
     corrected = corrected_poses(model, before, q)
     assert np.array_equal(corrected[:, :3, :3], before[:, :3, :3])
-    after = pose_residuals(corrected, measured, position_only=True)
+    after = position_residuals(corrected, measured)
     assert np.sqrt(np.mean(after**2)) < 0.2 * np.sqrt(np.mean(residuals**2))
     scores = gp_scores(model, q, TaskMetric.pose_weights())
     assert np.all(scores.ee_variance[:, 3:] == 0.0) and np.all(scores.score > 0.0)
