@@ -248,7 +248,9 @@ def open_recording(
         carried = discover_carry.carry_model(setup.findings, dataset, setup.robot)
         dataset, corrections, notes = carried.dataset, carried.record, tuple(carried.notes)
     measurement = rows_measurement(
-        options, file_rotation=not dataset.is_position_only, source=dataset.source
+        options,
+        file_rotation=dataset.measurement_model.measures_rotation,
+        source=dataset.source,
     )
     problem = StreamProblem(
         chain,

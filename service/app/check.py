@@ -35,7 +35,6 @@ from service.render import corrections, result_json
 from solver import check as checks
 from solver import lie
 from solver.errors import DatasetError, KincalError
-from solver.measurement.pose import pose_measurement
 from solver.ranking import ee_covariance
 from solver.verdict import reach_m
 
@@ -104,7 +103,7 @@ def read_check_recording(
                 f"{', '.join(chain.joint_names)}): {exc}"
             ) from exc
     check_dataset(dataset, chain)
-    recorded = pose_measurement(rotation=not dataset.is_position_only)
+    recorded = dataset.measurement_model
     calibrated = result_json.result_measurement(result)
     if recorded != calibrated:
         kinds = {"position": "positions only (x,y,z)", "pose": "full poses (x,y,z,qx,qy,qz,qw)"}
@@ -128,7 +127,7 @@ def check_arrays(result: CalibrationResult, dataset: PoseDataset) -> CheckArrays
     point = predictive.point(q, model.loads(q, payload))
     local = ee_covariance(model, q, payload_kg=payload, include_noise=True)
     local = local + predictive.model_error(point)
-    measurement = pose_measurement(rotation=not dataset.is_position_only)
+    measurement = dataset.measurement_model
     d = measurement.dim
     measured = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
     residuals = measurement.residuals(point.pose, measured)

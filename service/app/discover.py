@@ -382,7 +382,7 @@ def solver_data(dataset: PoseDataset, options: DiscoveryOptions) -> solver_disco
     return solver_discovery.DiscoveryData(
         joint_positions=dataset.joint_positions,
         measured_pose=lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw),
-        pose_model=pose_measurement(rotation=not dataset.is_position_only),
+        pose_model=dataset.measurement_model,
         time_s=dataset.time_s,
         payload_kg=payload
         if payload is not None

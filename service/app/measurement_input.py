@@ -215,9 +215,10 @@ def read_measured(
     q = dataset.joint_positions
     pose = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
     needs_rotation = isinstance(model, PoseComponents) and bool(model.rotation_rows)
+    rotation = dataset.measurement_model.measures_rotation
     if isinstance(model, (RelativeBase, EyeOnHead)):
-        model = dataclasses.replace(model, rotation=not dataset.is_position_only)
-    if needs_rotation and dataset.is_position_only:
+        model = dataclasses.replace(model, rotation=rotation)
+    if needs_rotation and not rotation:
         raise KincalError(
             f"measurement {options.measurement}: the rotation components need quaternion "
             f"columns qx,qy,qz,qw in {dataset.source}; choose translation components only"
@@ -225,7 +226,7 @@ def read_measured(
     if isinstance(model, MultiMarker):
         raise KincalError("measurement 'markers' needs a FIGAROH file with several markers")
     rows = MeasurementRows.of(q, _loads(chain, options, q), pose)
-    return MeasuredRecording(model, rows, name or dataset.source, (), not dataset.is_position_only)
+    return MeasuredRecording(model, rows, name or dataset.source, (), rotation)
 
 
 def distinct_markers(positions_m: np.ndarray) -> tuple[list[int], tuple[str, ...]]:

@@ -88,7 +88,7 @@ def prepare(
         joint_positions=dataset.joint_positions,
         measured_pose=lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw),
         loads_nm=loads,
-        measurement=pose_measurement(rotation=not dataset.is_position_only),
+        measurement=dataset.measurement_model,
     )
 
 
