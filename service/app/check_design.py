@@ -82,10 +82,8 @@ def run_check_design(
     scales = part_scales(terms)
     chosen = choose_check_poses(terms, n_poses, scales)
     rng = np.random.default_rng([options.seed, 33])
-    random = [
-        worst_relative_size(terms, rng.choice(q.shape[0], n_poses, replace=False), scales)
-        for _ in range(RANDOM_DRAWS)
-    ]
+    draws = np.stack([rng.choice(q.shape[0], n_poses, replace=False) for _ in range(RANDOM_DRAWS)])
+    random = worst_relative_size(terms, draws, scales)
     sizes = checks.stated_sizes_at(result, q[chosen], level, d)
     scale_of = {p.name: float(s) for p, s in zip(terms.parts, scales, strict=True)}
     positions = tip_poses(chain, q[chosen])[:, :3, 3]
@@ -98,7 +96,7 @@ def run_check_design(
         level=level,
         power=solver_check.POWER,
         criterion=CRITERION,
-        worst_relative_size=worst_relative_size(terms, chosen, scales),
+        worst_relative_size=float(worst_relative_size(terms, chosen, scales)),
         random_worst_relative_size=float(np.median(random)),
         random_draws=RANDOM_DRAWS,
         poses=[

@@ -144,12 +144,13 @@ class CheckPoseTerms:
         return dataclasses.replace(terms, parts=tuple(parts))
 
     def sums(self, rows: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """``Σ aᵀa`` (M, M), ``X = Σ aᵀv`` (M, p) and ``H = Σ vᵀv`` (p, p) over ``rows``."""
+        """``Σ aᵀa`` (..., M, M), ``X = Σ aᵀv`` (..., M, p) and ``H = Σ vᵀv`` (..., p, p) over
+        the poses ``rows`` (..., K) (several sets at once)."""
         a, v = self.a[rows], self.v[rows]
         return (
-            np.einsum("ndi,ndj->ij", a, a),
-            np.einsum("ndi,ndj->ij", a, v),
-            np.einsum("ndi,ndj->ij", v, v),
+            np.einsum("...kdi,...kdj->...ij", a, a),
+            np.einsum("...kdi,...kdj->...ij", a, v),
+            np.einsum("...kdi,...kdj->...ij", v, v),
         )
 
     def information(self, aa: FloatArray, x: FloatArray, h: FloatArray) -> FloatArray:
@@ -229,17 +230,17 @@ def part_scales(terms: CheckPoseTerms) -> FloatArray:
 
 
 def relative_sizes(terms: CheckPoseTerms, rows: IntArray, scales: FloatArray) -> FloatArray:
-    """``s_c(S) / σ_c`` (parts,) of the poses ``rows``: each part's located size in its
-    scale (inf where these poses do not tell it apart)."""
+    """``s_c(S) / σ_c`` (..., parts) of the poses ``rows`` (..., K): each part's located size in
+    its scale (inf where these poses do not tell it apart)."""
     weakest = terms.weakest(terms.information(*terms.sums(rows)))
     noncentrality = np.array([p.noncentrality for p in terms.parts])
     with np.errstate(divide="ignore"):
         return np.asarray(np.sqrt(noncentrality / np.maximum(weakest, 0.0)) / scales, dtype=float)
 
 
-def worst_relative_size(terms: CheckPoseTerms, rows: IntArray, scales: FloatArray) -> float:
-    """The criterion: the largest :func:`relative_sizes` of the poses ``rows``."""
-    return float(np.max(relative_sizes(terms, rows, scales)))
+def worst_relative_size(terms: CheckPoseTerms, rows: IntArray, scales: FloatArray) -> FloatArray:
+    """The criterion (...,): the largest :func:`relative_sizes` of the poses ``rows`` (..., K)."""
+    return np.asarray(np.max(relative_sizes(terms, rows, scales), axis=-1), dtype=float)
 
 
 def _best_addition(
