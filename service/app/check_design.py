@@ -39,9 +39,11 @@ RANDOM_DRAWS = 200
 """Random sets of K candidates the chosen poses' criterion is compared with."""
 
 CRITERION = (
-    "minimise the largest detectable size of a joint offset, the base or the tool (translation "
-    "and rotation) along its worst direction, each over its scale (its worst-direction "
-    "standard error were every candidate a check pose); greedy, then single exchanges"
+    "minimise the largest located size of a joint offset, the base and the tool (translation "
+    "and rotation): sqrt(noncentrality / separation information), the separation information "
+    "the worst direction's information outside the span of the most similar candidate change; "
+    "each size over its scale (the same with every candidate a check pose); greedy, then "
+    "single exchanges"
 )
 
 

@@ -20,6 +20,8 @@ from service.cli.common import (
     out_dir_for,
     output_option,
     read_result,
+    refuse_flags,
+    robot_flags,
 )
 from service.cli.flags import calibration_options, numbers, read_config
 from solver.errors import KincalError
@@ -212,11 +214,7 @@ def design(
     from service.app import design as designs
 
     if check is not None:
-        calibration_only = {
-            "--robot": robot,
-            "--urdf": urdf,
-            "--base": base,
-            "--tip": tip,
+        calibration_only = robot_flags(robot, urdf, base, tip) | {
             "--poses": poses,
             "--criterion": criterion,
             "--stage": stage,
@@ -228,17 +226,15 @@ def design(
             "--noise-deg": noise_deg,
             "--prior-perturbation-deg": prior_perturbation_deg,
             "--method": method,
-            "--allow-repeats": allow_repeats or None,
+            "--allow-repeats": allow_repeats,
             "--task": task,
             "--recording": recording,
             "--config": config,
         }
-        flags = [flag for flag, value in calibration_only.items() if value is not None]
-        if flags:
-            raise KincalError(
-                f"--check designs check poses of --result: {', '.join(flags)} belong to a "
-                "calibration design; drop them"
-            )
+        refuse_flags(
+            calibration_only,
+            "--check designs check poses of --result; these belong to a calibration design",
+        )
         if result is None:
             raise KincalError("--check K designs check poses of a calibration: give --result")
         check_design(

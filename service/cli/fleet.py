@@ -32,6 +32,8 @@ from service.cli.common import (
     out_dir_for,
     output_option,
     read_result,
+    refuse_flags,
+    robot_flags,
 )
 from service.cli.flags import calibration_options, option_help, read_config
 from solver.errors import KincalError
@@ -148,14 +150,10 @@ def fleet(
     from service.app import fleet as fleet_mode
 
     if check is not None:
-        calibration_only = {
-            "--robot": robot,
-            "--urdf": urdf,
-            "--base": base,
-            "--tip": tip,
+        calibration_only = robot_flags(robot, urdf, base, tip) | {
             "--config": config,
             "--compliant-joints": compliant_joints,
-            "--rigid": rigid or None,
+            "--rigid": rigid,
             "--outlier-rule": outlier_rule,
             "--outlier-sigma": outlier_sigma,
             "--covariance": covariance,
@@ -167,12 +165,10 @@ def fleet(
             "--workers": workers,
             "--results-dir": results_dir,
         }
-        flags = [flag for flag, value in calibration_only.items() if value is not None]
-        if flags:
-            raise KincalError(
-                f"--check checks each unit against its result: {', '.join(flags)} belong to "
-                "calibrating a fleet; drop them"
-            )
+        refuse_flags(
+            calibration_only,
+            "--check checks each unit against its result; these belong to calibrating a fleet",
+        )
         fleet_check(directory, check, level, output, out_dir)
         return
     description = _robot(robot, urdf, base, tip)

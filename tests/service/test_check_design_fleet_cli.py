@@ -91,7 +91,7 @@ def test_design_check_needs_a_result_and_three_poses(
     calibrated, tmp_path, capsys, monkeypatch
 ) -> None:
     code, _, stderr = run(["design", "--check", 10, "--robot", "panda"], capsys, monkeypatch)
-    assert code == 2 and "--robot belong to a calibration design" in stderr
+    assert code == 2 and "--robot: --check designs check poses of --result" in stderr
     code, _, stderr = run(["design", "--check", 10], capsys, monkeypatch)
     assert code == 2 and "give --result" in stderr
     code, _, stderr = run(
