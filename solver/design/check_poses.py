@@ -54,6 +54,7 @@ improves. The minimax is not submodular, so greedy carries no guarantee;
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 from dataclasses import dataclass
 
@@ -143,15 +144,21 @@ class CheckPoseTerms:
                 parts.append(dataclasses.replace(part, competitors=separable(every, part)))
         return dataclasses.replace(terms, parts=tuple(parts))
 
+    @functools.cached_property
+    def outer(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Each pose's ``aᵀa`` (N, M, M), ``aᵀv`` (N, M, p) and ``vᵀv`` (N, p, p)."""
+        a, v = self.a, self.v
+        return (
+            np.einsum("ndi,ndj->nij", a, a),
+            np.einsum("ndi,ndj->nij", a, v),
+            np.einsum("ndi,ndj->nij", v, v),
+        )
+
     def sums(self, rows: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """``Σ aᵀa`` (..., M, M), ``X = Σ aᵀv`` (..., M, p) and ``H = Σ vᵀv`` (..., p, p) over
         the poses ``rows`` (..., K) (several sets at once)."""
-        a, v = self.a[rows], self.v[rows]
-        return (
-            np.einsum("...kdi,...kdj->...ij", a, a),
-            np.einsum("...kdi,...kdj->...ij", a, v),
-            np.einsum("...kdi,...kdj->...ij", v, v),
-        )
+        aa, av, vv = self.outer
+        return aa[rows].sum(axis=-3), av[rows].sum(axis=-3), vv[rows].sum(axis=-3)
 
     def information(self, aa: FloatArray, x: FloatArray, h: FloatArray) -> FloatArray:
         """``F = Σ aᵀa − X Q Xᵀ`` (..., M, M) from sums (..., M, M), (..., M, p), (..., p, p),
@@ -250,15 +257,10 @@ def _best_addition(
     weight: FloatArray,
 ) -> tuple[int, float]:
     """The candidate of ``rows`` whose addition to the poses of ``sums`` maximises the worst
-    part's weighted ``λ_min(F_cc)`` (ties broken by the mean over the parts), and that worst
-    value."""
-    aa, x, h = sums
-    a, v = terms.a[rows], terms.v[rows]
-    trial = terms.information(
-        aa + np.einsum("ndi,ndj->nij", a, a),
-        x + np.einsum("ndi,ndj->nij", a, v),
-        h + np.einsum("ndi,ndj->nij", v, v),
-    )
+    part's weighted separation ``e_c`` (ties broken by the mean over the parts), and that
+    worst value."""
+    aa, av, vv = terms.outer
+    trial = terms.information(sums[0] + aa[rows], sums[1] + av[rows], sums[2] + vv[rows])
     ratio = terms.weakest(trial) * weight
     best = int(np.lexsort((ratio.mean(axis=1), ratio.min(axis=1)))[-1])
     return int(rows[best]), float(ratio[best].min())
@@ -271,7 +273,7 @@ MAX_EXCHANGE_PASSES = 5
 def choose_check_poses(terms: CheckPoseTerms, n_poses: int, scales: FloatArray) -> IntArray:
     """K = ``n_poses`` distinct candidates (sorted) that minimise the largest relative size:
     greedily, each step adding the candidate that maximises the worst part's
-    ``λ_min(F_cc) σ_c² / λ_c`` after it (ties broken by the mean over the parts); then single
+    ``e_c σ_c² / λ_c`` after it (ties broken by the mean over the parts); then single
     exchanges (a chosen pose out, the best candidate for the others in) while the worst part
     improves, at most :data:`MAX_EXCHANGE_PASSES` passes."""
     weight = scales**2 / np.array([p.noncentrality for p in terms.parts])
