@@ -238,16 +238,20 @@ def part_scales(terms: CheckPoseTerms) -> FloatArray:
 
 def relative_sizes(terms: CheckPoseTerms, rows: IntArray, scales: FloatArray) -> FloatArray:
     """``s_c(S) / σ_c`` (..., parts) of the poses ``rows`` (..., K): each part's located size in
-    its scale (inf where these poses do not tell it apart)."""
+    its scale (inf where these poses do not tell it apart; NaN for a part no candidate tells
+    apart, σ_c = inf, which the criterion leaves out)."""
     weakest = terms.weakest(terms.information(*terms.sums(rows)))
     noncentrality = np.array([p.noncentrality for p in terms.parts])
-    with np.errstate(divide="ignore"):
-        return np.asarray(np.sqrt(noncentrality / np.maximum(weakest, 0.0)) / scales, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        size = np.sqrt(noncentrality / np.maximum(weakest, 0.0))
+        return np.asarray(np.where(np.isfinite(scales), size / scales, np.nan), dtype=float)
 
 
 def worst_relative_size(terms: CheckPoseTerms, rows: IntArray, scales: FloatArray) -> FloatArray:
-    """The criterion (...,): the largest :func:`relative_sizes` of the poses ``rows`` (..., K)."""
-    return np.asarray(np.max(relative_sizes(terms, rows, scales), axis=-1), dtype=float)
+    """The criterion (...,): the largest :func:`relative_sizes` of the poses ``rows`` (..., K)
+    over the parts some candidate tells apart."""
+    relative = relative_sizes(terms, rows, scales)[..., np.isfinite(scales)]
+    return np.asarray(np.max(relative, axis=-1, initial=0.0), dtype=float)
 
 
 def _best_addition(
