@@ -26,10 +26,16 @@ measurement types (ball in socket, markers; :data:`MEASURED`) with ``kincal cali
 defaults, which docs/coverage.md and docs/measurements.md include. A fourth,
 ``docs/results/coverage_partitions.{json,md}`` (issue 31): the 10-fold protocol over
 ``--partitions`` random partitions of each recording (partition 0 is the acceptance table's),
-so a coverage that holds on one partition only shows as such.
+so a coverage that holds on one partition only shows as such. A fifth, with ``--types``
+alone: ``docs/results/coverage_types_partitions.{json,md}`` (issue 31), the same protocol for
+the other measurement types (:data:`TYPES`: the twelve platonics arms pooled, the TIAGo
+markers, the TIAGo relative base, the DH positioner), each held-out row scored in its type's
+residual space under the total predictive covariance of its fold's result.
 
 Usage: ``python -m benchmarks.coverage [--seeds 10] [--folds 10] [--partitions 3]
-[--recordings fr3,ur10e,...] [--measured panda_right,...] [--write-results]``.
+[--recordings fr3,ur10e,...] [--measured panda_right,...] [--write-results]``, or
+``python -m benchmarks.coverage --types platonics,... [--type-partitions platonics=2]
+[--write-results]``.
 """
 
 from __future__ import annotations
@@ -894,10 +900,9 @@ def render_types(rows: list[Row]) -> str:
     for r in rows:
         d, parts = r["dimension"], r["partitions"]
         held = sum(band(p["inside_95"], p["mean_d2"], d) for p in parts)
-        recordings = r["recordings"]
         body.append(
             (
-                r["recording"] if len(recordings) == 1 else f"{r['recording']}, {len(recordings)}",
+                r["recording"],
                 r["scored_on"],
                 r["rows"],
                 d,
