@@ -26,15 +26,22 @@ measurement types (ball in socket, markers; :data:`MEASURED`) with ``kincal cali
 defaults, which docs/coverage.md and docs/measurements.md include. A fourth,
 ``docs/results/coverage_partitions.{json,md}`` (issue 31): the 10-fold protocol over
 ``--partitions`` random partitions of each recording (partition 0 is the acceptance table's),
-so a coverage that holds on one partition only shows as such.
+so a coverage that holds on one partition only shows as such. A fifth, with ``--types``
+alone: ``docs/results/coverage_types_partitions.{json,md}`` (issue 31), the same protocol for
+the other measurement types (:data:`TYPES`: the twelve platonics arms pooled, the TIAGo
+markers, the TIAGo relative base, the DH positioner), each held-out row scored in its type's
+residual space under the total predictive covariance of its fold's result.
 
 Usage: ``python -m benchmarks.coverage [--seeds 10] [--folds 10] [--partitions 3]
-[--recordings fr3,ur10e,...] [--measured panda_right,...] [--write-results]``.
+[--recordings fr3,ur10e,...] [--measured panda_right,...] [--write-results]``, or
+``python -m benchmarks.coverage --types platonics,... [--type-partitions platonics=2]
+[--write-results]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,11 +55,13 @@ from schemas.dataset import PoseDataset
 from schemas.dataset.readers import read_dataset
 from schemas.robots import RobotDescription, example_robot_data_dir, load_robot
 from service.app import calibrate as pipeline
+from service.app import measurement_input
 from service.app import rank as ranking
 from service.render import result_json
 from solver import lie
 from solver.errors import KincalError
 from solver.kinematics import pose_residuals
+from solver.measurement.predictive import total_distances
 from solver.predictive import (
     COVERAGE_LEVELS,
     Coverage,
@@ -77,10 +86,13 @@ class Recording:
     urdf: str | None = None
     base: str | None = None
     tip: str | None = None
+    dh: str | None = None
 
     def description(self) -> RobotDescription:
         if self.robot is not None:
             return load_robot(self.robot)
+        if self.dh is not None:
+            return load_robot(dh_path=DATA / self.dh)
         assert self.urdf is not None
         path = Path(self.urdf)
         if not path.is_absolute():
@@ -466,12 +478,20 @@ def heldout_distances(result: CalibrationResult, test: PoseDataset) -> HeldoutDi
     total = random + (parts["parameters"] + parts["model_error"])[:, :d, :d]
     distances = mahalanobis_squared(residuals, total)
     before = mahalanobis_squared(residuals, random)
+    return HeldoutDistances(distances, before, not_screened(result, distances, d))
+
+
+def not_screened(result: CalibrationResult, distances: np.ndarray, d: int) -> np.ndarray:
+    """Which held-out rows (n,) of squared distances ``distances`` under ``result``'s total
+    (residual dimension ``d``) its model-based outlier rule keeps: the family-wise Hotelling
+    threshold with the calibration's N and degrees of freedom (p: the parameters its Cov(θ̂)
+    lists); every row under any other rule."""
     outliers = result.outliers
     if outliers.rule != "model" or outliers.level is None or result.predictive is None:
-        return HeldoutDistances(distances, before, np.ones(distances.size, dtype=bool))
+        return np.ones(distances.size, dtype=bool)
     p = len(result.predictive.parameter_covariance.parameters)
     threshold = family_wise_t2(outliers.level, outliers.n_input, d, outliers.n_used - p / d)
-    return HeldoutDistances(distances, before, distances <= threshold)
+    return np.asarray(distances <= threshold)
 
 
 def fold_scores(
@@ -652,6 +672,268 @@ def render_partitions(rows: list[Row]) -> str:
     return markdown_table(PARTITIONS_HEADER, body)
 
 
+# --- issue 31: the 10-fold protocol for the other measurement types --------------------------
+
+
+BAND_MEAN_TYPES = 0.20
+"""Issue 31's band for the measurement types: the mean d² within this fraction of d (the
+share inside the 95 % region in :data:`BAND_95`)."""
+
+
+@dataclass(frozen=True)
+class TypeCoverage:
+    """A measurement type's 10-fold protocol: ``recordings`` (one, or the arms pooled),
+    the ``kincal calibrate`` options a user gives them beyond the defaults, and ``scored``:
+    what a held-out row is scored on and in which frame (the page says it)."""
+
+    label: str
+    scored: str
+    recordings: tuple[Recording, ...]
+    options: tuple[tuple[str, object], ...] = ()
+
+    def setup(self, recording: Recording) -> pipeline.CalibrationSetup:
+        options = CalibrationOptions(**dict(self.options))  # type: ignore[arg-type]
+        return pipeline.check_calibration(recording.description(), options)
+
+
+def _platonics_arms() -> tuple[Recording, ...]:
+    folder = DATA / "platonics_ball_socket"
+    arms = sorted(p.name for p in folder.iterdir() if p.is_dir() and p.name.startswith("panda"))
+    return tuple(Recording(arm, f"platonics_ball_socket/{arm}", "panda") for arm in arms)
+
+
+TYPES = {
+    "platonics": TypeCoverage(
+        "platonics, the twelve Panda arms pooled (ball in socket)",
+        "the ball centre against its socket point (3-D), robot base frame",
+        _platonics_arms(),
+    ),
+    "tiago_markers": TypeCoverage(
+        "TIAGo Qualisys, four markers (three distinct)",
+        "the stacked marker positions (3·3-D), measurement frame",
+        (MEASURED["tiago_qualisys"],),
+    ),
+    "tiago_relative": TypeCoverage(
+        "TIAGo Vicon gripper3/base1, relative base, joint offsets",
+        "the tip position relative to the base marker (3-D), tip frame",
+        (
+            Recording(
+                "TIAGo Vicon relative base",
+                "figaroh_tiago_mocap/vicon/relative_encoder/vicon_calibration_fc10_gripper3_base1.csv",
+                urdf="robots/tiago_description/robots/tiago.urdf",
+                base="base_footprint",
+                tip="arm_tool_link",
+            ),
+        ),
+        (("measurement", "relative-base"), ("free_parameters", ["joint_offsets"])),
+    ),
+    "positioner": TypeCoverage(
+        "2-axis positioner, DH table (pose)",
+        "the 6-D pose of the target (Log of predicted⁻¹ · measured), tip frame",
+        (
+            Recording(
+                "2-axis positioner",
+                "industrial_calibration_2axis_positioner/measurements.yaml",
+                dh="industrial_calibration_2axis_positioner/positioner_dh.yaml",
+            ),
+        ),
+    ),
+}
+"""Issue 31's other measurement types, each with the flags of benchmarks/evaluate_real.py
+(the platonics as :data:`MEASURED` calibrates them: the type found from the folder, no socket
+distance). The positioner's recording is a pose recording (the streamed path of
+:func:`fold_scores`); the others are calibrated in memory (:func:`measured_fold_scores`)."""
+
+
+def measured_fold_scores(
+    recording: Recording,
+    setup: pipeline.CalibrationSetup,
+    folds: int = FOLDS,
+    seed: int = 0,
+    only: int | None = None,
+) -> tuple[int, int, list[FoldScore]]:
+    """:func:`fold_scores` of a measurement-model recording (ball in socket, markers,
+    relative base): the recording read once as ``kincal calibrate`` reads it, each fold's
+    training rows calibrated by :func:`service.app.calibrate.calibrate_measured` (what
+    ``kincal calibrate`` runs on rows in memory, with ``setup``'s options), its held-out rows
+    scored in the model's residual space under the result's total predictive covariance
+    (:func:`solver.measurement.predictive.total_distances` with the result's Cov(θ̂) and
+    model-error part) and under Σ_E + noise; rows the training calibration's outlier rule
+    screens out (:func:`not_screened`) are counted, not scored."""
+    source = DATA / recording.path
+    model = measurement_input.measurement_for(setup.options, setup.chain, source, None)
+    assert model is not None, f"{recording.path} is a pose recording"
+    whole = measurement_input.read_measured(source, setup.chain, setup.options, model)
+    d = whole.model.dim
+    scores = []
+    for index, (train, test) in enumerate(fold_indices(whole.rows.n, folds, seed)):
+        if only is not None and index != only:
+            continue
+        try:
+            run = pipeline.calibrate_measured(
+                dataclasses.replace(whole, rows=whole.rows.take(train)), setup
+            )
+        except KincalError as exc:
+            empty = np.zeros(0)
+            scores.append(FoldScore(len(test), empty, empty, 0, f"{len(train)} rows: {exc}"))
+            continue
+        assert run.measured is not None and run.measured.predictive is not None
+        predictive = run.measured.predictive
+        total, before = total_distances(
+            setup.chain,
+            predictive.predictor,
+            predictive.model_error.variance,
+            whole.rows.take(test),
+        )
+        kept = not_screened(run.result, total, d)
+        scores.append(
+            FoldScore(len(test), total[kept], before[kept], int(np.count_nonzero(~kept)), None)
+        )
+    return whole.rows.n, d, scores
+
+
+def type_fold_scores(
+    kind: TypeCoverage,
+    recording: Recording,
+    folds: int = FOLDS,
+    seed: int = 0,
+    only: int | None = None,
+) -> tuple[int, int, list[FoldScore]]:
+    """The folds of one recording of ``kind``: the streamed pose path for a pose recording
+    (the positioner), the measurement-model path otherwise."""
+    setup = kind.setup(recording)
+    model = measurement_input.measurement_for(
+        setup.options, setup.chain, DATA / recording.path, None
+    )
+    if model is None:
+        return fold_scores(recording, folds, seed, only)
+    return measured_fold_scores(recording, setup, folds, seed, only)
+
+
+def type_row(kind: TypeCoverage, folds: int, seeds: list[int]) -> Row:
+    """The numbers of the results file ``coverage_types_partitions``: per partition (seed) the
+    folds of every recording of ``kind`` (each fold's counts, with its recording), the scored
+    and screened rows, the share inside the 95 % region, the mean and largest d², pooled over
+    the recordings; and pooled over the partitions; the CPU seconds of the whole row."""
+    started = time.process_time()
+    partitions: list[Row] = []
+    every: list[np.ndarray] = []
+    rows = 0
+    d = 0
+    for seed in seeds:
+        fold_rows: list[Row] = []
+        distances: list[np.ndarray] = []
+        screened = failed = 0
+        rows = 0
+        for recording in kind.recordings:
+            n, d, scores = type_fold_scores(kind, recording, folds, seed)
+            rows += n
+            for index, score in enumerate(scores):
+                fold_rows.append({"recording": recording.label, "fold": index, **score.row(d)})
+                distances.append(score.total)
+                screened += score.screened
+                failed += score.failed is not None
+        joined = np.concatenate(distances)
+        found = coverage(joined, d)
+        every.append(joined)
+        partitions.append(
+            {
+                "seed": seed,
+                "scored": found.n,
+                "screened": screened,
+                "inside_95": found.at(0.95),
+                "mean_d2": found.mean_d2,
+                "max_d2": float(joined.max(initial=0.0)),
+                "failed_folds": failed,
+                "folds": fold_rows,
+            }
+        )
+        print(
+            f"{kind.label}, partition {seed}: {found.n} rows scored ({screened} screened, "
+            f"{failed} folds failed), {100 * found.at(0.95):.1f} % in 95 %, mean d² "
+            f"{found.mean_d2:.2f} (d = {d}), largest {joined.max(initial=0.0):.1f}, "
+            f"{time.process_time() - started:.0f} CPU s",
+            flush=True,
+        )
+    pooled = coverage(np.concatenate(every), d)
+    return {
+        "recording": kind.label,
+        "scored_on": kind.scored,
+        "recordings": [r.label for r in kind.recordings],
+        "rows": rows,
+        "dimension": d,
+        "partitions": partitions,
+        "inside_95": pooled.at(0.95),
+        "mean_d2": pooled.mean_d2,
+        "cpu_s": time.process_time() - started,
+    }
+
+
+TYPES_HEADER = (
+    "Measurement (recordings)",
+    "Scored on, frame",
+    "Rows",
+    "d",
+    "Partition (seed): in 95 % / mean d² / largest d² (screened)",
+    "Pooled: in 95 % / mean d²",
+    "In the band",
+    "CPU s",
+)
+
+
+def render_types(rows: list[Row]) -> str:
+    """The table of ``docs/results/coverage_types_partitions.md``: the 10-fold protocol of
+    each measurement type over its partitions (issue 31's band: :data:`BAND_95`, mean d²
+    within :data:`BAND_MEAN_TYPES` of d; ✗ marks a partition outside it)."""
+
+    def band(share: float, mean: float, d: int) -> bool:
+        return BAND_95[0] <= share <= BAND_95[1] and abs(mean - d) <= BAND_MEAN_TYPES * d
+
+    def one(p: Row, d: int) -> str:
+        mark = "" if band(p["inside_95"], p["mean_d2"], d) else " ✗"
+        return (
+            f"{p['seed']}: {100 * p['inside_95']:.1f} % / {p['mean_d2']:.2f} / "
+            f"{p['max_d2']:.0f} ({p['screened']}){mark}"
+        )
+
+    body = []
+    for r in rows:
+        d, parts = r["dimension"], r["partitions"]
+        held = sum(band(p["inside_95"], p["mean_d2"], d) for p in parts)
+        body.append(
+            (
+                r["recording"],
+                r["scored_on"],
+                r["rows"],
+                d,
+                "; ".join(one(p, d) for p in parts),
+                f"{100 * r['inside_95']:.1f} % / {r['mean_d2']:.2f}",
+                f"{held} of {len(parts)} partitions"
+                + ("" if band(r["inside_95"], r["mean_d2"], d) else "; pooled: **no**"),
+                f"{r['cpu_s']:.0f}",
+            )
+        )
+    return markdown_table(TYPES_HEADER, body)
+
+
+def types_main(names: list[str], folds: int, partitions: dict[str, int], write: bool) -> list[Row]:
+    """The ``coverage_types_partitions`` table (printed; written with ``write``):
+    ``partitions`` per type name (default :data:`PARTITIONS`)."""
+    rows = [
+        type_row(TYPES[name], folds, list(range(partitions.get(name, PARTITIONS))))
+        for name in names
+    ]
+    print("\n" + render_types(rows))
+    if write:
+        arguments = f"--types {','.join(names)} --folds {folds}"
+        if partitions:
+            arguments += " --type-partitions " + ",".join(f"{k}={v}" for k, v in partitions.items())
+        command = f"python -m benchmarks.coverage {arguments} --write-results"
+        for path in write_results("coverage_types_partitions", command, rows, render_types):
+            print("wrote", path)
+    return rows
+
+
 def main(
     seeds: int = 10,
     names: list[str] | None = None,
@@ -758,7 +1040,27 @@ if __name__ == "__main__":
         action="store_true",
         help="write docs/results/coverage_{folds,rules,measurements,partitions}.{json,md}",
     )
+    parser.add_argument(
+        "--types",
+        default=None,
+        help="run only issue 31's measurement-type table (coverage_types_partitions), for "
+        "these types, comma-separated: " + ", ".join(TYPES),
+    )
+    parser.add_argument(
+        "--type-partitions",
+        default="",
+        help="partitions per type where not --partitions, e.g. platonics=2",
+    )
     arguments = parser.parse_args()
+    if arguments.types is not None:
+        per_type = dict(
+            (k, int(v))
+            for k, _, v in (p.partition("=") for p in arguments.type_partitions.split(",") if p)
+        )
+        for name in arguments.types.split(","):
+            per_type.setdefault(name, arguments.partitions)
+        types_main(arguments.types.split(","), arguments.folds, per_type, arguments.write_results)
+        raise SystemExit(0)
     main(
         arguments.seeds,
         arguments.recordings.split(","),

@@ -135,3 +135,31 @@ class CheckResult(_Model):
     candidates: list[CandidateTest]
     power: float
     stated_sizes: list[StatedSize]
+
+
+FLEET_CHECK_FORMAT: Literal["kincal.fleet-check/1"] = "kincal.fleet-check/1"
+
+
+class FleetCheckUnit(_Model):
+    """One unit's check: its calibration result, its check recording and the check."""
+
+    unit: str
+    result: str = Field(description="Path of the unit's calibration result.")
+    check: CheckResult
+
+
+class FleetCheck(_Model):
+    """Every unit of a fleet checked against its own calibration (``kincal fleet --check``)."""
+
+    format: Literal["kincal.fleet-check/1"] = FLEET_CHECK_FORMAT
+    kincal_version: str
+    created_utc: str
+    level: float = Field(description="Each unit's family-wise false-alarm probability.")
+    fleet_false_alarm: float = Field(
+        description="Probability that some unit of a fleet that holds is called drifted: "
+        "1 − (1 − level)^units (units checked independently)."
+    )
+    holds: list[str]
+    drifted: list[str]
+    inconclusive: list[str]
+    units: list[FleetCheckUnit]

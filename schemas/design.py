@@ -14,8 +14,11 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from schemas.api import JobStatus
 from schemas.calibration import CalibrationOptions, Vector3, known_measurement
+from schemas.check import StatedSize
+from schemas.ranking import CalibrationReference
 
 DESIGN_FORMAT: Literal["kincal.design/1"] = "kincal.design/1"
+CHECK_DESIGN_FORMAT: Literal["kincal.check-design/1"] = "kincal.check-design/1"
 DEFAULT_NOISE_MM = 0.05
 DEFAULT_NOISE_DEG = 0.003
 
@@ -303,6 +306,46 @@ class DesignResult(_Model):
         None, description="Measurement types other than pose and position."
     )
     notes: list[str] = Field(default_factory=list)
+
+
+class DesignedSize(StatedSize):
+    """A stated size of designed check poses, with the scale the design measures it in."""
+
+    scale: float | None = Field(
+        description="The change's worst-direction standard error were every candidate a check "
+        "pose (null: no candidate sees it), in ``unit``."
+    )
+    relative: float | None = Field(description="size / scale (null: either is null).")
+
+
+class CheckDesign(_Model):
+    """Check poses chosen for a calibration (``kincal design --check K -o``): the K candidates
+    at which ``kincal check`` states the smallest changes, and the sizes it states there."""
+
+    format: Literal["kincal.check-design/1"] = CHECK_DESIGN_FORMAT
+    kincal_version: str
+    calibration: CalibrationReference
+    joint_names: list[str]
+    candidates: int = Field(description="Candidate configurations chosen from.")
+    candidate_source: Literal["sampled", "given"]
+    level: float = Field(description="The check's family-wise false-alarm probability.")
+    power: float
+    criterion: str = Field(description="What the poses minimise, in words.")
+    worst_relative_size: float = Field(
+        description="The criterion: the largest detectable size over its scale."
+    )
+    random_worst_relative_size: float = Field(
+        description="The criterion's median over random sets of as many candidates."
+    )
+    random_draws: int
+    poses: list[DesignPose] = Field(
+        description="The chosen poses; ``candidate`` is the row of the given candidates "
+        "(0-based) or the number of the drawn one."
+    )
+    stated_sizes: list[DesignedSize] = Field(
+        description="What kincal check states at these poses (no pose set aside)."
+    )
+    notes: list[str] = []
 
 
 class DesignCreate(_Model):

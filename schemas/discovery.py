@@ -12,27 +12,15 @@ recording would have detected, so "nothing found" reads "nothing larger than thi
 
 from __future__ import annotations
 
-from typing import Literal, get_args
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from schemas.calibration import CalibrationOptions, DatasetInfo, known_measurement
+from solver.discovery.effects import EFFECTS, Effect
 
 FINDINGS_FORMAT: Literal["kincal.findings/1"] = "kincal.findings/1"
 
-Effect = Literal[
-    "joint_compliance",
-    "base_flex",
-    "link_bending",
-    "gear_periodic",
-    "backlash",
-    "joint_scale",
-    "thermal_drift",
-    "payload_mass",
-    "depth_scale",
-    "gravity_direction",
-]
-EFFECTS: tuple[Effect, ...] = get_args(Effect)
 Vector3 = tuple[float, float, float]
 
 

@@ -824,19 +824,13 @@ def stated_sizes(model: DriftModel) -> list[StatedSize]:
     overall = detectable_noncentrality(model.white.shape[0], model.global_p)
     sizes = []
     for index, candidate in enumerate(model.candidates):
-        if candidate.kind not in ("joint_offset", "base", "tool"):
+        if candidate.kind not in SIZED_KINDS:
             continue
         n, d, m = candidate.jacobian.shape
         columns = model.white @ candidate.jacobian.reshape(n * d, m)
         rank = int(model.ranks[index + 1])
         noncentrality = min(overall, detectable_noncentrality(rank, model.candidate_p))
-        parts = [(candidate.name, slice(0, 1), candidate.units[0])]
-        if candidate.kind != "joint_offset":
-            parts = [
-                (f"{candidate.kind} translation", slice(0, 3), "m"),
-                (f"{candidate.kind} rotation", slice(3, 6), "rad"),
-            ]
-        for name, axes, unit in parts:
+        for name, axes, unit in size_parts(candidate):
             detectable = detectable_size(columns[:, axes], noncentrality)
             if not np.isfinite(detectable):
                 sizes.append(StatedSize(name, detectable, unit, False))
@@ -850,6 +844,21 @@ def stated_sizes(model: DriftModel) -> list[StatedSize]:
                     break
             sizes.append(StatedSize(name, size if located else detectable, unit, located))
     return sizes
+
+
+SIZED_KINDS = ("joint_offset", "base", "tool")
+"""The kinds of candidate change a check states sizes of."""
+
+
+def size_parts(candidate: Candidate) -> list[tuple[str, slice, str]]:
+    """The parts of a candidate a size is stated for: (name, its columns, unit): a joint's
+    offset whole; a frame's translation (m) and rotation (rad) separately."""
+    if candidate.kind == "joint_offset":
+        return [(candidate.name, slice(0, 1), candidate.units[0])]
+    return [
+        (f"{candidate.kind} translation", slice(0, 3), "m"),
+        (f"{candidate.kind} rotation", slice(3, 6), "rad"),
+    ]
 
 
 def worst_direction(whitened_columns: FloatArray) -> FloatArray:

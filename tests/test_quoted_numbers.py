@@ -57,6 +57,7 @@ RENDER = {
     "coverage_rules": coverage.render_rules,
     "coverage_measurements": coverage.render_measured,
     "coverage_partitions": coverage.render_partitions,
+    "coverage_types_partitions": coverage.render_types,
     "default_calibrate": default_calibrate.render,
     "scale": scale.render,
     "scale_fleet": scale.render_fleet,
@@ -78,6 +79,7 @@ PAGES: dict[str, str | tuple[str, ...]] = {
     "coverage_rules": "coverage.md",
     "coverage_measurements": ("coverage.md", "measurements.md"),
     "coverage_partitions": "coverage.md",
+    "coverage_types_partitions": "coverage.md",
     "default_calibrate": "large-recordings.md",
     "scale": "large-recordings.md",
     "scale_fleet": "large-recordings.md",
@@ -243,6 +245,59 @@ def test_the_partitions_table_pools_its_partitions_and_starts_with_the_acceptanc
         assert inside == round(scored_all * row["inside_95"]), row["recording"]
         mean = sum(p["scored"] * p["mean_d2"] for p in row["partitions"]) / scored_all
         assert mean == pytest.approx(row["mean_d2"], rel=1e-9), row["recording"]
+
+
+def test_the_types_table_pools_its_recordings_folds_and_partitions() -> None:
+    """Each ``coverage_types_partitions`` row (issue 31): every partition has the folds of
+    every recording of its type (10 each) and pools their counts and means, its held-out rows
+    are the type's rows, and the pooled numbers pool the partitions."""
+    _, rows = read_results("coverage_types_partitions")
+    assert {r["recording"] for r in rows} <= {t.label for t in coverage.TYPES.values()}
+    for row in rows:
+        (kind,) = [t for t in coverage.TYPES.values() if t.label == row["recording"]]
+        assert row["recordings"] == [r.label for r in kind.recordings]
+        scored_all = inside_all = 0
+        for part in row["partitions"]:
+            folds = part["folds"]
+            assert [(f["recording"], f["fold"]) for f in folds] == [
+                (r, i) for r in row["recordings"] for i in range(coverage.FOLDS)
+            ], (row["recording"], part["seed"])
+            scored = sum(f["scored"] for f in folds)
+            assert scored == part["scored"]
+            assert sum(f["test_rows"] for f in folds) == row["rows"]
+            assert sum(f["screened"] for f in folds) == part["screened"]
+            assert sum(f["failed"] is not None for f in folds) == part["failed_folds"]
+            inside = sum(f["inside_95"] for f in folds)
+            assert inside == round(scored * part["inside_95"])
+            pooled = sum(f["scored"] * f["mean_d2"] for f in folds if f["scored"]) / scored
+            assert pooled == pytest.approx(part["mean_d2"], rel=1e-9)
+            scored_all += scored
+            inside_all += inside
+        assert inside_all == round(scored_all * row["inside_95"]), row["recording"]
+        mean = sum(p["scored"] * p["mean_d2"] for p in row["partitions"]) / scored_all
+        assert mean == pytest.approx(row["mean_d2"], rel=1e-9), row["recording"]
+
+
+@pytest.mark.slow
+def test_the_types_table_holds_for_a_platonics_fold_of_another_partition() -> None:
+    """Fold 3 of ``panda_right``'s partition 1 (54 training rows of ball in socket, about
+    2 s) re-run through ``calibrate_measured`` and the total predictive covariance in the
+    socket residual space: its counts exactly, its mean d² within 0.005 (total) and 0.05
+    (Σ_E + noise)."""
+    _, rows = read_results("coverage_types_partitions")
+    kind = coverage.TYPES["platonics"]
+    (row,) = [r for r in rows if r["recording"] == kind.label]
+    (part,) = [p for p in row["partitions"] if p["seed"] == 1]
+    (want,) = [f for f in part["folds"] if f["recording"] == "panda_right" and f["fold"] == 3]
+    (recording,) = [r for r in kind.recordings if r.label == "panda_right"]
+    _, dimension, (fold,) = coverage.type_fold_scores(kind, recording, seed=1, only=3)
+    got = fold.row(dimension)
+    for key in ("test_rows", "scored", "screened", "failed", "before_inside_95"):
+        assert got[key] == want[key], key
+    for key in ("inside_50", "inside_90", "inside_95", "inside_99"):
+        assert got[key] == want[key], key
+    assert got["mean_d2"] == pytest.approx(want["mean_d2"], abs=0.005)
+    assert got["before_mean_d2"] == pytest.approx(want["before_mean_d2"], abs=0.05)
 
 
 @pytest.mark.slow

@@ -14,6 +14,7 @@ the numbers beyond rounding. The result JSON is assembled by :mod:`service.rende
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import multiprocessing
 import os
 import time
@@ -314,6 +315,8 @@ class CalibrationRun:
     timings: dict[str, float]
     predictive: PredictiveCalibration | None = None
     """The held-out material behind ``result.predictive`` (benchmarks take its parts apart)."""
+    measured: measurement_run.MeasurementCalibration | None = None
+    """A measurement-model calibration's fit, covariances and predictive parts (in memory)."""
 
     def urdf(self) -> str:
         """The calibrated URDF; :class:`KincalError` saying why when the result corrects
@@ -436,7 +439,23 @@ def _calibrate_measured(
             setup.findings, recording, setup.robot, setup.chain, setup.options
         )
         recording, corrections, notes = carried.recording, carried.record, tuple(carried.notes)
-    timings = {"open": time.perf_counter() - started}
+    opened = time.perf_counter() - started
+    run = calibrate_measured(recording, setup)
+    result = run.result
+    if corrections is not None:
+        result = result.model_copy(update={"model_corrections": corrections})
+    return dataclasses.replace(
+        run, result=result, notes=notes, timings={"open": opened, **run.timings}
+    )
+
+
+def calibrate_measured(
+    recording: measurement_input.MeasuredRecording, setup: CalibrationSetup
+) -> CalibrationRun:
+    """Calibrate the rows of a measurement model in memory (what ``kincal calibrate`` does
+    once it has read them: :func:`service.app.calibrate_measurement.calibrate_measurement`
+    and its result JSON); benchmarks pass a subset of a recording's rows
+    (``dataclasses.replace(recording, rows=recording.rows.take(index))``)."""
     calibrated = measurement_run.calibrate_measurement(
         recording,
         setup.chain,
@@ -445,7 +464,7 @@ def _calibrate_measured(
         fit_options(setup.options, baseline=True, n_links=setup.chain.n_links),
         covariance_settings(recording.model.dim, setup, recording.model.noise_rows),
     )
-    timings["calibration"] = calibrated.elapsed_s
+    timings = {"calibration": calibrated.elapsed_s}
     robot = setup.robot
     result = measurement_run.measurement_result(
         calibrated,
@@ -462,14 +481,13 @@ def _calibrate_measured(
         free_columns=setup.free_columns,
         covariance_index=list(setup.covariance_index),
     )
-    if corrections is not None:
-        result = result.model_copy(update={"model_corrections": corrections})
     return CalibrationRun(
         result,
         measurement_run.measurement_residuals(calibrated),
-        notes,
+        (),
         "in memory (measurement model)",
         timings,
+        measured=calibrated,
     )
 
 

@@ -115,27 +115,61 @@ def read_check_recording(
     return dataset
 
 
-def check_arrays(result: CalibrationResult, dataset: PoseDataset) -> CheckArrays:
-    """Residuals, joint predictive covariance and candidates of ``dataset``'s poses under
-    ``result``: the diagonal blocks are :func:`service.app.rank.predicted_covariance`'s total
-    (Σ_E + Σ_n + J_θ Cov(θ̂) J_θᵀ + model error), the off-diagonal ones the parameter part."""
+@dataclass(frozen=True)
+class PredictedParts:
+    """The calibration's prediction at n configurations, as :mod:`solver.check` takes it:
+    ``pose`` (n, 4, 4) the predicted tip poses (measurement frame), ``local`` (n, d, d) the
+    parts of the predictive covariance independent between poses (Σ_E + Σ_n + model error),
+    ``parameter_jacobian`` (n, d, p) and ``parameter_covariance`` Cov(θ̂) (p, p) its shared
+    part, and the ``candidates`` at those configurations (end-effector frames, m and rad)."""
+
+    pose: FloatArray
+    local: FloatArray
+    parameter_jacobian: FloatArray
+    parameter_covariance: FloatArray
+    candidates: list[checks.Candidate]
+
+    def covariance(self) -> FloatArray:
+        """The joint predictive covariance (n·d, n·d) (:func:`solver.check.joint_covariance`)."""
+        return checks.joint_covariance(
+            self.local, self.parameter_jacobian, self.parameter_covariance
+        )
+
+
+def predicted_parts(
+    result: CalibrationResult, joint_positions: FloatArray, payload_kg: FloatArray | None, d: int
+) -> PredictedParts:
+    """:class:`PredictedParts` of ``result`` at ``joint_positions`` (n, k) read with payloads
+    ``payload_kg`` (n,) kg (None: the calibration's), d = 6 (full pose) or 3 (position): the
+    diagonal blocks of the joint covariance are
+    :func:`service.app.rank.predicted_covariance`'s total (Σ_E + Σ_n + J_θ Cov(θ̂) J_θᵀ +
+    model error), the off-diagonal ones the parameter part. ``kincal check`` and ``kincal
+    design --check`` both come here."""
     model = rank.uncertainty_model(result)
     chain = model.chain
-    payload = dataset.payload_kg if dataset.payload_kg is not None else result.options.payload_kg
-    q = corrections.true_configurations(result, chain, dataset.joint_positions, payload)
+    payload = payload_kg if payload_kg is not None else result.options.payload_kg
+    q = corrections.true_configurations(result, chain, joint_positions, payload)
     predictive = rank.predictive_model(result, model)
     point = predictive.point(q, model.loads(q, payload))
     local = ee_covariance(model, q, payload_kg=payload, include_noise=True)
     local = local + predictive.model_error(point)
-    measurement = dataset.measurement_model
-    d = measurement.dim
-    measured = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
-    residuals = measurement.residuals(point.pose, measured)
-    covariance = checks.joint_covariance(
-        local[:, :d, :d], point.parameter_jacobian[:, :d], predictive.parameter_covariance
+    return PredictedParts(
+        point.pose,
+        local[:, :d, :d],
+        point.parameter_jacobian[:, :d],
+        predictive.parameter_covariance,
+        checks.candidates_at(chain, point.frame_jacobians[:, :, :d], q),
     )
-    candidates = checks.candidates_at(chain, point.frame_jacobians[:, :, :d], q)
-    return CheckArrays(residuals, covariance, candidates)
+
+
+def check_arrays(result: CalibrationResult, dataset: PoseDataset) -> CheckArrays:
+    """Residuals, joint predictive covariance and candidates of ``dataset``'s poses under
+    ``result`` (:func:`predicted_parts`)."""
+    measurement = dataset.measurement_model
+    parts = predicted_parts(result, dataset.joint_positions, dataset.payload_kg, measurement.dim)
+    measured = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
+    residuals = measurement.residuals(parts.pose, measured)
+    return CheckArrays(residuals, parts.covariance(), parts.candidates)
 
 
 def refuse_other_frames(
@@ -275,16 +309,28 @@ def run_check(
         located=None if located is None else located_change(located),
         candidates=[_candidate_test(t) for t in scored],
         power=checks.POWER,
-        stated_sizes=[
-            StatedSize(
-                name=s.name,
-                size=s.size if np.isfinite(s.size) else None,
-                unit=s.unit,
-                located=s.located,
-            )
-            for s in sizes
-        ],
+        stated_sizes=[stated_size(s) for s in sizes],
     )
+
+
+def stated_size(size: checks.StatedSize) -> StatedSize:
+    """A stated size as the document holds it (null where no size moves the poses)."""
+    return StatedSize(
+        name=size.name,
+        size=size.size if np.isfinite(size.size) else None,
+        unit=size.unit,
+        located=size.located,
+    )
+
+
+def stated_sizes_at(
+    result: CalibrationResult, joint_positions: FloatArray, level: float, d: int
+) -> list[checks.StatedSize]:
+    """The sizes :func:`run_check` states for check poses at ``joint_positions`` (n, k) when
+    none is set aside (they depend on the configurations, not the measurements)."""
+    parts = predicted_parts(result, joint_positions, None, d)
+    model = checks.DriftModel.build(parts.covariance(), parts.candidates, level)
+    return checks.stated_sizes(model)
 
 
 def _poses(residuals: FloatArray, tests: checks.PoseTests, dataset: PoseDataset) -> list[CheckPose]:

@@ -273,9 +273,19 @@ def candidate_set(
     """The candidates: given ones (within limits, those outside the volume dropped with a
     note, and their ``sockets`` with them), or drawn uniformly within the joint limits inside
     the volume (refused for ball in socket: :data:`POINT_CANDIDATES`)."""
-    chain, volume = model.chain, volume_of(options)
     if isinstance(model.measurement, FixedPoints) and (given is None or sockets is None):
         raise KincalError(POINT_CANDIDATES)
+    q, notes, inside = candidate_configurations(model.chain, options, given)
+    return q, notes, None if sockets is None or inside is None else sockets.take(inside)
+
+
+def candidate_configurations(
+    chain: KinematicChain, options: DesignOptions, given: FloatArray | None
+) -> tuple[FloatArray, list[str], NDArray[np.bool_] | None]:
+    """Candidate configurations (N, k): the ``given`` ones within the joint limits, those
+    outside the working volume dropped with a note (and which were kept), or
+    ``options.n_candidates`` drawn uniformly within the joint limits inside the volume."""
+    volume = volume_of(options)
     if given is None:
         rng = np.random.default_rng(options.seed)
         return sample_candidates(chain, options.n_candidates, rng, volume), [], None
@@ -284,7 +294,7 @@ def candidate_set(
     notes = []
     if not inside.all():
         notes.append(f"{int((~inside).sum())} given candidates outside the working volume dropped")
-    return given[inside], notes, None if sockets is None else sockets.take(inside)
+    return given[inside], notes, inside
 
 
 def read_candidates(path: Path, model: DesignModel) -> tuple[FloatArray, Sockets | None]:

@@ -4,7 +4,7 @@ several commands take, reading and writing the documents they exchange, the exec
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, TypeVar
@@ -366,6 +366,22 @@ class Outputs:
         for path, what, replaced in self.written:
             lines.append(f"  {path}  {what}{' (replaced)' if replaced else ''}")
         return "\n".join(lines) if self.written else "wrote: nothing"
+
+
+def robot_flags(
+    robot: str | None, urdf: Path | None, base: str | None, tip: str | None
+) -> dict[str, object]:
+    """The robot's flags by name, for :func:`refuse_flags` of a mode that takes its robot
+    from a result."""
+    return {"--robot": robot, "--urdf": urdf, "--base": base, "--tip": tip}
+
+
+def refuse_flags(flags: Mapping[str, object], why: str) -> None:
+    """:class:`KincalError` naming the flags of ``flags`` (flag -> value, None or False when
+    not given) that were given, with ``why`` they do not apply."""
+    given = [flag for flag, value in flags.items() if value is not None and value is not False]
+    if given:
+        raise KincalError(f"{', '.join(given)}: {why}; drop them")
 
 
 def out_dir_for(out_dir: Path | None, recording: Path | None, fallback: str) -> Path:

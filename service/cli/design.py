@@ -20,6 +20,8 @@ from service.cli.common import (
     out_dir_for,
     output_option,
     read_result,
+    refuse_flags,
+    robot_flags,
 )
 from service.cli.flags import calibration_options, numbers, read_config
 from solver.errors import KincalError
@@ -196,11 +198,60 @@ def design(
             rich_help_panel=OUTPUT,
         ),
     ] = None,
+    check: Annotated[
+        int | None,
+        typer.Option(
+            "--check",
+            metavar="K",
+            help="Check poses instead: the K candidates at which kincal check of --result "
+            "states the smallest changes (written as a recording template, check_poses.csv).",
+        ),
+    ] = None,
 ) -> None:
     """Choose the K poses to record that tell the calibration most (D-, A-, E- or I-optimal
-    design as a convex relaxation, rounded; the relaxation's bound is reported)."""
+    design as a convex relaxation, rounded; the relaxation's bound is reported); with
+    ``--check K``, the K check poses of a calibration (docs/check.md)."""
     from service.app import design as designs
 
+    if check is not None:
+        calibration_only = robot_flags(robot, urdf, base, tip) | {
+            "--poses": poses,
+            "--criterion": criterion,
+            "--stage": stage,
+            "--measurement": measurement,
+            "--point-distance": point_distance,
+            "--marker-offsets": marker_offsets,
+            "--min-spacing": min_spacing,
+            "--noise-mm": noise_mm,
+            "--noise-deg": noise_deg,
+            "--prior-perturbation-deg": prior_perturbation_deg,
+            "--method": method,
+            "--allow-repeats": allow_repeats,
+            "--task": task,
+            "--recording": recording,
+            "--config": config,
+        }
+        refuse_flags(
+            calibration_only,
+            "--check designs check poses of --result; these belong to a calibration design",
+        )
+        if result is None:
+            raise KincalError("--check K designs check poses of a calibration: give --result")
+        check_design(
+            result,
+            check,
+            candidates,
+            {
+                "n_candidates": n_candidates,
+                "seed": seed,
+                "box": None if box is None else _box(box),
+                "cone": None if cone is None else _cone(cone),
+            },
+            Outputs(out_dir if out_dir is not None else result.parent),
+            output,
+            poses_csv,
+        )
+        return
     outputs = Outputs(out_dir_for(out_dir, recording, "design"))
     path = outputs.path(output, "design.json", "kincal.design/1")
     csv_path = None if poses_csv is None else outputs.path(poses_csv, "", "joint configurations")
@@ -323,3 +374,61 @@ def design_summary(out: DesignResult) -> str:
         )
     lines += [f"note: {note}" for note in out.notes]
     return "\n".join(lines)
+
+
+def check_design(
+    result_path: Path,
+    n_poses: int,
+    candidates: Path | None,
+    values: dict[str, object],
+    outputs: Outputs,
+    output: Path | None,
+    poses_csv: Path | None,
+) -> None:
+    """``kincal design --check K``: choose, write (the JSON and the recording template),
+    print the stated sizes."""
+    import pandas as pd
+
+    from schemas.design import CHECK_DESIGN_FORMAT
+    from service.app.check_design import run_check_design
+    from service.render.result_json import result_chain
+    from service.render.text import stated_sizes_line
+
+    path = outputs.path(output, "check_design.json", CHECK_DESIGN_FORMAT)
+    csv_path = outputs.path(poses_csv, "check_poses.csv", "joint configurations")
+    calibration = read_result(result_path)
+    given = None
+    if candidates is not None:
+        from schemas.dataset import read_configurations
+
+        chain, _ = result_chain(calibration)
+        given = read_configurations(
+            candidates, chain.joint_names, other_joint_names=chain.other_joint_names
+        ).joint_positions
+    out = run_check_design(
+        calibration,
+        _design_options(values),
+        n_poses,
+        candidates=given,
+        result_name=str(result_path),
+    )
+    outputs.write_text(
+        path, f"check design of {len(out.poses)} poses", out.model_dump_json(indent=1) + "\n"
+    )
+    frame = pd.DataFrame([pose.joint_positions for pose in out.poses], columns=out.joint_names)
+    outputs.write(
+        csv_path,
+        f"the {len(out.poses)} check poses (recording template: add the measured columns)",
+        lambda p: frame.to_csv(p, index=False, float_format="%.17g"),
+    )
+    typer.echo(
+        f"{len(out.poses)} check poses chosen from {out.candidates} candidates: largest size "
+        f"over its scale {out.worst_relative_size:.3g} (median of {out.random_draws} random "
+        f"sets of {len(out.poses)}: {out.random_worst_relative_size:.3g})"
+    )
+    typer.echo(stated_sizes_line(out.stated_sizes, out.power))
+    typer.echo(outputs.listing())
+    typer.echo(
+        f"verdict: record the {len(out.poses)} poses of {csv_path} (add the measured columns), "
+        f"then kincal check {result_path} RECORDING (exit code 0)"
+    )

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from service.cli.check import EXIT_DRIFTED
 from service.cli.common import (
     COVARIANCE,
     EXECUTION,
@@ -30,6 +31,9 @@ from service.cli.common import (
     _robot,
     out_dir_for,
     output_option,
+    read_result,
+    refuse_flags,
+    robot_flags,
 )
 from service.cli.flags import calibration_options, option_help, read_config
 from solver.errors import KincalError
@@ -45,7 +49,8 @@ def fleet(
         Path,
         typer.Argument(
             help="Folder with one dataset per robot: files (file name = serial) or "
-            "ball-in-socket sub-folders (folder name = serial)."
+            "ball-in-socket sub-folders (folder name = serial); with --check, one check "
+            "recording per unit."
         ),
     ],
     robot: RobotOpt = None,
@@ -121,12 +126,51 @@ def fleet(
             rich_help_panel=OUTPUT,
         ),
     ] = None,
+    check: Annotated[
+        Path | None,
+        typer.Option(
+            "--check",
+            metavar="RESULTS_DIR",
+            help="Check mode: each unit's check recording in DIRECTORY against its "
+            "calibration result <unit>.json in this folder, as kincal check (exit 3 if any "
+            "drifted).",
+        ),
+    ] = None,
+    level: Annotated[
+        float,
+        typer.Option(
+            help="With --check: each unit's family-wise probability of a false alarm when it holds."
+        ),
+    ] = 0.05,
 ) -> None:
     """Calibrate every robot of a fleet (one dataset per serial) in parallel; summarise the
     population spread of each parameter and flag robots that are outliers (e.g. a worn
-    joint)."""
+    joint). With ``--check RESULTS_DIR``: check every unit's calibration instead
+    (docs/check.md)."""
     from service.app import fleet as fleet_mode
 
+    if check is not None:
+        calibration_only = robot_flags(robot, urdf, base, tip) | {
+            "--config": config,
+            "--compliant-joints": compliant_joints,
+            "--rigid": rigid,
+            "--outlier-rule": outlier_rule,
+            "--outlier-sigma": outlier_sigma,
+            "--covariance": covariance,
+            "--estimator": estimator,
+            "--heldout": heldout,
+            "--marker": marker,
+            "--executor": executor,
+            "--dask": dask,
+            "--workers": workers,
+            "--results-dir": results_dir,
+        }
+        refuse_flags(
+            calibration_only,
+            "--check checks each unit against its result; these belong to calibrating a fleet",
+        )
+        fleet_check(directory, check, level, output, out_dir)
+        return
     description = _robot(robot, urdf, base, tip)
     if rigid and compliant_joints is not None:
         raise KincalError("give --rigid or --compliant-joints, not both")
@@ -165,6 +209,34 @@ def fleet(
     typer.echo(fleet_mode.fleet_table(report))
     typer.echo(outputs.listing())
     typer.echo(fleet_mode.fleet_verdict_line(report))
+
+
+def fleet_check(
+    checks_dir: Path,
+    results_dir: Path,
+    level: float,
+    output: Path | None,
+    out_dir: Path | None,
+) -> None:
+    """``kincal fleet CHECKS_DIR --check RESULTS_DIR``: one line per unit, the fleet summary,
+    the JSON of every check; exit 3 if any unit drifted."""
+    from schemas.check import FLEET_CHECK_FORMAT
+    from service.app import fleet_check as checks
+
+    if not 0.0 < level < 1.0:
+        raise KincalError(f"--level {level}: give a probability between 0 and 1, e.g. 0.05")
+    outputs = Outputs(out_dir_for(out_dir, None, f"{checks_dir.resolve().name}_fleet"))
+    path = outputs.path(output, "fleet_check.json", FLEET_CHECK_FORMAT)
+    pairs = checks.fleet_check_pairs(checks_dir, results_dir, read_result)
+    report = checks.run_fleet_check(pairs, level=level)
+    outputs.write_text(
+        path, f"checks of {len(report.units)} units", report.model_dump_json(indent=1) + "\n"
+    )
+    typer.echo(checks.fleet_check_table(report))
+    typer.echo(outputs.listing())
+    typer.echo(checks.fleet_check_verdict_line(report))
+    if report.drifted:
+        raise typer.Exit(EXIT_DRIFTED)
 
 
 def preflight_fleet(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from schemas.calibration import (
     CalibrationResult,
     ComplianceCalibration,
@@ -12,7 +14,7 @@ from schemas.calibration import (
     SolverReport,
     Verdict,
 )
-from schemas.check import CheckResult, LocatedChange
+from schemas.check import CheckResult, LocatedChange, StatedSize
 from schemas.ranking import RankingResult
 
 METHOD_LABELS = {"before": "Init.", "calibrated": "Cal. Ours", "gp": "Cal. GP"}
@@ -310,8 +312,13 @@ def check_sizes_line(check: CheckResult) -> str | None:
     its power ("detected only" where it is not located that often)."""
     if not check.stated_sizes:
         return None
+    return stated_sizes_line(check.stated_sizes, check.power)
+
+
+def stated_sizes_line(stated: Sequence[StatedSize], power: float) -> str:
+    """Stated sizes in one line, as ``kincal check`` and ``kincal design --check`` print them."""
     sizes = ", ".join(
         f"{s.name} {check_size(s.size, s.unit)}{'' if s.located else ' (detected only)'}"
-        for s in check.stated_sizes
+        for s in stated
     )
-    return f"detected and located with {check.power:.0%} probability: {sizes}"
+    return f"detected and located with {power:.0%} probability: {sizes}"

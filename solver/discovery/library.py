@@ -32,23 +32,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from solver.discovery.effects import EFFECTS
 from solver.discovery.features import FLEX_LABELS, FeatureBank, deadzone_sign, deadzones
 from solver.model import KinematicChain
 
 FloatArray = NDArray[np.float64]
 
-EFFECTS = (
-    "joint_compliance",
-    "base_flex",
-    "link_bending",
-    "gear_periodic",
-    "backlash",
-    "joint_scale",
-    "thermal_drift",
-    "payload_mass",
-    "depth_scale",
-    "gravity_direction",
-)
 UNEXPLAINED = "unexplained"  # generic structure kept in the model, never reported as found
 HARMONICS = (1, 2, 3)
 DEPTH_AXES = ("measurement_z", "marker_z")

@@ -164,6 +164,24 @@ def score_rows(
     return ScoredRows(samples.residuals, random + parts, random, axes)
 
 
+def total_distances(
+    chain: KinematicChain,
+    predictor: MeasurementPredictor,
+    model_error_variance: FloatArray,
+    rows: MeasurementRows,
+) -> tuple[FloatArray, FloatArray]:
+    """``d² = rᵀ Σ_total⁻¹ r`` (n,) of new ``rows`` under the total predictive covariance in
+    the model's residual space (Σ_E + noise + J_θ Cov(θ̂) J_θᵀ + T diag(s) Tᵀ, ``s`` =
+    ``model_error_variance`` (d,) along the residual's own axes), and under Σ_E + noise alone
+    (n,): how a calibration's result scores rows it took no part in (χ²_d if right)."""
+    scored = score_rows(chain, predictor, rows)
+    total = scored.base + model_error_part(scored.axes, model_error_variance)
+    return (
+        mahalanobis_squared(scored.residuals, total),
+        mahalanobis_squared(scored.residuals, scored.random),
+    )
+
+
 def cross_validated(
     chain: KinematicChain,
     rows: MeasurementRows,
@@ -197,7 +215,9 @@ class MeasurementPredictive:
     """The predictive parts of a measurement calibration: ``estimated`` names (chain
     parameters and the model's own unknowns) of ``parameter_covariance`` (p, p), the
     model-error part along the residual's own axes, the held-out ``coverage`` (None without
-    splits) over ``n_splits`` splits, ``nested`` of which had an inner cross-validation."""
+    splits) over ``n_splits`` splits, ``nested`` of which had an inner cross-validation;
+    ``predictor``: the calibration's own (all used rows), which with ``model_error`` predicts
+    new rows (:func:`total_distances`)."""
 
     estimated: list[str]
     parameter_covariance: FloatArray
@@ -205,6 +225,7 @@ class MeasurementPredictive:
     coverage: Coverage | None
     n_splits: int
     nested: int
+    predictor: MeasurementPredictor
 
 
 def measurement_predictive(
@@ -279,4 +300,5 @@ def measurement_predictive(
         measured,
         len(pooled),
         nested,
+        whole,
     )

@@ -239,14 +239,6 @@ CONCEALED: dict[str, tuple[list[str], list[int], set[tuple[str, int | None]] | i
 }
 
 
-def test_the_findings_schema_names_the_library_effects_in_order() -> None:
-    """schemas/ may not make solver/discovery a start-up import of the CLI, so the effect
-    names are written twice: once as the schema's Literal, once as the library's tuple."""
-    from solver.discovery.library import EFFECTS as LIBRARY_EFFECTS
-
-    assert EFFECTS == LIBRARY_EFFECTS
-
-
 def test_every_library_effect_can_be_concealed_by_kincal_simulate() -> None:
     assert {label.split(" ")[0] for label in CONCEALED} >= set(EFFECTS)
     known = set(scenarios.EFFECTS)

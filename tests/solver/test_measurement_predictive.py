@@ -25,10 +25,12 @@ from solver.measurement.predictive import (
     measurement_predictive,
     parameter_jacobian,
     score_rows,
+    total_distances,
     train_predictor,
 )
 from solver.measurement.simulate import configurations_at_points
 from solver.model import KinematicChain, sample_configurations
+from solver.predictive import mahalanobis_squared, model_error_part
 from solver.stream.coverage import one_step_trainers
 from solver.stream.sums import covariance_spec
 from tests.conftest import chain
@@ -166,3 +168,42 @@ def test_socket_parameter_covariance_matches_the_scatter_of_the_estimates() -> N
         predicted.append(np.mean(np.trace(part, axis1=1, axis2=2)))
     ratio = float(np.mean(predicted) / np.mean(empirical))
     assert abs(ratio - 1.0) < 0.2, ratio
+
+
+def test_total_distances_score_new_rows_under_the_calibrations_own_predictor() -> None:
+    """:func:`total_distances` (the 10-fold protocol of benchmarks/coverage.py, issue 31): the
+    calibration's own predictor (``MeasurementPredictive.predictor``, fitted on every used row)
+    scores new rows with ``d² = rᵀ (Σ_E + noise + J_θ Cov(θ̂) J_θᵀ + T diag(s) Tᵀ)⁻¹ r``; a
+    model-error part only lowers d², without it the d² are those of :func:`score_rows`'s
+    parts, and Σ_E + noise alone gives the larger "before" d²."""
+    c, model, rows = _recording("socket", 80, 5)
+    frames, fitter, estimator = _settings(c, model)
+    train, test = rows.take(np.arange(60)), rows.take(np.arange(60, 80))
+    fit = fitter(train)
+    estimate = estimator(fit, train)
+    predictive = measurement_predictive(
+        c,
+        train,
+        fit,
+        estimate,
+        fitter,
+        estimator,
+        frames,
+        row_weights(model, FitOptions()),
+        (),
+        0.9,
+    )
+    assert predictive.predictor.fit is fit and predictive.predictor.estimate is estimate
+    np.testing.assert_array_equal(
+        predictive.predictor.parameter_covariance, predictive.parameter_covariance
+    )
+    scored = score_rows(c, predictive.predictor, test)
+    without, before = total_distances(c, predictive.predictor, np.zeros(model.dim), test)
+    np.testing.assert_allclose(without, mahalanobis_squared(scored.residuals, scored.base))
+    np.testing.assert_allclose(before, mahalanobis_squared(scored.residuals, scored.random))
+    assert np.all(before >= without - 1e-9)
+    variance = np.array([1e-8, 4e-8, 9e-9])
+    total, _ = total_distances(c, predictive.predictor, variance, test)
+    expected = scored.base + model_error_part(scored.axes, variance)
+    np.testing.assert_allclose(total, mahalanobis_squared(scored.residuals, expected))
+    assert np.all(total <= without + 1e-9)
