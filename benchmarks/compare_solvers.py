@@ -69,6 +69,7 @@ from solver.covariance import (
 from solver.covariance.estimate import CovarianceEstimate, EstimatorName
 from solver.covariance.solvers import ConcreteSolver, concrete_solver
 from solver.kinematics import ChainParameters, evaluate_chain
+from solver.measurement import FullPose
 from solver.measurement.pose import fit_deterministic
 from solver.model import KinematicChain, gravity_loads, sample_configurations
 from solver.ranking import (
@@ -161,7 +162,7 @@ def simulate_problem(n: int, seed: int) -> Problem:
     recording = simulate_recording(chain, setup.spec)
     q = recording.joint_positions
     loads = gravity_loads(chain, q)
-    fit = fit_deterministic(chain, q, recording.measured_pose, loads, position_only=False)
+    fit = fit_deterministic(chain, q, recording.measured_pose, loads, measurement=FullPose())
     evaluation = evaluate_chain(chain, fit.params, q, loads)
     noise = np.diag(recording.noise_sigma**2)
     truth = UncertaintyModel.build(

@@ -78,6 +78,7 @@ from solver import lie
 from solver.calibration import pose_errors
 from solver.discovery import DiscoveryData, DiscoveryOptions, discover
 from solver.discovery.library import measurement_drift_parameters
+from solver.measurement import FullPose
 from solver.model import KinematicChain, build_chain
 from solver.simulate import JointEffect, SimulationSpec, look_at, simulate_recording
 
@@ -362,7 +363,7 @@ def run_one(job: tuple[str, str, int, int, int, bool]) -> RunResult:
     )
     model = dataclasses.replace(truth, compliance_axes=axes)
     data = DiscoveryData(
-        recording.joint_positions, recording.measured_pose, False, recording.time_s
+        recording.joint_positions, recording.measured_pose, FullPose(), recording.time_s
     )
     started = time.perf_counter()
     options = DiscoveryOptions(seed=seed, bootstrap=bootstrap, detectability=sizes)
@@ -380,7 +381,7 @@ def run_one(job: tuple[str, str, int, int, int, bool]) -> RunResult:
             error = finding.estimate.stderr.get(parameter, float("nan"))
             z_scores.append((value - true_value) / error)
             relative.append(abs(value - true_value) / scale)
-    oracle = pose_errors(recording.true_mean_pose, recording.measured_pose, position_only=False)[0]
+    oracle = pose_errors(recording.true_mean_pose, recording.measured_pose, rotation=True)[0]
     kept = np.setdiff1d(np.arange(n), result.outlier_rows)
     return RunResult(
         scenario=name,

@@ -217,7 +217,7 @@ def main(
             stem = recording.path.split("/")[0]
             print("wrote", figure(result, name, figures / f"{stem}_residuals.png"))
         print(f"\n## {name}\n\n    " + " ".join(command(name, Path("out.json"), seeds)) + "\n")
-        print(table_ii(result.evaluation.splits, position_only=result.dataset.position_only))
+        print(table_ii(result.evaluation.splits, rotation=result.dataset.measures_rotation))
         print(f"wall time {elapsed:.1f} s")
         rows.append(result_row(name, result, code))
     print("\n" + render(rows))

@@ -52,7 +52,7 @@ from solver import lie
 from solver.calibration import FitOptions
 from solver.evaluation import split_indices
 from solver.kinematics import forward_kinematics, parameter_names
-from solver.measurement.pose import fit_deterministic
+from solver.measurement.pose import fit_deterministic, pose_measurement
 from solver.model import KinematicChain, gravity_loads
 
 REPO = Path(__file__).resolve().parents[1]
@@ -233,7 +233,7 @@ def same_parameters_heldout(
             q[train],
             pose[train],
             loads[train],
-            position_only=dataset.is_position_only,
+            measurement=pose_measurement(rotation=not dataset.is_position_only),
             options=options,
         )
         predicted = forward_kinematics(chain, fit.params, q[test], loads[test])

@@ -184,7 +184,7 @@ def prepare(api: KincalClient, folder: Path, samples: int) -> tuple[str, str, li
     robot = load_robot("ur10")
     scn, recording = scenarios.simulate(robot, n_samples=samples, seed=7)
     path = folder / "recording.csv"
-    write_dataset(scenarios.recording_dataset(recording, scn.chain, position_only=False), path)
+    write_dataset(scenarios.recording_dataset(recording, scn.chain, rotation=True), path)
     dataset = api.upload_dataset(path, robot="ur10")
     calibration = api.start_calibration(dataset["id"], RANKING_CALIBRATION)
     api.wait(calibration["id"], poll_s=0.1)

@@ -298,7 +298,7 @@ def write_fleet(folder: Path, chain: KinematicChain, n_robots: int, n_poses: int
             compliance[chain.compliance_axes[2].name] *= 2.5
         simulation = SimulationSpec(**{**simulation.__dict__, "compliance_rad_per_nm": compliance})
         recording = simulate_recording(chain, simulation)
-        write_dataset(scenarios.recording_dataset(recording, chain, position_only=False), path)
+        write_dataset(scenarios.recording_dataset(recording, chain, rotation=True), path)
 
 
 def run_fleet(folder: Path, backend: str, workers: int) -> FleetRun:

@@ -502,6 +502,13 @@ class DatasetInfo(_Model):
     n_samples: int
     position_only: bool
 
+    @property
+    def measures_rotation(self) -> bool:
+        """Whether the rows measured the marker's rotation (a pose) or its position alone: the
+        document's public field above, read here and nowhere else (issue 35; the measurement
+        model is :func:`service.render.result_json.result_measurement`)."""
+        return not self.position_only
+
 
 class ModelCorrection(_Model):
     """A discovered term undone on the recording before the fit (``calibrate --model``).

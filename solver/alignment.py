@@ -58,7 +58,7 @@ def align_full_pose(nominal: FloatArray, measured: FloatArray) -> tuple[FloatArr
     return _transform(rotation_world, solution[3:]), _transform(rotation_tool, solution[:3])
 
 
-def align_position_only(
+def align_positions(
     nominal: FloatArray, measured_position_m: FloatArray, *, iterations: int = 50
 ) -> tuple[FloatArray, FloatArray]:
     """``p_m = R_W (p_n + R_n t_T) + t_W`` for positions (N, 3): Kabsch alternated with a linear

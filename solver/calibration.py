@@ -107,9 +107,10 @@ class DeterministicFit:
     notes: list[str] = field(default_factory=list)
 
 
-def weighted(values: FloatArray, *, position_only: bool, rotation_weight: float) -> FloatArray:
-    """Multiply the rotation rows (axis 1, entries 3..5) by the weight (full pose only)."""
-    if position_only or rotation_weight == 1.0:
+def weighted(values: FloatArray, *, dim: int, rotation_weight: float) -> FloatArray:
+    """Multiply the rotation rows (axis 1, entries 3..5) by the weight; ``dim`` rows per
+    sample (6: a full pose, 3: a position, which has no rotation rows)."""
+    if dim == 3 or rotation_weight == 1.0:
         return values
     scale = np.r_[1.0, 1.0, 1.0, rotation_weight, rotation_weight, rotation_weight]
     return values * scale.reshape((1, 6) + (1,) * (values.ndim - 2))
@@ -262,17 +263,17 @@ def lower_cost_restart(
 
 
 def check_sample_count(
-    chain: KinematicChain, n_samples: int, *, position_only: bool, options: FitOptions
+    chain: KinematicChain, n_samples: int, *, dim: int, options: FitOptions
 ) -> None:
-    """A clear error when ``n_samples`` poses give no more equations than identifiable
-    parameters."""
-    rows = 3 if position_only else 6
-    required = identifiable_parameter_count(chain, position_only=position_only, options=options)
-    if rows * n_samples <= required:
+    """A clear error when ``n_samples`` poses of ``dim`` residual rows each (the measurement
+    model's :attr:`~solver.measurement.MeasurementModel.dim`, 6 or 3) give no more equations
+    than identifiable parameters."""
+    required = identifiable_parameter_count(chain, dim=dim, options=options)
+    if dim * n_samples <= required:
         raise CalibrationError(
             f"fewer samples than identifiable parameters: {n_samples} samples give "
-            f"{rows * n_samples} equations for {required} identifiable parameters; "
-            f"record at least {required // rows + 1} configurations (3x that is advisable)"
+            f"{dim * n_samples} equations for {required} identifiable parameters; "
+            f"record at least {required // dim + 1} configurations (3x that is advisable)"
         )
 
 
@@ -284,16 +285,17 @@ def removed_names(names: list[str], keep: NDArray[np.intp]) -> list[str]:
 
 @functools.lru_cache(maxsize=64)
 def identifiable_parameter_count(
-    chain: KinematicChain, *, position_only: bool, options: FitOptions = FitOptions()
+    chain: KinematicChain, *, dim: int, options: FitOptions = FitOptions()
 ) -> int:
-    """Parameters identifiable from generic data: the rank on 200 random configurations.
+    """Parameters identifiable from generic data: the rank on 200 random configurations of
+    the first ``dim`` rows of Eq. (9) (6: a full pose, 3: a position).
 
     Depends only on the chain and the options, so it is cached (chains are immutable).
     """
     rng = np.random.default_rng(0)
     q = sample_configurations(chain, 200, rng)
     evaluation = evaluate_chain(chain, ChainParameters.nominal(chain), q, gravity_loads(chain, q))
-    jacobian = stacked_jacobian(evaluation)[:, : 3 if position_only else 6]
+    jacobian = stacked_jacobian(evaluation)[:, :dim]
     return identifiable_columns(jacobian, chain, options)[1]
 
 
@@ -673,11 +675,13 @@ def outlier_mask(residuals: FloatArray, sigma: float) -> BoolArray:
 
 
 def pose_errors(
-    predicted: FloatArray, measured: FloatArray, *, position_only: bool
+    predicted: FloatArray, measured: FloatArray, *, rotation: bool
 ) -> tuple[FloatArray, FloatArray | None]:
-    """Per-sample translation error (mm) and rotation error (deg; None if position-only)."""
+    """Per-sample translation error (mm) and rotation error (deg; None without ``rotation``,
+    when the rows measure positions only: the measurement model's
+    :attr:`~solver.measurement.FullPose.measures_rotation`)."""
     translation_mm = 1e3 * np.linalg.norm(predicted[:, :3, 3] - measured[:, :3, 3], axis=1)
-    if position_only:
+    if not rotation:
         return translation_mm, None
     relative = np.swapaxes(predicted[:, :3, :3], 1, 2) @ measured[:, :3, :3]
     return translation_mm, np.degrees(lie.rotation_angle_rad(relative))

@@ -31,7 +31,8 @@ def split_indices(n: int, seed: int, train_fraction: float = 0.9) -> tuple[Index
 
 @dataclass(frozen=True)
 class SplitError:
-    """Mean held-out error of one method on one split (rotation None for position-only)."""
+    """Mean held-out error of one method on one split (rotation None when the rows measure
+    positions only)."""
 
     method: str
     seed: int
@@ -45,11 +46,13 @@ def cross_validate(
     measured_pose: FloatArray,
     methods: Mapping[str, Method],
     *,
-    position_only: bool,
+    rotation: bool,
     seeds: Iterable[int] = PAPER_SEEDS,
     train_fraction: float = 0.9,
 ) -> list[SplitError]:
-    """Score every method on the same splits; one :class:`SplitError` per (method, seed)."""
+    """Score every method on the same splits; one :class:`SplitError` per (method, seed);
+    ``rotation``: the rows measure rotations too (the measurement model's
+    :attr:`~solver.measurement.FullPose.measures_rotation`)."""
     n = measured_pose.shape[0]
     seeds = list(seeds)
     predictions = {}
@@ -61,7 +64,7 @@ def cross_validate(
         measured_pose,
         predictions,
         list(methods),
-        position_only=position_only,
+        rotation=rotation,
         seeds=seeds,
         train_fraction=train_fraction,
     )
@@ -72,7 +75,7 @@ def score_splits(
     predictions: Mapping[tuple[int, str], FloatArray],
     methods: Sequence[str],
     *,
-    position_only: bool,
+    rotation: bool,
     seeds: Iterable[int],
     train_fraction: float,
 ) -> list[SplitError]:
@@ -83,8 +86,8 @@ def score_splits(
     for seed in seeds:
         train, test = split_indices(n, seed, train_fraction)
         for name in methods:
-            translation, rotation = pose_errors(
-                predictions[seed, name], measured_pose[test], position_only=position_only
+            translation_mm, rotation_deg = pose_errors(
+                predictions[seed, name], measured_pose[test], rotation=rotation
             )
             out.append(
                 SplitError(
@@ -92,8 +95,8 @@ def score_splits(
                     seed=seed,
                     n_train=train.size,
                     n_test=test.size,
-                    translation_mm=float(translation.mean()),
-                    rotation_deg=None if rotation is None else float(rotation.mean()),
+                    translation_mm=float(translation_mm.mean()),
+                    rotation_deg=None if rotation_deg is None else float(rotation_deg.mean()),
                 )
             )
     return out

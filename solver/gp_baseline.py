@@ -36,7 +36,8 @@ from solver import lie
 from solver.calibration import FitOptions
 from solver.errors import CalibrationError
 from solver.evaluation import Method
-from solver.kinematics import ChainParameters, forward_kinematics, pose_residuals
+from solver.kinematics import ChainParameters, forward_kinematics
+from solver.measurement.models import FullPose
 from solver.measurement.pose import fit_deterministic
 from solver.model import KinematicChain
 from solver.ranking import ConfigurationScores, TaskMetric
@@ -61,10 +62,14 @@ class GPSettings:
 
 @dataclass(frozen=True, eq=False)
 class GPErrorModel:
-    """One fitted GP per residual component (6 for full pose, 3 position-only)."""
+    """One fitted GP per residual component (6 for a full pose, 3 for a position)."""
 
     regressors: tuple[GaussianProcessRegressor, ...]
-    position_only: bool
+
+    @property
+    def dim(self) -> int:
+        """Residual components (6 or 3)."""
+        return len(self.regressors)
 
     def predict(self, joint_positions: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Mean (N, d) and predictive variance (N, d) of the residual, m² / rad²."""
@@ -109,16 +114,16 @@ def fit_gp_error_model(
             warnings.simplefilter("ignore", ConvergenceWarning)
             gp.fit(q, r[:, component])
         regressors.append(gp)
-    return GPErrorModel(tuple(regressors), position_only=r.shape[1] == 3)
+    return GPErrorModel(tuple(regressors))
 
 
 def corrected_poses(
     model: GPErrorModel, baseline_pose: FloatArray, joint_positions: FloatArray
 ) -> FloatArray:
     """Baseline poses (N, 4, 4) corrected by the GP mean: ``X · Exp(mean)``, or ``p + R mean``
-    for position-only models (the rotation is left as it is)."""
+    for position models (the rotation is left as it is)."""
     mean, _ = model.predict(joint_positions)
-    if model.position_only:
+    if model.dim == 3:
         out = np.array(baseline_pose, dtype=float, copy=True)
         out[:, :3, 3] += np.einsum("nij,nj->ni", baseline_pose[:, :3, :3], mean)
         return out
@@ -130,10 +135,12 @@ def gp_method(
     measured_pose: FloatArray,
     baseline: BaselinePoses | FloatArray,
     *,
-    position_only: bool,
+    measurement: FullPose,
     settings: GPSettings = GPSettings(),
 ) -> Method:
-    """The GP baseline as a :data:`solver.evaluation.Method` for ``cross_validate``.
+    """The GP baseline as a :data:`solver.evaluation.Method` for ``cross_validate``, on the
+    residuals of the rows' ``measurement`` (:class:`~solver.measurement.FullPose` or
+    :class:`~solver.measurement.Position`).
 
     ``baseline``: the "before" model, either a callable ``(train, rows) -> poses`` that fits it
     on the training rows (no information from the test rows), or fixed poses (N, 4, 4).
@@ -144,7 +151,7 @@ def gp_method(
             before_train, before_test = baseline(train, train), baseline(train, test)
         else:
             before_train, before_test = baseline[train], baseline[test]
-        residuals = pose_residuals(before_train, measured_pose[train], position_only=position_only)
+        residuals = measurement.residuals(before_train, measured_pose[train])
         model = fit_gp_error_model(joint_positions[train], residuals, settings)
         return corrected_poses(model, before_test, joint_positions[test])
 
@@ -157,7 +164,7 @@ def gp_calibration_method(
     measured_pose: FloatArray,
     loads_nm: FloatArray,
     *,
-    position_only: bool,
+    measurement: FullPose,
     baseline_options: FitOptions,
     settings: GPSettings | None = None,
 ) -> Method:
@@ -177,7 +184,7 @@ def gp_calibration_method(
                 joint_positions[train],
                 measured_pose[train],
                 loads_nm[train],
-                position_only=position_only,
+                measurement=measurement,
                 options=baseline_options,
             ).params
         return forward_kinematics(chain, fitted[key], joint_positions[rows], loads_nm[rows])
@@ -186,7 +193,7 @@ def gp_calibration_method(
         joint_positions,
         measured_pose,
         before,
-        position_only=position_only,
+        measurement=measurement,
         settings=settings or GPSettings(),
     )
 
@@ -196,11 +203,11 @@ def gp_scores(
 ) -> ConfigurationScores:
     """Paper Table III baseline: GP variances as diag Σ_E, scored with Eq. (22–23).
 
-    Position-only models have no rotational variances (set to 0). The white-noise part of the
+    Position models have no rotational variances (set to 0). The white-noise part of the
     variance is the same for every configuration, so only the GP's own uncertainty ranks.
     """
     _, variance = model.predict(joint_positions)
-    if model.position_only:
+    if model.dim == 3:
         variance = np.concatenate([variance, np.zeros_like(variance)], axis=1)
     score = variance @ np.diag(metric.quadratic_form)
     return ConfigurationScores(score=score, ee_variance=variance)

@@ -152,18 +152,26 @@ def _evaluate(
 
 
 def pose_residuals(
-    model_pose: FloatArray, measured_pose: FloatArray, *, position_only: bool
+    model_pose: FloatArray, measured_pose: FloatArray, *, position_only: bool = False
 ) -> FloatArray:
-    """End-effector-frame residuals (DESIGN.md §2).
+    """End-effector-frame residual of a full pose (DESIGN.md §2, Eq. 8):
+    ``r = Log(X_model^-1 · X_measured)`` (N, 6), [v; w] in m and rad.
 
-    Full pose: ``r = Log(X_model^-1 · X_measured)`` (N, 6), [v; w] in m and rad.
-    Position-only: ``R_model^T (p_measured - p_model)`` (N, 3) in m, the translation of
-    ``X_model^-1 · X_measured`` whatever the unmeasured rotation.
+    Which residual a recording has is its measurement model's choice
+    (:meth:`solver.measurement.FullPose.residuals`); ``position_only=True`` is the former
+    spelling of :func:`position_residuals`, kept for callers not yet given the model (issue 35).
     """
     if position_only:
-        delta = measured_pose[:, :3, 3] - model_pose[:, :3, 3]
-        return np.einsum("nji,nj->ni", model_pose[:, :3, :3], delta)
+        return position_residuals(model_pose, measured_pose)
     return lie.se3_log(lie.inverse(model_pose) @ measured_pose)
+
+
+def position_residuals(model_pose: FloatArray, measured_pose: FloatArray) -> FloatArray:
+    """End-effector-frame residual of a position (DESIGN.md §2): ``R_model^T (p_measured -
+    p_model)`` (N, 3) in m, the translation of ``X_model^-1 · X_measured`` whatever the
+    unmeasured rotation."""
+    delta = measured_pose[:, :3, 3] - model_pose[:, :3, 3]
+    return np.einsum("nji,nj->ni", model_pose[:, :3, :3], delta)
 
 
 def parameter_names(chain: KinematicChain) -> list[str]:

@@ -54,13 +54,13 @@ def table_ii(result: CalibrationResult, recording: Recording, *, with_gp: bool =
                     data.joint_positions[used],
                     data.measured_pose[used],
                     data.loads_nm[used],
-                    position_only=data.position_only,
+                    measurement=data.measurement,
                     baseline_options=pipeline.fit_options(
                         options, baseline=True, n_links=data.chain.n_links
                     ),
                 )
             },
-            position_only=data.position_only,
+            rotation=data.measurement.measures_rotation,
             seeds=options.seeds,
             train_fraction=options.train_fraction,
         ):

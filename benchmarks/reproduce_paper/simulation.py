@@ -150,7 +150,7 @@ def simulate_study_recording(settings: StudySettings, seed: int | None = None) -
         outlier_fraction=spec.outlier_fraction,
         outlier_size=(spec.outlier_translation_m, spec.outlier_rotation_rad),
     )
-    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=True)
     return Recording(seed, robot, dataset, true_robot, recording.outliers)
 
 

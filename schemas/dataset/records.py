@@ -5,12 +5,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from solver.errors import DatasetError
+
+if TYPE_CHECKING:
+    from solver.measurement.models import FullPose
 
 POSITION_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw")
@@ -85,6 +88,16 @@ class PoseDataset:
     def is_position_only(self) -> bool:
         """True when no orientation was measured (3-D residuals only)."""
         return self.quaternion_xyzw is None
+
+    @property
+    def measurement_model(self) -> FullPose:
+        """What the rows measure, as the model the pose paths take (issue 35):
+        :class:`~solver.measurement.FullPose` with quaternion columns, else
+        :class:`~solver.measurement.Position`. Imported on first use, so reading a file
+        (the pre-flight checks) does not load the chain maths."""
+        from solver.measurement.pose import pose_measurement
+
+        return pose_measurement(rotation=self.quaternion_xyzw is not None)
 
     def subset(self, indices: Sequence[int] | NDArray[Any]) -> PoseDataset:
         """Rows ``indices`` (integers or a boolean mask), kept in execution (file) order."""

@@ -42,7 +42,7 @@ from service.render.urdf_export import refusal as urdf_refusal
 from solver.covariance.layout import ROTATION_AXIS_NAMES
 from solver.errors import KincalError, ModelError
 from solver.executors import Executor, InProcessExecutor, ProcessExecutor, preload_in_workers
-from solver.measurement import MeasurementModel, PoseComponents
+from solver.measurement import FullPose, MeasurementModel, PoseComponents
 from solver.measurement.pose import pose_measurement
 from solver.model import KinematicChain
 from solver.stream.calibrate import (
@@ -157,32 +157,31 @@ class DatasetChunkLoader:
     processes and Dask workers read and validate their own chunks."""
 
     plan: DatasetChunks
-    position_only: bool = False
-    """Drop the file's orientations (``measurement`` 'position')."""
+    rotation: bool = True
+    """Keep the file's orientations (False: positions only, ``measurement`` 'position')."""
 
     def __call__(self, ref: ChunkRef) -> ChunkArrays:
         dataset = self.plan.read(ref)
         return ChunkArrays(
             dataset.joint_positions,
             dataset.position_m,
-            None if self.position_only else dataset.quaternion_xyzw,
+            dataset.quaternion_xyzw if self.rotation else None,
             dataset.payload_kg,
             ref.first_row,
         )
 
 
-def measured_position_only(
-    options: CalibrationOptions, file_position_only: bool, source: str
-) -> bool:
-    """Whether the recording is calibrated position-only: the file's columns, unless the
-    ``measurement`` option says 'position' (orientations ignored); 'pose' on a file without
-    orientations is refused with the fix."""
-    if options.measurement == "pose" and file_position_only:
+def rows_measurement(options: CalibrationOptions, *, file_rotation: bool, source: str) -> FullPose:
+    """What a pose recording's rows measure, the model its calibration takes (issue 35): the
+    file's columns (``file_rotation``: it has qx,qy,qz,qw), :class:`~solver.measurement.Position`
+    when the ``measurement`` option says 'position' (orientations ignored); 'pose' on a file
+    without orientations is refused with the fix."""
+    if options.measurement == "pose" and not file_rotation:
         raise KincalError(
             f"measurement 'pose' needs the orientation columns qx,qy,qz,qw; {source} has "
             "positions only: use --measurement position (or auto)"
         )
-    return file_position_only or options.measurement == "position"
+    return pose_measurement(rotation=file_rotation and options.measurement != "position")
 
 
 @dataclass(frozen=True)
@@ -227,12 +226,14 @@ def open_recording(
             source=name,
         )
         if plan.n_rows > IN_MEMORY_ROWS and setup.findings is None:
-            position_only = measured_position_only(options, plan.position_only, plan.source)
+            measurement = rows_measurement(
+                options, file_rotation=not plan.position_only, source=plan.source
+            )
             problem = StreamProblem(
                 chain,
-                DatasetChunkLoader(plan, position_only),
+                DatasetChunkLoader(plan, measurement.measures_rotation),
                 plan.refs,
-                measurement=pose_measurement(position_only=position_only),
+                measurement=measurement,
                 gravity_base_m_s2=np.asarray(options.gravity_base_m_s2, dtype=float),
                 payload_kg=options.payload_kg,
                 block_rows=stream.block_rows,
@@ -247,17 +248,21 @@ def open_recording(
 
         carried = discover_carry.carry_model(setup.findings, dataset, setup.robot)
         dataset, corrections, notes = carried.dataset, carried.record, tuple(carried.notes)
-    position_only = measured_position_only(options, dataset.is_position_only, dataset.source)
+    measurement = rows_measurement(
+        options,
+        file_rotation=dataset.measurement_model.measures_rotation,
+        source=dataset.source,
+    )
     problem = StreamProblem(
         chain,
         ArrayChunks(
             dataset.joint_positions,
             dataset.position_m,
-            None if position_only else dataset.quaternion_xyzw,
+            dataset.quaternion_xyzw if measurement.measures_rotation else None,
             dataset.payload_kg,
         ),
         row_ranges(dataset.n_samples, stream.chunk_rows),
-        measurement=pose_measurement(position_only=position_only),
+        measurement=measurement,
         gravity_base_m_s2=np.asarray(options.gravity_base_m_s2, dtype=float),
         payload_kg=options.payload_kg,
         block_rows=stream.block_rows,
@@ -399,12 +404,12 @@ def calibrate_source(
         options=setup.options,
         calibrated=calibrated,
         frame_index=list(setup.covariance_index),
-        position_only=recording.problem.position_only,
+        measurement=recording.problem.measurement,
         free_columns=setup.free_columns,
     )
     if recording.corrections is not None:
         result = result.model_copy(update={"model_corrections": recording.corrections})
-    residuals = sample_residuals(setup.chain, calibrated, recording.problem.position_only)
+    residuals = sample_residuals(setup.chain, calibrated, recording.problem.measurement)
     return CalibrationRun(
         result, residuals, recording.notes, execution, timings, calibrated.predictive
     )

@@ -35,7 +35,6 @@ from service.render import corrections, result_json
 from solver import check as checks
 from solver import lie
 from solver.errors import DatasetError, KincalError
-from solver.kinematics import pose_residuals
 from solver.ranking import ee_covariance
 from solver.verdict import reach_m
 
@@ -104,11 +103,13 @@ def read_check_recording(
                 f"{', '.join(chain.joint_names)}): {exc}"
             ) from exc
     check_dataset(dataset, chain)
-    if dataset.is_position_only != result.dataset.position_only:
-        kinds = {True: "positions only (x,y,z)", False: "full poses (x,y,z,qx,qy,qz,qw)"}
+    recorded = dataset.measurement_model
+    calibrated = result_json.result_measurement(result)
+    if recorded != calibrated:
+        kinds = {"position": "positions only (x,y,z)", "pose": "full poses (x,y,z,qx,qy,qz,qw)"}
         raise KincalError(
-            f"check recording {dataset.source}: holds {kinds[dataset.is_position_only]} but "
-            f"{result_name} was calibrated on {kinds[result.dataset.position_only]}; check with "
+            f"check recording {dataset.source}: holds {kinds[recorded.name]} but "
+            f"{result_name} was calibrated on {kinds[calibrated.name]}; check with "
             "a recording of the same measurement type"
         )
     return dataset
@@ -164,10 +165,10 @@ def predicted_parts(
 def check_arrays(result: CalibrationResult, dataset: PoseDataset) -> CheckArrays:
     """Residuals, joint predictive covariance and candidates of ``dataset``'s poses under
     ``result`` (:func:`predicted_parts`)."""
-    d = 3 if dataset.is_position_only else 6
-    parts = predicted_parts(result, dataset.joint_positions, dataset.payload_kg, d)
+    measurement = dataset.measurement_model
+    parts = predicted_parts(result, dataset.joint_positions, dataset.payload_kg, measurement.dim)
     measured = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
-    residuals = pose_residuals(parts.pose, measured, position_only=d == 3)
+    residuals = measurement.residuals(parts.pose, measured)
     return CheckArrays(residuals, parts.covariance(), parts.candidates)
 
 

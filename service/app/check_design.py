@@ -71,7 +71,7 @@ def run_check_design(
             f"--check {n_poses}: only {q.shape[0]} candidates; give more candidates or widen "
             "the working volume"
         )
-    d = 3 if result.dataset.position_only else 6
+    d = result_json.result_measurement(result).dim
     parts = checks.predicted_parts(result, q, None, d)
     terms = CheckPoseTerms.build(
         parts.local,

@@ -55,6 +55,7 @@ from solver.discovery.features import probe_chain
 from solver.discovery.fitting import ModelParameters as FitParameters
 from solver.measurement import ModelParameters as MeasuredParameters
 from solver.measurement import RelativeBase
+from solver.measurement.pose import pose_measurement
 from solver.model import KinematicChain
 
 __all__ = ["EFFECTS", "chain_for", "discover", "discover_source"]
@@ -202,7 +203,7 @@ def measured_data(
     data = solver_discovery.DiscoveryData(
         joint_positions=rows.joint_positions,
         measured_pose=measured_pose,
-        position_only=recording.position_only,
+        pose_model=pose_measurement(rotation=recording.rotation),
         payload_kg=np.full(n, options.payload_kg),
         gravity_base=np.asarray(options.gravity_base_m_s2, dtype=float),
         measurement=None if pose_rows else model,
@@ -272,8 +273,10 @@ def _discover(
     return FindingsResult(
         kincal_version=kincal_version(),
         created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        dataset=DatasetInfo(
-            source=source, n_samples=data.n_samples, position_only=data.position_only
+        dataset=DatasetInfo(  # the findings document's field (public), from the rows' model
+            source=source,
+            n_samples=data.n_samples,
+            position_only=not data.pose_model.measures_rotation,
         ),
         robot=RobotRef(
             name=robot.name,
@@ -379,7 +382,7 @@ def solver_data(dataset: PoseDataset, options: DiscoveryOptions) -> solver_disco
     return solver_discovery.DiscoveryData(
         joint_positions=dataset.joint_positions,
         measured_pose=lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw),
-        position_only=dataset.is_position_only,
+        pose_model=dataset.measurement_model,
         time_s=dataset.time_s,
         payload_kg=payload
         if payload is not None

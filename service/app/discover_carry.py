@@ -177,7 +177,7 @@ def carry_model(
         joint_positions=corrected.joint_positions,
         position_m=pose[:, :3, 3],
         quaternion_xyzw=None
-        if dataset.is_position_only
+        if dataset.quaternion_xyzw is None
         else lie.matrix_to_quaternion_xyzw(pose[:, :3, :3]),
         payload_kg=None if payload is None else payload + carry.extra_payload_kg,
     )

@@ -137,7 +137,6 @@ def unit_information(
     from solver.measurement import ModelParameters
     from solver.measurement.fit import weighted_system
     from solver.measurement.models import chain_column_count
-    from solver.measurement.pose import pose_measurement
 
     chain, options = (
         setup.chain,
@@ -147,7 +146,7 @@ def unit_information(
     recording_source: str | PoseDataset = source
     if model is None:
         recording_source = measurement_input.read_chain_dataset(source, chain, marker)
-        model = pose_measurement(position_only=recording_source.is_position_only)
+        model = recording_source.measurement_model
     recording = measurement_input.read_measured(
         recording_source, chain, setup.options, model, marker=marker
     )

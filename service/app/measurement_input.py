@@ -125,7 +125,7 @@ class MeasuredRecording:
     rows: MeasurementRows
     source: str
     labels: tuple[str, ...]
-    position_only: bool
+    rotation: bool
     notes: tuple[str, ...] = ()
 
 
@@ -198,7 +198,7 @@ def read_measured(
         points = FixedPoints(len(sockets.sockets), tuple(distances))
         q = sockets.joint_positions
         rows = MeasurementRows.of(q, _loads(chain, options, q), None, sockets.socket)
-        return MeasuredRecording(points, rows, name or sockets.source, sockets.sockets, True)
+        return MeasuredRecording(points, rows, name or sockets.source, sockets.sockets, False)
     if isinstance(source, PoseDataset):
         dataset = source
     elif isinstance(model, MultiMarker):
@@ -209,17 +209,16 @@ def read_measured(
         model = dataclasses.replace(model, n_markers=len(keep))
         rows = MeasurementRows.of(q, _loads(chain, options, q), positions[:, keep])
         labels = tuple(f"marker {j + 1}" for j in keep)
-        return MeasuredRecording(model, rows, name or markers.source, labels, True, notes)
+        return MeasuredRecording(model, rows, name or markers.source, labels, False, notes)
     else:
         dataset = read_chain_dataset(source, chain, marker, name)
     q = dataset.joint_positions
     pose = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
     needs_rotation = isinstance(model, PoseComponents) and bool(model.rotation_rows)
-    if isinstance(model, (RelativeBase, EyeOnHead)) and not dataset.is_position_only:
-        model = dataclasses.replace(model, measure_position_only=False)
-    elif isinstance(model, (RelativeBase, EyeOnHead)):
-        model = dataclasses.replace(model, measure_position_only=True)
-    if needs_rotation and dataset.is_position_only:
+    rotation = dataset.measurement_model.measures_rotation
+    if isinstance(model, (RelativeBase, EyeOnHead)):
+        model = dataclasses.replace(model, rotation=rotation)
+    if needs_rotation and not rotation:
         raise KincalError(
             f"measurement {options.measurement}: the rotation components need quaternion "
             f"columns qx,qy,qz,qw in {dataset.source}; choose translation components only"
@@ -227,7 +226,7 @@ def read_measured(
     if isinstance(model, MultiMarker):
         raise KincalError("measurement 'markers' needs a FIGAROH file with several markers")
     rows = MeasurementRows.of(q, _loads(chain, options, q), pose)
-    return MeasuredRecording(model, rows, name or dataset.source, (), dataset.is_position_only)
+    return MeasuredRecording(model, rows, name or dataset.source, (), rotation)
 
 
 def distinct_markers(positions_m: np.ndarray) -> tuple[list[int], tuple[str, ...]]:

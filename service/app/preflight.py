@@ -71,7 +71,7 @@ class RecordingView:
     joint_positions: NDArray[np.float64]
     positions_m: NDArray[np.float64] | None
     n_rows: int
-    position_only: bool
+    rotation: bool
     plain: bool
     """A pose or position recording (the measurement types have their own unknowns)."""
 
@@ -92,11 +92,11 @@ def read_view(
     if kind == "point" or (kind == "auto" and is_socket_folder(path)):
         sockets = read_socket_folder(path, chain.joint_names)
         q = sockets.joint_positions
-        return RecordingView(sockets.source, q, None, len(q), True, False)
+        return RecordingView(sockets.source, q, None, len(q), False, False)
     if kind == "markers" or (kind == "auto" and marker is None and _several_markers(path)):
         markers = read_all_markers(path, chain.joint_names, chain.other_joint_names)
         q = markers.joint_positions
-        return RecordingView(markers.source, q, markers.marker_positions_m, len(q), True, False)
+        return RecordingView(markers.source, q, markers.marker_positions_m, len(q), False, False)
     plan = plan_dataset_chunks(
         path,
         chain.joint_names,
@@ -117,7 +117,7 @@ def read_view(
         view.joint_positions,
         view.positions_m,
         plan.n_rows,
-        view.position_only,
+        view.rotation,
         view.plain,
     )
 
@@ -138,7 +138,7 @@ def dataset_view(dataset: PoseDataset, *, plain: bool = True) -> RecordingView:
         dataset.joint_positions,
         dataset.position_m[:, None, :],
         dataset.n_samples,
-        dataset.is_position_only,
+        not dataset.is_position_only,
         plain,
     )
 
@@ -320,13 +320,14 @@ def check_row_count(
     """Fewer equations than the parameters the fit would estimate (generic rank)."""
     from solver.calibration import check_sample_count
     from solver.errors import CalibrationError
+    from solver.measurement.pose import pose_measurement
 
-    position_only = view.position_only or options.measurement == "position"
+    rotation = view.rotation and options.measurement != "position"
     try:
         check_sample_count(
             chain,
             view.n_rows,
-            position_only=position_only,
+            dim=pose_measurement(rotation=rotation).dim,
             options=fit_options(options, free_columns=chosen_columns(chain, options)),
         )
     except CalibrationError as exc:

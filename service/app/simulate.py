@@ -185,15 +185,16 @@ def marker_offset() -> np.ndarray:
 
 
 def recording_dataset(
-    recording: SimulatedRecording, chain: KinematicChain, *, position_only: bool
+    recording: SimulatedRecording, chain: KinematicChain, *, rotation: bool
 ) -> PoseDataset:
-    """The measurements of a simulated recording in the dataset contract."""
+    """The measurements of a simulated recording in the dataset contract; without
+    ``rotation`` the positions alone (no quaternion columns)."""
     pose = recording.measured_pose
     return PoseDataset(
         joint_names=chain.joint_names,
         joint_positions=recording.joint_positions,
         position_m=pose[:, :3, 3],
-        quaternion_xyzw=None if position_only else lie.matrix_to_quaternion_xyzw(pose[:, :3, :3]),
+        quaternion_xyzw=lie.matrix_to_quaternion_xyzw(pose[:, :3, :3]) if rotation else None,
         sample_id=np.arange(1, pose.shape[0] + 1),
         time_s=recording.time_s,
         source="simulation",

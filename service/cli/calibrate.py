@@ -118,7 +118,7 @@ def simulate(
         noise_translation_mm=noise_mm,
         noise_rotation_deg=noise_deg,
     )
-    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=position_only)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=not position_only)
     outputs = Outputs(output.parent)
     outputs.write(
         outputs.path(output, output.name, "a recording"),

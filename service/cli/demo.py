@@ -148,7 +148,7 @@ def run_demo(output_dir: Path, *, echo: Callable[[str], None] = print) -> dict[s
         noise_rotation_deg=0.2,
     )
     data_path = output_dir / "jaco2_recording.csv"
-    write_dataset(scenarios.recording_dataset(recording, scn.chain, position_only=False), data_path)
+    write_dataset(scenarios.recording_dataset(recording, scn.chain, rotation=True), data_path)
     truth = scenarios.truth_document(scn, recording, robot)
     (output_dir / "truth.json").write_text(json.dumps(truth, indent=1), encoding="utf-8")
     echo(f"simulated {scn.spec.n_samples} Jaco2 camera measurements -> {data_path}")
@@ -251,9 +251,7 @@ def _compare_with_truth(
         echo(f"  {entry.axis:<28} {shown}   true {true_value: .2e}")
     clean = np.setdiff1d(np.arange(n_samples), recording.outliers)
     predicted = result_json.predict_poses(result, recording.joint_positions[clean])
-    error_mm, error_deg = pose_errors(
-        predicted, recording.true_mean_pose[clean], position_only=False
-    )
+    error_mm, error_deg = pose_errors(predicted, recording.true_mean_pose[clean], rotation=True)
     assert error_deg is not None
     echo(
         f"calibrated model vs the true robot's mean pose: {error_mm.mean():.3f} mm, "

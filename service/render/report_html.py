@@ -75,7 +75,7 @@ def render_report(result: CalibrationResult, residuals: ResidualSample) -> str:
         _random_effects(result.covariance),
     ]
     if result.evaluation is not None:
-        table = table_ii(result.evaluation.splits, position_only=result.dataset.position_only)
+        table = table_ii(result.evaluation.splits, rotation=result.dataset.measures_rotation)
         sections += [
             "<h2>Held-out evaluation (paper Table II layout)</h2>",
             f"<p>{e(result.evaluation.protocol)}</p><pre>{e(table)}</pre>",
@@ -121,7 +121,7 @@ def _overview(result: CalibrationResult) -> str:
         (
             "Dataset",
             f"{result.dataset.source}: {result.dataset.n_samples} samples, "
-            f"{'position only' if result.dataset.position_only else 'full pose'}",
+            f"{'full pose' if result.dataset.measures_rotation else 'position only'}",
         ),
         ("Outliers", _outlier_text(outliers)),
         *(

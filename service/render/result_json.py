@@ -47,12 +47,9 @@ from service.render.chain import chain_for as chain_for  # its home is light (pr
 from solver import lie
 from solver.covariance.estimate import CovarianceEstimate, FrameCovariance
 from solver.evaluation import SplitError
-from solver.kinematics import (
-    ChainParameters,
-    forward_kinematics,
-    parameter_names,
-    pose_residuals,
-)
+from solver.kinematics import ChainParameters, forward_kinematics, parameter_names
+from solver.measurement.models import FullPose
+from solver.measurement.pose import pose_measurement
 from solver.model import KinematicChain, build_chain, gravity_loads
 from solver.predictive import COVERAGE_LEVELS, CURVE_LEVELS, INNER_FOLDS, Coverage, ModelErrorFit
 from solver.selection import fixed_names
@@ -73,7 +70,7 @@ class PreparedData:
     joint_positions: FloatArray
     measured_pose: FloatArray
     loads_nm: FloatArray
-    position_only: bool
+    measurement: FullPose
 
 
 def prepare(
@@ -91,8 +88,15 @@ def prepare(
         joint_positions=dataset.joint_positions,
         measured_pose=lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw),
         loads_nm=loads,
-        position_only=dataset.is_position_only,
+        measurement=dataset.measurement_model,
     )
+
+
+def result_measurement(result: CalibrationResult) -> FullPose:
+    """What the rows of a pose or position calibration measured, as the model the pose paths
+    take (:class:`~solver.measurement.FullPose` or :class:`~solver.measurement.Position`),
+    from the document's ``dataset`` (:attr:`schemas.calibration.DatasetInfo.measures_rotation`)."""
+    return pose_measurement(rotation=result.dataset.measures_rotation)
 
 
 def result_chain(
@@ -128,7 +132,7 @@ def residuals(
     chain, params = result_chain(result, baseline=baseline)
     data = prepare(chain, dataset, result.options)
     predicted = forward_kinematics(chain, params, data.joint_positions, data.loads_nm)
-    return pose_residuals(predicted, data.measured_pose, position_only=data.position_only)
+    return data.measurement.residuals(predicted, data.measured_pose)
 
 
 def predict_poses(
@@ -317,13 +321,19 @@ def split_fits(method: str) -> str:
     )
 
 
-def _heldout_stats(splits: list[SplitError], method: str, position_only: bool) -> ErrorStats | None:
+def _heldout_stats(
+    splits: list[SplitError], method: str, measurement: FullPose
+) -> ErrorStats | None:
     """Mean over splits of the per-split mean errors (RMS over the split means)."""
     mine = [s for s in splits if s.method == method]
     if not mine:
         return None
     translation = np.array([s.translation_mm for s in mine])
-    rotation = None if position_only else np.array([s.rotation_deg for s in mine], dtype=float)
+    rotation = (
+        np.array([s.rotation_deg for s in mine], dtype=float)
+        if measurement.measures_rotation
+        else None
+    )
     stats = _error_stats(translation, rotation)
     return stats.model_copy(update={"n_samples": sum(s.n_test for s in mine)})
 
@@ -356,8 +366,8 @@ def _evaluation(calibrated: RecordingCalibration, options: CalibrationOptions) -
     )
 
 
-def _sums_stats(sums: ErrorSums, position_only: bool) -> ErrorStats:
-    mean_mm, rms_mm, mean_deg, rms_deg = sums.summary(position_only)
+def _sums_stats(sums: ErrorSums, measurement: FullPose) -> ErrorStats:
+    mean_mm, rms_mm, mean_deg, rms_deg = sums.summary(measurement)
     return ErrorStats(
         n_samples=sums.n,
         translation_mean_mm=mean_mm,
@@ -371,19 +381,19 @@ def _verdict(
     chain: KinematicChain,
     options: CalibrationOptions,
     calibrated: RecordingCalibration,
-    position_only: bool,
+    measurement: FullPose,
 ) -> Verdict:
     """:func:`solver.verdict.check_fit` on the calibration's own numbers."""
     fit = calibrated.fits.fit
     splits = calibrated.splits
-    after = _heldout_stats(splits, CALIBRATED, position_only)
-    before = _heldout_stats(splits, BEFORE, position_only)
-    _, rms_mm, _, rms_deg = fit.sums.errors.summary(position_only)
+    after = _heldout_stats(splits, CALIBRATED, measurement)
+    before = _heldout_stats(splits, BEFORE, measurement)
+    _, rms_mm, _, rms_deg = fit.sums.errors.summary(measurement)
     evidence = FitEvidence(
         converged=fit.converged,
         iterations=fit.iterations,
         max_iterations=options.max_iterations,
-        n_equations=fit.sums.errors.n * (3 if position_only else 6),
+        n_equations=fit.sums.errors.n * measurement.dim,
         n_parameters=len(fit.estimated),
         train_rms_translation_m=1e-3 * rms_mm,
         train_rms_rotation_rad=None if rms_deg is None else float(np.radians(rms_deg)),
@@ -432,12 +442,14 @@ def assemble_result(
     options: CalibrationOptions,
     calibrated: RecordingCalibration,
     frame_index: list[int],
-    position_only: bool,
+    measurement: FullPose,
     free_columns: tuple[int, ...] | None = None,
 ) -> CalibrationResult:
     """The result JSON of a recording calibrated by
     :func:`solver.stream.calibrate.calibrate_recording`; ``frame_index``: the chain joint of
-    each covariance frame; ``free_columns``: the columns the fit could move (None: all)."""
+    each covariance frame; ``measurement``: what its rows measured (written into the
+    document's public ``dataset`` field); ``free_columns``: the columns the fit could move
+    (None: all)."""
     fixed = fixed_names(chain, free_columns)
     fits = calibrated.fits
     fit, baseline = fits.fit, fits.baseline
@@ -445,7 +457,11 @@ def assemble_result(
     return CalibrationResult(
         kincal_version=kincal_version(),
         created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        dataset=DatasetInfo(source=source, n_samples=fits.n_rows, position_only=position_only),
+        dataset=DatasetInfo(
+            source=source,
+            n_samples=fits.n_rows,
+            position_only=not measurement.measures_rotation,  # the document's field (public)
+        ),
         robot=RobotInfo(
             name=robot.name,
             base_frame=robot.base_frame,
@@ -466,12 +482,12 @@ def assemble_result(
         ),
         fit=FitStatistics(
             before=FitPhase(
-                train=_sums_stats(baseline.sums.errors, position_only),
-                heldout=_heldout_stats(splits, BEFORE, position_only),
+                train=_sums_stats(baseline.sums.errors, measurement),
+                heldout=_heldout_stats(splits, BEFORE, measurement),
             ),
             after=FitPhase(
-                train=_sums_stats(fit.sums.errors, position_only),
-                heldout=_heldout_stats(splits, CALIBRATED, position_only),
+                train=_sums_stats(fit.sums.errors, measurement),
+                heldout=_heldout_stats(splits, CALIBRATED, measurement),
             ),
         ),
         covariance=None
@@ -481,7 +497,7 @@ def assemble_result(
         if calibrated.predictive is None
         else _predictive_result(calibrated.predictive, options),
         evaluation=_evaluation(calibrated, options) if splits else None,
-        verdict=_verdict(chain, options, calibrated, position_only),
+        verdict=_verdict(chain, options, calibrated, measurement),
         outliers=OutlierReport(
             rule=options.screening,
             level=options.outlier_level if options.screening == "model" else None,
@@ -611,7 +627,7 @@ class ResidualSample:
 
 
 def sample_residuals(
-    chain: KinematicChain, calibrated: RecordingCalibration, position_only: bool
+    chain: KinematicChain, calibrated: RecordingCalibration, measurement: FullPose
 ) -> ResidualSample:
     """The residuals of the rows the calibration kept in memory (every used row, or an
     evenly spaced subset of a large recording)."""
@@ -619,7 +635,7 @@ def sample_residuals(
 
     def of(params: ChainParameters) -> FloatArray:
         predicted = forward_kinematics(chain, params, sample.joint_positions, sample.loads_nm)
-        return pose_residuals(predicted, sample.measured_pose, position_only=position_only)
+        return measurement.residuals(predicted, sample.measured_pose)
 
     used = calibrated.fits.fit.sums.errors.n
     description = f"the {sample.n} samples used"

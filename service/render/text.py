@@ -20,8 +20,9 @@ from schemas.ranking import RankingResult
 METHOD_LABELS = {"before": "Init.", "calibrated": "Cal. Ours", "gp": "Cal. GP"}
 
 
-def table_ii(splits: list[HeldoutSplit], *, position_only: bool) -> str:
-    """Mean test-set error per seed (rows: method x {Trans. mm, Rot. deg}), like paper Table II."""
+def table_ii(splits: list[HeldoutSplit], *, rotation: bool) -> str:
+    """Mean test-set error per seed (rows: method x {Trans. mm, Rot. deg}), like paper Table II;
+    without ``rotation`` (a position recording) the Trans. rows only."""
     seeds = sorted({s.seed for s in splits})
     methods = [m for m in METHOD_LABELS if any(s.method == m for s in splits)]
     by_key = {(s.method, s.seed): s for s in splits}
@@ -29,7 +30,7 @@ def table_ii(splits: list[HeldoutSplit], *, position_only: bool) -> str:
     lines = ["Mean error on test set in mm / deg", header]
     for method in methods:
         rows = [("Trans.", "translation_mm")]
-        if not position_only:
+        if rotation:
             rows.append(("Rot.", "rotation_deg"))
         for r, (label, field) in enumerate(rows):
             values = [getattr(by_key[(method, seed)], field) for seed in seeds]
@@ -46,7 +47,7 @@ def summary(result: CalibrationResult) -> str:
         f"robot {result.robot.name} ({result.robot.base_frame} -> {result.robot.tip_frame}), "
         f"{result.outliers.n_used} of {result.outliers.n_input} samples used "
         f"({len(result.outliers.removed_rows)} outliers removed), "
-        f"{'position-only' if result.dataset.position_only else 'full pose'}",
+        f"{'full pose' if result.dataset.measures_rotation else 'position-only'}",
         parameter_count(result.identifiability),
         solver_line(result.solver),
     ]
@@ -84,7 +85,7 @@ def summary(result: CalibrationResult) -> str:
     if result.evaluation is not None:
         lines += [
             "",
-            table_ii(result.evaluation.splits, position_only=result.dataset.position_only),
+            table_ii(result.evaluation.splits, rotation=result.dataset.measures_rotation),
         ]
     if result.predictive is not None:
         lines += ["", *predictive_lines(result.predictive)]

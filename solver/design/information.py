@@ -186,7 +186,7 @@ def geometry_information(
     # The calibration's pruning sees the fit's rows: unwhitened, rotation rows weighted.
     fit_rows = weighted(
         both * noise_std[None, :, None],
-        position_only=d == 3,
+        dim=d,
         rotation_weight=(options or FitOptions()).rotation_weight_m_per_rad,
     )
     keep = identifiable_columns(fit_rows, chain, options or FitOptions())[0]

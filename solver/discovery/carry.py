@@ -115,7 +115,7 @@ def correct_recording(
             applied.append(term)
     for term, values in terms:
         if term.effect == "depth_scale":
-            if data.position_only and term.variant == "marker_z":
+            if not data.pose_model.measures_rotation and term.variant == "marker_z":
                 skipped.append((term, "the marker's depth axis needs measured orientations"))
                 continue
             pose = undo_depth_scale(pose, float(values[0]), term.variant)

@@ -44,7 +44,6 @@ from solver.measurement.models import (
     FullPose,
     MeasurementModel,
     MeasurementRows,
-    Position,
 )
 from solver.model import ComplianceAxis, KinematicChain, gravity_loads
 
@@ -63,10 +62,11 @@ DEADZONE_QUANTILES = (0.0, 0.025, 0.05, 0.1, 0.15, 0.2, 0.3)
 class DiscoveryData:
     """Recordings as solver arrays, rows in execution order.
 
-    ``joint_positions`` (N, k) rad; ``measured_pose`` (N, 4, 4) marker in the measurement frame
-    (rotation ignored when ``position_only``); ``time_s`` (N,) or None (then time features use
-    the acquisition index); ``payload_kg`` (N,) known payload; ``gravity_base`` (3,) m/s² in the
-    base frame (the user's model).
+    ``joint_positions`` (N, k) rad; ``measured_pose`` (N, 4, 4) marker in the measurement frame;
+    ``pose_model``: what it measures, :class:`~solver.measurement.FullPose` or
+    :class:`~solver.measurement.Position` (its rotation then ignored); ``time_s`` (N,) or None
+    (then time features use the acquisition index); ``payload_kg`` (N,) known payload;
+    ``gravity_base`` (3,) m/s² in the base frame (the user's model).
 
     ``measurement``: what a row measures when it is not the marker's pose or position
     (:mod:`solver.measurement.models`: ball in socket, several markers, chosen pose
@@ -78,7 +78,7 @@ class DiscoveryData:
 
     joint_positions: FloatArray
     measured_pose: FloatArray
-    position_only: bool
+    pose_model: FullPose
     time_s: FloatArray | None = None
     payload_kg: FloatArray | None = None
     gravity_base: FloatArray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
@@ -92,10 +92,8 @@ class DiscoveryData:
 
     @property
     def model(self) -> MeasurementModel:
-        """The measurement model of the rows (pose or position unless ``measurement``)."""
-        if self.measurement is not None:
-            return self.measurement
-        return Position() if self.position_only else FullPose()
+        """The measurement model of the rows (``pose_model`` unless ``measurement``)."""
+        return self.pose_model if self.measurement is None else self.measurement
 
     @property
     def is_pose(self) -> bool:
@@ -104,10 +102,8 @@ class DiscoveryData:
 
     @property
     def rows(self) -> int:
-        """Residual rows per sample: 3 (position-only), 6 (pose), or the model's dimension."""
-        if self.measurement is not None:
-            return self.measurement.dim
-        return 3 if self.position_only else 6
+        """Residual rows per sample: the model's dimension (6 for a pose, 3 for a position)."""
+        return self.model.dim
 
     def noise_blocks(self) -> list[slice | list[int]]:
         """Residual rows sharing one noise scale: the translation rows, the rotation rows (a

@@ -40,7 +40,7 @@ from solver.calibration import frame_columns
 from solver.discovery.features import DiscoveryData, FeatureBank, axis_of
 from solver.discovery.library import Term, drift_feature
 from solver.errors import CalibrationError
-from solver.kinematics import ChainParameters, evaluate_chain, pose_residuals
+from solver.kinematics import ChainParameters, evaluate_chain
 from solver.measurement.models import ModelParameters as MeasuredParameters
 from solver.measurement.models import chain_column_count, seen_from_sensor
 from solver.measurement.pose import initial_parameters
@@ -278,9 +278,7 @@ def evaluate(
         return Design(
             rows=rows,
             pose=pose,
-            residual=pose_residuals(
-                pose, data.measured_pose[rows], position_only=data.position_only
-            ),
+            residual=data.pose_model.residuals(pose, data.measured_pose[rows]),
             links=link_cols,
             terms=terms_all,
             candidates=candidate_cols,
@@ -449,7 +447,10 @@ def start_parameters(ctx: Context) -> ModelParameters:
         own = model.start(ctx.chain, rows)
         return ModelParameters(own.links, np.zeros(0), own.extra)
     start = initial_parameters(
-        ctx.chain, data.joint_positions, data.measured_pose, position_only=data.position_only
+        ctx.chain,
+        data.joint_positions,
+        data.measured_pose,
+        measurement=data.pose_model,
     )
     return ModelParameters(start.links, np.zeros(0))
 

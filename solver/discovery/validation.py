@@ -70,7 +70,9 @@ def cross_validate(
         sse += float(errors.sum())
         if ctx.data.is_pose:
             t_mm, r_deg = pose_errors(
-                design.pose, ctx.data.measured_pose[test], position_only=ctx.data.position_only
+                design.pose,
+                ctx.data.measured_pose[test],
+                rotation=ctx.data.pose_model.measures_rotation,
             )
         else:
             model = ctx.data.model

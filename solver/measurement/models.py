@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver import lie
-from solver.alignment import align_full_pose, align_position_only
+from solver.alignment import align_full_pose, align_positions
 from solver.errors import CalibrationError
 from solver.kinematics import (
     TWIST_COMPONENTS,
@@ -44,6 +44,7 @@ from solver.kinematics import (
     evaluate_chain,
     forward_kinematics,
     pose_residuals,
+    position_residuals,
     stacked_jacobian,
 )
 from solver.model import KinematicChain
@@ -259,7 +260,13 @@ def _links_folded(
 @dataclass(frozen=True)
 class FullPose(MeasurementModel):
     """The marker's pose in the measurement frame: ``r = Log(X⁻¹ X_m)`` (N, 6), [v; w] in m and
-    rad, tip frame; ``A = J_tip`` (Eq. 9)."""
+    rad, tip frame; ``A = J_tip`` (Eq. 9).
+
+    The type of a pose recording's rows wherever they are fitted, streamed or not (issue 35):
+    the pose paths take a :class:`FullPose` (or :class:`Position`, or a model whose rows are
+    either) and ask it — :attr:`dim`, :attr:`measures_rotation`, :meth:`residuals`,
+    :meth:`align` — instead of a flag. Everything here keys on :attr:`rotation_rows`, so a
+    subclass that measures positions only overrides that (and :attr:`dim`) alone."""
 
     name = "pose"
 
@@ -284,8 +291,27 @@ class FullPose(MeasurementModel):
         return (3, 4, 5)
 
     @property
-    def position_only(self) -> bool:
-        return False
+    def measures_rotation(self) -> bool:
+        """Whether the rows carry the marker's rotation (else its position alone)."""
+        return bool(self.rotation_rows)
+
+    def residuals(self, predicted_pose: FloatArray, measured_pose: FloatArray) -> FloatArray:
+        """The residual of DESIGN.md §2 (Eq. 8) of predicted poses (N, 4, 4) against measured
+        ones (N, 4, 4), tip frame, (N, d): :func:`~solver.kinematics.pose_residuals`, or
+        :func:`~solver.kinematics.position_residuals` when the rows measure no rotation."""
+        if self.measures_rotation:
+            return pose_residuals(predicted_pose, measured_pose)
+        return position_residuals(predicted_pose, measured_pose)
+
+    def align(
+        self, nominal: FloatArray, measured_pose: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Closed-form measurement frame ← base and flange → marker transforms (4, 4) that
+        fit ``nominal`` (N, 4, 4) to ``measured_pose`` (N, 4, 4): Kabsch on poses, or on
+        positions (the tool rotation then stays identity)."""
+        if self.measures_rotation:
+            return align_full_pose(nominal, measured_pose)
+        return align_positions(nominal, measured_pose[:, :3, 3])
 
     def predicted_pose(
         self, chain: KinematicChain, params: ChainParameters, rows: MeasurementRows
@@ -294,11 +320,7 @@ class FullPose(MeasurementModel):
         return forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
 
     def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
-        nominal = nominal_pose(chain, rows.joint_positions)
-        if self.position_only:
-            world, tool = align_position_only(nominal, rows.measured[:, :3, 3])
-        else:
-            world, tool = align_full_pose(nominal, rows.measured)
+        world, tool = self.align(nominal_pose(chain, rows.joint_positions), rows.measured)
         return _links_folded(chain, 0, world, tool, ChainParameters.nominal(chain))
 
     def linearise(
@@ -312,9 +334,9 @@ class FullPose(MeasurementModel):
         d = self.dim
         if not jacobian:
             pose = forward_kinematics(chain, params, rows.joint_positions, rows.loads_nm)
-            return pose_residuals(pose, rows.measured, position_only=self.position_only), None
+            return self.residuals(pose, rows.measured), None
         pose, j_tip = tip_linearisation(chain, params, rows)
-        residual = pose_residuals(pose, rows.measured, position_only=self.position_only)
+        residual = self.residuals(pose, rows.measured)
         return residual, self._with_extra_columns(j_tip[:, :d])
 
     def at_tip(
@@ -322,7 +344,7 @@ class FullPose(MeasurementModel):
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """``r = Log(X⁻¹ X_m)`` (first 3 rows for position), ``M`` the first d rows of I₆."""
         n, d = pose.shape[0], self.dim
-        residual = pose_residuals(pose, rows.measured, position_only=self.position_only)
+        residual = self.residuals(pose, rows.measured)
         tip_map = np.broadcast_to(np.eye(6)[:d], (n, d, 6))
         return residual, tip_map, np.zeros((n, d, 0))
 
@@ -348,10 +370,6 @@ class Position(FullPose):
     @property
     def rotation_rows(self) -> tuple[int, ...]:
         return ()
-
-    @property
-    def position_only(self) -> bool:
-        return True
 
 
 def nominal_pose(chain: KinematicChain, joint_positions: FloatArray) -> FloatArray:
@@ -645,10 +663,10 @@ class MultiMarker(MeasurementModel):
         return params.extra.reshape(self.n_markers, 3)
 
     def start(self, chain: KinematicChain, rows: MeasurementRows) -> ModelParameters:
-        """Measurement frame from the first marker (:func:`align_position_only`), then every
+        """Measurement frame from the first marker (:func:`align_positions`), then every
         marker's offset by linear least squares ``R_W R_n t_j = p_m,j − R_W p_n − t_W``."""
         nominal = nominal_pose(chain, rows.joint_positions)
-        world, _ = align_position_only(nominal, rows.measured[:, 0])
+        world, _ = align_positions(nominal, rows.measured[:, 0])
         rotation = world[:3, :3] @ nominal[:, :3, :3]
         design = rotation.reshape(-1, 3)
         offsets = []
@@ -691,15 +709,15 @@ class RelativeBase(FullPose):
     """The marker measured in the frame of another marker rigidly carried by the robot base
     (TIAGo's Vicon files: the gripper in the frame of a base marker), both unknown. That frame
     is the measurement frame of Eq. (7): ``L_1`` (base marker ← robot base) is fitted with the
-    chain, ``L_{k+1}`` carries the gripper marker. Residuals as :class:`FullPose` (or
-    :class:`Position` with ``position_only``), tip frame."""
+    chain, ``L_{k+1}`` carries the gripper marker. Residuals as :class:`FullPose` (with
+    ``rotation``) or :class:`Position`, tip frame."""
 
-    measure_position_only: bool = True
+    rotation: bool = False
     name = "relative-base"
 
     @property
     def dim(self) -> int:
-        return 3 if self.measure_position_only else 6
+        return 6 if self.rotation else 3
 
     @property
     def frame(self) -> str:
@@ -711,11 +729,7 @@ class RelativeBase(FullPose):
 
     @property
     def rotation_rows(self) -> tuple[int, ...]:
-        return () if self.measure_position_only else (3, 4, 5)
-
-    @property
-    def position_only(self) -> bool:
-        return self.measure_position_only
+        return (3, 4, 5) if self.rotation else ()
 
 
 def seen_from_sensor(
@@ -763,16 +777,16 @@ class EyeOnHead(MeasurementModel):
     """A sensor carried by the chain's body after joint ``sensor_joint`` (0-based): it measures
     the tip in its own moving frame S, ``X_S = S⁻¹ X_{0,j}(q)⁻¹ X_0E(q)``, which is the chain
     after that joint with ``S⁻¹`` folded into the next link. Links and compliances before
-    the sensor cancel (not fitted). Residuals as :class:`FullPose` (or :class:`Position` with
-    ``position_only``), tip frame."""
+    the sensor cancel (not fitted). Residuals as :class:`FullPose` (with ``rotation``) or
+    :class:`Position`, tip frame."""
 
     sensor_joint: int = 0
-    measure_position_only: bool = False
+    rotation: bool = True
     name = "eye-on-head"
 
     @property
     def inner(self) -> FullPose:
-        return Position() if self.measure_position_only else FullPose()
+        return FullPose() if self.rotation else Position()
 
     @property
     def sensor_joint_index(self) -> int:
@@ -851,10 +865,7 @@ class EyeOnHead(MeasurementModel):
         rigid = replace(rows, loads_nm=np.zeros((rows.n, len(chain.compliance_axes))))
         suffix, moved = self._suffix(chain, nominal, rigid)
         pose = forward_kinematics(chain, suffix, moved.joint_positions, moved.loads_nm)
-        if self.measure_position_only:
-            world, tool = align_position_only(pose, rows.measured[:, :3, 3])
-        else:
-            world, tool = align_full_pose(pose, rows.measured)
+        world, tool = self.inner.align(pose, rows.measured)
         return _links_folded(chain, self.sensor_joint + 1, world, tool, nominal)
 
     def linearise(

@@ -38,6 +38,7 @@ from solver.covariance.solvers import SolverName
 from solver.evaluation import SplitError, score_splits, split_indices
 from solver.executors import Executor
 from solver.kinematics import ChainParameters, forward_kinematics, parameter_names
+from solver.measurement.models import FullPose
 from solver.measurement.pose import fit_deterministic
 from solver.model import KinematicChain
 from solver.stream.chunks import StreamProblem, count_chunk_rows
@@ -165,7 +166,7 @@ def calibrate_streamed_fits(
         baseline_start, baseline_keep, _ = warm_start(problem, head, baseline_options)
     n_rows = int(sum(scanning.result()))
     count.passes += 1
-    check_sample_count(problem.chain, n_rows, position_only=problem.position_only, options=options)
+    check_sample_count(problem.chain, n_rows, dim=problem.residual_dim, options=options)
     stage = {"read": time.perf_counter() - clock, "warm_start": 0.0}
     report("read")
     clock = time.perf_counter()
@@ -489,7 +490,7 @@ def calibrate_recording(
         evaluation = HeldoutProblem(
             problem.chain,
             sample,
-            problem.position_only,
+            problem.measurement,
             options,
             baseline_options,
             heldout,
@@ -546,7 +547,7 @@ def _predictive(
         sample,
         estimate,
         frames,
-        problem.position_only,
+        problem.measurement,
         options.rotation_weight_m_per_rad,
         coverage,
     )
@@ -595,9 +596,7 @@ def screen_by_model(
     if too_uncertain is not None:
         return replace(run, screening_skipped=too_uncertain), estimate
     frames = covariance.spec.frames
-    required = identifiable_parameter_count(
-        problem.chain, position_only=problem.position_only, options=options
-    )
+    required = identifiable_parameter_count(problem.chain, dim=d, options=options)
     min_rows = required // d + 1
     for _ in range(MODEL_RULE_ROUNDS):
         # Σ_E(q) comes from the used samples' residuals, which lost p/d degrees of freedom
@@ -715,7 +714,7 @@ class HeldoutProblem:
 
     chain: KinematicChain
     sample: RowSample
-    position_only: bool
+    measurement: FullPose
     options: FitOptions
     baseline_options: FitOptions
     settings: HeldoutSettings
@@ -739,7 +738,7 @@ def _heldout_fit(
         sample.joint_positions[train],
         sample.measured_pose[train],
         sample.loads_nm[train],
-        position_only=evaluation.position_only,
+        measurement=evaluation.measurement,
         options=options,
         start=None if warm is None else warm.params,
         estimated=None if warm is None else warm.estimated,
@@ -754,7 +753,7 @@ def _heldout_fit(
             fit,
             sample.take(train),
             sample.take(test),
-            evaluation.position_only,
+            evaluation.measurement,
             options,
             evaluation.coverage,
             seed=seed,
@@ -802,7 +801,7 @@ def heldout_evaluation(
         evaluation.sample.measured_pose,
         predictions,
         [BEFORE, CALIBRATED],
-        position_only=evaluation.position_only,
+        rotation=evaluation.measurement.measures_rotation,
         seeds=seeds,
         train_fraction=evaluation.settings.train_fraction,
     )

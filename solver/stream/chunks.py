@@ -121,11 +121,6 @@ class StreamProblem:
     token: str = field(default_factory=lambda: uuid.uuid4().hex)
 
     @property
-    def position_only(self) -> bool:
-        """Whether the rows are positions (:class:`~solver.measurement.Position`)."""
-        return self.measurement.position_only
-
-    @property
     def residual_dim(self) -> int:
         return self.measurement.dim
 

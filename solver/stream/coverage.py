@@ -36,9 +36,9 @@ from solver.covariance.likelihood import ee_covariance_batch
 from solver.covariance.samples import ArraySamples
 from solver.covariance.solvers import SolverName
 from solver.errors import CalibrationError, KincalError
-from solver.kinematics import ChainParameters, parameter_names, pose_residuals
+from solver.kinematics import ChainParameters, parameter_names
 from solver.measurement.fit import MeasurementFit, covariance_samples, refit_from
-from solver.measurement.models import MeasurementRows
+from solver.measurement.models import FullPose, MeasurementRows
 from solver.measurement.pose import fit_deterministic
 from solver.measurement.predictive import Estimator as MeasurementEstimator
 from solver.measurement.predictive import Fitter as MeasurementFitter
@@ -232,7 +232,7 @@ def predictor_from_fit(
     chain: KinematicChain,
     fit: DeterministicFit,
     rows: RowSample,
-    position_only: bool,
+    measurement: FullPose,
     options: FitOptions,
     settings: RandomEffectSettings,
     start_theta: FloatArray | None = None,
@@ -242,7 +242,7 @@ def predictor_from_fit(
     covariances (the calibration's estimator, on the fit's residuals; ML/REML started from
     ``start_theta`` when given, or :func:`subset_estimate` with ``warm``'s) and the sandwich
     Cov(θ̂)."""
-    d = 3 if position_only else 6
+    d = measurement.dim
     estimated = _columns(chain, fit.estimated)
     point = prediction_point(chain, fit.params, estimated, rows.joint_positions, rows.loads_nm, d)
     spec = settings.spec
@@ -286,7 +286,7 @@ def predictor_from_fit(
 def train_predictor(
     chain: KinematicChain,
     rows: RowSample,
-    position_only: bool,
+    measurement: FullPose,
     options: FitOptions,
     settings: RandomEffectSettings,
     start_theta: FloatArray | None = None,
@@ -296,8 +296,8 @@ def train_predictor(
     over its parameters), then :func:`predictor_from_fit`;
     :class:`CalibrationError` when the rows leave fewer than :data:`MIN_RESIDUAL_SAMPLES`
     samples' worth of equations beyond the parameters."""
-    d = 3 if position_only else 6
-    fitted = identifiable_parameter_count(chain, position_only=position_only, options=options)
+    d = measurement.dim
+    fitted = identifiable_parameter_count(chain, dim=d, options=options)
     if warm is not None:  # the step fits the parameters of the calibration of every row
         fitted = max(fitted, len(warm.estimated))
     spare = d * rows.n - fitted
@@ -312,21 +312,21 @@ def train_predictor(
             rows.joint_positions,
             rows.measured_pose,
             rows.loads_nm,
-            position_only=position_only,
+            measurement=measurement,
             options=options,
             start=None if warm is None else warm.params,
             estimated=None if warm is None else warm.estimated,
         )
     except ZeroDivisionError as exc:  # the rows' rank reached their equations: no residual dof
         raise CalibrationError(f"{rows.n} rows leave no residual degrees of freedom") from exc
-    return predictor_from_fit(chain, fit, rows, position_only, options, settings, start_theta, warm)
+    return predictor_from_fit(chain, fit, rows, measurement, options, settings, start_theta, warm)
 
 
 def score_rows(
     chain: KinematicChain,
     predictor: Predictor,
     rows: RowSample,
-    position_only: bool,
+    measurement: FullPose,
     *,
     left_out: bool = False,
     rotation_weight: float = 1.0,
@@ -335,7 +335,7 @@ def score_rows(
     (with ``rotation_weight``, the fit's), each scored as if left out of its deterministic fit
     (:func:`~solver.predictive.leave_one_out_residuals`)."""
     point = predictor.point(chain, rows.joint_positions, rows.loads_nm)
-    residuals = pose_residuals(point.pose, rows.measured_pose, position_only=position_only)
+    residuals = measurement.residuals(point.pose, rows.measured_pose)
     if left_out:
         weights = row_weights(predictor.d, rotation_weight)
         weighted = weights[None, :, None] * point.parameter_jacobian
@@ -349,13 +349,13 @@ def model_error_of(
     chain: KinematicChain,
     predictor: Predictor,
     rows: RowSample,
-    position_only: bool,
+    measurement: FullPose,
     rotation_weight: float,
 ) -> ModelErrorFit:
     """The model-error part of a predictor from the rows it was fitted to alone: their
     leave-one-out residuals, by :func:`~solver.predictive.estimate_model_error`."""
     scored = score_rows(
-        chain, predictor, rows, position_only, left_out=True, rotation_weight=rotation_weight
+        chain, predictor, rows, measurement, left_out=True, rotation_weight=rotation_weight
     )
     return estimate_model_error(scored.residuals, scored.base, scored.axes)
 
@@ -389,7 +389,7 @@ def fold_indices(n: int, folds: int, seed: int) -> list[tuple[IntArray, IntArray
 def cross_validated_rows(
     chain: KinematicChain,
     rows: RowSample,
-    position_only: bool,
+    measurement: FullPose,
     options: FitOptions,
     settings: RandomEffectSettings,
     *,
@@ -400,16 +400,16 @@ def cross_validated_rows(
 ) -> ScoredRows:
     """Every row of ``rows`` scored by a predictor trained on the other folds (with ``warm``:
     one step from it); a fold whose training part cannot be calibrated is left out."""
-    d = 3 if position_only else 6
+    d = measurement.dim
     parts = []
     for train, test in fold_indices(rows.n, folds, seed):
         try:
             predictor = train_predictor(
-                chain, rows.take(train), position_only, options, settings, start_theta, warm
+                chain, rows.take(train), measurement, options, settings, start_theta, warm
             )
         except KincalError:
             continue
-        parts.append(score_rows(chain, predictor, rows.take(test), position_only))
+        parts.append(score_rows(chain, predictor, rows.take(test), measurement))
     return ScoredRows.join(parts, d)
 
 
@@ -418,7 +418,7 @@ def split_coverage(
     fit: DeterministicFit,
     train: RowSample,
     test: RowSample,
-    position_only: bool,
+    measurement: FullPose,
     options: FitOptions,
     settings: RandomEffectSettings,
     *,
@@ -431,19 +431,17 @@ def split_coverage(
     leave-one-out residuals), scored on its test rows; None when the training rows cannot
     give the covariances. With ``warm`` every predictor is one step from it (issue 29)."""
     try:
-        predictor = predictor_from_fit(
-            chain, fit, train, position_only, options, settings, warm=warm
-        )
+        predictor = predictor_from_fit(chain, fit, train, measurement, options, settings, warm=warm)
     except KincalError:
         return None
     weight = options.rotation_weight_m_per_rad
     if train.n > INNER_CV_ROWS:
-        model_error = model_error_of(chain, predictor, train, position_only, weight)
-        return SplitCoverage(score_rows(chain, predictor, test, position_only), model_error, False)
+        model_error = model_error_of(chain, predictor, train, measurement, weight)
+        return SplitCoverage(score_rows(chain, predictor, test, measurement), model_error, False)
     inner = cross_validated_rows(
         chain,
         train,
-        position_only,
+        measurement,
         options,
         settings,
         folds=INNER_FOLDS,
@@ -452,10 +450,10 @@ def split_coverage(
         warm=warm,
     )
     if not inner.residuals.shape[0]:
-        model_error = model_error_of(chain, predictor, train, position_only, weight)
-        return SplitCoverage(score_rows(chain, predictor, test, position_only), model_error, False)
+        model_error = model_error_of(chain, predictor, train, measurement, weight)
+        return SplitCoverage(score_rows(chain, predictor, test, measurement), model_error, False)
     model_error = estimate_model_error(inner.residuals, inner.base, inner.axes)
-    return SplitCoverage(score_rows(chain, predictor, test, position_only), model_error)
+    return SplitCoverage(score_rows(chain, predictor, test, measurement), model_error)
 
 
 @dataclass(frozen=True)
@@ -486,7 +484,7 @@ def calibration_predictive(
     rows: RowSample,
     estimate: CovarianceEstimate,
     frames: tuple[int, ...],
-    position_only: bool,
+    measurement: FullPose,
     rotation_weight: float,
     splits: dict[int, SplitCoverage],
 ) -> PredictiveCalibration:
@@ -494,7 +492,7 @@ def calibration_predictive(
     matrix ``gram``: Cov(θ̂) with the meat over ``rows`` (all or an evenly spaced subset of
     the used samples, scaled to ``n_used``), the model-error part from the held-out residuals
     of ``splits`` (none: the leave-one-out residuals of ``rows``), and their coverage."""
-    d = 3 if position_only else 6
+    d = measurement.dim
     columns = _columns(chain, estimated)
     point = prediction_point(chain, params, columns, rows.joint_positions, rows.loads_nm, d)
     random = estimate.ee_covariance(point.frame_jacobians[:, list(frames)], include_noise=True)
@@ -504,7 +502,7 @@ def calibration_predictive(
         params, columns, covariance, gram, frames, estimate.frame_covariances(), noise
     )
     if not splits:
-        model_error = model_error_of(chain, predictor, rows, position_only, rotation_weight)
+        model_error = model_error_of(chain, predictor, rows, measurement, rotation_weight)
         return PredictiveCalibration(estimated, covariance, model_error, None, splits)
     pooled = ScoredRows.join([s.scored for s in splits.values()], d)
     model_error = estimate_model_error(pooled.residuals, pooled.base, pooled.axes)

@@ -488,7 +488,9 @@ class RowSample:
         return (
             joint_motions(problem.chain, self.joint_positions),
             self.loads_nm,
-            None if problem.position_only else self.measured_pose[:, :3, :3].transpose(1, 2, 0),
+            self.measured_pose[:, :3, :3].transpose(1, 2, 0)
+            if problem.measurement.measures_rotation
+            else None,
             np.ascontiguousarray(self.measured_pose[:, :3, 3].T),
         )
 
@@ -516,9 +518,9 @@ def read_head(problem: StreamProblem, n_rows: int) -> RowSample:
     q = np.concatenate([c.joint_positions for c in chunks])[:n_rows]
     position = np.concatenate([c.position_m for c in chunks])[:n_rows]
     quaternion = (
-        None
-        if problem.position_only
-        else np.concatenate([c.quaternion_xyzw for c in chunks if c.quaternion_xyzw is not None])
+        np.concatenate([c.quaternion_xyzw for c in chunks if c.quaternion_xyzw is not None])
+        if problem.measurement.measures_rotation
+        else None
     )
     payload: FloatArray | float = problem.payload_kg
     if chunks and chunks[0].payload_kg is not None:
@@ -605,7 +607,7 @@ def warm_start(
             head.joint_positions,
             head.measured_pose,
             head.loads_nm,
-            position_only=problem.position_only,
+            measurement=problem.measurement,
             options=dataclasses.replace(head_options, max_iterations=max_iterations),
             start=start,
         )

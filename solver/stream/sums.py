@@ -25,6 +25,7 @@ from solver.covariance.statistics import (
     diag_statistics_batch_last,
     empty_statistics,
 )
+from solver.measurement.models import FullPose
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -64,13 +65,14 @@ class ErrorSums:
             self.rotation_deg2 + other.rotation_deg2,
         )
 
-    def summary(self, position_only: bool) -> tuple[float, float, float | None, float | None]:
-        """Mean and RMS translation error (mm), mean and RMS rotation error (deg or None)."""
+    def summary(self, measurement: FullPose) -> tuple[float, float, float | None, float | None]:
+        """Mean and RMS translation error (mm), mean and RMS rotation error (deg; None when
+        ``measurement`` measures no rotation)."""
         n = max(self.n, 1)
         rotation = (
-            (None, None)
-            if position_only
-            else (self.rotation_deg / n, float(np.sqrt(self.rotation_deg2 / n)))
+            (self.rotation_deg / n, float(np.sqrt(self.rotation_deg2 / n)))
+            if measurement.measures_rotation
+            else (None, None)
         )
         return self.translation_mm / n, float(np.sqrt(self.translation_mm2 / n)), *rotation
 

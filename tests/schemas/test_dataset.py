@@ -32,6 +32,7 @@ from schemas.limits import (
     TEMPERATURE_RANGE_C,
 )
 from solver.errors import DatasetError
+from solver.measurement import FullPose, Position
 
 REPO = Path(__file__).parents[2]
 FR3_DIR = REPO / "data/real/philnad_fr3_eye_in_hand"
@@ -529,6 +530,8 @@ def test_partial_quaternion() -> None:
 def test_position_only_dataset() -> None:
     ds = dataset_from_frame(valid_frame(quat=False), J3, source="m")
     assert ds.is_position_only and ds.quaternion_xyzw is None
+    assert ds.measurement_model == Position()
+    assert dataset_from_frame(valid_frame(), J3, source="m").measurement_model == FullPose()
 
 
 def test_time_must_not_decrease() -> None:

@@ -34,7 +34,7 @@ def _simulated(n_samples: int, position_only: bool = False):  # type: ignore[no-
     scn, recording = scenarios.simulate(
         robot("kinova"), n_samples=n_samples, seed=11, effects=EFFECTS
     )
-    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=position_only)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=not position_only)
     return scn, recording, dataset
 
 
@@ -210,7 +210,7 @@ def test_cli_calibrate_and_predict_covariance_columns(
     scn, recording, _ = _simulated(200)
     data = tmp_path / "data.csv"
     frame = pd.DataFrame(recording.joint_positions, columns=list(scn.chain.joint_names))
-    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=True)
     frame[["x", "y", "z"]] = dataset.position_m
     frame[["qx", "qy", "qz", "qw"]] = dataset.quaternion_xyzw
     frame.to_csv(data, index=False)

@@ -256,7 +256,7 @@ def test_simulated_effect_is_discovered(label: str) -> None:
     )
     compliant = [scn.chain.joint_names[i] for i in declared]
     options = DiscoveryOptions(compliant_joints=compliant, bootstrap=5, detectability=False)
-    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=True)
     result = discovery.discover(dataset, description, options)
     joints = list(scn.chain.joint_names)
     named = {

@@ -36,7 +36,7 @@ def _calibrated(name: str, free: tuple[str, ...] = ("all",)) -> CalibrationResul
     scn, recording = scenarios.simulate(
         description, n_samples=80, seed=7, effects=("geometry", "compliance", "camera", "marker")
     )
-    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=True)
     options = CalibrationOptions(
         heldout=False, outlier_rule="none", covariance="none", free_parameters=list(free)
     )

@@ -62,7 +62,7 @@ def _fleet(folder: Path, n_robots: int = 6, n_poses: int = 300, seed: int = 11) 
             ),
         )
         recording = simulate_recording(c, spec)
-        dataset = scenarios.recording_dataset(recording, c, position_only=False)
+        dataset = scenarios.recording_dataset(recording, c, rotation=True)
         write_dataset(dataset, folder / f"{serial}{'.parquet' if r % 2 else '.csv'}")
 
 

@@ -28,6 +28,7 @@ from solver import lie
 from solver.evaluation import cross_validate
 from solver.executors import InProcessExecutor
 from solver.gp_baseline import gp_calibration_method
+from solver.measurement import FullPose
 from solver.model import sample_configurations
 from solver.ranking import TaskMetric, ee_covariance
 from solver.stream.calibrate import (
@@ -60,7 +61,7 @@ def result(tmp_path_factory: pytest.TempPathFactory) -> CalibrationResult:
     scn, recording = scenarios.simulate(
         robot, n_samples=50, seed=4, effects=("geometry", "compliance", "camera", "marker")
     )
-    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=True)
     calibrated = pipeline.calibrate(dataset, robot, CalibrationOptions(heldout=False))
     k = len(calibrated.robot.joint_names)
     std = np.zeros((k, 6))
@@ -297,7 +298,7 @@ def test_gp_calibration_method_is_a_table_ii_column() -> None:
     scn, recording = scenarios.simulate(
         robot, n_samples=60, seed=3, effects=("compliance", "camera", "marker")
     )
-    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=True)
     options = CalibrationOptions(heldout=False, seeds=[1, 2])
     data = result_json.prepare(result_json.chain_for(robot, options), dataset, options)
     used = np.arange(dataset.n_samples)
@@ -309,20 +310,20 @@ def test_gp_calibration_method_is_a_table_ii_column() -> None:
                 data.joint_positions,
                 data.measured_pose,
                 data.loads_nm,
-                position_only=False,
+                measurement=FullPose(),
                 baseline_options=pipeline.fit_options(
                     options, baseline=True, n_links=data.chain.n_links
                 ),
             )
         },
-        position_only=False,
+        rotation=True,
         seeds=options.seeds,
     )
     sample = RowSample(data.joint_positions, data.measured_pose, data.loads_nm, used)
     problem = HeldoutProblem(
         data.chain,
         sample,
-        False,
+        data.measurement,
         pipeline.fit_options(options),
         pipeline.fit_options(options, baseline=True, n_links=data.chain.n_links),
         HeldoutSettings(tuple(options.seeds)),

@@ -31,7 +31,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
         noise_sigma=np.array([5e-5] * 3 + [1e-4] * 3),
         measurement_frame=look_at(np.array([0.8, -0.5, 0.45]), np.array([0.0, 0.0, 0.3])),
     )
-    dataset = scenarios.recording_dataset(simulate_recording(c, spec), c, position_only=False)
+    dataset = scenarios.recording_dataset(simulate_recording(c, spec), c, rotation=True)
     path = tmp_path_factory.mktemp("stream") / "big.parquet"
     write_dataset(dataset, path)
     return path

@@ -24,7 +24,7 @@ def _calibrated(name: str) -> CalibrationResult:
     scn, recording = scenarios.simulate(
         description, n_samples=120, seed=5, effects=("geometry", "compliance", "camera", "marker")
     )
-    dataset = scenarios.recording_dataset(recording, scn.chain, position_only=False)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=True)
     options = CalibrationOptions(heldout=False, outlier_sigma=None)
     return pipeline.calibrate(dataset, description, options)
 

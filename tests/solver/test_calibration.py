@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 
 from solver import lie
-from solver.alignment import align_full_pose, align_position_only
+from solver.alignment import align_full_pose, align_positions
 from solver.calibration import FitOptions, outlier_mask, pose_errors
 from solver.errors import CalibrationError
 from solver.evaluation import PAPER_SEEDS, split_indices
 from solver.kinematics import forward_kinematics
+from solver.measurement import FullPose, Position
 from solver.measurement.models import nominal_pose
 from solver.measurement.pose import fit_deterministic
 from solver.simulate import SimulationSpec, look_at, simulate_recording
@@ -42,14 +43,16 @@ def _heldout_ratio(position_only: bool) -> float:
     for seed in PAPER_SEEDS:
         train, test = split_indices(q.shape[0], seed)
         fit = fit_deterministic(
-            c, q[train], measured[train], loads[train], position_only=position_only
+            c,
+            q[train],
+            measured[train],
+            loads[train],
+            measurement=Position() if position_only else FullPose(),
         )
         predicted = forward_kinematics(c, fit.params, q[test], loads[test])
-        calibrated.append(pose_errors(predicted, measured[test], position_only=True)[0].mean())
+        calibrated.append(pose_errors(predicted, measured[test], rotation=False)[0].mean())
         floor.append(
-            pose_errors(recording.true_mean_pose[test], measured[test], position_only=True)[
-                0
-            ].mean()
+            pose_errors(recording.true_mean_pose[test], measured[test], rotation=False)[0].mean()
         )
     return float(np.mean(calibrated) / np.mean(floor))
 
@@ -71,7 +74,7 @@ def test_compliance_recovered_within_5_percent(position_only: bool) -> None:
         recording.joint_positions,
         recording.measured_pose,
         recording.loads_nm,
-        position_only=position_only,
+        measurement=Position() if position_only else FullPose(),
     )
     assert fit.converged
     for name, true_value in COMPLIANCE.items():
@@ -99,7 +102,7 @@ def test_noiseless_fit_is_exact_and_standard_errors_are_consistent() -> None:
         recording.joint_positions,
         recording.measured_pose,
         recording.loads_nm,
-        position_only=False,
+        measurement=FullPose(),
     )
     predicted = forward_kinematics(c, fit.params, recording.joint_positions, recording.loads_nm)
     assert np.abs(predicted - recording.measured_pose).max() < 1e-9
@@ -113,7 +116,7 @@ def test_noiseless_fit_is_exact_and_standard_errors_are_consistent() -> None:
         rec = simulate_recording(c, noisy)
         # same true robot for every seed: only the noise and configurations vary
         rec_fit = fit_deterministic(
-            c, rec.joint_positions, rec.measured_pose, rec.loads_nm, position_only=False
+            c, rec.joint_positions, rec.measured_pose, rec.loads_nm, measurement=FullPose()
         )
         estimates.append(
             rec_fit.params.compliance_rad_per_nm[index]
@@ -138,7 +141,7 @@ def test_closed_form_alignment_is_exact_on_noiseless_data() -> None:
     measured = world @ nominal @ tool
     w, t = align_full_pose(nominal, measured)
     assert np.allclose(w, world, atol=1e-9) and np.allclose(t, tool, atol=1e-9)
-    w, t = align_position_only(nominal, measured[:, :3, 3])
+    w, t = align_positions(nominal, measured[:, :3, 3])
     assert np.allclose(w, world, atol=1e-8) and np.allclose(t[:3, 3], tool[:3, 3], atol=1e-8)
 
 
@@ -163,7 +166,7 @@ def test_fewer_samples_than_parameters_is_a_clear_error() -> None:
             recording.joint_positions,
             recording.measured_pose,
             recording.loads_nm,
-            position_only=False,
+            measurement=FullPose(),
         )
 
 
@@ -175,7 +178,7 @@ def test_frame_and_tool_only_fit_leaves_the_robot_nominal() -> None:
         recording.joint_positions,
         recording.measured_pose,
         recording.loads_nm,
-        position_only=False,
+        measurement=FullPose(),
         options=FitOptions(free_links=(0, c.n_links - 1), fit_compliance=False),
     )
     assert np.allclose(fit.params.links[1:-1], c.nominal_links[1:-1])
@@ -192,7 +195,7 @@ def test_the_refit_after_pruning_reaches_the_optimum_with_those_compliances_fixe
     c = chain("kinova")
     recording = simulate_recording(c, _spec(154, seed=11))
     q, measured, loads = recording.joint_positions, recording.measured_pose, recording.loads_nm
-    pruned = fit_deterministic(c, q, measured, loads, position_only=False)
+    pruned = fit_deterministic(c, q, measured, loads, measurement=FullPose())
     assert pruned.pruned  # the recording has a compliance estimated negative
     names = parameter_names(c)
     free = tuple(i for i, n in enumerate(names) if n not in pruned.pruned)
@@ -201,7 +204,7 @@ def test_the_refit_after_pruning_reaches_the_optimum_with_those_compliances_fixe
         q,
         measured,
         loads,
-        position_only=False,
+        measurement=FullPose(),
         options=FitOptions(non_negative_compliance=False, free_columns=free),
     )
     # the pivoted QR may keep another member of a gauge-equivalent set of link columns, so

@@ -145,7 +145,7 @@ def test_joint_offset_column_is_the_residual_of_a_shifted_joint(joint: int, seed
     moved = q.copy()
     moved[:, joint] += delta_rad
     measured = forward_kinematics(chain, params, moved, loads)
-    residual = pose_residuals(evaluation.pose, measured, position_only=False)
+    residual = pose_residuals(evaluation.pose, measured)
     np.testing.assert_allclose(residual / delta_rad, columns[:, :, joint], atol=1e-5)
 
 
@@ -165,7 +165,7 @@ def test_base_columns_are_a_move_of_the_robot_base(axis: int, seed: int) -> None
     moved = ChainParameters(params.links.copy(), params.compliance_rad_per_nm)
     moved.links[0] = base @ lie.se3_exp(delta) @ chain.nominal_links[0]
     measured = forward_kinematics(chain, moved, q, loads)
-    residual = pose_residuals(evaluation.pose, measured, position_only=False)
+    residual = pose_residuals(evaluation.pose, measured)
     np.testing.assert_allclose(residual / 1e-6, columns[:, :, axis], atol=1e-5)
 
 

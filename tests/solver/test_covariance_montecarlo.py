@@ -26,7 +26,13 @@ import pytest
 
 from solver import lie
 from solver.covariance.likelihood import ee_covariance_batch
-from solver.kinematics import ChainParameters, evaluate_chain, forward_kinematics, pose_residuals
+from solver.kinematics import (
+    ChainParameters,
+    evaluate_chain,
+    forward_kinematics,
+    pose_residuals,
+    position_residuals,
+)
 from solver.model import KinematicChain, gravity_loads, sample_configurations
 from solver.ranking import RandomEffects, UncertaintyModel, ee_covariance
 from tests.conftest import chain as builtin_chain
@@ -128,9 +134,7 @@ CASES = [("kinova", 11), ("kinova", 12), ("panda", 21)]
 def test_eq12_equals_the_sample_covariance_of_simulated_poses(robot: str, config_seed: int):
     d = draws(robot, config_seed)
     k = d.chain.n_joints
-    residuals = pose_residuals(
-        np.broadcast_to(d.mean_pose, d.measured_pose.shape), d.measured_pose, position_only=False
-    )
+    residuals = pose_residuals(np.broadcast_to(d.mean_pose, d.measured_pose.shape), d.measured_pose)
     sample = sample_covariance(residuals)
     # The mean residual is second order in σ: negligible against the spread.
     assert np.all(np.abs(residuals.mean(axis=0)) < 0.05 * np.sqrt(np.diag(sample)))
@@ -149,8 +153,8 @@ def test_eq12_equals_the_sample_covariance_of_simulated_poses(robot: str, config
         assert correlation_scale_error(sample, predicted) < TOLERANCE
 
     # Position-only residuals R_modelᵀ(p_measured − p_model) follow the top-left 3×3 block.
-    position = pose_residuals(
-        np.broadcast_to(d.mean_pose, d.measured_pose.shape), d.measured_pose, position_only=True
+    position = position_residuals(
+        np.broadcast_to(d.mean_pose, d.measured_pose.shape), d.measured_pose
     )
     position_prediction = ee_covariance_batch(
         jac[:, :, :3], d.frame_covariances, d.noise_covariance

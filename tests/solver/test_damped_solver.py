@@ -14,6 +14,7 @@ from solver.calibration import (
     predicted_decrease,
 )
 from solver.kinematics import ChainParameters, forward_kinematics
+from solver.measurement import FullPose
 from solver.measurement.pose import fit_deterministic, initial_parameters
 from solver.model import gravity_loads, sample_configurations
 from tests.conftest import chain
@@ -62,13 +63,13 @@ def test_far_start_converges_to_the_exact_robot() -> None:
     )
     truth = truth.with_link_corrections(twists * 0.2)
     measured = forward_kinematics(c, truth, q, loads)
-    start = initial_parameters(c, q, measured, position_only=False)
+    start = initial_parameters(c, q, measured, measurement=FullPose())
     bad = np.hstack(
         [rng.uniform(-0.05, 0.05, (c.n_links, 3)), rng.uniform(-0.25, 0.25, (c.n_links, 3))]
     )
     start = ChainParameters(start.with_link_corrections(bad).links, start.compliance_rad_per_nm)
     fit = fit_deterministic(
-        c, q, measured, loads, position_only=False, start=start, options=FitOptions()
+        c, q, measured, loads, measurement=FullPose(), start=start, options=FitOptions()
     )
     assert fit.converged and fit.iterations < FitOptions().max_iterations
     predicted = forward_kinematics(c, fit.params, q, loads)

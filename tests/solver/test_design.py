@@ -33,6 +33,7 @@ from solver.design.relaxation import (
 )
 from solver.design.rounding import round_design
 from solver.kinematics import ChainParameters, forward_kinematics
+from solver.measurement import FullPose
 from solver.measurement.pose import fit_deterministic
 from solver.model import build_chain, gravity_loads
 
@@ -72,7 +73,7 @@ def test_geometry_information_is_the_fits_inverse_covariance() -> None:
             q,
             measured,
             loads,
-            position_only=False,
+            measurement=FullPose(),
             options=options,
             start=params,
         )

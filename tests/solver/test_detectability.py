@@ -24,6 +24,7 @@ from solver.discovery.detectability import (
     separation_size,
 )
 from solver.discovery.scoring import NullModel
+from solver.measurement import FullPose
 from solver.simulate import JointEffect, SimulationSpec, look_at, simulate_recording
 from tests.conftest import chain
 
@@ -51,7 +52,7 @@ def _discover(
     nothing discovery names: test_discovery_is_deterministic_given_a_seed)."""
     recording = simulate_recording(KINOVA, _spec(seed, noise, *effects))
     data = DiscoveryData(
-        recording.joint_positions, recording.measured_pose, False, recording.time_s
+        recording.joint_positions, recording.measured_pose, FullPose(), recording.time_s
     )
     return discover(RIGID, data, DiscoveryOptions(seed=seed, bootstrap=0, detectability=sizes))
 

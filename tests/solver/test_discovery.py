@@ -29,6 +29,7 @@ from solver.discovery.fitting import (
 from solver.discovery.library import EFFECTS, candidate_library, compliance_term
 from solver.discovery.scoring import NullModel, holm, score_test
 from solver.kinematics import forward_kinematics
+from solver.measurement import FullPose
 from solver.model import build_chain
 from solver.simulate import JointEffect, SimulationSpec, simulate_recording
 from tests.conftest import chain, robot
@@ -40,7 +41,7 @@ def _data(recording: object) -> DiscoveryData:
     return DiscoveryData(
         recording.joint_positions,  # type: ignore[attr-defined]
         recording.measured_pose,  # type: ignore[attr-defined]
-        False,
+        FullPose(),
         recording.time_s,  # type: ignore[attr-defined]
     )
 

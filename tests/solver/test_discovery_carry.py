@@ -20,6 +20,7 @@ from solver.discovery.carry import (
 )
 from solver.discovery.features import FeatureBank, probe_chain
 from solver.discovery.library import EFFECTS, library_term
+from solver.measurement import FullPose
 from solver.simulate import JointEffect, SimulationSpec, simulate_recording
 from tests.conftest import chain
 
@@ -31,7 +32,7 @@ def _bank(recording: object) -> FeatureBank:
     data = DiscoveryData(
         recording.joint_positions,  # type: ignore[attr-defined]
         recording.measured_pose,  # type: ignore[attr-defined]
-        False,
+        FullPose(),
         recording.time_s,  # type: ignore[attr-defined]
     )
     return FeatureBank(probe_chain(rigid), data)

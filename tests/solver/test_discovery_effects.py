@@ -18,6 +18,7 @@ import pytest
 from solver import lie
 from solver.calibration import pose_errors
 from solver.discovery import DiscoveryData, DiscoveryOptions, DiscoveryResult, discover
+from solver.measurement import FullPose
 from solver.model import KinematicChain
 from solver.simulate import JointEffect, SimulationSpec, look_at, simulate_recording
 from tests.conftest import chain
@@ -118,10 +119,10 @@ def _run(name: str, seed: int = 1) -> tuple[DiscoveryResult, float]:
     )
     model = dataclasses.replace(truth, compliance_axes=axes)
     data = DiscoveryData(
-        recording.joint_positions, recording.measured_pose, False, recording.time_s
+        recording.joint_positions, recording.measured_pose, FullPose(), recording.time_s
     )
     result = discover(model, data, OPTIONS)
-    oracle = pose_errors(recording.true_mean_pose, recording.measured_pose, position_only=False)
+    oracle = pose_errors(recording.true_mean_pose, recording.measured_pose, rotation=True)
     return result, float(oracle[0].mean())
 
 

@@ -14,6 +14,7 @@ from schemas.robots import example_robot_data_dir, load_robot
 from solver import lie
 from solver.calibration import FitOptions, frame_columns, pivoted_columns
 from solver.evaluation import split_indices
+from solver.measurement import Position
 from solver.measurement.pose import fit_deterministic
 from solver.model import build_chain, gravity_loads
 
@@ -52,13 +53,13 @@ def test_fixing_implausible_wrist_columns_keeps_the_marker_offset() -> None:
     q = dataset.joint_positions[rows[train]]
     pose = lie.pose_matrix(dataset.position_m[rows[train]], None)
     loads = gravity_loads(chain, q)
-    fit = fit_deterministic(chain, q, pose, loads, position_only=True)
+    fit = fit_deterministic(chain, q, pose, loads, measurement=Position())
     free = fit_deterministic(
         chain,
         q,
         pose,
         loads,
-        position_only=True,
+        measurement=Position(),
         options=dataclasses.replace(FitOptions(), non_negative_compliance=False),
     )
     assert fit.cost_history[-1] < 2.0 * free.cost_history[-1], (fit.pruned, fit.cost_history)

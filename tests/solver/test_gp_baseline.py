@@ -19,7 +19,8 @@ from solver.gp_baseline import (
     gp_method,
     gp_scores,
 )
-from solver.kinematics import pose_residuals
+from solver.kinematics import pose_residuals, position_residuals
+from solver.measurement import FullPose
 from solver.ranking import TaskMetric
 
 SETTINGS = GPSettings(n_restarts_optimizer=0)
@@ -48,9 +49,9 @@ def _data(n: int = 80) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def test_gp_correction_reduces_training_residuals() -> None:
     q, before, measured = _data()
-    residuals = pose_residuals(before, measured, position_only=False)
+    residuals = pose_residuals(before, measured)
     model = fit_gp_error_model(q, residuals, SETTINGS)
-    after = pose_residuals(corrected_poses(model, before, q), measured, position_only=False)
+    after = pose_residuals(corrected_poses(model, before, q), measured)
     rms = lambda r: float(np.sqrt(np.mean(r**2)))  # noqa: E731
     assert rms(after) < 0.2 * rms(residuals)
 
@@ -58,7 +59,7 @@ def test_gp_correction_reduces_training_residuals() -> None:
 @functools.cache
 def _model() -> GPErrorModel:
     q, before, measured = _data()
-    return fit_gp_error_model(q, pose_residuals(before, measured, position_only=False), SETTINGS)
+    return fit_gp_error_model(q, pose_residuals(before, measured), SETTINGS)
 
 
 def test_gp_variances_are_positive_and_grow_away_from_the_data() -> None:
@@ -74,9 +75,9 @@ def test_gp_is_a_cross_validation_method_and_beats_the_uncorrected_model() -> No
     q, before, measured = _data()
     methods = {
         "before": lambda train, test: before[test],
-        "gp": gp_method(q, measured, before, position_only=False, settings=SETTINGS),
+        "gp": gp_method(q, measured, before, measurement=FullPose(), settings=SETTINGS),
     }
-    splits = cross_validate(measured, methods, position_only=False, seeds=(1, 2))
+    splits = cross_validate(measured, methods, rotation=True, seeds=(1, 2))
     by = {(s.method, s.seed): s for s in splits}
     for seed in (1, 2):
         assert by[("gp", seed)].translation_mm < 0.5 * by[("before", seed)].translation_mm
@@ -91,7 +92,7 @@ def test_gp_method_refits_the_baseline_on_training_rows_only() -> None:
         seen.append(tuple(train.tolist()))
         return before[rows]
 
-    method = gp_method(q, measured, baseline, position_only=False, settings=SETTINGS)
+    method = gp_method(q, measured, baseline, measurement=FullPose(), settings=SETTINGS)
     train, test = np.arange(0, 60), np.arange(60, 80)
     method(train, test)
     assert seen and all(set(s) == set(train.tolist()) for s in seen)
@@ -99,11 +100,11 @@ def test_gp_method_refits_the_baseline_on_training_rows_only() -> None:
 
 def test_position_only_gp_corrects_translation_only() -> None:
     q, before, measured = _data()
-    residuals = pose_residuals(before, measured, position_only=True)
+    residuals = position_residuals(before, measured)
     model = fit_gp_error_model(q, residuals, SETTINGS)
     corrected = corrected_poses(model, before, q)
     assert np.array_equal(corrected[:, :3, :3], before[:, :3, :3])
-    after = pose_residuals(corrected, measured, position_only=True)
+    after = position_residuals(corrected, measured)
     assert np.sqrt(np.mean(after**2)) < 0.2 * np.sqrt(np.mean(residuals**2))
     scores = gp_scores(model, q, TaskMetric.pose_weights())
     assert np.all(scores.ee_variance[:, 3:] == 0.0) and np.all(scores.score > 0.0)

@@ -12,6 +12,7 @@ from solver.kinematics import (
     forward_kinematics,
     parameter_names,
     pose_residuals,
+    position_residuals,
     stacked_jacobian,
 )
 from solver.model import gravity_loads, sample_configurations
@@ -78,8 +79,8 @@ def test_residual_is_end_effector_frame() -> None:
     model = forward_kinematics(c, params, q, loads)
     delta = np.random.default_rng(5).normal(scale=1e-3, size=(q.shape[0], 6))
     measured = model @ lie.se3_exp(delta)
-    assert np.allclose(pose_residuals(model, measured, position_only=False), delta, atol=1e-12)
-    position_residual = pose_residuals(model, measured, position_only=True)
+    assert np.allclose(pose_residuals(model, measured), delta, atol=1e-12)
+    position_residual = position_residuals(model, measured)
     expected = np.einsum("nji,nj->ni", model[:, :3, :3], measured[:, :3, 3] - model[:, :3, 3])
     assert np.allclose(position_residual, expected)
 

@@ -201,9 +201,9 @@ JACOBIAN_MODELS: list[MeasurementModel] = [
     MultiMarker(2),
     FullPose(),
     Position(),
-    RelativeBase(measure_position_only=False),
+    RelativeBase(rotation=True),
     EyeOnHead(sensor_joint=2),
-    EyeOnHead(sensor_joint=0, measure_position_only=True),
+    EyeOnHead(sensor_joint=0, rotation=False),
 ]
 
 
@@ -320,3 +320,35 @@ def test_chain_parameters_are_unchanged_for_the_pose_path() -> None:
     c = chain("panda")
     params = ModelParameters(c.nominal_links.copy(), np.zeros(len(c.compliance_axes)))
     assert isinstance(params, ChainParameters)
+
+
+# --- the pose rows' model answers what position_only used to (issue 35) -----------------------
+
+
+@pytest.mark.parametrize(
+    ("model", "rotation"),
+    [
+        (FullPose(), True),
+        (Position(), False),
+        (RelativeBase(rotation=True), True),
+        (RelativeBase(rotation=False), False),
+        (EyeOnHead(rotation=True).inner, True),
+        (EyeOnHead(rotation=False).inner, False),
+    ],
+)
+def test_pose_rows_model_dimension_rotation_and_residual_agree(
+    model: FullPose, rotation: bool
+) -> None:
+    """``dim``, ``measures_rotation`` and ``residuals`` tell one story: a pose's residual is
+    ``Log(X⁻¹ X_m)`` (6), a position's its translation part ``Rᵀ(p_m − p)`` (3)."""
+    rng = np.random.default_rng(7)
+    predicted = lie.se3_exp(rng.normal(size=(5, 6)))
+    measured = predicted @ lie.se3_exp(1e-3 * rng.normal(size=(5, 6)))
+    residual = model.residuals(predicted, measured)
+    full = lie.se3_log(lie.inverse(predicted) @ measured)
+    translation = np.einsum(
+        "nji,nj->ni", predicted[:, :3, :3], measured[:, :3, 3] - predicted[:, :3, 3]
+    )
+    assert model.measures_rotation is rotation
+    assert model.dim == (6 if rotation else 3) == residual.shape[1]
+    assert np.array_equal(residual, full if rotation else translation)

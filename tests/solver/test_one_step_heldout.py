@@ -24,7 +24,7 @@ from solver.covariance.layout import make_layout
 from solver.covariance.samples import ArraySamples
 from solver.evaluation import split_indices
 from solver.kinematics import forward_kinematics, parameter_names
-from solver.measurement import MeasurementRows, ModelParameters, fit_measurement
+from solver.measurement import FullPose, MeasurementRows, ModelParameters, fit_measurement
 from solver.measurement.fit import refit_from
 from solver.measurement.pose import fit_deterministic, pose_measurement
 from solver.model import gravity_loads
@@ -45,7 +45,7 @@ def fr3():  # type: ignore[no-untyped-def]
     poses[:, :3, :3] = Rotation.from_quat(data.quaternion_xyzw).as_matrix()
     poses[:, :3, 3] = data.position_m
     loads = gravity_loads(c, q)
-    full = fit_deterministic(c, q, poses, loads, position_only=False)
+    full = fit_deterministic(c, q, poses, loads, measurement=FullPose())
     return c, q, poses, loads, full
 
 
@@ -56,7 +56,7 @@ def test_one_gauss_newton_step_from_the_full_fit_lands_where_the_iterated_fit_do
     the step's error is second order in the start's distance (~1/√n of the parameters'
     spread)."""
     c, q, poses, loads, full = fr3
-    model = pose_measurement(position_only=False)
+    model = pose_measurement(rotation=True)
     start = ModelParameters(full.params.links, full.params.compliance_rad_per_nm)
     names = parameter_names(c)
     columns = np.array([names.index(n) for n in full.estimated], dtype=np.intp)
@@ -85,9 +85,9 @@ def test_the_one_step_split_error_is_the_exact_refits_within_a_percent(fr3) -> N
         args = (c, q[train], poses[train], loads[train])
         fits = {
             "one": fit_deterministic(
-                *args, position_only=False, start=full.params, estimated=full.estimated
+                *args, measurement=FullPose(), start=full.params, estimated=full.estimated
             ),
-            "exact": fit_deterministic(*args, position_only=False),
+            "exact": fit_deterministic(*args, measurement=FullPose()),
         }
         for name, fit in fits.items():
             predicted = forward_kinematics(c, fit.params, q[test], loads[test])

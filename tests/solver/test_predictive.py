@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from solver import lie
-from solver.kinematics import pose_residuals
+from solver.measurement import FullPose, Position
 from solver.predictive import (
     coverage,
     estimate_model_error,
@@ -97,7 +97,7 @@ def test_parameter_part_is_the_covariance_of_the_propagated_error() -> None:
 
 @given(st.integers(0, 2**31), st.booleans())
 def test_measurement_axes_map_an_error_along_the_measurement_frame_to_the_residual(
-    seed: int, position_only: bool
+    seed: int, rotation: bool
 ) -> None:
     """A small error [δp; δω] along the measurement frame's axes (X' = [Exp(δω) R, p + δp])
     moves the residual Log(X⁻¹X') by T [δp; δω] to first order (finite difference)."""
@@ -107,9 +107,11 @@ def test_measurement_axes_map_an_error_along_the_measurement_frame_to_the_residu
     measured = model.copy()
     measured[:, :3, :3] = lie.so3_exp(error[:, 3:]) @ model[:, :3, :3]
     measured[:, :3, 3] += error[:, :3]
-    d = 3 if position_only else 6
-    residual = pose_residuals(model, measured, position_only=position_only)
-    mapped = np.einsum("nab,nb->na", measurement_axes(model, d), error[:, :d])
+    measurement = FullPose() if rotation else Position()
+    residual = measurement.residuals(model, measured)
+    mapped = np.einsum(
+        "nab,nb->na", measurement_axes(model, measurement.dim), error[:, : measurement.dim]
+    )
     assert np.allclose(residual, mapped, atol=1e-11)
 
 

@@ -44,12 +44,12 @@ def test_a_drifted_streamed_fit_restarts_where_the_in_memory_fit_does(monkeypatc
         q,
         pose,
         loads,
-        position_only=True,
+        measurement=Position(),
         options=FitOptions(max_iterations=1, non_negative_compliance=False),
     )
     names = parameter_names(c)
     keep = np.array([names.index(n) for n in probe.estimated], dtype=np.intp)
-    request = FitRequest(initial_parameters(c, q, pose, position_only=True), keep, FitOptions())
+    request = FitRequest(initial_parameters(c, q, pose, measurement=Position()), keep, FitOptions())
     problem = StreamProblem(
         c, ArrayChunks(q, pose[:, :3, 3], None), row_ranges(60, 60), measurement=Position()
     )

@@ -21,7 +21,7 @@ from solver.covariance.statistics import build_moment_statistics
 from solver.executors import InProcessExecutor, blocks, make_executor
 from solver.gravity import StaticGravityModel, static_gravity_loads
 from solver.kinematics import evaluate_chain, parameter_names
-from solver.measurement import FullPose
+from solver.measurement import FullPose, Position
 from solver.measurement.pose import fit_deterministic, pose_measurement
 from solver.simulate import SimulatedRecording, SimulationSpec, look_at, simulate_recording
 from solver.stream.calibrate import (
@@ -150,9 +150,9 @@ def test_streamed_equals_the_in_memory_fit_and_covariances(recording: SimulatedR
     quaternion = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
     measured = lie.pose_matrix(pose[:, :3, 3], quaternion)
     loads = static_gravity_loads(StaticGravityModel.from_chain(c), q)
-    first = fit_deterministic(c, q, measured, loads, position_only=False)
+    first = fit_deterministic(c, q, measured, loads, measurement=FullPose())
     used = np.flatnonzero(outlier_mask(first.residuals, 2.0))
-    fit = fit_deterministic(c, q[used], measured[used], loads[used], position_only=False)
+    fit = fit_deterministic(c, q[used], measured[used], loads[used], measurement=FullPose())
     assert np.array_equal(cal.removed_rows, np.setdiff1d(np.arange(q.shape[0]), used))
     assert cal.fit.estimated == fit.estimated
     assert _close(cal.fit.params.links, fit.params.links)
@@ -257,7 +257,7 @@ def test_statistics_of_two_recordings_merge_to_those_of_their_union() -> None:
     evaluation = evaluate_chain(c, params, q, loads)
     from solver.kinematics import pose_residuals
 
-    residuals = pose_residuals(evaluation.pose, pose, position_only=False)
+    residuals = pose_residuals(evaluation.pose, pose)
     memory = build_moment_statistics(residuals, evaluation.link_jacobians[:, :-1], layout)
     assert _close(stats.gram, memory.gram, 1e-9) and _close(stats.cross, memory.cross, 1e-9)
     spread = ResidualSpread.of(residuals)
@@ -309,7 +309,7 @@ def _problem_of(rec: SimulatedRecording, *, position_only: bool) -> StreamProble
         chain(ROBOT),
         source,
         rows,
-        measurement=pose_measurement(position_only=position_only),
+        measurement=pose_measurement(rotation=not position_only),
         block_rows=128,
     )
 
@@ -344,10 +344,22 @@ def test_streamed_fit_equals_in_memory_for_position_only_and_weighted_rotation(
     quaternion = None if position_only else lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
     measured = lie.pose_matrix(pose[:, :3, 3], quaternion)
     loads = static_gravity_loads(StaticGravityModel.from_chain(c), q)
-    first = fit_deterministic(c, q, measured, loads, position_only=position_only, options=options)
+    first = fit_deterministic(
+        c,
+        q,
+        measured,
+        loads,
+        measurement=Position() if position_only else FullPose(),
+        options=options,
+    )
     used = np.flatnonzero(outlier_mask(first.residuals, 2.0))
     fit = fit_deterministic(
-        c, q[used], measured[used], loads[used], position_only=position_only, options=options
+        c,
+        q[used],
+        measured[used],
+        loads[used],
+        measurement=Position() if position_only else FullPose(),
+        options=options,
     )
     assert cal.fit.estimated == fit.estimated
     assert _close(cal.fit.params.links, fit.params.links)

@@ -158,7 +158,7 @@ def recording(n: int = 40, seed: int = 2, name: str = "ur10") -> PoseDataset:
     """A small simulated recording (geometry, compliance, camera and marker effects)."""
     description = robot(name)
     scn, rec = scenarios.simulate(description, n_samples=n, seed=seed)
-    return scenarios.recording_dataset(rec, scn.chain, position_only=False)
+    return scenarios.recording_dataset(rec, scn.chain, rotation=True)
 
 
 @functools.cache
