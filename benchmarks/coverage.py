@@ -60,7 +60,6 @@ from service.app import rank as ranking
 from service.render import result_json
 from solver import lie
 from solver.errors import KincalError
-from solver.kinematics import pose_residuals
 from solver.measurement.predictive import total_distances
 from solver.predictive import (
     COVERAGE_LEVELS,
@@ -470,9 +469,10 @@ def heldout_distances(result: CalibrationResult, test: PoseDataset) -> HeldoutDi
     held-out pose has (a calibrated row's residual is judged against Σ_E; a new pose's also
     carries the parameter and model-error parts). A clean pose is screened with probability
     below ``outlier_level / N``. Under any other rule every pose is scored."""
-    d = 3 if test.is_position_only else 6
+    measurement = test.measurement_model
+    d = measurement.dim
     pose = result_json.predict_poses(result, test.joint_positions, test.payload_kg)
-    residuals = pose_residuals(pose, _measured_pose(test), position_only=test.is_position_only)
+    residuals = measurement.residuals(pose, _measured_pose(test))
     parts = ranking.predict_covariance_parts(result, test.joint_positions, test.payload_kg)
     random = (parts["random_effects"] + parts["noise"])[:, :d, :d]
     total = random + (parts["parameters"] + parts["model_error"])[:, :d, :d]
@@ -524,7 +524,7 @@ def fold_scores(
                 None,
             )
         )
-    return dataset.n_samples, 3 if dataset.is_position_only else 6, scores
+    return dataset.n_samples, dataset.measurement_model.dim, scores
 
 
 def cross_validate(recording: Recording, folds: int = FOLDS, seed: int = 0) -> FoldCoverage:

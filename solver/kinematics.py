@@ -151,18 +151,12 @@ def _evaluate(
     return ChainEvaluation(suffix, link_jac, comp_jac)
 
 
-def pose_residuals(
-    model_pose: FloatArray, measured_pose: FloatArray, *, position_only: bool = False
-) -> FloatArray:
+def pose_residuals(model_pose: FloatArray, measured_pose: FloatArray) -> FloatArray:
     """End-effector-frame residual of a full pose (DESIGN.md §2, Eq. 8):
     ``r = Log(X_model^-1 · X_measured)`` (N, 6), [v; w] in m and rad.
 
     Which residual a recording has is its measurement model's choice
-    (:meth:`solver.measurement.FullPose.residuals`); ``position_only=True`` is the former
-    spelling of :func:`position_residuals`, kept for callers not yet given the model (issue 35).
-    """
-    if position_only:
-        return position_residuals(model_pose, measured_pose)
+    (:meth:`solver.measurement.FullPose.residuals`: this, or :func:`position_residuals`)."""
     return lie.se3_log(lie.inverse(model_pose) @ measured_pose)
 
 
