@@ -627,9 +627,35 @@ def partition_row(partitions: list[FoldCoverage], seeds: list[int]) -> Row:
     }
 
 
+BAND_MEAN_PARTITIONS = 0.20
+"""Issue 31's band over partitions, for every recording and measurement type: the mean d²
+within this fraction of d (the share inside the 95 % region in :data:`BAND_95`)."""
+
+
 def in_band(share: float, mean_d2: float, dimension: int) -> bool:
-    """Issue 13's band (:data:`BAND_95`, :data:`BAND_MEAN`)."""
-    return BAND_95[0] <= share <= BAND_95[1] and abs(mean_d2 - dimension) <= BAND_MEAN * dimension
+    """Issue 31's band (:data:`BAND_95`, :data:`BAND_MEAN_PARTITIONS`)."""
+    return (
+        BAND_95[0] <= share <= BAND_95[1]
+        and abs(mean_d2 - dimension) <= BAND_MEAN_PARTITIONS * dimension
+    )
+
+
+def partition_cell(part: Row, dimension: int, share_digits: int) -> str:
+    """One partition of a partitions table: its seed, share inside the 95 % region (to
+    ``share_digits``), mean and largest d², screened rows; ✗ outside :func:`in_band`."""
+    mark = "" if in_band(part["inside_95"], part["mean_d2"], dimension) else " ✗"
+    return (
+        f"{part['seed']}: {100 * part['inside_95']:.{share_digits}f} % / "
+        f"{part['mean_d2']:.2f} / {part['max_d2']:.0f} ({part['screened']}){mark}"
+    )
+
+
+def band_cell(row: Row) -> str:
+    """How many of a row's partitions are in the band, and whether the pooled row is."""
+    d, parts = row["dimension"], row["partitions"]
+    held = sum(in_band(p["inside_95"], p["mean_d2"], d) for p in parts)
+    pooled = in_band(row["inside_95"], row["mean_d2"], d)
+    return f"{held} of {len(parts)} partitions" + ("" if pooled else "; pooled: **no**")
 
 
 PARTITIONS_HEADER = (
@@ -645,39 +671,24 @@ PARTITIONS_HEADER = (
 def render_partitions(rows: list[Row]) -> str:
     """The table of ``docs/results/coverage_partitions.md``: the 10-fold protocol over several
     random partitions, each partition's coverage, its spread and the pooled coverage."""
-
-    def one(p: Row, d: int) -> str:
-        mark = "" if in_band(p["inside_95"], p["mean_d2"], d) else " ✗"
-        return (
-            f"{p['seed']}: {100 * p['inside_95']:.0f} % / {p['mean_d2']:.2f} / "
-            f"{p['max_d2']:.0f} ({p['screened']}){mark}"
-        )
-
     body = []
     for r in rows:
         d, parts = r["dimension"], r["partitions"]
         shares = [100 * p["inside_95"] for p in parts]
-        held = sum(in_band(p["inside_95"], p["mean_d2"], d) for p in parts)
         body.append(
             (
                 r["recording"],
                 d,
-                "; ".join(one(p, d) for p in parts),
+                "; ".join(partition_cell(p, d, 0) for p in parts),
                 f"{min(shares):.0f}–{max(shares):.0f} %",
                 f"{100 * r['inside_95']:.0f} % / {r['mean_d2']:.2f}",
-                f"{held} of {len(parts)} partitions"
-                + ("" if in_band(r["inside_95"], r["mean_d2"], d) else "; pooled: **no**"),
+                band_cell(r),
             )
         )
     return markdown_table(PARTITIONS_HEADER, body)
 
 
 # --- issue 31: the 10-fold protocol for the other measurement types --------------------------
-
-
-BAND_MEAN_TYPES = 0.20
-"""Issue 31's band for the measurement types: the mean d² within this fraction of d (the
-share inside the 95 % region in :data:`BAND_95`)."""
 
 
 @dataclass(frozen=True)
@@ -884,32 +895,19 @@ TYPES_HEADER = (
 def render_types(rows: list[Row]) -> str:
     """The table of ``docs/results/coverage_types_partitions.md``: the 10-fold protocol of
     each measurement type over its partitions (issue 31's band: :data:`BAND_95`, mean d²
-    within :data:`BAND_MEAN_TYPES` of d; ✗ marks a partition outside it)."""
-
-    def band(share: float, mean: float, d: int) -> bool:
-        return BAND_95[0] <= share <= BAND_95[1] and abs(mean - d) <= BAND_MEAN_TYPES * d
-
-    def one(p: Row, d: int) -> str:
-        mark = "" if band(p["inside_95"], p["mean_d2"], d) else " ✗"
-        return (
-            f"{p['seed']}: {100 * p['inside_95']:.1f} % / {p['mean_d2']:.2f} / "
-            f"{p['max_d2']:.0f} ({p['screened']}){mark}"
-        )
-
+    within :data:`BAND_MEAN_PARTITIONS` of d; ✗ marks a partition outside it)."""
     body = []
     for r in rows:
         d, parts = r["dimension"], r["partitions"]
-        held = sum(band(p["inside_95"], p["mean_d2"], d) for p in parts)
         body.append(
             (
                 r["recording"],
                 r["scored_on"],
                 r["rows"],
                 d,
-                "; ".join(one(p, d) for p in parts),
+                "; ".join(partition_cell(p, d, 1) for p in parts),
                 f"{100 * r['inside_95']:.1f} % / {r['mean_d2']:.2f}",
-                f"{held} of {len(parts)} partitions"
-                + ("" if band(r["inside_95"], r["mean_d2"], d) else "; pooled: **no**"),
+                band_cell(r),
                 f"{r['cpu_s']:.0f}",
             )
         )
