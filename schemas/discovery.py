@@ -223,9 +223,12 @@ class HealthPair(_Model):
 class Step(_Model):
     step: int
     candidate: str
-    action: Literal["accepted", "ambiguous", "rejected_heldout", "unexplained", "pruned"] = Field(
-        description="pruned: a compliance, flex or backlash that fit below zero in the final "
-        "model, removed (fixed at 0) and the model refit"
+    action: Literal[
+        "accepted", "ambiguous", "rejected_heldout", "rejected_sign", "unexplained", "pruned"
+    ] = Field(
+        description="rejected_sign: a compliance, flex or backlash whose refit with it added "
+        "put it below zero (the next candidate is tried); pruned: one that fit below zero in "
+        "the final model, removed (fixed at 0) and the model refit"
     )
     p_value: float | None
     heldout_before_mm: float | None

@@ -258,9 +258,7 @@ class _Search:
         also said in ``unexplained``."""
         while True:
             values = self.fit.values()
-            negative = [
-                t for t in self.terms if t.effect in SIGNED and bool(np.any(values[t.key] < 0.0))
-            ]
+            negative = [t for t in self.terms if below_zero(t, self.fit)]
             if not negative:
                 return
             terms = tuple(t for t in self.terms if t not in negative)
@@ -409,6 +407,12 @@ class _Search:
             self.excluded.add(key)
             return
         term, new_terms, new_fit = added
+        if below_zero(term, new_fit):
+            # the final model keeps no such term (_without_negative_terms): accepting it would
+            # spend the step on a term pruned at the end, and the next candidate never be tried
+            self.steps.append(Step(step, term.key, "rejected_sign", test.p_value))
+            self.excluded.update({key, term.key})
+            return
         candidates.columns[term.key] = candidates.columns[key]  # refined shapes: same columns
         before = self._current_heldout()
         after = repeated_heldout(self.ctx, new_terms, new_fit, self.partitions, self.fit.weights)
@@ -766,3 +770,10 @@ class _Search:
         """Library terms not in the final model, one per mechanism and joint (a load-sign
         backlash's floating zones are refinements of the plain one)."""
         return [t for t in self._library() if not t.deadzone()]
+
+
+def below_zero(term: Term, fit: ModelFit) -> bool:
+    """Is ``term`` a compliance, flex or backlash (:data:`~solver.discovery.library.SIGNED`)
+    that ``fit`` puts below zero in any coefficient? No spring bends, no gear lags, against
+    what drives it: the final model keeps no such term."""
+    return term.effect in SIGNED and bool(np.any(fit.values()[term.key] < 0.0))

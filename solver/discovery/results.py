@@ -156,7 +156,7 @@ class Step:
 
     step: int
     candidate: str
-    action: str  # accepted, ambiguous, rejected_heldout, unexplained, pruned (NaN p-value)
+    action: str  # accepted, ambiguous, rejected_heldout, rejected_sign, unexplained, pruned
     p_value: float
     heldout_before_mm: float | None = None
     heldout_after_mm: float | None = None
