@@ -214,6 +214,9 @@ class Baseline:
     measurement_frame: np.ndarray
     heldout_mm: float
     unsized: dict[tuple[str, str], str]  # (effect, variant) -> why no size is stated
+    shown: frozenset[tuple[str, int | None, str]] = frozenset()
+    """The recording's own structure: the mechanisms (:func:`mechanism`) it names or lists
+    among an ambiguity's candidates."""
 
 
 def _discovery(name: str, data: DiscoveryData, seed: int, sizes: bool = False) -> DiscoveryResult:
@@ -276,6 +279,8 @@ def baseline(name: str) -> Baseline:
             (u.term.effect, u.term.variant), "not a candidate: its column cancels in the residual"
         )
     names = [f.explanation for f in result.findings]
+    terms = [f.estimate.term for f in result.findings]
+    terms += [c.term for a in result.ambiguous for c in a.candidates]
     return Baseline(
         name,
         chain,
@@ -285,7 +290,18 @@ def baseline(name: str) -> Baseline:
         frame,
         result.heldout_before.translation_mm,
         unsized,
+        frozenset(mechanism(t.effect, t.joint_index, t.variant) for t in terms),
     )
+
+
+def mechanism(effect: str, joint: int | None, variant: str) -> tuple[str, int | None, str]:
+    """A named term as the mechanism it stands for: effect, joint and the variant's first part
+    (a backlash's floating zone refines it), every time shape of a joint's drift as one
+    (:func:`~solver.discovery.library.same_mechanism`)."""
+    kind = variant.split(":")[0]
+    if effect == "thermal_drift" and kind in ("linear", "warmup"):
+        kind = ""
+    return effect, joint, kind
 
 
 def candidate_joints(base: Baseline, effect: Effect) -> list[int | None]:
@@ -356,6 +372,7 @@ class Run:
     joint: int | None
     truth: float
     named: list[tuple[str, int | None, str]]
+    own: list[tuple[str, int | None, str]]  # names the unmodified recording shows too
     estimate: float | None  # the named term's size
     concealed_estimate: float | None  # its size less the recording's own (see estimate_of)
     ambiguous: bool  # the concealed effect is among the candidates of an ambiguity
@@ -528,6 +545,10 @@ def run_one(job: tuple[str, str, float, int]) -> Run:
     started = time.perf_counter()
     result = _discovery(name, concealed, seed)
     sizes = estimate_of(result, effect, joint, base)
+    named = [
+        (f.estimate.term.effect, f.estimate.term.joint_index, f.estimate.term.variant)
+        for f in result.findings
+    ]
     return Run(
         recording=name,
         effect=effect_name,
@@ -535,10 +556,8 @@ def run_one(job: tuple[str, str, float, int]) -> Run:
         seed=seed,
         joint=joint,
         truth=truth,
-        named=[
-            (f.estimate.term.effect, f.estimate.term.joint_index, f.estimate.term.variant)
-            for f in result.findings
-        ],
+        named=named,
+        own=[n for n in named if mechanism(*n) in base.shown],
         estimate=None if sizes is None else sizes[0],
         concealed_estimate=None if sizes is None else sizes[1],
         ambiguous=any(
@@ -554,19 +573,23 @@ def run_one(job: tuple[str, str, float, int]) -> Run:
 
 
 def judged(run: Run) -> dict[str, Any]:
-    """Detected (named right: effect, joint, variant), size errors and wrong names (any other
-    name) of one run."""
+    """Detected (named right: effect, joint, variant), size errors, the recording's own names
+    (another name the unmodified recording shows too: named there, or among an ambiguity's
+    candidates — structure that is there, issue 32) and wrong names (any other name) of one
+    run."""
     effect = EFFECTS[run.effect]
     detected = run.estimate is not None
     raw = _relative(run.estimate, run.truth)
     concealed = _relative(run.concealed_estimate, run.truth)
-    wrong = sum(1 for e, j, v in run.named if not is_concealed(e, j, v, effect, run.joint))
+    other = [(e, j, v) for e, j, v in run.named if not is_concealed(e, j, v, effect, run.joint)]
+    own = [n for n in other if n in run.own]
     return {
         "detected": detected,
         "error": raw,
         "concealed_error": concealed,
         "within": detected and concealed <= 0.25,
-        "wrong": wrong,
+        "own": len(own),
+        "wrong": len(other) - len(own),
     }
 
 
@@ -576,8 +599,9 @@ def _relative(value: float | None, truth: float) -> float:
 
 def summarise(runs: list[Run]) -> dict[str, float]:
     """One table row: shares of ``runs`` (``detected``: named right; ``wrong_runs``: named
-    anything else; ``ambiguous``: the concealed effect among an ambiguity's candidates;
-    ``nothing``: no finding at all), size errors, held-out errors and time."""
+    anything else the unmodified recording does not show; ``own_runs``: named what it shows;
+    ``ambiguous``: the concealed effect among an ambiguity's candidates; ``nothing``: no
+    finding at all), size errors, held-out errors and time."""
     marks = [judged(r) for r in runs]
     errors = [m["error"] for m in marks if m["detected"]]
     concealed = [m["concealed_error"] for m in marks if m["detected"]]
@@ -590,6 +614,7 @@ def summarise(runs: list[Run]) -> dict[str, float]:
         "ambiguous": float(np.mean([r.ambiguous for r in runs])),
         "ambiguous_any": float(np.mean([r.ambiguous_any for r in runs])),
         "wrong_runs": float(np.mean([m["wrong"] > 0 for m in marks])),
+        "own_runs": float(np.mean([m["own"] > 0 for m in marks])),
         "nothing": float(np.mean([not r.named for r in runs])),
         "heldout_before": float(np.mean([r.heldout_before_mm for r in runs])),
         "heldout_after": float(np.mean([r.heldout_after_mm for r in runs])),
@@ -634,6 +659,7 @@ def outcome(run: Run) -> Row:
         "joint": run.joint,
         "truth": run.truth,
         "named": [_named_text(n) for n in run.named],
+        "own": [_named_text(n) for n in run.own],
         "estimate": run.estimate,
         "concealed_estimate": run.concealed_estimate,
         "ambiguous": run.ambiguous,
@@ -654,6 +680,7 @@ def run_of(name: str, effect: str, multiple: float, record: Row) -> Run:
         joint=record["joint"],
         truth=record["truth"],
         named=[_named(n) for n in record["named"]],
+        own=[_named(n) for n in record["own"]],
         estimate=record["estimate"],
         concealed_estimate=record["concealed_estimate"],
         ambiguous=record["ambiguous"],
@@ -814,10 +841,11 @@ def main(
 
 HEADER = (
     "| Recording | Concealed effect | Size (× stated detectability) | Stated detectability "
-    "(median over joints) | Runs | Named right (effect, joint, variant) | Named anything else | "
-    "Ambiguous (concealed effect among the candidates) | Nothing named | Concealed size "
-    "within 25 % | Median error: concealed size / as named | Any ambiguity | Held-out mm: "
-    "unmodified model → discovered | s/run |"
+    "(median over joints) | Runs | Named right (effect, joint, variant) | Named anything else "
+    "(not shown by the unmodified recording) | Named the recording's own (named or ambiguous "
+    "unmodified) | Ambiguous (concealed effect among the candidates) | Nothing named | "
+    "Concealed size within 25 % | Median error: concealed size / as named | Any ambiguity | "
+    "Held-out mm: unmodified model → discovered | s/run |"
 )
 
 
@@ -831,7 +859,8 @@ def table(
         lines.append(
             f"| {RECORDINGS[name].label} | {e} | {m:g}× | {stated_shown[(name, e)]} | "
             f"{r['runs']:.0f} | {_pct(r['detected'])} | {_pct(r['wrong_runs'])} | "
-            f"{_pct(r['ambiguous'])} | {_pct(r['nothing'])} | {_pct(r['within_25'])} | "
+            f"{_pct(r['own_runs'])} | {_pct(r['ambiguous'])} | {_pct(r['nothing'])} | "
+            f"{_pct(r['within_25'])} | "
             f"{_pct(r['median_concealed_error'])} / {_pct(r['median_error'])} | "
             f"{_pct(r['ambiguous_any'])} | "
             f"{r['heldout_before']:.3f} → {r['heldout_after']:.3f} | {r['seconds']:.1f} |"
@@ -847,7 +876,10 @@ def stated_median(base: Baseline, effect: Effect) -> float:
 
 def accepted(row: dict[str, float], rate: float = ACCEPTANCE_RATE) -> bool:
     """Issue 32's acceptance of one row: named right in at least ``rate`` of its runs and
-    nothing else named in at least ``rate`` (a rate of exactly 90 % passes)."""
+    nothing else named in at least ``rate`` (a rate of exactly 90 % passes): nothing the
+    unmodified recording does not show — its own structure, named there or among an
+    ambiguity's candidates, is there ("either those extra terms are real — and then the
+    unmodified recording must show them", issue 32)."""
     tolerance = 1e-9  # 9 of 10 runs is 0.9 up to rounding
     return row["detected"] >= rate - tolerance and 1.0 - row["wrong_runs"] >= rate - tolerance
 

@@ -133,6 +133,7 @@ def test_real_benchmark_rows_show_the_four_outcomes_and_the_acceptance_at_twice(
             "joint": 2,
             "truth": 1e-5,
             "named": named,
+            "own": [],
             "estimate": 1e-5 if right else None,
             "concealed_estimate": 1e-5 if right else None,
             "ambiguous": False,
@@ -158,34 +159,51 @@ def test_real_benchmark_rows_show_the_four_outcomes_and_the_acceptance_at_twice(
         ("ur10e", "floating_backlash", 2.0): [
             run("floating_backlash", 2.0, [("backlash", 2, "load")])
         ],
+        # right every time, and 2 of 10 also name what the unmodified recording shows (a
+        # backlash it lists among an ambiguity's candidates): its own, not anything else
+        ("ur10e", "joint_scale", 2.0): [run("joint_scale", 2.0, [("joint_scale", 2, "")])] * 8
+        + [
+            run(
+                "joint_scale",
+                2.0,
+                [("joint_scale", 2, ""), ("backlash", 5, "load:0.04")],
+                own=[("backlash", 5, "load:0.04")],
+            )
+        ]
+        * 2,
     }
     rows = {key: concealed_real.summarise(picked) for key, picked in runs.items()}
     assert rows[("ur10e", "backlash_load", 2.0)]["nothing"] == 1.0
     assert rows[("ur10e", "gear_h2", 2.0)]["wrong_runs"] == pytest.approx(0.2)
+    assert rows[("ur10e", "joint_scale", 2.0)]["wrong_runs"] == 0.0
+    assert rows[("ur10e", "joint_scale", 2.0)]["own_runs"] == pytest.approx(0.2)
     stated = {(n, e): "1 mrad" for n, e, _ in rows}
     text = concealed_real.table(rows, stated)
     header, separator, *lines = text.splitlines()
     columns = [c.strip() for c in header.strip("|").split("|")]
-    assert columns[5:9] == [
+    assert columns[5:10] == [
         "Named right (effect, joint, variant)",
-        "Named anything else",
+        "Named anything else (not shown by the unmodified recording)",
+        "Named the recording's own (named or ambiguous unmodified)",
         "Ambiguous (concealed effect among the candidates)",
         "Nothing named",
     ]
     assert separator.count("---") == len(columns)
     cells = {tuple(c.strip() for c in line.strip("|").split("|")[1:3]): line for line in lines}
     assert all(line.count("|") == len(columns) + 1 for line in lines)
-    compliance_cells = [c.strip() for c in cells[("joint_compliance", "2×")].split("|")[6:10]]
-    assert compliance_cells == ["90 %", "0 %", "0 %", "10 %"]
-    backlash_cells = [c.strip() for c in cells[("backlash_load", "2×")].split("|")[6:10]]
-    assert backlash_cells == ["0 %", "0 %", "50 %", "100 %"]
+    compliance_cells = [c.strip() for c in cells[("joint_compliance", "2×")].split("|")[6:11]]
+    assert compliance_cells == ["90 %", "0 %", "0 %", "0 %", "10 %"]
+    backlash_cells = [c.strip() for c in cells[("backlash_load", "2×")].split("|")[6:11]]
+    assert backlash_cells == ["0 %", "0 %", "0 %", "50 %", "100 %"]
+    scale_cells = [c.strip() for c in cells[("joint_scale", "2×")].split("|")[6:11]]
+    assert scale_cells == ["100 %", "0 %", "20 %", "0 %", "0 %"]
 
     summary = concealed_real.acceptance(rows, {"ur10e": []})
     assert summary[0].startswith("Acceptance at 2× the stated detectability")
     assert summary[2] == (
-        "- UR10e: 1 of 3 library effects meet both; unmodified recording: nothing named"
+        "- UR10e: 2 of 4 library effects meet both; unmodified recording: nothing named"
     )
-    assert summary[3] == "  - meet both: joint_compliance"
+    assert summary[3] == "  - meet both: joint_compliance, joint_scale"
     assert summary[4] == (
         "  - below: gear_h2 (named right 100 %, anything else 20 %); "
         "backlash_load (named right 0 %, anything else 0 %)"
