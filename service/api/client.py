@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+from pydantic import BaseModel
 
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.check import CheckOptions
@@ -114,6 +115,23 @@ class KincalClient:
     @staticmethod
     def _idempotency(key: str | None) -> dict[str, str]:
         return {"Idempotency-Key": key or str(uuid.uuid4())}
+
+    def _post_options(
+        self,
+        path: str,
+        dataset_id: str,
+        options: BaseModel | Mapping[str, Any] | None,
+        idempotency_key: str | None,
+        **fields: str,
+    ) -> dict[str, Any]:
+        """POST what a calibration, check or discovery runs on: ``dataset_id``, the ``options``
+        (a schema's as JSON without its defaults, so the service fills them) and ``fields``,
+        under an idempotency key (a fresh one unless given), to ``path``; its answer."""
+        if isinstance(options, BaseModel):
+            options = options.model_dump(mode="json", exclude_defaults=True)
+        body = {"dataset_id": dataset_id, "options": dict(options or {}), **fields}
+        headers = self._idempotency(idempotency_key)
+        return dict(self._request("POST", path, json=body, headers=headers).json())
 
     # robots and datasets
 
@@ -207,13 +225,10 @@ class KincalClient:
         """Queue a calibration job, carrying the findings of the succeeded discovery
         ``discovery_id`` if given (as ``kincal calibrate --model``); retrying with the same
         ``idempotency_key`` is safe."""
-        if isinstance(options, CalibrationOptions):
-            options = options.model_dump(mode="json", exclude_defaults=True)
-        body: dict[str, Any] = {"dataset_id": dataset_id, "options": dict(options or {})}
-        if discovery_id is not None:
-            body["discovery_id"] = discovery_id
-        headers = self._idempotency(idempotency_key)
-        return dict(self._request("POST", f"{API}/calibrations", json=body, headers=headers).json())
+        fields = {} if discovery_id is None else {"discovery_id": discovery_id}
+        return self._post_options(
+            f"{API}/calibrations", dataset_id, options, idempotency_key, **fields
+        )
 
     def status(self, calibration_id: str) -> dict[str, Any]:
         """The calibration with ``status``: state, stage, fraction, iteration, error."""
@@ -300,12 +315,8 @@ class KincalClient:
         check`` over HTTP) and keep the check; returns it with its ``check`` document
         (kincal.check/1: verdict, per-pose d², located drift). Retrying with the same
         ``idempotency_key`` is safe."""
-        if isinstance(options, CheckOptions):
-            options = options.model_dump(mode="json", exclude_defaults=True)
-        body = {"dataset_id": dataset_id, "options": dict(options or {})}
-        headers = self._idempotency(idempotency_key)
         url = f"{API}/calibrations/{calibration_id}/checks"
-        return dict(self._request("POST", url, json=body, headers=headers).json())
+        return self._post_options(url, dataset_id, options, idempotency_key)
 
     def checks(self, calibration_id: str, *, offset: int = 0, limit: int = 50) -> dict[str, Any]:
         """A calibration's checks, newest first (time, verdict, statistic, threshold)."""
@@ -375,11 +386,7 @@ class KincalClient:
     ) -> dict[str, Any]:
         """Queue a discovery job (``kincal discover`` over HTTP); retrying with the same
         ``idempotency_key`` is safe."""
-        if isinstance(options, DiscoveryOptions):
-            options = options.model_dump(mode="json", exclude_defaults=True)
-        body = {"dataset_id": dataset_id, "options": dict(options or {})}
-        headers = self._idempotency(idempotency_key)
-        return dict(self._request("POST", f"{API}/discoveries", json=body, headers=headers).json())
+        return self._post_options(f"{API}/discoveries", dataset_id, options, idempotency_key)
 
     def discovery_status(self, discovery_id: str) -> dict[str, Any]:
         return dict(self._request("GET", f"{API}/discoveries/{discovery_id}").json())
