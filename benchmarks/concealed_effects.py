@@ -107,6 +107,28 @@ class Scenario:
     random_joint: int | None = None  # floating: routed to random effects here
 
 
+def _joint_effect(
+    group: str,
+    description: str,
+    effect: JointEffect,
+    named: Expected,
+    parameter: str,
+    hidden: dict[str, Any] | None = None,
+    random_joint: int | None = None,
+) -> Scenario:
+    """A scenario hiding the one joint effect ``effect`` (with the simulation fields
+    ``hidden``), which discovery should name ``named``, its true ``parameter`` the effect's
+    size: stated once, so the truth cannot disagree with what was hidden."""
+    return Scenario(
+        group,
+        description,
+        {"joint_effects": (effect,), **(hidden or {})},
+        (named,),
+        {named: {parameter: effect.size}},
+        random_joint=random_joint,
+    )
+
+
 def scenarios(joints: tuple[str, ...]) -> dict[str, Scenario]:
     """The scenario table (Jaco2 joint indices; sizes chosen well above the noise)."""
     j = joints
@@ -151,54 +173,54 @@ def scenarios(joints: tuple[str, ...]) -> dict[str, Scenario]:
             {("link_bending", 2): {"flex_a_rad_per_nm": 5e-5, "flex_b_rad_per_nm": 5e-5}},
             virtual_at=(2,),
         ),
-        "gear_h1": Scenario(
+        "gear_h1": _joint_effect(
             "single",
             "joint 4 gear error, 1st harmonic, 0.1 mrad",
-            {"joint_effects": (JointEffect(j[3], "gear_periodic", 1e-4, harmonic=1),)},
-            (("gear_periodic", 3),),
-            {("gear_periodic", 3): {"amplitude_rad": 1e-4}},
+            JointEffect(j[3], "gear_periodic", 1e-4, harmonic=1),
+            ("gear_periodic", 3),
+            "amplitude_rad",
         ),
-        "gear_h2": Scenario(
+        "gear_h2": _joint_effect(
             "single",
             "joint 3 gear error, 2nd harmonic, 0.05 mrad",
-            {"joint_effects": (gear,)},
-            (("gear_periodic", 2),),
-            {("gear_periodic", 2): {"amplitude_rad": 5e-5}},
+            gear,
+            ("gear_periodic", 2),
+            "amplitude_rad",
         ),
-        "gear_h3": Scenario(
+        "gear_h3": _joint_effect(
             "single",
             "joint 2 gear error, 3rd harmonic, 0.05 mrad",
-            {"joint_effects": (JointEffect(j[1], "gear_periodic", 5e-5, harmonic=3),)},
-            (("gear_periodic", 1),),
-            {("gear_periodic", 1): {"amplitude_rad": 5e-5}},
+            JointEffect(j[1], "gear_periodic", 5e-5, harmonic=3),
+            ("gear_periodic", 1),
+            "amplitude_rad",
         ),
-        "backlash": Scenario(
+        "backlash": _joint_effect(
             "single",
             "joint 2 backlash 0.2 mrad, taken up by the load sign",
-            {"joint_effects": (JointEffect(j[1], "backlash_load", 2e-4),)},
-            (("backlash", 1),),
-            {("backlash", 1): {"backlash_rad": 2e-4}},
+            JointEffect(j[1], "backlash_load", 2e-4),
+            ("backlash", 1),
+            "backlash_rad",
         ),
-        "backlash_direction": Scenario(
+        "backlash_direction": _joint_effect(
             "single",
             "joint 3 backlash 0.2 mrad, taken up by the approach direction",
-            {"joint_effects": (JointEffect(j[2], "backlash_direction", 2e-4),)},
-            (("backlash", 2),),
-            {("backlash", 2): {"backlash_rad": 2e-4}},
+            JointEffect(j[2], "backlash_direction", 2e-4),
+            ("backlash", 2),
+            "backlash_rad",
         ),
-        "joint_scale": Scenario(
+        "joint_scale": _joint_effect(
             "single",
             "joint 2 gear ratio off by 1e-4",
-            {"joint_effects": (JointEffect(j[1], "joint_scale", 1e-4),)},
-            (("joint_scale", 1),),
-            {("joint_scale", 1): {"scale_error": 1e-4}},
+            JointEffect(j[1], "joint_scale", 1e-4),
+            ("joint_scale", 1),
+            "scale_error",
         ),
-        "drift_shuffled": Scenario(
+        "drift_shuffled": _joint_effect(
             "single",
             "joint 2 zero drifts 1.8 mrad/h, shuffled acquisition order",
-            {"joint_effects": (JointEffect(j[1], "drift_linear", 5e-7),)},
-            (("thermal_drift", 1),),
-            {("thermal_drift", 1): {"drift_rad_per_s": 5e-7}},
+            JointEffect(j[1], "drift_linear", 5e-7),
+            ("thermal_drift", 1),
+            "drift_rad_per_s",
         ),
         "camera_drift": Scenario(
             "single",
@@ -242,29 +264,28 @@ def scenarios(joints: tuple[str, ...]) -> dict[str, Scenario]:
             {("base_flex", 0): {"flex_a_rad_per_nm": 1e-5, "flex_b_rad_per_nm": 1e-5}},
             virtual_at=(0,),
         ),
-        "backlash_small": Scenario(
+        "backlash_small": _joint_effect(
             "hard",
             "joint 2 backlash 0.03 mrad by load sign (about the noise)",
-            {"joint_effects": (JointEffect(j[1], "backlash_load", 3e-5),)},
-            (("backlash", 1),),
-            {("backlash", 1): {"backlash_rad": 3e-5}},
+            JointEffect(j[1], "backlash_load", 3e-5),
+            ("backlash", 1),
+            "backlash_rad",
         ),
-        "gear_h2_restricted": Scenario(
+        "gear_h2_restricted": _joint_effect(
             "hard",
             "joint 3 gear error (2nd harmonic, 0.05 mrad), its travel restricted to 15 %",
-            {"joint_effects": (gear,), "joint_range_fraction": restricted},
-            (("gear_periodic", 2),),
-            {("gear_periodic", 2): {"amplitude_rad": 5e-5}},
+            gear,
+            ("gear_periodic", 2),
+            "amplitude_rad",
+            hidden={"joint_range_fraction": restricted},
         ),
-        "drift_blocked": Scenario(
+        "drift_blocked": _joint_effect(
             "hard",
             "joint 2 drift 1.8 mrad/h, samples recorded in order of joint 2's angle",
-            {
-                "joint_effects": (JointEffect(j[1], "drift_linear", 5e-7),),
-                "order_by_joint": j[1],
-            },
-            (("thermal_drift", 1),),
-            {("thermal_drift", 1): {"drift_rad_per_s": 5e-7}},
+            JointEffect(j[1], "drift_linear", 5e-7),
+            ("thermal_drift", 1),
+            "drift_rad_per_s",
+            hidden={"order_by_joint": j[1]},
         ),
         "two_effects": Scenario(
             "multi",
@@ -300,12 +321,12 @@ def scenarios(joints: tuple[str, ...]) -> dict[str, Scenario]:
             {"joint_effects": (JointEffect(j[1], "load_quadratic", 1e-6),)},
             unexplained_joint=1,
         ),
-        "floating_backlash": Scenario(
+        "floating_backlash": _joint_effect(
             "random",
             "joint 2 backlash 2 mrad, floating where |τ| < 3 N·m",
-            {"joint_effects": (JointEffect(j[1], "backlash_load", 2e-3, float_below_nm=3.0),)},
-            (("backlash", 1),),
-            {("backlash", 1): {"backlash_rad": 2e-3}},
+            JointEffect(j[1], "backlash_load", 2e-3, float_below_nm=3.0),
+            ("backlash", 1),
+            "backlash_rad",
             random_joint=1,
         ),
     }
