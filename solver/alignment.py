@@ -12,9 +12,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import FloatArray
 from solver.errors import CalibrationError
-
-FloatArray = NDArray[np.float64]
 
 
 def kabsch_rotation(source: FloatArray, target: FloatArray) -> FloatArray:

@@ -19,14 +19,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import FloatArray, IntArray
 from solver.kinematics import ChainParameters
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 _SERIES_ANGLE_RAD = 1e-2
 """Below this rotation angle the log map uses Taylor series (truncation < 1e-16 relative)."""

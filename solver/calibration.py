@@ -35,6 +35,7 @@ import scipy.linalg.blas
 from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import BoolArray, FloatArray
 from solver.errors import CalibrationError
 from solver.kinematics import (
     ChainParameters,
@@ -44,8 +45,6 @@ from solver.kinematics import (
 from solver.model import KinematicChain, gravity_loads, sample_configurations
 from solver.pivoting import tiered_pivoted_qr
 
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
 Payload = TypeVar("Payload")
 Start = TypeVar("Start")
 StepRule = Callable[[ChainParameters, FloatArray, NDArray[np.intp]], ChainParameters]

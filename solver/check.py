@@ -36,14 +36,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.special
-from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import FloatArray, IntArray
 from solver.model import KinematicChain
 from solver.predictive import chi2_quantile, mahalanobis_squared
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 MIN_POSES = 3
 """Fewer usable check poses than this: the verdict is inconclusive."""

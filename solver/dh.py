@@ -31,13 +31,12 @@ from typing import Literal
 
 import numpy as np
 import pinocchio as pin
-from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import FloatArray
 from solver.errors import ModelError
 from solver.model import KinematicChain
 
-FloatArray = NDArray[np.float64]
 DhConvention = Literal["dh", "mdh"]
 JointKind = Literal["revolute", "prismatic"]
 

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.calibration import pose_errors
 
-FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
 Method = Callable[[IndexArray, IndexArray], FloatArray]
 

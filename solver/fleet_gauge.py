@@ -40,11 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-from numpy.typing import NDArray
 
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
-IntArray = NDArray[np.intp]
+from solver.arrays import BoolArray, FloatArray, IntArray
 
 DIRECTION_TOLERANCE = 1e-2
 """Gauge directions (unit-norm, scaled) whose span adds less than this singular value to the

@@ -33,6 +33,7 @@ from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
 
 from solver import lie
+from solver.arrays import FloatArray
 from solver.calibration import FitOptions
 from solver.errors import CalibrationError
 from solver.evaluation import Method
@@ -42,7 +43,6 @@ from solver.measurement.pose import fit_deterministic
 from solver.model import KinematicChain
 from solver.ranking import ConfigurationScores, TaskMetric
 
-FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
 BaselinePoses = Callable[[IndexArray, IndexArray], FloatArray]
 """``(train_indices, rows) -> poses (len(rows), 4, 4)`` of a "before" model fitted on train."""

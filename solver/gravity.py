@@ -29,10 +29,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import FloatArray
 from solver.errors import ModelError
 from solver.model import STANDARD_GRAVITY_BASE, KinematicChain
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)

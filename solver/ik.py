@@ -35,13 +35,11 @@ import pinocchio as pin
 from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import BoolArray, FloatArray
 from solver.errors import SolverError
 from solver.gravity import StaticGravityModel, static_gravity_loads
 from solver.kinematics import ChainParameters, evaluate_chain
 from solver.model import STANDARD_GRAVITY_BASE, KinematicChain, pin_configuration
-
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
 
 _LIMIT_TOLERANCE = 1e-9
 

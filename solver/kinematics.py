@@ -15,12 +15,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import FloatArray
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
 
 TWIST_COMPONENTS = ("tx", "ty", "tz", "rx", "ry", "rz")
 

@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-FloatArray = NDArray[np.float64]
+from solver.arrays import FloatArray
+
 IndexArray = NDArray[np.intp]
 
 # Below this rotation angle the closed forms lose digits to cancellation; the Taylor series

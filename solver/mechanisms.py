@@ -44,12 +44,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 import scipy.optimize
-from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import FloatArray
 from solver.model import KinematicChain, pin_configuration, sample_configurations
-
-FloatArray = NDArray[np.float64]
 
 STANDARD_GRAVITY = np.array([0.0, 0.0, -9.81])
 

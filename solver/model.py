@@ -25,10 +25,9 @@ import numpy as np
 import pinocchio as pin
 from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.errors import ModelError
 from solver.lie import se3_exp
-
-FloatArray = NDArray[np.float64]
 
 STANDARD_GRAVITY_BASE = np.array([0.0, 0.0, -9.81])
 

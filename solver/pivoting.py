@@ -21,8 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
+from solver.arrays import FloatArray, IntArray
 
 TIE_RTOL = 1e-6
 """Column norms within this fraction of the largest are a tie (rounding moves them by ~1e-13)."""

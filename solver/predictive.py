@@ -38,14 +38,11 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.optimize
 import scipy.special
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.kinematics import ChainParameters, evaluate_chain, stacked_jacobian
 from solver.model import KinematicChain
 from solver.small_spd import spd_factors
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 COVERAGE_LEVELS = (0.5, 0.9, 0.95, 0.99)
 """The ellipsoids whose coverage a calibration reports (issue 13)."""

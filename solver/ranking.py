@@ -46,13 +46,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import FloatArray
 from solver.covariance.likelihood import ee_covariance_batch
 from solver.errors import SolverError
 from solver.gravity import StaticGravityModel, joint_motions, static_gravity_loads
 from solver.kinematics import ChainParameters, evaluate_chain
 from solver.model import STANDARD_GRAVITY_BASE, KinematicChain
 
-FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.intp]
 
 PAPER_WEIGHTS = (0.4, 0.4, 0.0, 0.1, 0.1, 0.0)

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import FloatArray
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import (
     STANDARD_GRAVITY_BASE,
@@ -27,8 +28,6 @@ from solver.model import (
     gravity_loads,
     sample_configurations,
 )
-
-FloatArray = NDArray[np.float64]
 
 JointEffectKind = Literal[
     "gear_periodic",

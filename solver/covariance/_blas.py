@@ -9,9 +9,9 @@ summed over row blocks small enough to stay below the threshold.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
-FloatArray = NDArray[np.float64]
+from solver.arrays import FloatArray
+
 _SMP_THRESHOLD = 262_144
 
 

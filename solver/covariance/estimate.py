@@ -14,8 +14,8 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import BoolArray, FloatArray
 from solver.covariance.fitting import METRIC_SAMPLES, Estimator, fit_likelihood, noise_floor
 from solver.covariance.identifiability import (
     RANK_RTOL,
@@ -59,8 +59,6 @@ from solver.covariance.statistics import (
 from solver.covariance.uncertainty import ThetaUncertainty, theta_covariance, theta_uncertainty
 from solver.errors import CalibrationError, SolverError
 
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
 EstimatorName = Literal["moment", "ml", "reml"]
 
 

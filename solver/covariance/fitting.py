@@ -37,8 +37,8 @@ from dataclasses import replace
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import BoolArray, FloatArray
 from solver.covariance.layout import CovarianceLayout
 from solver.covariance.likelihood import (
     average_information,
@@ -55,8 +55,6 @@ from solver.covariance.solvers import CovarianceSolution, Status, solve_moment
 from solver.covariance.statistics import MomentStatistics
 from solver.errors import CalibrationError
 
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
 Estimator = Literal["ml", "reml"]
 
 PROXIMAL_RTOL = 1e-10

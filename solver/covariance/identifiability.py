@@ -26,8 +26,8 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import BoolArray, FloatArray
 from solver.covariance.layout import (
     POSE_AXES,
     ROTATION_AXES,
@@ -41,9 +41,6 @@ from solver.covariance.objective import (
     silent_entries,
 )
 from solver.covariance.statistics import MomentStatistics
-
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
 
 RANK_RTOL = 1e-6
 WEAK_RTOL = 1e-3

@@ -29,13 +29,9 @@ from functools import cached_property
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import BoolArray, FloatArray, IntArray
 from solver.errors import SolverError
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
-BoolArray = NDArray[np.bool_]
 
 Structure = Literal["diag", "full"]
 POSE_AXES = ("v_x", "v_y", "v_z", "w_x", "w_y", "w_z")

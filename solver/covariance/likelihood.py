@@ -18,16 +18,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.covariance._blas import gram_tn
 from solver.covariance.layout import CovarianceLayout, column_matrix
 from solver.covariance.samples import ArraySamples, CovarianceSamples, SampleChunk, total
 from solver.covariance.statistics import design_gram
 from solver.errors import CalibrationError, SolverError
 from solver.small_spd import spd_factors
-
-FloatArray = NDArray[np.float64]
 
 
 def ee_covariance_batch(

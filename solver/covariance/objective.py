@@ -10,13 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import BoolArray, FloatArray
 from solver.covariance.layout import CovarianceLayout
 from solver.covariance.statistics import MomentStatistics
-
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
 
 # Eigenvalues of the equilibrated Gram below this fraction of the largest are dropped from its
 # factor: they are rounding noise (G is exact, so true null directions sit at ~1e-16).

@@ -14,12 +14,10 @@ face is the support of θ̂).
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.covariance.layout import CovarianceLayout
 from solver.covariance.objective import ScaledProblem, projected_gradient_residual
-
-FloatArray = NDArray[np.float64]
 
 FACE_RTOLS = (1e-6, 1e-9, 1e-4)
 """Eigenvalues of Σ̂_f above this fraction of the largest of all frames span the face; each is

@@ -23,13 +23,11 @@ from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.covariance.statistics import DEFAULT_CHUNK_SIZE
 from solver.errors import SolverError
 
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 A = TypeVar("A")
 T = TypeVar("T")
 

@@ -20,8 +20,8 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.covariance.layout import TRANSLATION_AXES, CovarianceLayout
 from solver.covariance.objective import (
     ScaledProblem,
@@ -37,7 +37,6 @@ from solver.covariance.polish import polish_on_face
 from solver.covariance.statistics import MomentStatistics
 from solver.errors import SolverError
 
-FloatArray = NDArray[np.float64]
 Status = Literal[
     "optimal",
     "optimal_inaccurate",

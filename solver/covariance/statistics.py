@@ -17,15 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg.blas
-from numpy.typing import NDArray
 
+from solver.arrays import BoolArray, FloatArray, IntArray
 from solver.covariance._blas import batched_gram_tn, gram_tn
 from solver.covariance.layout import CovarianceLayout, column_matrix
 from solver.errors import SolverError
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
-BoolArray = NDArray[np.bool_]
 
 DEFAULT_CHUNK_SIZE = 4096
 DIAG_BLOCK = 2048

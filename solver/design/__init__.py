@@ -14,15 +14,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-import numpy as np
-from numpy.typing import NDArray
-
+from solver.arrays import FloatArray, IntArray
 from solver.design.criteria import SMOOTH_CRITERIA, DesignProblem, efficiency
 from solver.design.relaxation import Relaxation, solve_clarabel, solve_first_order
 from solver.design.rounding import round_design
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 Method = Literal["auto", "clarabel", "first_order"]
 CLARABEL_MAX_CANDIDATES = 200

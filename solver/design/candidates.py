@@ -18,12 +18,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from solver.arrays import BoolArray, FloatArray
 from solver.errors import SolverError
 from solver.measurement.models import nominal_pose
 from solver.model import KinematicChain, sample_configurations
-
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True)

@@ -59,8 +59,8 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.check import (
     GLOBAL_WEIGHT,
     NESTED_SHARE,
@@ -69,9 +69,6 @@ from solver.check import (
     detectable_noncentrality,
     size_parts,
 )
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 
 @dataclass(frozen=True)

@@ -27,13 +27,10 @@ from typing import Literal
 
 import numpy as np
 import scipy.linalg
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.design.information import InformationBlock, profiled, profiled_factors
 from solver.errors import SolverError
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 Criterion = Literal["D", "A", "E", "I"]
 SMOOTH_CRITERIA: tuple[Criterion, ...] = ("D", "A", "I")

@@ -27,8 +27,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.calibration import (
     FitOptions,
     frame_columns,
@@ -67,9 +67,6 @@ from solver.measurement.models import (
     chain_column_count,
 )
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 
 @dataclass(frozen=True)

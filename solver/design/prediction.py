@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.design.information import (
     InformationBlock,
     geometry_information,
@@ -23,8 +24,6 @@ from solver.design.information import (
 )
 from solver.kinematics import ChainParameters, evaluate_chain, parameter_names, stacked_jacobian
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
 
 
 def block_columns(chain: KinematicChain, block: InformationBlock) -> NDArray[np.intp]:

@@ -26,12 +26,10 @@ from dataclasses import dataclass
 
 import cvxpy as cp
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.design.criteria import SMOOTH_CRITERIA, DesignProblem
 from solver.errors import SolverError
-
-FloatArray = NDArray[np.float64]
 
 CLARABEL_STATUS = {cp.OPTIMAL: "optimal", cp.OPTIMAL_INACCURATE: "optimal_inaccurate"}
 

@@ -17,13 +17,10 @@ The relaxation's optimum bounds the result whatever the rule (every K-set is fea
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.design.criteria import DesignProblem
 from solver.errors import SolverError
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 
 def spaced(

@@ -14,8 +14,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.linalg
-from numpy.typing import NDArray
 
+from solver.arrays import BoolArray, FloatArray, IntArray
 from solver.calibration import (
     DeterministicFit,
     FitOptions,
@@ -44,10 +44,6 @@ from solver.measurement.models import (
     chain_column_count,
 )
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
-BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -32,10 +32,10 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
 from solver import lie
 from solver.alignment import align_full_pose, align_positions
+from solver.arrays import BoolArray, FloatArray, IntArray
 from solver.errors import CalibrationError
 from solver.kinematics import (
     TWIST_COMPONENTS,
@@ -48,10 +48,6 @@ from solver.kinematics import (
     stacked_jacobian,
 )
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
-BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True)

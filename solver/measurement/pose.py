@@ -9,15 +9,13 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.calibration import DeterministicFit, FitOptions, check_sample_count
 from solver.kinematics import ChainParameters
 from solver.measurement import models as measurement_models
 from solver.measurement.fit import fit_measurement, refit_from
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
 
 
 def pose_measurement(*, rotation: bool) -> measurement_models.FullPose:

@@ -38,8 +38,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.covariance.estimate import CovarianceEstimate
 from solver.errors import KincalError
 from solver.evaluation import split_indices
@@ -59,10 +59,6 @@ from solver.predictive import (
     model_error_part,
     parameter_part,
 )
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
-
 
 Fitter = Callable[[MeasurementRows], MeasurementFit]
 """Fits rows with the calibration's settings (the model's own unknowns included)."""

@@ -9,12 +9,10 @@ configurations, to the socket point plus the socket's play ``e_n ~ N(0, σ² I)`
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
 
 
 def configurations_at_points(

@@ -12,6 +12,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.calibration import (
     FitOptions,
     check_sample_count,
@@ -79,9 +80,6 @@ from solver.stream.screening import (
     robust_spread,
 )
 from solver.stream.sums import CovarianceSpec, CovarianceSums
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 # --- the streamed calibration -------------------------------------------------------------
 

@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import BoolArray, FloatArray, IntArray
 from solver.batch_chain import (
     joint_motions,
     quaternion_rotation,
@@ -29,10 +29,6 @@ from solver.executors import Executor
 from solver.gravity import StaticGravityModel, static_gravity_loads
 from solver.measurement.models import FullPose
 from solver.model import STANDARD_GRAVITY_BASE, KinematicChain
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
-BoolArray = NDArray[np.bool_]
 
 MiB = 1024 * 1024
 

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.batch_chain import pose_residuals, sweep_chain
 from solver.covariance.likelihood import ee_covariance_batch
 from solver.covariance.samples import ArraySamples, SampleChunk
@@ -40,9 +41,6 @@ from solver.stream.chunks import (
 from solver.stream.fit import PassCount
 from solver.stream.screening import Rule, used_mask
 from solver.stream.sums import CovarianceSpec, CovarianceSums, covariance_sums, frame_range
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 
 @dataclass(frozen=True, eq=False)

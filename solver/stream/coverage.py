@@ -23,8 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.calibration import DeterministicFit, FitOptions, identifiable_parameter_count
 from solver.covariance.estimate import (
     CovarianceEstimate,
@@ -62,10 +62,6 @@ from solver.predictive import (
 from solver.stream.fit import RowSample
 from solver.stream.screening import covariance_too_uncertain
 from solver.stream.sums import CovarianceSpec
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
-
 
 INNER_CV_ROWS = 500
 """Up to this many training rows a split's model-error part comes from the nested

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import BoolArray, FloatArray, IntArray
 from solver.batch_chain import (
     column_rows,
     is_unit_column,
@@ -65,10 +65,6 @@ from solver.stream.sums import (
     covariance_sums,
     frame_range,
 )
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
-BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True, eq=False)

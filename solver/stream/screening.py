@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from scipy import special
 
 from solver import lie
+from solver.arrays import BoolArray, FloatArray
 from solver.batch_chain import (
     pose_residuals,
     sweep_chain,
@@ -29,9 +30,6 @@ from solver.calibration import (
 )
 from solver.kinematics import ChainParameters
 from solver.stream.chunks import Block, StreamProblem, cache_masks, cached_masks, take_residuals
-
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True, eq=False)

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from solver.arrays import BoolArray, FloatArray, IntArray
 from solver.calibration import (
     NormalEquations,
     ResidualSpread,
@@ -26,11 +27,6 @@ from solver.covariance.statistics import (
     empty_statistics,
 )
 from solver.measurement.models import FullPose
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
-BoolArray = NDArray[np.bool_]
-
 
 # --- sums per chunk ------------------------------------------------------------------------
 

@@ -1,0 +1,10 @@
+"""The NumPy array types of the maths, defined once for every module of :mod:`solver`:
+``FloatArray`` (float64 values, units as each name says), ``IntArray`` (indices, ``np.intp``)
+and ``BoolArray`` (masks)."""
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
