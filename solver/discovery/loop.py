@@ -69,7 +69,11 @@ from solver.discovery.library import (
     unphysical,
 )
 from solver.discovery.panels import term_panels
-from solver.discovery.refine import refine_deadzone, refine_time_constant
+from solver.discovery.refine import (
+    linear_unless_warmup_earns_it,
+    refine_deadzone,
+    refine_time_constant,
+)
 from solver.discovery.report import (
     Misfit,
     ambiguity_entry,
@@ -413,7 +417,8 @@ class _Search:
             self.steps.append(Step(step, term.key, "rejected_sign", test.p_value))
             self.excluded.update({key, term.key})
             return
-        candidates.columns[term.key] = candidates.columns[key]  # refined shapes: same columns
+        # a refined shape (time constant, floating zone) has the candidate's columns
+        candidates.columns.setdefault(term.key, candidates.columns[key])
         before = self._current_heldout()
         after = repeated_heldout(self.ctx, new_terms, new_fit, self.partitions, self.fit.weights)
         if not before.confirmed_by(after, self._confirmation_level()):
@@ -513,6 +518,9 @@ class _Search:
                 )
             if best.time_constant() is not None:
                 best, new_terms, new_fit = refine_time_constant(self.ctx, new_terms, new_fit)
+                best, new_terms, new_fit = linear_unless_warmup_earns_it(
+                    self.ctx, self.terms, self.fit.params, new_terms, new_fit, self.options.alpha
+                )
             if best.deadzone() is not None:
                 best, new_terms, new_fit = refine_deadzone(self.ctx, new_terms, new_fit)
         except CalibrationError:

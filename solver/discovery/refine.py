@@ -5,9 +5,18 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import scipy.stats
+
 from solver.discovery.features import deadzones
-from solver.discovery.fitting import Context, ModelFit, fit_model, fit_with_noise
-from solver.discovery.library import Term, backlash_load_term
+from solver.discovery.fitting import (
+    Context,
+    ModelFit,
+    ModelParameters,
+    extend,
+    fit_model,
+    fit_with_noise,
+)
+from solver.discovery.library import Term, backlash_load_term, drift_term
 
 
 def refine_deadzone(
@@ -85,3 +94,32 @@ def refine_time_constant(
         ctx, new_terms, cache[best_constant].params, fit.rows, fit.weights, rounds=1
     )
     return refined, new_terms, refit
+
+
+def linear_unless_warmup_earns_it(
+    ctx: Context,
+    base_terms: tuple[Term, ...],
+    base_params: ModelParameters,
+    terms: tuple[Term, ...],
+    fit: ModelFit,
+    alpha: float,
+) -> tuple[Term, tuple[Term, ...], ModelFit]:
+    """The time shape of an accepted warm-up drift (the last of ``terms``, fitted in ``fit``):
+    the linear drift of the same joint (or measurement frame) unless the warm-up beats it.
+
+    A warm-up 1 − exp(−t/T) tends to a linear drift as T grows, so it is the linear shape with
+    one more parameter, T: it is kept only if it lowers the whitened cost (‖r‖², χ² under the
+    fit's noise scale) by more than the χ²₁ quantile at ``alpha`` (a likelihood-ratio test
+    in ``fit``'s weights). Otherwise the simpler shape is named: which of the library's
+    variants happened to get the lowest p-value does not decide a shape (issue 32: a linear
+    drift concealed in the real TIAGo and platonics recordings was named a warm-up).
+    ``base_terms``/``base_params``: the model before the drift was added.
+    """
+    term = terms[-1]
+    linear = drift_term(ctx.chain, term.joint_index, "linear", ctx.bank.clock_unit)
+    linear_terms, start = extend(base_params, base_terms, linear)
+    linear_fit = fit_model(ctx, linear_terms, start, fit.rows, fit.weights)
+    if linear_fit.cost - fit.cost > float(scipy.stats.chi2.isf(alpha, 1)):
+        return term, terms, fit
+    refit = fit_with_noise(ctx, linear_terms, linear_fit.params, fit.rows, fit.weights, rounds=1)
+    return linear, linear_terms, refit

@@ -16,7 +16,14 @@ from benchmarks import concealed_real
 from schemas.discovery import DetectableSize, FindingsResult
 from schemas.robots import example_robot_data_dir
 from solver.discovery import DiscoveryOptions, discover
-from solver.mechanisms import CameraWarmup, Concealment, DeadBand, ElasticJoint, conceal
+from solver.mechanisms import (
+    CameraWarmup,
+    Concealment,
+    DeadBand,
+    ElasticJoint,
+    EncoderWarmup,
+    conceal,
+)
 from tests.service.cli_support import discover_ok, write_recording
 
 ROBOT_FLAGS: dict[str, list[object]] = {
@@ -344,3 +351,51 @@ def test_twice_the_stated_size_is_rejected_by_every_replicate() -> None:
     run = concealed_real.run_one(("ur10e", "gear_h2", 2.0, 4))
     assert run.joint == concealed_real.recording("ur10e")[0].joint_names.index("wrist_1_joint")
     assert run.named == [("gear_periodic", run.joint, "h2")]
+
+
+def test_a_linear_drift_is_named_linear_whichever_shape_ranked_first() -> None:
+    """Issue 32: a steady encoder drift (5.9 mrad per sample, twice its stated size) concealed
+    on the real TIAGo's arm_5_joint was named a warm-up drift: the library's warm-up variant
+    happened to rank first, and its time constant was refined without asking whether the
+    linear shape does as well. A warm-up is now named only where it beats the linear drift by
+    a likelihood-ratio test."""
+    chain, data, frame = concealed_real.recording("tiago")
+    _, _, effects = concealed_real.read("tiago")
+    joint = chain.joint_names.index("arm_5_joint")
+    mechanism, _ = concealed_real.concealment(
+        "tiago",
+        "joint_drift",
+        joint,
+        5.88585251774134e-3,
+        np.random.default_rng([3, len("joint_drift")]),
+    )
+    readings, poses = conceal(
+        chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
+    )
+    concealed = dataclasses.replace(data, joint_positions=readings, measured_pose=poses)
+    options = DiscoveryOptions(seed=3, bootstrap=0, detectability=False)
+    if effects is not None:
+        options = dataclasses.replace(options, effects=effects)
+    result = discover(chain, concealed, options)
+    named = [
+        (f.estimate.term.effect, f.estimate.term.joint_index, f.estimate.term.variant)
+        for f in result.findings
+    ]
+    assert named == [("thermal_drift", joint, "linear")]
+
+
+def test_a_warmup_drift_keeps_its_warmup_shape() -> None:
+    """The other side of the shape rule: an encoder zero settling by 10 mrad with a time
+    constant of 15 samples, concealed on the real FR3's panda_joint4, beats the linear drift
+    by far and is named a warm-up with its time constant (refined to within 10 %)."""
+    chain, data, frame = concealed_real.recording("fr3")
+    joint = chain.joint_names.index("panda_joint4")
+    mechanism = Concealment(joints=(EncoderWarmup("panda_joint4", 0.01, 15.0),))
+    readings, poses = conceal(
+        chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
+    )
+    concealed = dataclasses.replace(data, joint_positions=readings, measured_pose=poses)
+    result = discover(chain, concealed, DiscoveryOptions(seed=0, bootstrap=0, detectability=False))
+    drifts = [f.estimate.term for f in result.findings if f.estimate.term.effect == "thermal_drift"]
+    assert [(t.joint_index, t.variant.split(":")[0]) for t in drifts] == [(joint, "warmup")]
+    assert drifts[0].time_constant() == pytest.approx(15.0, rel=0.1)
