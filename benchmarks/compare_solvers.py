@@ -48,7 +48,6 @@ from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
 import solver  # noqa: F401  (BLAS defaults before numpy work)
 from benchmarks import results
@@ -56,6 +55,7 @@ from benchmarks.scale import wait_until_idle
 from schemas.calibration import CalibrationOptions
 from schemas.robots import load_robot
 from service.app.simulate import scenario
+from solver.arrays import FloatArray
 from solver.covariance import (
     KKT_TOLERANCE,
     PGD_PUBLISHED,
@@ -80,8 +80,6 @@ from solver.ranking import (
     score_configurations,
 )
 from solver.simulate import simulate_recording
-
-FloatArray = NDArray[np.float64]
 
 SIZES = (119, 1_000, 10_000, 100_000)
 SEEDS = (1, 2, 3)

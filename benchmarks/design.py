@@ -44,7 +44,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
 from benchmarks.results import Row, count_text, dash, markdown_table, write_results
 from schemas.calibration import CalibrationOptions
@@ -55,6 +54,7 @@ from service.app import calibrate as pipeline
 from service.app.design import run_design, volume_of
 from service.render.result_json import predict_poses
 from solver import lie
+from solver.arrays import FloatArray
 from solver.design.candidates import Volume, WorkspaceBox, sample_candidates, tip_poses
 from solver.design.criteria import DesignProblem
 from solver.design.prediction import Yardstick, task_root
@@ -62,8 +62,6 @@ from solver.design.relaxation import solve_first_order
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import KinematicChain, build_chain, gravity_loads
 from solver.simulate import SimulationSpec, true_parameters
-
-FloatArray = NDArray[np.float64]
 
 UR10E = Path(__file__).resolve().parents[1] / "data/real/figaroh_ur10_experiment/ur10e_robot.urdf"
 DRIVER = Path(__file__).resolve().with_name("figaroh_posture_driver.py")

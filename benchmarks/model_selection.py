@@ -48,7 +48,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 import solver  # noqa: F401  (BLAS defaults)
 from benchmarks.figaroh_side_by_side import DATA, RECORDINGS, Recording, mean_se, robot_of
@@ -56,6 +55,7 @@ from benchmarks.results import Row, markdown_table, write_results
 from schemas.calibration import CalibrationOptions
 from service.app import calibrate as pipeline
 from solver import lie
+from solver.arrays import FloatArray, IntArray
 from solver.calibration import FitOptions, frame_columns, free_columns, pivoted_columns
 from solver.errors import CalibrationError
 from solver.evaluation import split_indices
@@ -70,9 +70,6 @@ from solver.measurement.models import (
     chain_column_count,
 )
 from solver.model import KinematicChain, gravity_loads
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 FIGAROH_MM = {"UR10e": (4.39, 0.38), "TIAGo": (6.85, 0.35), "TALOS": (0.56, 0.04)}
 """FIGAROH ``full_params`` held-out error, mean ± SE over the ten splits (docs/figaroh.md)."""

@@ -24,7 +24,7 @@ import pinocchio as pin
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-FloatArray = NDArray[np.float64]
+from solver.arrays import FloatArray
 
 
 @dataclass(frozen=True)

@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
-from numpy.typing import NDArray
 
 import solver  # noqa: F401  (BLAS defaults)
 from schemas.robots import load_robot
 from solver import lie
+from solver.arrays import FloatArray
 from solver.kinematics import ChainParameters
 from solver.model import build_chain, pin_configuration, sample_configurations
 from solver.ranking import RandomEffects, TaskMetric, UncertaintyModel, score_configurations
@@ -32,7 +32,6 @@ from solver.ranking import RandomEffects, TaskMetric, UncertaintyModel, score_co
 ROBOTS = ("kinova", "panda")
 SIZES = (1_000, 10_000, 100_000, 1_000_000)
 STAGES = ("gravity", "jacobians", "score")
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
-"""The NumPy array types of the maths, defined once for every module of :mod:`solver`:
-``FloatArray`` (float64 values, units as each name says), ``IntArray`` (indices, ``np.intp``)
-and ``BoolArray`` (masks)."""
+"""The NumPy array types of the maths, defined once for every module: ``FloatArray`` (float64
+values, units as each name says), ``IntArray`` (indices and counts, ``np.intp``) and
+``BoolArray`` (masks)."""
 
 import numpy as np
 from numpy.typing import NDArray

@@ -10,18 +10,16 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
-from solver.arrays import FloatArray
+from solver.arrays import FloatArray, IntArray
 from solver.calibration import pose_errors
 
-IndexArray = NDArray[np.intp]
-Method = Callable[[IndexArray, IndexArray], FloatArray]
+Method = Callable[[IntArray, IntArray], FloatArray]
 
 PAPER_SEEDS = tuple(range(1, 11))
 
 
-def split_indices(n: int, seed: int, train_fraction: float = 0.9) -> tuple[IndexArray, IndexArray]:
+def split_indices(n: int, seed: int, train_fraction: float = 0.9) -> tuple[IntArray, IntArray]:
     """Random permutation with ``default_rng(seed)``; first ``round(fraction n)`` rows train."""
     order = np.random.default_rng(seed).permutation(n)
     n_train = round(train_fraction * n)

@@ -27,13 +27,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
 
 from solver import lie
-from solver.arrays import FloatArray
+from solver.arrays import FloatArray, IntArray
 from solver.calibration import FitOptions
 from solver.errors import CalibrationError
 from solver.evaluation import Method
@@ -43,8 +42,7 @@ from solver.measurement.pose import fit_deterministic
 from solver.model import KinematicChain
 from solver.ranking import ConfigurationScores, TaskMetric
 
-IndexArray = NDArray[np.intp]
-BaselinePoses = Callable[[IndexArray, IndexArray], FloatArray]
+BaselinePoses = Callable[[IntArray, IntArray], FloatArray]
 """``(train_indices, rows) -> poses (len(rows), 4, 4)`` of a "before" model fitted on train."""
 
 
@@ -146,7 +144,7 @@ def gp_method(
     on the training rows (no information from the test rows), or fixed poses (N, 4, 4).
     """
 
-    def predict_test(train: IndexArray, test: IndexArray) -> FloatArray:
+    def predict_test(train: IntArray, test: IntArray) -> FloatArray:
         if callable(baseline):
             before_train, before_test = baseline(train, train), baseline(train, test)
         else:
@@ -175,7 +173,7 @@ def gp_calibration_method(
     by one GP per residual component (:func:`gp_method`)."""
     fitted: dict[bytes, ChainParameters] = {}  # the GP method asks for train and test rows
 
-    def before(train: IndexArray, rows: IndexArray) -> FloatArray:
+    def before(train: IntArray, rows: IntArray) -> FloatArray:
         key = np.asarray(train).tobytes()
         if key not in fitted:
             fitted.clear()

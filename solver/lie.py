@@ -14,11 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
-from solver.arrays import FloatArray
-
-IndexArray = NDArray[np.intp]
+from solver.arrays import FloatArray, IntArray
 
 # Below this rotation angle the closed forms lose digits to cancellation; the Taylor series
 # (three terms, truncation error < 1e-16) are exact to double precision there.
@@ -196,8 +193,8 @@ class _CombinationStep:
     x[columns]``. ``rows``/``columns`` are slices or a single column where they can be (no
     gather), index arrays otherwise."""
 
-    rows: slice | IndexArray
-    columns: int | slice | IndexArray
+    rows: slice | IntArray
+    columns: int | slice | IntArray
     coefficients: FloatArray  # (len(rows),)
     all_rows: bool
 
@@ -275,14 +272,14 @@ FUSED_MAX_ELEMENTS = 2048
 row (bit-identical results either way; see :class:`RowCombination`)."""
 
 
-def _index(rows: IndexArray) -> slice | IndexArray:
+def _index(rows: IntArray) -> slice | IntArray:
     """``rows`` (increasing) as a slice when they are a contiguous run."""
     if rows.size and np.array_equal(rows, np.arange(rows[0], rows[0] + rows.size)):
         return slice(int(rows[0]), int(rows[0]) + rows.size)
     return rows
 
 
-def _column_index(columns: IndexArray) -> int | slice | IndexArray:
+def _column_index(columns: IntArray) -> int | slice | IntArray:
     """One column for every row -> that column (x[c] broadcasts); a run -> a slice."""
     if columns.size and np.all(columns == columns[0]):
         return int(columns[0])

@@ -43,17 +43,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
 from solver import lie
-from solver.arrays import FloatArray
+from solver.arrays import FloatArray, IntArray
 from solver.covariance.likelihood import ee_covariance_batch
 from solver.errors import SolverError
 from solver.gravity import StaticGravityModel, joint_motions, static_gravity_loads
 from solver.kinematics import ChainParameters, evaluate_chain
 from solver.model import STANDARD_GRAVITY_BASE, KinematicChain
-
-IndexArray = NDArray[np.intp]
 
 PAPER_WEIGHTS = (0.4, 0.4, 0.0, 0.1, 0.1, 0.0)
 """Paper §V-C: x, y, roll, pitch of the end effector matter for docking; z and yaw do not."""
@@ -298,7 +295,7 @@ class ConfigurationScores:
     def trace_rotation_rad2(self) -> FloatArray:
         return self.ee_variance[:, 3:].sum(axis=1)
 
-    def order(self) -> IndexArray:
+    def order(self) -> IntArray:
         """Indices best (lowest score) first; ties keep input order (stable sort)."""
         return ranking_order(self.score)
 
@@ -307,7 +304,7 @@ class ConfigurationScores:
         return int(np.argmin(self.score))
 
 
-def ranking_order(score: FloatArray) -> IndexArray:
+def ranking_order(score: FloatArray) -> IntArray:
     """Stable ascending order of scores: best first, ties in input order."""
     return np.argsort(np.asarray(score), kind="stable").astype(np.intp)
 
@@ -426,8 +423,8 @@ class _Quadratic:
     one gathered product and coefficient per term, added in the loop's order. Element-wise
     (position independent)."""
 
-    left: slice | IndexArray
-    right: slice | IndexArray
+    left: slice | IntArray
+    right: slice | IntArray
     coefficients: FloatArray  # (p, 1, 1)
     pairs: tuple[tuple[int, int, float], ...]
 
@@ -443,7 +440,7 @@ class _Quadratic:
             return None
         left, right, coefficients = zip(*pairs, strict=True)
 
-        def index(rows: tuple[int, ...]) -> slice | IndexArray:
+        def index(rows: tuple[int, ...]) -> slice | IntArray:
             return slice(None) if rows == (0, 1, 2) else np.array(rows, dtype=np.intp)
 
         return cls(

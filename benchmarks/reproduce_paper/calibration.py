@@ -6,16 +6,14 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from numpy.typing import NDArray
 
 from benchmarks.reproduce_paper.simulation import Recording, kept_rows
 from schemas.calibration import CalibrationResult
 from service.app import calibrate as pipeline
 from service.render import result_json
+from solver.arrays import FloatArray
 from solver.evaluation import cross_validate, split_indices
 from solver.gp_baseline import gp_calibration_method
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclasses.dataclass(frozen=True)

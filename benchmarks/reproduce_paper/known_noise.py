@@ -7,7 +7,6 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.typing import NDArray
 
 from benchmarks.reproduce_paper.manipulation import RecordingStudy, rescored
 from benchmarks.reproduce_paper.selection import Comparison, compare
@@ -17,12 +16,9 @@ from schemas.calibration import CalibrationOptions, CalibrationResult
 from service.app import calibrate as pipeline
 from service.app import rank as service_ranking
 from solver import lie
+from solver.arrays import BoolArray, FloatArray
 from solver.model import sample_configurations
 from solver.ranking import TaskMetric
-
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
-
 
 NOISE_CONFIGURATIONS = 5
 NOISE_DETECTIONS = 10

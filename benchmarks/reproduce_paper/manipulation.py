@@ -8,7 +8,6 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.typing import NDArray
 
 from benchmarks.reproduce_paper.settings import StudySettings
 from benchmarks.reproduce_paper.simulation import (
@@ -23,13 +22,11 @@ from service.app import calibrate as pipeline
 from service.app import rank as service_ranking
 from service.render import result_json
 from solver import lie
+from solver.arrays import FloatArray
 from solver.errors import KincalError
 from solver.gp_baseline import GPErrorModel, fit_gp_error_model, gp_scores
 from solver.model import KinematicChain, sample_configurations
 from solver.ranking import TaskMetric, UncertaintyModel, score_configurations
-
-FloatArray = NDArray[np.float64]
-
 
 MAX_TARGET_ATTEMPTS = 50
 

@@ -7,14 +7,10 @@ import dataclasses
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy import stats
 
 from benchmarks.reproduce_paper.manipulation import ApproachRun
-
-FloatArray = NDArray[np.float64]
-IndexArray = NDArray[np.intp]
-
+from solver.arrays import FloatArray, IntArray
 
 METHODS = ("ours", "gp", "oracle")
 LABELS = {"ours": "Ours", "gp": "GP [13]", "oracle": "Oracle (true Σ)"}
@@ -114,7 +110,7 @@ def _interval(samples: FloatArray) -> tuple[float, float]:
     return float(low), float(high)
 
 
-def bootstrap_indices(groups: Sequence[int], n_boot: int, rng: np.random.Generator) -> IndexArray:
+def bootstrap_indices(groups: Sequence[int], n_boot: int, rng: np.random.Generator) -> IntArray:
     """(n_boot, n) resampled run indices: recordings (``groups``, one label per run) with
     replacement, then runs with replacement within each drawn recording (two-level bootstrap).
     One group is the ordinary bootstrap. Groups must be of equal size."""
@@ -130,7 +126,7 @@ def bootstrap_indices(groups: Sequence[int], n_boot: int, rng: np.random.Generat
 
 
 def _selection(
-    runs: Sequence[ApproachRun], method: str, field: str, resample: IndexArray
+    runs: Sequence[ApproachRun], method: str, field: str, resample: IntArray
 ) -> tuple[Selection, FloatArray, FloatArray]:
     """A method's selection on ``field``, its bootstrap reductions and mean Pearson r."""
     picked = picked_errors(runs, method, field)

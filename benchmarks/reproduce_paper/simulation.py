@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from numpy.typing import NDArray
 
 from benchmarks.reproduce_paper.settings import StudySettings
 from schemas.calibration import CalibrationOptions, CalibrationResult
@@ -14,15 +13,11 @@ from schemas.dataset import PoseDataset
 from schemas.robots import RobotDescription, load_robot
 from service.app import simulate as scenarios
 from solver import lie
+from solver.arrays import BoolArray, FloatArray, IntArray
 from solver.kinematics import ChainParameters, forward_kinematics
 from solver.model import KinematicChain, gravity_loads
 from solver.ranking import RandomEffects, UncertaintyModel
 from solver.simulate import gross_error_twists, simulate_recording
-
-FloatArray = NDArray[np.float64]
-IndexArray = NDArray[np.intp]
-BoolArray = NDArray[np.bool_]
-
 
 BACKLASH_STD_RAD = (3.0e-4, 1.5e-3)
 """σ of the rotation about the joint axis, first and last joint frame (linear in between)."""
@@ -120,7 +115,7 @@ class Recording:
     robot: RobotDescription
     dataset: PoseDataset
     true_robot: TrueRobot
-    outlier_rows: IndexArray  # 0-based rows with injected gross errors
+    outlier_rows: IntArray  # 0-based rows with injected gross errors
 
 
 def simulate_study_recording(settings: StudySettings, seed: int | None = None) -> Recording:
@@ -170,6 +165,6 @@ def calibration_options(
     )
 
 
-def kept_rows(result: CalibrationResult) -> IndexArray:
+def kept_rows(result: CalibrationResult) -> IntArray:
     """0-based rows the calibration used (after outlier removal)."""
     return np.array(result.outliers.kept_indices(), dtype=np.intp)

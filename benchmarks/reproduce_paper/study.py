@@ -7,9 +7,6 @@ import dataclasses
 import time
 from collections.abc import Callable
 
-import numpy as np
-from numpy.typing import NDArray
-
 from benchmarks.reproduce_paper.ablations import Ablation, ablation_models
 from benchmarks.reproduce_paper.calibration import (
     TableII,
@@ -30,8 +27,7 @@ from benchmarks.reproduce_paper.selection import Comparison, compare
 from benchmarks.reproduce_paper.settings import StudySettings
 from schemas.ranking import RankingOptions
 from service.app import rank as service_ranking
-
-FloatArray = NDArray[np.float64]
+from solver.arrays import FloatArray
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.typing import NDArray
 
 from benchmarks.reproduce_paper.calibration import TableII
 from benchmarks.reproduce_paper.docking import TaskScoring
@@ -25,9 +24,7 @@ from benchmarks.reproduce_paper.selection import (
 )
 from benchmarks.reproduce_paper.study import StudyResult
 from service.render.text import METHOD_LABELS
-
-FloatArray = NDArray[np.float64]
-
+from solver.arrays import FloatArray
 
 COMPONENT_HEADER = ("x mm", "y mm", "z mm", "roll mrad", "pitch mrad", "yaw mrad")
 """Columns of a σ per pose component ([v; w] of a frame), printed in mm and mrad."""

@@ -18,7 +18,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from schemas.calibration import (
     CalibrationOptions,
@@ -52,6 +51,7 @@ from service.render.result_json import (
     predictive_block,
     split_fits,
 )
+from solver.arrays import BoolArray
 from solver.calibration import FitOptions, outlier_mask
 from solver.covariance.estimate import CovarianceEstimate, estimate_from_samples
 from solver.kinematics import parameter_names
@@ -81,8 +81,6 @@ from solver.stream.screening import (
     robust_spread,
 )
 from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, verdict_status
-
-BoolArray = NDArray[np.bool_]
 
 
 def screen(

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
 from schemas.calibration import CalibrationResult
 from schemas.check import (
@@ -34,11 +33,10 @@ from service.app.preflight import check_dataset
 from service.render import corrections, result_json
 from solver import check as checks
 from solver import lie
+from solver.arrays import FloatArray
 from solver.errors import DatasetError, KincalError
 from solver.ranking import ee_covariance
 from solver.verdict import reach_m
-
-FloatArray = NDArray[np.float64]
 
 RECALIBRATE_FIX = "re-run kincal calibrate with --covariance diag (the default) and --heldout"
 """How to get a result the check can take (the HTTP service words it for its options)."""

@@ -12,7 +12,6 @@ the sizes reported are those :func:`service.app.check.run_check` states at the c
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
 from schemas.calibration import CalibrationResult
 from schemas.check import DEFAULT_LEVEL
@@ -22,6 +21,7 @@ from service.app import rank
 from service.app.design import candidate_configurations
 from service.render import result_json
 from solver import check as solver_check
+from solver.arrays import FloatArray, IntArray
 from solver.design.candidates import outside_limits, tip_poses
 from solver.design.check_poses import (
     CheckPoseTerms,
@@ -31,9 +31,6 @@ from solver.design.check_poses import (
 )
 from solver.errors import KincalError
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 RANDOM_DRAWS = 200
 """Random sets of K candidates the chosen poses' criterion is compared with."""

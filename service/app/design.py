@@ -35,6 +35,7 @@ from schemas.robots import RobotDescription
 from service.app import calibrate as pipeline
 from service.app import measurement_input
 from service.render import result_json
+from solver.arrays import FloatArray, IntArray
 from solver.covariance.identifiability import IdentifiabilityReport, analyse_identifiability
 from solver.covariance.layout import CovarianceLayout
 from solver.covariance.statistics import design_gram
@@ -74,9 +75,6 @@ from solver.measurement import (
 )
 from solver.measurement.models import ModelParameters
 from solver.model import KinematicChain, gravity_loads
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 TASK_SAMPLES = 500
 """Task configurations drawn in the working volume when none are given."""

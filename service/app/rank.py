@@ -14,7 +14,6 @@ from typing import Any
 
 import numpy as np
 import pydantic_core
-from numpy.typing import NDArray
 
 from schemas.calibration import CalibrationResult
 from schemas.ranking import (
@@ -28,6 +27,7 @@ from schemas.ranking import (
 )
 from service.render import corrections, result_json
 from solver import lie
+from solver.arrays import FloatArray
 from solver.errors import KincalError, SolverError
 from solver.ik import IKCandidate, IKOptions, ik_candidates
 from solver.kinematics import parameter_names
@@ -41,9 +41,6 @@ from solver.ranking import (
     ee_covariance,
     score_configurations,
 )
-
-FloatArray = NDArray[np.float64]
-IndexArray = NDArray[np.intp]
 
 NO_COVARIANCE = "has no covariance: run calibrate with covariance first"
 NO_PREDICTIVE = (

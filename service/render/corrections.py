@@ -14,9 +14,9 @@ import weakref
 from collections.abc import Callable
 
 import numpy as np
-from numpy.typing import NDArray
 
 from schemas.calibration import CalibrationResult, ModelCorrection
+from solver.arrays import FloatArray
 from solver.discovery.carry import (
     ConfigurationCorrection,
     configuration_corrections,
@@ -27,8 +27,6 @@ from solver.discovery.features import probe_chain
 from solver.discovery.library import library_term
 from solver.errors import KincalError
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
 
 _PROBES: weakref.WeakKeyDictionary[KinematicChain, KinematicChain] = weakref.WeakKeyDictionary()
 

@@ -9,7 +9,6 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
 
 from schemas.calibration import (
     BaselineFit,
@@ -45,6 +44,7 @@ from service import kincal_version
 from service.render import corrections
 from service.render.chain import chain_for as chain_for  # its home is light (pre-flight)
 from solver import lie
+from solver.arrays import FloatArray
 from solver.covariance.estimate import CovarianceEstimate, FrameCovariance
 from solver.evaluation import SplitError
 from solver.kinematics import ChainParameters, forward_kinematics, parameter_names
@@ -58,8 +58,6 @@ from solver.stream.coverage import INNER_CV_ROWS, PredictiveCalibration
 from solver.stream.screening import MIN_EQUATIONS_PER_COVARIANCE_ENTRY
 from solver.stream.sums import ErrorSums
 from solver.verdict import FitEvidence, check_fit, position_spread_m, reach_m, verdict_status
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

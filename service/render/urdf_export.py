@@ -26,17 +26,15 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pinocchio as pin
-from numpy.typing import NDArray
 
 from schemas.calibration import CalibrationResult, ModelCorrections
 from service.render.result_json import result_chain
 from solver import lie
+from solver.arrays import FloatArray
 from solver.errors import ModelError
 
 MEASUREMENT_LINK = "kincal_measurement_frame"
 MARKER_LINK = "kincal_marker"
-
-FloatArray = NDArray[np.float64]
 
 
 CLI_FIX = (

@@ -32,9 +32,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import FloatArray
 from solver.discovery.features import (
     DiscoveryData,
     FeatureBank,
@@ -45,8 +45,6 @@ from solver.discovery.features import (
 from solver.discovery.library import Term, drift_feature
 from solver.model import KinematicChain
 from solver.simulate import depth_direction
-
-FloatArray = NDArray[np.float64]
 
 # Terms the calibration itself models (options), not corrections of the recording.
 CALIBRATION_EFFECTS = ("joint_compliance", "base_flex", "link_bending")

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.special
 import scipy.stats
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.discovery.features import angle_basis, legendre_basis, load_basis
 from solver.discovery.fitting import (
     Context,
@@ -42,9 +42,6 @@ from solver.discovery.fitting import (
 )
 from solver.discovery.library import Term
 from solver.discovery.scoring import NullModel, ScoreTest, holm, score_test, score_tests
-
-FloatArray = NDArray[np.float64]
-IndexArray = NDArray[np.intp]
 
 COMPONENT_DEGREES = range(1, 4)
 
@@ -304,7 +301,7 @@ class OutlierCluster:
 MIN_CLUSTERED = 3
 
 
-def clustered_outliers(ctx: Context, kept_rows: IndexArray, alpha: float) -> OutlierCluster | None:
+def clustered_outliers(ctx: Context, kept_rows: IntArray, alpha: float) -> OutlierCluster | None:
     """Are the samples left out as gross outliers bunched in one joint angle, one joint's
     gravity torque, or in time? The most significant such variable, or None.
 

@@ -12,15 +12,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.discovery.fitting import Context, ModelFit, evaluate, orthonormal_basis, whitened
 from solver.discovery.library import Term
 from solver.discovery.scoring import NullModel, canonical_correlation
 from solver.model import sample_configurations
-
-FloatArray = NDArray[np.float64]
-IndexArray = NDArray[np.intp]
 
 
 @dataclass(frozen=True)
@@ -115,7 +112,7 @@ def separating_poses(
 
 
 def _separation(
-    design: FloatArray, signatures: list[FloatArray], rows: IndexArray, split: list[int], d: int
+    design: FloatArray, signatures: list[FloatArray], rows: IntArray, split: list[int], d: int
 ) -> float:
     """Noise standard deviations between the explanations' predictions on ``rows``."""
     m = sum(split)

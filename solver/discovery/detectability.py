@@ -74,6 +74,7 @@ import scipy.special
 import scipy.stats
 from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.discovery.explain import describe
 from solver.discovery.fitting import Context, ModelFit, evaluate, fit_model, whitened
 from solver.discovery.library import Term, same_mechanism
@@ -89,8 +90,6 @@ from solver.discovery.scoring import (
 )
 from solver.errors import CalibrationError
 from solver.model import gravity_loads
-
-FloatArray = NDArray[np.float64]
 
 DETECTION_POWER = 0.8
 DETECTION_REPLICATES = 10

@@ -5,11 +5,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.discovery.library import Term
-
-FloatArray = NDArray[np.float64]
 
 
 def reported_parameters(

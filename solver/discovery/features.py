@@ -39,6 +39,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.measurement.models import (
     FixedPoints,
     FullPose,
@@ -46,8 +47,6 @@ from solver.measurement.models import (
     MeasurementRows,
 )
 from solver.model import ComplianceAxis, KinematicChain, gravity_loads
-
-FloatArray = NDArray[np.float64]
 
 FLEX_LABELS = ("flex_a", "flex_b")
 ANGLE_LIBRARY_HARMONICS = (1, 2, 3)

@@ -33,9 +33,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg
-from numpy.typing import NDArray
 
 from solver import lie
+from solver.arrays import BoolArray, FloatArray, IntArray
 from solver.calibration import frame_columns
 from solver.discovery.features import DiscoveryData, FeatureBank, axis_of
 from solver.discovery.library import Term, drift_feature
@@ -47,10 +47,6 @@ from solver.measurement.pose import initial_parameters
 from solver.model import ComplianceAxis, KinematicChain
 from solver.pivoting import tiered_pivoted_qr
 from solver.simulate import depth_direction
-
-FloatArray = NDArray[np.float64]
-IndexArray = NDArray[np.intp]
-BoolArray = NDArray[np.bool_]
 
 RANK_TOLERANCE = 1e-7
 # A nuisance direction (link correction, socket point, marker offset) the recording pins down
@@ -73,7 +69,7 @@ class Context:
         return cls(probe, data, FeatureBank(probe, data))
 
     @property
-    def all_rows(self) -> IndexArray:
+    def all_rows(self) -> IntArray:
         return np.arange(self.data.n_samples)
 
 
@@ -118,7 +114,7 @@ class Design:
     pose design).
     """
 
-    rows: IndexArray
+    rows: IntArray
     pose: FloatArray
     residual: FloatArray
     links: FloatArray
@@ -126,7 +122,7 @@ class Design:
     candidates: dict[str, FloatArray] = field(default_factory=dict)
     unit: dict[tuple[int, str], FloatArray] = field(default_factory=dict)
 
-    def restricted(self, rows: IndexArray) -> Design | None:
+    def restricted(self, rows: IntArray) -> Design | None:
         """This design on ``rows`` (sorted), a subset of its own sorted rows, without
         evaluating again; None when one of ``rows`` is not among them. Valid where each
         sample is evaluated on its own (pose rows: :func:`design_on`)."""
@@ -165,7 +161,7 @@ def evaluate(
     ctx: Context,
     terms: tuple[Term, ...],
     params: ModelParameters,
-    rows: IndexArray,
+    rows: IntArray,
     candidates: tuple[Term, ...] = (),
     unit_axes: tuple[tuple[int, str], ...] = (),
     *,
@@ -395,10 +391,10 @@ class ModelFit:
 
     terms: tuple[Term, ...]
     params: ModelParameters
-    rows: IndexArray
+    rows: IntArray
     weights: FloatArray
     design: Design
-    kept_links: IndexArray
+    kept_links: IntArray
     jacobian: FloatArray
     residual_w: FloatArray
     rank: int
@@ -461,7 +457,7 @@ def _kept_links(
     residual_w: FloatArray,
     first: BoolArray,
     pin: bool = True,
-) -> IndexArray:
+) -> IntArray:
     """Link columns the data can identify once the term columns are in (terms take priority).
 
     Column-pivoted QR of the unit-norm link columns after projecting out the term columns;
@@ -496,7 +492,7 @@ def orthonormal_basis(matrix: FloatArray, tolerance: float = RANK_TOLERANCE) -> 
 
 
 def constraint_rows(
-    ctx: Context, params: ModelParameters, kept: IndexArray
+    ctx: Context, params: ModelParameters, kept: IntArray
 ) -> tuple[FloatArray, FloatArray] | None:
     """The measurement model's extra equations (known socket distances) at ``params``:
     residual (c,) and their Jacobian over the ``kept`` nuisance columns (c, kept), the sign
@@ -563,7 +559,7 @@ def fit_model(
     ctx: Context,
     terms: tuple[Term, ...],
     start: ModelParameters,
-    rows: IndexArray,
+    rows: IntArray,
     weights: FloatArray,
     *,
     max_iterations: int = 40,
@@ -666,7 +662,7 @@ def fit_model(
     )
 
 
-def _apply(params: ModelParameters, step: FloatArray, kept: IndexArray) -> ModelParameters:
+def _apply(params: ModelParameters, step: FloatArray, kept: IntArray) -> ModelParameters:
     n_links = params.links.shape[0]
     nuisance = np.zeros(6 * n_links + params.extra.size)
     nuisance[kept] = step[: kept.size]
@@ -722,7 +718,7 @@ def fit_with_noise(
     ctx: Context,
     terms: tuple[Term, ...],
     start: ModelParameters,
-    rows: IndexArray,
+    rows: IntArray,
     weights: FloatArray | None = None,
     rounds: int = 2,
     design: Design | None = None,
@@ -737,7 +733,7 @@ def fit_with_noise(
     return fit
 
 
-def design_on(ctx: Context, design: Design, rows: IndexArray) -> Design | None:
+def design_on(ctx: Context, design: Design, rows: IntArray) -> Design | None:
     """``design`` on ``rows`` ⊂ its rows without evaluating again (:meth:`Design.restricted`)
     where the recording's samples are evaluated each on its own — pose rows; None for other
     measurement models (their rows may depend on one another) or when ``rows`` is not a

@@ -14,14 +14,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.discovery.checks import component_columns
 from solver.discovery.features import legendre_basis
 from solver.discovery.fitting import Context, ModelFit
 from solver.discovery.scoring import NullModel, score_tests, unexplained_basis
 
-FloatArray = NDArray[np.float64]
 COMPONENT_NAMES = ("x", "y", "z", "rx", "ry", "rz")
 
 

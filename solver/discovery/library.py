@@ -30,13 +30,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.discovery.effects import EFFECTS
 from solver.discovery.features import FLEX_LABELS, FeatureBank, deadzone_sign, deadzones
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
 
 UNEXPLAINED = "unexplained"  # generic structure kept in the model, never reported as found
 HARMONICS = (1, 2, 3)

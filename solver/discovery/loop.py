@@ -30,8 +30,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.discovery.checks import (
     absorbed_in_fit,
     clustered_outliers,
@@ -108,9 +108,6 @@ from solver.discovery.validation import (
 )
 from solver.errors import CalibrationError
 from solver.model import KinematicChain
-
-FloatArray = NDArray[np.float64]
-IndexArray = NDArray[np.intp]
 
 
 @dataclass(frozen=True)
@@ -360,7 +357,7 @@ class _Search:
             candidates = self._candidates()
         return candidates
 
-    def _brought_back(self, candidates: _Candidates, level: float) -> IndexArray:
+    def _brought_back(self, candidates: _Candidates, level: float) -> IntArray:
         """Screened-out samples that a candidate's model keeps: first the best candidate's
         (added tentatively, one refit, every sample re-judged; that refit is kept for the
         step, :meth:`_add`), else any library candidate's that the other samples corroborate

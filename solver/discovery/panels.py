@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.discovery.fitting import Context, ModelFit, evaluate
 from solver.discovery.library import AxisSpec, Term
 from solver.discovery.results import PlotPanel
-
-FloatArray = NDArray[np.float64]
-IndexArray = NDArray[np.intp]
 
 
 def term_panels(ctx: Context, term: Term, before: ModelFit, after: ModelFit) -> list[PlotPanel]:
@@ -102,7 +99,7 @@ def _driver(ctx: Context, term: Term, spec: AxisSpec) -> tuple[FloatArray, str]:
 
 
 def _global_driver(
-    ctx: Context, term: Term, rows: IndexArray, norm: FloatArray
+    ctx: Context, term: Term, rows: IntArray, norm: FloatArray
 ) -> tuple[FloatArray, str]:
     if term.effect == "depth_scale":
         pose = ctx.data.measured_pose[rows]

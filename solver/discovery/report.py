@@ -6,8 +6,8 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.discovery.checks import OutlierCluster, StructureTest
 from solver.discovery.design import separating_poses
 from solver.discovery.explain import describe, reported_parameters
@@ -15,8 +15,6 @@ from solver.discovery.fitting import Context, ModelFit
 from solver.discovery.library import Term
 from solver.discovery.results import Ambiguity, TermEstimate, Unexplained
 from solver.discovery.scoring import NullModel, ScoreTest, canonical_correlation
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass

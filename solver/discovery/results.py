@@ -6,16 +6,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.stats
-from numpy.typing import NDArray
 
+from solver.arrays import FloatArray, IntArray
 from solver.discovery.design import SeparatingPoses
 from solver.discovery.detectability import DetectableSize
 from solver.discovery.fitting import ModelParameters, Unseen
 from solver.discovery.health import HealthReport
 from solver.discovery.library import Term
-
-FloatArray = NDArray[np.float64]
-IndexArray = NDArray[np.intp]
 
 
 @dataclass(frozen=True)
@@ -180,7 +177,7 @@ class DiscoveryResult:
     joint_names: tuple[str, ...]
     n_candidates: int
     clock_unit: str
-    outlier_rows: IndexArray  # 0-based samples left out as gross outliers of the final model
+    outlier_rows: IntArray  # 0-based samples left out as gross outliers of the final model
     detectable: list[DetectableSize] | None = field(default_factory=list)  # None: not computed
     detection_level: float = float("nan")  # per-test level of the detectable sizes
     detection_power: float = float("nan")

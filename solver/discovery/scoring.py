@@ -35,9 +35,8 @@ import numpy as np
 import scipy.special
 from numpy.typing import NDArray
 
+from solver.arrays import FloatArray
 from solver.discovery.fitting import ModelFit, orthonormal_basis
-
-FloatArray = NDArray[np.float64]
 
 # Sign-flip randomisation of the cluster-robust statistic (module docstring): exact up to this
 # many samples; else at most FLIP_DRAWS seeded patterns, stopping once FLIP_EXCEEDANCES of them

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.stats
-from numpy.typing import NDArray
 
+from solver.arrays import BoolArray, FloatArray, IntArray
 from solver.calibration import pose_errors
 from solver.discovery.fitting import (
     Context,
@@ -21,12 +21,8 @@ from solver.discovery.results import HeldoutError
 from solver.errors import CalibrationError
 from solver.measurement.fit import row_errors
 
-FloatArray = NDArray[np.float64]
-IndexArray = NDArray[np.intp]
-BoolArray = NDArray[np.bool_]
 
-
-def kfold(n: int, folds: int, rng: np.random.Generator) -> list[tuple[IndexArray, IndexArray]]:
+def kfold(n: int, folds: int, rng: np.random.Generator) -> list[tuple[IntArray, IntArray]]:
     """K random folds (sorted index arrays), every sample tested once."""
     order = rng.permutation(n)
     out = []
@@ -40,9 +36,9 @@ def cross_validate(
     ctx: Context,
     terms: tuple[Term, ...],
     fit: ModelFit,
-    folds: list[tuple[IndexArray, IndexArray]],
+    folds: list[tuple[IntArray, IntArray]],
     weights: FloatArray,
-    rows: IndexArray | None = None,
+    rows: IntArray | None = None,
 ) -> HeldoutError:
     """Refit on each training fold (warm start at ``fit``), score the held-out fold.
 
@@ -93,7 +89,7 @@ def repeated_heldout(
     ctx: Context,
     terms: tuple[Term, ...],
     fit: ModelFit,
-    partitions: list[list[tuple[IndexArray, IndexArray]]],
+    partitions: list[list[tuple[IntArray, IntArray]]],
     weights: FloatArray,
 ) -> HeldoutError:
     """:func:`cross_validate` over several K-fold partitions of the same samples: mean
@@ -123,7 +119,7 @@ def _screen_limit(ctx: Context, level: float) -> tuple[float, float]:
     )
 
 
-def _passing(norm2: FloatArray, kept: IndexArray, limit: float, median: float) -> BoolArray:
+def _passing(norm2: FloatArray, kept: IntArray, limit: float, median: float) -> BoolArray:
     """Samples whose whitened squared residual norm ``norm2`` (N,) passes the screen, the
     scale taken as the median over the ``kept`` samples."""
     scale = float(np.median(norm2[kept])) / median
@@ -155,7 +151,7 @@ def screen_outliers(
     return fit
 
 
-def corroborated(ctx: Context, fit: ModelFit, library: list[Term], level: float) -> IndexArray:
+def corroborated(ctx: Context, fit: ModelFit, library: list[Term], level: float) -> IntArray:
     """The screened-out samples that vouch for each other under the library candidate whose
     model brings back the most of them (none: empty).
 
@@ -187,7 +183,7 @@ def corroborated(ctx: Context, fit: ModelFit, library: list[Term], level: float)
         axis=1,
     )
 
-    def passing(columns: FloatArray, samples: IndexArray) -> BoolArray:
+    def passing(columns: FloatArray, samples: IntArray) -> BoolArray:
         """The screen after the step fitted on ``samples``."""
         chosen = np.zeros((n, d), dtype=bool)
         chosen[samples] = True
