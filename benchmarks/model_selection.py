@@ -112,11 +112,11 @@ class _PositionTowardNominal(_TowardNominal, Position):
     pass
 
 
-def toward_nominal(position_only: bool, weights: FloatArray) -> MeasurementModel:
-    """The pose (or position) measurement with the prior rows of :class:`_TowardNominal`."""
-    if position_only:
-        return _PositionTowardNominal(weights)
-    return _PoseTowardNominal(weights)
+def toward_nominal(measurement: FullPose, weights: FloatArray) -> MeasurementModel:
+    """``measurement`` (a pose or a position) with the prior rows of :class:`_TowardNominal`."""
+    if measurement.measures_rotation:
+        return _PoseTowardNominal(weights)
+    return _PositionTowardNominal(weights)
 
 
 def data_columns(
@@ -177,8 +177,7 @@ def largest_inner_rotation_rad(chain: KinematicChain, params: ModelParameters) -
 @dataclass(frozen=True)
 class Problem:
     chain: KinematicChain
-    model: MeasurementModel
-    position_only: bool
+    model: FullPose
     options: FitOptions
 
 
@@ -203,7 +202,7 @@ def ridge_by_gcv(scales: Sequence[tuple[float, float]], *, physical_rule: bool =
         best: tuple[float, MeasurementFit] | None = None
         for s_t, s_r in scales:
             weights = sigma / np.array([s_t, s_t, s_t, s_r, s_r, s_r])
-            model = toward_nominal(problem.position_only, weights)
+            model = toward_nominal(problem.model, weights)
             candidate = fit_measurement(problem.chain, model, train, options, columns=keep)
             score = gcv_score(problem.chain, model, candidate, options)
             if best is None or score < best[0]:
@@ -285,8 +284,9 @@ FIX_COMPLIANCE_ONLY = {"ridge-gcv-uncapped"}
 MODELS = {"--fix compliance": FitOptions(fit_compliance=False), "default": FitOptions()}
 
 
-def load_rows(recording: Recording) -> tuple[KinematicChain, MeasurementRows, bool]:
-    """The recording's chain (default options) and all its rows."""
+def load_rows(recording: Recording) -> tuple[KinematicChain, MeasurementRows, FullPose]:
+    """The recording's chain (default options), all its rows and what they measure (a pose or
+    a position)."""
     from schemas.dataset import read_dataset
 
     chain = pipeline.check_calibration(robot_of(recording), CalibrationOptions()).chain
@@ -295,18 +295,17 @@ def load_rows(recording: Recording) -> tuple[KinematicChain, MeasurementRows, bo
     )
     q = dataset.joint_positions
     pose = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
-    return chain, MeasurementRows.of(q, gravity_loads(chain, q), pose), dataset.is_position_only
+    measurement = Position() if dataset.is_position_only else FullPose()
+    return chain, MeasurementRows.of(q, gravity_loads(chain, q), pose), measurement
 
 
 def evaluate(recording: Recording, methods: Sequence[str], seeds: Sequence[int]) -> list[Row]:
     """Per model and method: the held-out mean position error of each split (mm) and the
     largest inner-link rotation any split's chosen fit made (rad)."""
-    chain, rows, position_only = load_rows(recording)
+    chain, rows, measurement = load_rows(recording)
     out = []
     for model_name, options in MODELS.items():
-        problem = Problem(
-            chain, Position() if position_only else FullPose(), position_only, options
-        )
+        problem = Problem(chain, measurement, options)
         for method in methods:
             if method in FIX_COMPLIANCE_ONLY and options.fit_compliance:
                 continue

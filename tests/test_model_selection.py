@@ -21,8 +21,8 @@ from solver.model import KinematicChain
 @cache
 def tiago() -> tuple[KinematicChain, MeasurementRows]:
     (recording,) = [r for r in selection.RECORDINGS if r.name == "TIAGo"]
-    chain, rows, position_only = selection.load_rows(recording)
-    assert position_only
+    chain, rows, measurement = selection.load_rows(recording)
+    assert not measurement.measures_rotation
     return chain, rows
 
 
@@ -35,7 +35,7 @@ def training_rows() -> MeasurementRows:
 def test_prior_rows_are_minus_their_jacobian_times_a_small_step_from_nominal() -> None:
     chain, _ = tiago()
     weights = np.array([2.0, 2.0, 2.0, 3.0, 3.0, 3.0])
-    model = selection.toward_nominal(True, weights)
+    model = selection.toward_nominal(Position(), weights)
     nominal = ModelParameters(np.array(chain.nominal_links), np.zeros(len(chain.compliance_axes)))
     residual, design = model.constraints(chain, nominal)
     assert np.allclose(residual, 0.0)
@@ -54,12 +54,12 @@ def test_zero_prior_weight_is_todays_fit_and_a_huge_one_keeps_the_urdf() -> None
     today = fit_measurement(chain, Position(), train, options)
     keep = selection.data_columns(chain, Position(), train, options)
     free = fit_measurement(
-        chain, selection.toward_nominal(True, np.zeros(6)), train, options, columns=keep
+        chain, selection.toward_nominal(Position(), np.zeros(6)), train, options, columns=keep
     )
     assert free.estimated == today.estimated
     assert np.allclose(free.params.links, today.params.links, atol=1e-9)
     stiff = fit_measurement(
-        chain, selection.toward_nominal(True, np.full(6, 1e6)), train, options, columns=keep
+        chain, selection.toward_nominal(Position(), np.full(6, 1e6)), train, options, columns=keep
     )
     assert selection.largest_inner_rotation_rad(chain, stiff.params) < 1e-6
     inner = np.array(stiff.params.links[1:-1])
@@ -73,7 +73,7 @@ def test_gcv_trace_is_the_hat_matrix_trace_of_the_penalised_step() -> None:
     train = training_rows()
     options = FitOptions(fit_compliance=False)
     keep = selection.data_columns(chain, Position(), train, options)
-    model = selection.toward_nominal(True, np.full(6, 0.3))
+    model = selection.toward_nominal(Position(), np.full(6, 0.3))
     fit = fit_measurement(chain, model, train, options, columns=keep)
     design = fit.jacobian.reshape(-1, keep.size)
     _, prior = model.constraints(chain, fit.params)
