@@ -17,6 +17,7 @@ from solver.discovery.fitting import (
     fit_with_noise,
 )
 from solver.discovery.library import Term, backlash_load_term, drift_term
+from solver.errors import CalibrationError
 
 
 def refine_deadzone(
@@ -117,8 +118,13 @@ def linear_unless_warmup_earns_it(
     """
     term = terms[-1]
     linear = drift_term(ctx.chain, term.joint_index, "linear", ctx.bank.clock_unit)
+    if linear.key in {t.key for t in base_terms}:
+        return term, terms, fit  # a warm-up on top of the same joint's linear drift
     linear_terms, start = extend(base_params, base_terms, linear)
-    linear_fit = fit_model(ctx, linear_terms, start, fit.rows, fit.weights)
+    try:
+        linear_fit = fit_model(ctx, linear_terms, start, fit.rows, fit.weights)
+    except CalibrationError:
+        return term, terms, fit  # no linear fit to compare with: the warm-up as fitted
     if linear_fit.cost - fit.cost > float(scipy.stats.chi2.isf(alpha, 1)):
         return term, terms, fit
     refit = fit_with_noise(ctx, linear_terms, linear_fit.params, fit.rows, fit.weights, rounds=1)
