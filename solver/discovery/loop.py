@@ -13,7 +13,8 @@
    instead of being named. Find rivals (nearly collinear candidates with nearly as much
    evidence, or bootstrap replicates that prefer them) and how much of it the rest of the
    model absorbs: either makes the step *ambiguous*.
-4. Add it, refit the full nonlinear model (refining warm-up time constants and backlash
+4. Add it, refit the full nonlinear model (refining warm-up time constants — a warm-up is
+   kept only where it beats the linear drift by a likelihood-ratio test — and backlash
    floating zones), and compare K-fold held-out error with the model before, over several
    fold partitions; keep it only if the held-out error drops significantly (paired test over
    samples at a level that keeps the family-wise error of the whole search), on every
