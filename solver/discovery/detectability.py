@@ -280,7 +280,7 @@ def first_order_backlash(ctx: Context, size: DetectableSize) -> DetectableSize:
         return size
     reason = (
         f"beyond the load-sign backlash: at twice the size it would be found at "
-        f"({2e3 * size.smallest:.3g} mrad) turning the link by half its dead band reverses "
+        f"({2e3 * size.smallest:.3g} mrad), turning the link by half its dead band reverses "
         f"its gravity load on {reversed_share:.0%} of the samples, where the link floats "
         f"(limit {LOAD_SIGN_FLIP_LIMIT:.0%})"
     )
