@@ -33,6 +33,7 @@ gravity or extra payload without new RNEA sweeps.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -343,13 +344,20 @@ class FeatureBank:
     def __init__(self, probe: KinematicChain, data: DiscoveryData) -> None:
         self.probe = probe
         self.data = data
-        self.basis = gravity_basis(probe, data.joint_positions)
         self.joint_names = probe.joint_names
         self.lag = approach_lag(data.joint_positions)
         self.clock, self.clock_unit = data.clock()
-        nominal = self.basis.moments(data.gravity_base, data.payload())
-        self._nominal_tau = nominal
         self._cache: dict[str, FloatArray] = {}
+
+    @functools.cached_property
+    def basis(self) -> GravityBasis:
+        """The recording's :func:`gravity_basis`, computed when a gravity feature is first
+        asked for (a bank built for features of the joint angles alone never sweeps RNEA)."""
+        return gravity_basis(self.probe, self.data.joint_positions)
+
+    @functools.cached_property
+    def _nominal_tau(self) -> FloatArray:
+        return self.basis.moments(self.data.gravity_base, self.data.payload())
 
     def tau(self, axis_name: str, gravity_base: FloatArray, extra_payload_kg: float) -> FloatArray:
         """Gravity moment about a probe axis (N,), N·m."""
