@@ -675,7 +675,8 @@ def calibrated_size(
     sign-flip p-values need not fall with the size as the weakest one's does). Returns (size,
     reason): inf with the reason when no size up to :data:`MAX_SIZE_FACTOR` · ``start``
     holds."""
-    trials = _Trials(null, basis, effect, replicates)
+    shared = _Replicates(null, basis, replicates)
+    trials = _Trials(shared, effect)
     others: list[_Trials] = []  # built at the first promise check
     count = len(replicates)
     ceiling = MAX_SIZE_FACTOR * start
@@ -699,7 +700,7 @@ def calibrated_size(
         if not rejected_by(size, count):
             return False
         if not others:
-            others.extend(_Trials(null, basis, e, replicates) for e in other_effects or [])
+            others.extend(_Trials(shared, e) for e in other_effects or [])
         return all(t.rejected(b, size, level) for t in others for b in range(count))
 
     if not detected(LIMIT_FACTOR * start):
@@ -766,29 +767,64 @@ DETECTION_DRAWS = FLIP_DRAWS // 2
 _CHUNKS = ((0, 1), (1, DETECTION_DRAWS // FLIP_BATCH))  # batches of the bank
 
 
+class _Replicates:
+    """The replicates r_b of one term's test (its whitened ``basis``): their coordinates, norms
+    and per-sample scores, and the sign-flip bank's products with every replicate's scores,
+    computed chunk by chunk as needed — shared by the trials of the term's directions
+    (:func:`calibrated_size`: the weakest one and a gear error's other phases)."""
+
+    def __init__(self, null: NullModel, basis: FloatArray, replicates: list[FloatArray]):
+        self.null, self.basis, self.replicates = null, basis, replicates
+        self.m = basis.shape[1]
+        self.coords = [basis.T @ r for r in replicates]
+        self.norms = [float(r @ r) for r in replicates]
+        self.scores = [null.sample_scores(basis, r) for r in replicates]
+        self.stacked = np.hstack(self.scores).astype(np.float32)
+        self.seed, self.n = null.flip_seed, null.n_samples
+        self.projections: list[list[NDArray[np.float32]]] = []  # per chunk, per replicate
+
+    def projection(self, chunk: int) -> list[NDArray[np.float32]]:
+        """The bank's products (patterns, m) with each replicate's scores, chunk ``chunk``."""
+        while chunk >= len(self.projections):
+            self.projections.append(_bank_products(self, len(self.projections), self.stacked))
+        return self.projections[chunk]
+
+
+def _bank_products(
+    shared: _Replicates, chunk: int, stacked: NDArray[np.float32]
+) -> list[NDArray[np.float32]]:
+    """``stacked`` (n, m·k) times the bank's patterns of chunk ``chunk`` (:data:`_CHUNKS`),
+    as k contiguous (patterns, m) blocks."""
+    start, stop = _CHUNKS[chunk]
+    block = np.concatenate(
+        [flip_batch(shared.seed, shared.n, b) @ stacked for b in range(start, stop)]
+    )
+    return [
+        np.ascontiguousarray(block[:, i : i + shared.m]) for i in range(0, block.shape[1], shared.m)
+    ]
+
+
 class _Trials:
     """The replicates r_b with an effect ``σ_b · s · e`` added (σ_b alternating ±1): both
     statistics of the score test as functions of s (linear in s before the quadratic forms);
-    the sign-flip bank's products with every replicate's scores are computed together, chunk
-    by chunk as needed."""
+    the sign-flip bank's products with the effect's scores are computed chunk by chunk as
+    needed, those with the replicates' come from ``shared``."""
 
-    def __init__(
-        self, null: NullModel, basis: FloatArray, effect: FloatArray, replicates: list[FloatArray]
-    ):
-        self.m = basis.shape[1]
+    def __init__(self, shared: _Replicates, effect: FloatArray):
+        null, basis, replicates = shared.null, shared.basis, shared.replicates
+        self.shared = shared
+        self.m = shared.m
         self.dof = null.dof - self.m
         self.signs = np.resize([1.0, -1.0], len(replicates))
-        self.coords = [basis.T @ r for r in replicates], basis.T @ effect
-        self.norms = [(float(r @ r), 2.0 * float(r @ effect)) for r in replicates]
+        self.coords = shared.coords, basis.T @ effect
+        self.norms = [
+            (norm, 2.0 * float(r @ effect))
+            for norm, r in zip(shared.norms, replicates, strict=True)
+        ]
         self.effect_norm = float(effect @ effect)
-        self.scores = (
-            [null.sample_scores(basis, r) for r in replicates],
-            null.sample_scores(basis, effect),
-        )
-        self.stacked = np.hstack([self.scores[1], *self.scores[0]]).astype(np.float32)
-        self.seed, self.n = null.flip_seed, null.n_samples
-        # per chunk: the bank's products with the effect's and each replicate's scores
-        self.projections: list[list[NDArray[np.float32]]] = []
+        self.scores = shared.scores, null.sample_scores(basis, effect)
+        self.stacked = self.scores[1].astype(np.float32)
+        self.projections: list[NDArray[np.float32]] = []  # per chunk: the effect's products
 
     def rejected(self, b: int, size: float, level: float) -> bool:
         """Do both halves of the score test reject replicate ``b`` at ``level`` with the
@@ -809,15 +845,12 @@ class _Trials:
         observed = tie_threshold(float(total @ total))
         whiten32 = whiten.astype(np.float32)
         count = 0
-        for chunk, (start, stop) in enumerate(_CHUNKS):
+        for chunk in range(len(_CHUNKS)):
             if chunk == len(self.projections):
-                block = np.concatenate(
-                    [flip_batch(self.seed, self.n, b) @ self.stacked for b in range(start, stop)]
-                )
-                parts = range(0, block.shape[1], m)
-                self.projections.append([np.ascontiguousarray(block[:, i : i + m]) for i in parts])
-            effect, *noise = self.projections[chunk]
-            flipped = (noise[b] + np.float32(signed) * effect) @ whiten32
+                (products,) = _bank_products(self.shared, chunk, self.stacked)
+                self.projections.append(products)
+            effect, noise = self.projections[chunk], self.shared.projection(chunk)[b]
+            flipped = (noise + np.float32(signed) * effect) @ whiten32
             count += int(np.count_nonzero(np.einsum("ij,ij->i", flipped, flipped) >= observed))
             if count > allowed:
                 return False
