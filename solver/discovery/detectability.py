@@ -681,17 +681,18 @@ def calibrated_size(
     count = len(replicates)
     ceiling = MAX_SIZE_FACTOR * start
 
-    decided: dict[tuple[float, int], bool] = {}  # the scans and the checks revisit sizes
+    # the scans and the checks revisit sizes (detection and the promise at the same size too)
+    outcomes: dict[tuple[float, int], bool] = {}  # (size, replicate): rejected?
 
     def rejected_by(size: float, needed: int) -> bool:
-        if (size, needed) not in decided:
-            hits = 0
-            for done in range(count):
-                hits += trials.rejected(done, size, level)
-                if hits >= needed or hits + count - done - 1 < needed:
-                    break
-            decided[(size, needed)] = hits >= needed
-        return decided[(size, needed)]
+        hits = 0
+        for done in range(count):
+            if (size, done) not in outcomes:
+                outcomes[(size, done)] = trials.rejected(done, size, level)
+            hits += outcomes[(size, done)]
+            if hits >= needed or hits + count - done - 1 < needed:
+                break
+        return hits >= needed
 
     def detected(size: float) -> bool:
         return rejected_by(size, int(np.ceil(power * count - 1e-9)))
