@@ -357,6 +357,8 @@ class FeatureBank:
 
     @functools.cached_property
     def _nominal_tau(self) -> FloatArray:
+        """Gravity moments (N, axes), N·m, about every probe axis under the user's gravity
+        and payload (:meth:`nominal_tau` picks one)."""
         return self.basis.moments(self.data.gravity_base, self.data.payload())
 
     def tau(self, axis_name: str, gravity_base: FloatArray, extra_payload_kg: float) -> FloatArray:
