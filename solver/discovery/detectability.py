@@ -76,6 +76,7 @@ from numpy.typing import NDArray
 
 from solver.arrays import FloatArray
 from solver.discovery.explain import describe
+from solver.discovery.features import gravity_moments_nm
 from solver.discovery.fitting import Context, ModelFit, evaluate, fit_model, whitened
 from solver.discovery.library import Term, same_mechanism
 from solver.discovery.scoring import (
@@ -89,7 +90,6 @@ from solver.discovery.scoring import (
     unexplained_basis,
 )
 from solver.errors import CalibrationError
-from solver.model import gravity_loads
 
 DETECTION_POWER = 0.8
 DETECTION_REPLICATES = 10
@@ -243,14 +243,14 @@ def smallest_detectable(
 def own_torque_nm(ctx: Context, term: Term, shift_rad: float | FloatArray = 0.0) -> FloatArray:
     """Gravity torque (N·m, (N,)) about the joint of a compliance or load-sign backlash term
     with that joint turned by ``shift_rad`` (scalar or per sample) from the readings
-    (:func:`~solver.model.gravity_loads`, the user's gravity and payload)."""
+    (:func:`~solver.discovery.features.gravity_moments_nm`, the user's gravity and payload)."""
     (axis,) = term.axes
     probe = ctx.bank.probe
     name = axis.feature.split(":", 1)[1]  # "tau:<axis>" or "sign_tau:<axis>"
     column = [a.name for a in probe.compliance_axes].index(name)
     moved = ctx.data.joint_positions.copy()
     moved[:, axis.joint_index] += shift_rad
-    loads = gravity_loads(
+    loads = gravity_moments_nm(
         probe, moved, gravity_base=ctx.data.gravity_base, payload_kg=ctx.data.payload()
     )
     return loads[:, column]
@@ -675,8 +675,8 @@ def calibrated_size(
     sign-flip p-values need not fall with the size as the weakest one's does). Returns (size,
     reason): inf with the reason when no size up to :data:`MAX_SIZE_FACTOR` · ``start``
     holds."""
-    shared = _Replicates(null, basis, replicates)
-    trials = _Trials(shared, effect)
+    shared = _Replicates(null, basis, replicates, [effect, *(other_effects or [])])
+    trials = _Trials(shared, 0)
     others: list[_Trials] = []  # built at the first promise check
     count = len(replicates)
     ceiling = MAX_SIZE_FACTOR * start
@@ -701,7 +701,7 @@ def calibrated_size(
         if not rejected_by(size, count):
             return False
         if not others:
-            others.extend(_Trials(shared, e) for e in other_effects or [])
+            others.extend(_Trials(shared, i) for i in range(1, len(shared.effects)))
         return all(t.rejected(b, size, level) for t in others for b in range(count))
 
     if not detected(LIMIT_FACTOR * start):
@@ -769,36 +769,50 @@ _CHUNKS = ((0, 1), (1, DETECTION_DRAWS // FLIP_BATCH))  # batches of the bank
 
 
 class _Replicates:
-    """The replicates r_b of one term's test (its whitened ``basis``): their coordinates, norms
-    and per-sample scores, and the sign-flip bank's products with every replicate's scores,
-    computed chunk by chunk as needed — shared by the trials of the term's directions
-    (:func:`calibrated_size`: the weakest one and a gear error's other phases)."""
+    """The replicates r_b of one term's test (its whitened ``basis``) and the effects tried on
+    them (:func:`calibrated_size`: the weakest direction's and a gear error's other phases):
+    their coordinates, norms and per-sample scores, and the sign-flip bank's products with all
+    of those scores, computed chunk by chunk as needed in one pass over the bank per chunk
+    (at N = 500 the bank is 65 MB: reading it once per effect cost more than the products)."""
 
-    def __init__(self, null: NullModel, basis: FloatArray, replicates: list[FloatArray]):
-        self.null, self.basis, self.replicates = null, basis, replicates
+    def __init__(
+        self,
+        null: NullModel,
+        basis: FloatArray,
+        replicates: list[FloatArray],
+        effects: list[FloatArray],
+    ):
+        self.null, self.basis = null, basis
+        self.replicates, self.effects = replicates, effects
         self.m = basis.shape[1]
         self.coords = [basis.T @ r for r in replicates]
         self.norms = [float(r @ r) for r in replicates]
         self.scores = [null.sample_scores(basis, r) for r in replicates]
-        self.stacked = np.hstack(self.scores).astype(np.float32)
+        self.effect_scores = [null.sample_scores(basis, e) for e in effects]
+        self.stacked = np.hstack(self.scores + self.effect_scores).astype(np.float32)
         self.seed, self.n = null.flip_seed, null.n_samples
-        self.projections: list[list[NDArray[np.float32]]] = []  # per chunk, per replicate
+        self.projections: list[list[NDArray[np.float32]]] = []  # per chunk, per column block
 
-    def projection(self, chunk: int) -> list[NDArray[np.float32]]:
-        """The bank's products (patterns, m) with each replicate's scores, chunk ``chunk``."""
+    def noise_products(self, chunk: int, b: int) -> NDArray[np.float32]:
+        """The bank's products (patterns, m) with replicate ``b``'s scores, chunk ``chunk``."""
+        return self._projection(chunk)[b]
+
+    def effect_products(self, chunk: int, index: int) -> NDArray[np.float32]:
+        """The bank's products (patterns, m) with effect ``index``'s scores, chunk ``chunk``."""
+        return self._projection(chunk)[len(self.replicates) + index]
+
+    def _projection(self, chunk: int) -> list[NDArray[np.float32]]:
         while chunk >= len(self.projections):
-            self.projections.append(_bank_products(self, len(self.projections), self.stacked))
+            self.projections.append(_bank_products(self, len(self.projections)))
         return self.projections[chunk]
 
 
-def _bank_products(
-    shared: _Replicates, chunk: int, stacked: NDArray[np.float32]
-) -> list[NDArray[np.float32]]:
-    """``stacked`` (n, m·k) times the bank's patterns of chunk ``chunk`` (:data:`_CHUNKS`),
-    as k contiguous (patterns, m) blocks."""
+def _bank_products(shared: _Replicates, chunk: int) -> list[NDArray[np.float32]]:
+    """``shared.stacked`` (n, m·k) times the bank's patterns of chunk ``chunk``
+    (:data:`_CHUNKS`), as k contiguous (patterns, m) blocks."""
     start, stop = _CHUNKS[chunk]
     block = np.concatenate(
-        [flip_batch(shared.seed, shared.n, b) @ stacked for b in range(start, stop)]
+        [flip_batch(shared.seed, shared.n, b) @ shared.stacked for b in range(start, stop)]
     )
     return [
         np.ascontiguousarray(block[:, i : i + shared.m]) for i in range(0, block.shape[1], shared.m)
@@ -806,14 +820,14 @@ def _bank_products(
 
 
 class _Trials:
-    """The replicates r_b with an effect ``σ_b · s · e`` added (σ_b alternating ±1): both
-    statistics of the score test as functions of s (linear in s before the quadratic forms);
-    the sign-flip bank's products with the effect's scores are computed chunk by chunk as
-    needed, those with the replicates' come from ``shared``."""
+    """The replicates r_b with effect ``index`` of ``shared`` (e) added as ``σ_b · s · e``
+    (σ_b alternating ±1): both statistics of the score test as functions of s (linear in s
+    before the quadratic forms)."""
 
-    def __init__(self, shared: _Replicates, effect: FloatArray):
+    def __init__(self, shared: _Replicates, index: int):
         null, basis, replicates = shared.null, shared.basis, shared.replicates
-        self.shared = shared
+        effect = shared.effects[index]
+        self.shared, self.index = shared, index
         self.m = shared.m
         self.dof = null.dof - self.m
         self.signs = np.resize([1.0, -1.0], len(replicates))
@@ -823,9 +837,7 @@ class _Trials:
             for norm, r in zip(shared.norms, replicates, strict=True)
         ]
         self.effect_norm = float(effect @ effect)
-        self.scores = shared.scores, null.sample_scores(basis, effect)
-        self.stacked = self.scores[1].astype(np.float32)
-        self.projections: list[NDArray[np.float32]] = []  # per chunk: the effect's products
+        self.scores = shared.scores, shared.effect_scores[index]
 
     def rejected(self, b: int, size: float, level: float) -> bool:
         """Do both halves of the score test reject replicate ``b`` at ``level`` with the
@@ -847,10 +859,8 @@ class _Trials:
         whiten32 = whiten.astype(np.float32)
         count = 0
         for chunk in range(len(_CHUNKS)):
-            if chunk == len(self.projections):
-                (products,) = _bank_products(self.shared, chunk, self.stacked)
-                self.projections.append(products)
-            effect, noise = self.projections[chunk], self.shared.projection(chunk)[b]
+            effect = self.shared.effect_products(chunk, self.index)
+            noise = self.shared.noise_products(chunk, b)
             flipped = (noise + np.float32(signed) * effect) @ whiten32
             count += int(np.count_nonzero(np.einsum("ij,ij->i", flipped, flipped) >= observed))
             if count > allowed:

@@ -16,6 +16,7 @@ from solver.discovery.checks import span_p_value
 from solver.discovery.features import (
     approach_lag,
     deadzone_sign,
+    gravity_basis,
     probe_chain,
 )
 from solver.discovery.fitting import (
@@ -30,7 +31,7 @@ from solver.discovery.library import EFFECTS, candidate_library, compliance_term
 from solver.discovery.scoring import NullModel, holm, score_test
 from solver.kinematics import forward_kinematics
 from solver.measurement import FullPose
-from solver.model import build_chain
+from solver.model import build_chain, gravity_loads
 from solver.simulate import JointEffect, SimulationSpec, simulate_recording
 from tests.conftest import chain, robot
 
@@ -65,6 +66,22 @@ def test_flex_axes_are_the_virtual_axes_of_build_chain() -> None:
     probe = {a.name: a.axis for a in probe_chain(built).compliance_axes}
     for axis in built.compliance_axes:
         np.testing.assert_allclose(probe[axis.name], axis.axis, atol=1e-15)
+
+
+def test_the_gravity_basis_is_pinocchios_rnea_about_every_probe_axis(builtin_name: str) -> None:
+    """The features' gravity moments (closed form, :mod:`solver.gravity`) about every joint
+    and flex axis, per unit gravity component and per kg payload, are RNEA's."""
+    probe = probe_chain(chain(builtin_name))
+    rng = np.random.default_rng(41)
+    low, high = np.maximum(probe.lower_limits, -3.0), np.minimum(probe.upper_limits, 3.0)
+    q = rng.uniform(low, high, size=(60, probe.n_joints))
+    basis = gravity_basis(probe, q)
+    for j, unit in enumerate(np.eye(3)):
+        bare = gravity_loads(probe, q, gravity_base=unit)
+        loaded = gravity_loads(probe, q, gravity_base=unit, payload_kg=1.0)
+        np.testing.assert_allclose(basis.robot[j], bare, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(basis.payload[j], loaded - bare, rtol=0, atol=1e-10)
+    assert np.abs(basis.robot).max() > 1.0  # moments of N·m size, not zeros
 
 
 @pytest.mark.parametrize("name", ["kinova", "panda"])
