@@ -295,6 +295,35 @@ def test_load_backlash_on_three_samples_of_a_ball_in_socket_gets_no_size(
     assert named <= {("backlash", "panda_joint4", "load")}, named
 
 
+def test_another_shape_of_a_doubted_joint_structure_is_ambiguous_not_named(
+    ball_in_socket: FindingsResult, tmp_path: Path
+) -> None:
+    """Issue 32: the platonics Panda's own panda_joint3 structure is a spring that the
+    recording alone reports ambiguous with a bending of the next link. With a gear error (3rd
+    harmonic, 2.0 mrad: twice its stated size, the benchmark's seed 1) concealed on
+    panda_joint2, the gear is named first; the panda_joint3 spring is then significant but not
+    confirmed on held-out, and a 2nd-harmonic gear error of panda_joint3 — the same joint's
+    structure in another shape — was named in its place. A doubted candidate of the best
+    one's joint is its rival: that shape is named only where the held-out error prefers it,
+    else both are reported ambiguous, as the unmodified recording reports its structure."""
+    assert ball_in_socket.findings == []
+    (own,) = ball_in_socket.ambiguous
+    assert ("joint_compliance", "panda_joint3") in {(c.effect, c.joint) for c in own.candidates}
+    chain, data, frame = concealed_real.recording("platonics")
+    rng = np.random.default_rng([1, len("gear_h3")])  # the benchmark's seed 1
+    mechanism, _ = concealed_real.concealment("platonics", "gear_h3", 1, 2.0052e-3, rng)
+    readings, _ = conceal(
+        chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
+    )
+    folder = _socket_folder(tmp_path, readings)
+    flags = [*POINT_FLAGS, "--no-detectability", "--seed", "1"]
+    result = discover_ok(folder, flags, tmp_path / "found.json")
+    named = [(f.effect, f.joint, f.variant) for f in result.findings]
+    assert named == [("gear_periodic", "panda_joint2", "h3")], named
+    candidates = {(c.effect, c.joint) for a in result.ambiguous for c in a.candidates}
+    assert ("joint_compliance", "panda_joint3") in candidates, result.ambiguous
+
+
 # --- a spring the first-order term is not (issue 14: no size where it cannot hold) -----------
 
 
