@@ -67,24 +67,59 @@ def test_judging_counts_wrong_names_and_accepts_only_the_right_joint() -> None:
 
 
 def test_real_benchmark_runs_on_a_shipped_recording_and_prints_its_table() -> None:
-    """``concealed_effects.py --real`` on a tiny input: one effect, one seed, in the UR10e
+    """``concealed_effects.py --real`` on a tiny input: one effect, two seeds, in the UR10e
     (21 usable samples: the sign-flip test states sizes there too; the FR3 goes through
-    ``kincal discover`` in tests/service/test_discover_concealed_real.py)."""
+    ``kincal discover`` in tests/service/test_discover_concealed_real.py); the unmodified
+    recording is discovered at both seeds."""
     from benchmarks import concealed_real
 
     lines: list[str] = []
     text, rows, runs = concealed_real.main(
-        seeds=1,
+        seeds=2,
         workers=1,
         recordings=["ur10e"],
         effects=["backlash_direction"],
         sizes=(2.0,),
         echo=lines.append,
     )
-    assert text.startswith("| Recording |") and len(rows) == 1 and len(runs) == 1
+    assert text.startswith("| Recording |") and len(rows) == 1 and len(runs) == 2
     assert {run.recording for run in runs} == {"ur10e"}
     assert all(run.truth > 0 and run.joint is not None for run in runs)
-    assert any("unmodified UR10e: nothing named" in line for line in lines)
+    assert any("unmodified UR10e: nothing named at seeds 0–1" in line for line in lines)
+    assert "and 2 of the unmodified recordings" in text
+
+
+def test_the_recordings_own_names_are_those_of_any_seed() -> None:
+    """A name the unmodified recording gives at one seed only (its held-out folds) is listed
+    with that seed, and the recording then fails its acceptance: it names something."""
+    from benchmarks import concealed_real
+
+    row = {
+        "recording": "tiago",
+        "unmodified_named": [],
+        "unmodified_by_seed": [[0, []], [1, []], [2, ["backlash (load) on arm_4_joint"]]],
+    }
+    assert concealed_real.unmodified_names(row) == ["backlash (load) on arm_4_joint (seed 2)"]
+    assert concealed_real.unmodified_text(row) == (
+        "at seeds 0–2: named backlash (load) on arm_4_joint (seed 2)"
+    )
+    every = {
+        **row,
+        "unmodified_named": ["the frame drifts by 1 mm"],
+        "unmodified_by_seed": [[0, ["thermal_drift"]], [1, ["thermal_drift"]]],
+    }
+    assert concealed_real.unmodified_text(every) == (
+        "at seeds 0–1: named thermal_drift — at seed 0: the frame drifts by 1 mm"
+    )
+    rows = {("tiago", "joint_scale", 2.0): {"detected": 1.0, "wrong_runs": 0.0}}
+    (line,) = [
+        x
+        for x in concealed_real.acceptance(rows, {"tiago": concealed_real.unmodified_names(row)})
+        if x.startswith("- TIAGo")
+    ]
+    assert line.endswith("named backlash (load) on arm_4_joint (seed 2) (fails)"), line
+    old = {"recording": "ur10e", "unmodified_named": []}  # a results file before per-seed runs
+    assert concealed_real.unmodified_text(old) == "nothing named"
 
 
 def test_real_benchmark_runs_on_a_ball_in_socket_recording_and_names_what_it_leaves_out() -> None:
