@@ -252,6 +252,18 @@ def _socket_folder(folder: Path, readings: np.ndarray) -> Path:
     return copy
 
 
+def _concealed_socket_folder(folder: Path, effect: str, joint: int, size: float, seed: int) -> Path:
+    """:func:`_socket_folder` of the platonics readings with ``effect`` concealed on chain joint
+    ``joint`` at ``size`` as the semi-real benchmark's seed ``seed`` conceals it."""
+    chain, data, frame = concealed_real.recording("platonics")
+    rng = np.random.default_rng([seed, len(effect)])
+    mechanism, _ = concealed_real.concealment("platonics", effect, joint, size, rng)
+    readings, _ = conceal(
+        chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
+    )
+    return _socket_folder(folder, readings)
+
+
 def test_a_load_backlash_whose_link_would_float_gets_no_size(
     ball_in_socket: FindingsResult, unmodified: dict[str, FindingsResult]
 ) -> None:
@@ -283,13 +295,7 @@ def test_load_backlash_on_three_samples_of_a_ball_in_socket_gets_no_size(
     size = stated_size(ball_in_socket, "backlash", "load", "panda_joint4")
     assert size.smallest is None
     assert "too few samples to be confirmed on held-out ones" in (size.reason or "")
-    chain, data, frame = concealed_real.recording("platonics")
-    rng = np.random.default_rng([1, len("backlash_load")])  # the benchmark's seed 1
-    mechanism, _ = concealed_real.concealment("platonics", "backlash_load", 3, 2e-3, rng)
-    readings, _ = conceal(
-        chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
-    )
-    folder = _socket_folder(tmp_path, readings)
+    folder = _concealed_socket_folder(tmp_path, "backlash_load", 3, 2e-3, seed=1)
     result = discover_ok(folder, [*POINT_FLAGS, "--no-detectability"], tmp_path / "found.json")
     named = {(f.effect, f.joint, f.variant) for f in result.findings}
     assert named <= {("backlash", "panda_joint4", "load")}, named
@@ -309,13 +315,7 @@ def test_another_shape_of_a_doubted_joint_structure_is_ambiguous_not_named(
     assert ball_in_socket.findings == []
     (own,) = ball_in_socket.ambiguous
     assert ("joint_compliance", "panda_joint3") in {(c.effect, c.joint) for c in own.candidates}
-    chain, data, frame = concealed_real.recording("platonics")
-    rng = np.random.default_rng([1, len("gear_h3")])  # the benchmark's seed 1
-    mechanism, _ = concealed_real.concealment("platonics", "gear_h3", 1, 2.0052e-3, rng)
-    readings, _ = conceal(
-        chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
-    )
-    folder = _socket_folder(tmp_path, readings)
+    folder = _concealed_socket_folder(tmp_path, "gear_h3", 1, 2.0052e-3, seed=1)
     flags = [*POINT_FLAGS, "--no-detectability", "--seed", "1"]
     result = discover_ok(folder, flags, tmp_path / "found.json")
     named = [(f.effect, f.joint, f.variant) for f in result.findings]
