@@ -1003,7 +1003,7 @@ def acceptance(
     lines = [
         f"Acceptance at {multiple:g}× the stated detectability (issue 32): the right joint "
         f"named in ≥ {rate} of runs and nothing else named in ≥ {rate}; the unmodified "
-        "recording names nothing.",
+        "recording names nothing at any of the benchmark's seeds.",
         "",
     ]
 
