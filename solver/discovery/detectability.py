@@ -676,8 +676,7 @@ def calibrated_size(
     reason): inf with the reason when no size up to :data:`MAX_SIZE_FACTOR` · ``start``
     holds."""
     shared = _Replicates(null, basis, replicates, [effect, *(other_effects or [])])
-    trials = _Trials(shared, 0)
-    others: list[_Trials] = []  # built at the first promise check
+    trials, *others = [_Trials(shared, i) for i in range(len(shared.effects))]
     count = len(replicates)
     ceiling = MAX_SIZE_FACTOR * start
 
@@ -700,8 +699,6 @@ def calibrated_size(
     def promised(size: float) -> bool:
         if not rejected_by(size, count):
             return False
-        if not others:
-            others.extend(_Trials(shared, i) for i in range(1, len(shared.effects)))
         return all(t.rejected(b, size, level) for t in others for b in range(count))
 
     if not detected(LIMIT_FACTOR * start):
@@ -773,7 +770,8 @@ class _Replicates:
     them (:func:`calibrated_size`: the weakest direction's and a gear error's other phases):
     their coordinates, norms and per-sample scores, and the sign-flip bank's products with all
     of those scores, computed chunk by chunk as needed in one pass over the bank per chunk
-    (at N = 500 the bank is 65 MB: reading it once per effect cost more than the products)."""
+    (at N = 500 the patterns detection reads are 65 MB: reading them once per effect cost
+    more than the products)."""
 
     def __init__(
         self,

@@ -324,17 +324,14 @@ class _Search:
         every_term = self._library()
         library = [t for t in every_term if t.key not in self.excluded]
         doubted = [t for t in every_term if t.key in self.doubted]
+        tested = tuple(library + doubted)
         design = evaluate(
-            self.ctx,
-            self.fit.terms,
-            self.fit.params,
-            self.fit.rows,
-            candidates=tuple(library + doubted),
+            self.ctx, self.fit.terms, self.fit.params, self.fit.rows, candidates=tested
         )
         null = NullModel.from_fit(self.fit, self.options.seed)
         every = {
             t.key: whitened(design.candidates[t.key], self.fit.weights).reshape(-1, t.size)
-            for t in library + doubted
+            for t in tested
         }
         tests = score_tests(null, every)
         columns = {key: every[key] for key in tests}
