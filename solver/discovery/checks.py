@@ -137,14 +137,19 @@ def absorbed_in_fit(fit: ModelFit, term: Term) -> float:
 
 
 def conditional_test(
-    fit: ModelFit, first: FloatArray, second: FloatArray, blocks: list[slice | list[int]]
+    fit: ModelFit,
+    first: FloatArray,
+    second: FloatArray,
+    blocks: list[slice | list[int]],
+    certify_below: float | None = None,
 ) -> ScoreTest | None:
     """Score test of candidate columns ``first`` with ``second`` in the model as well (both
     whitened, (R, ·)); the noise scale is re-estimated with both fitted (:func:`reweighted`).
-    None when ``second`` (and the model) absorb ``first`` entirely."""
+    None when ``second`` (and the model) absorb ``first`` entirely. ``certify_below``: as
+    :func:`~solver.discovery.scoring.score_test`."""
     base, scale = reweighted(fit, [first, second], blocks)
     given = with_columns(base, second * scale[:, None])
-    return score_test(given, "conditional", first * scale[:, None])
+    return score_test(given, "conditional", first * scale[:, None], certify_below)
 
 
 def lack_of_fit(

@@ -785,6 +785,7 @@ class _Search:
                 collinear=options.collinear_correlation,
                 joint_level=level,
                 confirmation_level=self._confirmation_level(),
+                joint_alpha=options.alpha,
             )
             if options.detectability
             else None,

@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ import pytest
 from benchmarks import concealed_real
 from schemas.discovery import DetectableSize, FindingsResult
 from schemas.robots import example_robot_data_dir
-from solver.discovery import DiscoveryOptions, discover
+from solver.discovery import DiscoveryOptions, DiscoveryResult, discover
 from solver.mechanisms import (
     CameraWarmup,
     Concealment,
@@ -121,7 +122,7 @@ def test_no_bending_size_where_the_structure_would_tilt_beyond_first_order(
     ("name", "effect_name", "effect", "variant", "joint", "seed", "multiple"),
     [
         ("fr3", "backlash_direction", "backlash", "direction", "panda_joint4", 0, 2.0),
-        ("ur10e", "backlash_load", "backlash", "load", "wrist_1_joint", 1, 2.0),
+        ("ur10e", "backlash_load", "backlash", "load", "elbow_joint", 1, 2.0),
         ("ur10e", "backlash_direction", "backlash", "direction", "elbow_joint", 3, 2.0),
         # reported ambiguous (held-out ties with 0.97–0.99-correlated candidates) until the
         # stated size included the separation from the hardest rival
@@ -346,24 +347,63 @@ def test_a_wrist_spring_beyond_the_first_order_model_gets_no_size(tmp_path: Path
         assert "beyond the first-order spring" in (springs[joint].reason or "")
 
 
+def _discover_concealed_tiago(mechanism: Concealment, seed: int, **options: Any) -> DiscoveryResult:
+    """Discovery (no detectability; ``options`` more :class:`DiscoveryOptions`) of the real
+    TIAGo recording with ``mechanism`` concealed in it, the effects its measurement sees."""
+    chain, data, frame = concealed_real.recording("tiago")
+    _, _, effects = concealed_real.read("tiago")
+    readings, poses = conceal(
+        chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
+    )
+    concealed = dataclasses.replace(data, joint_positions=readings, measured_pose=poses)
+    settings = DiscoveryOptions(seed=seed, detectability=False, **options)
+    if effects is not None:
+        settings = dataclasses.replace(settings, effects=effects)
+    return discover(chain, concealed, settings)
+
+
+def test_a_joint_scale_the_joint_test_cannot_tell_from_a_gear_harmonic_gets_no_size(
+    tmp_path: Path,
+) -> None:
+    """Issue 32, through ``kincal discover`` with its defaults: on the real TIAGo (21 samples)
+    arm_6's scale error was stated detectable from 15 %, its separation from the first gear
+    harmonic there calibrated on the model linearised at the fit. Concealed at twice that
+    (the benchmark's seed 4), the refit took up part of the 30 % scale and the joint test
+    with the harmonic in the model gave p = 0.11: reported ambiguous, not named. The size is
+    now stated only where that joint test, on the model refit with the effect at twice the
+    size in the readings, rejects at discovery's level: none here, with the reason."""
+    tiago = concealed_real.RECORDINGS["tiago"]
+    assert tiago.urdf is not None
+    urdf = example_robot_data_dir() / tiago.urdf.removeprefix(concealed_real.ERD)
+    flags: list[object] = [
+        "--urdf", urdf, "--base", "base_footprint", "--tip", "arm_tool_link",
+        "--measurement", "relative-base",
+    ]  # fmt: skip
+    result = discover_ok(concealed_real.DATA / tiago.relative, flags, tmp_path / "tiago.json")
+    scale = stated_size(result, "joint_scale", "", "arm_6_joint")
+    assert scale.smallest is None
+    assert "not told from gear_periodic (h1) on arm_6_joint at twice the size" in (
+        scale.reason or ""
+    )
+    joint = concealed_real.recording("tiago")[0].joint_names.index("arm_6_joint")
+    mechanism, _ = concealed_real.concealment(
+        "tiago", "joint_scale", joint, 0.3052, np.random.default_rng([4, len("joint_scale")])
+    )
+    found = _discover_concealed_tiago(mechanism, seed=4, bootstrap=0)
+    assert all(f.estimate.term.effect != "joint_scale" for f in found.findings)
+    first = found.ambiguous[0]
+    assert sorted(c.term.key for c in first.candidates) == ["gear_periodic:6:h1", "joint_scale:6:"]
+
+
 def test_a_candidate_that_refits_below_zero_gives_its_step_to_the_next_one() -> None:
     """Issue 32: a load backlash of 75 mrad concealed on the real TIAGo's arm_4_joint (twice
     its first stated size). The best-ranked candidate, a bending of the next link, has a
     bending axis that refits below zero: it was accepted at step 1 (held-out 26 → 13 mm),
     pruned from the final model as no spring bends against its load, and the search had
     ended — nothing named. The step now rejects it and tries the next candidate."""
-    chain, data, frame = concealed_real.recording("tiago")
-    _, _, effects = concealed_real.read("tiago")
-    joint = chain.joint_names.index("arm_4_joint")
+    joint = concealed_real.recording("tiago")[0].joint_names.index("arm_4_joint")
     mechanism = Concealment(joints=(DeadBand("arm_4_joint", 0.0753),))
-    readings, poses = conceal(
-        chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
-    )
-    concealed = dataclasses.replace(data, joint_positions=readings, measured_pose=poses)
-    options = DiscoveryOptions(seed=1, detectability=False)
-    if effects is not None:
-        options = dataclasses.replace(options, effects=effects)
-    result = discover(chain, concealed, options)
+    result = _discover_concealed_tiago(mechanism, seed=1)
     refused = [s for s in result.steps if s.action == "rejected_sign"]
     assert refused and refused[0].candidate.startswith("link_bending:5")
     named = [(f.estimate.term.effect, f.estimate.term.joint_index) for f in result.findings]
@@ -388,9 +428,7 @@ def test_a_linear_drift_is_named_linear_whichever_shape_ranked_first() -> None:
     happened to rank first, and its time constant was refined without asking whether the
     linear shape does as well. A warm-up is now named only where it beats the linear drift by
     a likelihood-ratio test."""
-    chain, data, frame = concealed_real.recording("tiago")
-    _, _, effects = concealed_real.read("tiago")
-    joint = chain.joint_names.index("arm_5_joint")
+    joint = concealed_real.recording("tiago")[0].joint_names.index("arm_5_joint")
     mechanism, _ = concealed_real.concealment(
         "tiago",
         "joint_drift",
@@ -398,14 +436,7 @@ def test_a_linear_drift_is_named_linear_whichever_shape_ranked_first() -> None:
         5.88585251774134e-3,  # twice arm_5's stated size: the benchmark's seed-3 run
         np.random.default_rng([3, len("joint_drift")]),
     )
-    readings, poses = conceal(
-        chain, data.joint_positions, data.measured_pose, data.clock()[0], frame, mechanism
-    )
-    concealed = dataclasses.replace(data, joint_positions=readings, measured_pose=poses)
-    options = DiscoveryOptions(seed=3, bootstrap=0, detectability=False)
-    if effects is not None:
-        options = dataclasses.replace(options, effects=effects)
-    result = discover(chain, concealed, options)
+    result = _discover_concealed_tiago(mechanism, seed=3, bootstrap=0)
     named = [
         (f.estimate.term.effect, f.estimate.term.joint_index, f.estimate.term.variant)
         for f in result.findings

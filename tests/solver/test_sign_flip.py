@@ -15,11 +15,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from solver.discovery.detectability import flip_p_bound
 from solver.discovery.fitting import orthonormal_basis
 from solver.discovery.scoring import (
     NullModel,
     flip_batch,
+    flip_p_bound,
     flip_p_exact,
     flip_p_sequential,
     flip_p_sequential_batched,
@@ -67,7 +67,7 @@ def test_hoeffding_bound_is_above_the_exact_p_value(
     n: int, m: int, shift: float, seed: int
 ) -> None:
     """The bound the stated detectability uses to skip enumerating patterns is never below
-    the exact p-value (:func:`solver.discovery.detectability.flip_p_bound`)."""
+    the exact p-value (:func:`solver.discovery.scoring.flip_p_bound`)."""
     scores = np.random.default_rng(seed).normal(shift, 1.0, size=(n, m))
     z, _ = flip_whitened(scores)
     assert flip_p_bound(z) >= flip_p_value(z) - 1e-12
@@ -129,6 +129,27 @@ def test_score_tests_are_the_score_test_of_each_candidate() -> None:
         assert test.robust_statistic == alone.robust_statistic
     zs = [flip_whitened(rng.normal(size=(12, 2)))[0], np.zeros((12, 0))]
     assert flip_p_values(zs) == [flip_p_value(z) for z in zs]  # exact N, and nothing to test
+
+
+@settings(max_examples=30)
+@given(effect=st.floats(0.0, 0.6), level=st.sampled_from([1e-4, 1e-2]), seed=st.integers(0, 99))
+def test_a_certified_score_test_takes_the_same_decision_at_its_level(
+    effect: float, level: float, seed: int
+) -> None:
+    """``certify_below``: the Hoeffding bound stands in for the sign-flip p-value only where it
+    is at or below the level, so the test rejects at that level exactly when the full one
+    does, and the bound is never below the p-value it replaces."""
+    rng = np.random.default_rng(seed)
+    n, d = 40, 3
+    basis = orthonormal_basis(rng.normal(size=(n * d, 4)))
+    columns = rng.normal(size=(n * d, 2))
+    e = rng.normal(size=n * d) + effect * columns[:, 0]
+    null = NullModel(e - basis @ (basis.T @ e), basis, d, 1)
+    full = score_test(null, "c", columns)
+    certified = score_test(null, "c", columns, certify_below=level)
+    assert full is not None and certified is not None
+    assert (certified.p_value <= level) == (full.p_value <= level)
+    assert certified.p_robust >= full.p_robust - 1e-12
 
 
 def _null_p_values(n: int, k: int, reps: int, seed: int) -> np.ndarray:
