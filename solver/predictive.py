@@ -36,7 +36,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.optimize
 import scipy.special
 
 from solver.arrays import FloatArray, IntArray
@@ -237,6 +236,8 @@ def estimate_model_error(
         t_whitened = np.einsum("nda,nd->na", axes, whitened[:, :, 0])
         gradient = projected.sum(0) - (t_whitened**2).sum(0)
         return value, gradient * scale
+
+    import scipy.optimize  # lazy: 0.1 s at start-up, only for this fit (not for kincal check)
 
     answer = scipy.optimize.minimize(
         objective,

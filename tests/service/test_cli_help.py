@@ -97,3 +97,17 @@ def test_the_generated_help_is_what_the_models_say() -> None:
     assert GENERATED.read_text(encoding="utf-8") == generated_source(), (
         "the options, effects or settings changed: run `python service/cli/help_text.py`"
     )
+
+
+def test_the_check_loads_no_optimiser_solver_plots_or_web_stack() -> None:
+    """Issue 33: a 10-pose ``kincal check`` is mostly start-up. The module it runs loads
+    neither scipy's optimisers (0.14 s; the predictive model's error fit imports them when it
+    runs) nor scipy.stats, cvxpy, matplotlib, SQLAlchemy or FastAPI."""
+    script = "import json, sys, service.app.check; print(json.dumps(sorted(sys.modules)))"
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True
+    )
+    loaded = set(json.loads(done.stdout))
+    heavy = {"scipy.optimize", "scipy.stats", "cvxpy", "matplotlib", "sqlalchemy", "fastapi"}
+    assert "service.app.check" in loaded
+    assert not loaded & heavy, sorted(loaded & heavy)
