@@ -153,14 +153,19 @@ def conditional_test(
 
 
 def lack_of_fit(
-    ctx: Context, fit: ModelFit, term: Term, units: dict[int, FloatArray]
+    ctx: Context,
+    fit: ModelFit,
+    term: Term,
+    units: dict[int, FloatArray],
+    certify_below: float | None = None,
 ) -> ScoreTest | None:
     """Does joint j need more than the whole library family of ``term`` (angle or load)?
 
     Tests the extra generic basis about joint j's axis given the model *and* every library
     column of that family on joint j, so two genuine library effects on one joint (e.g.
     harmonics 1 and 2) do not count as a misfit. The noise scale is re-estimated under the
-    alternative (:func:`reweighted`).
+    alternative (:func:`reweighted`). ``certify_below``: as
+    :func:`~solver.discovery.scoring.score_test`.
     """
     j = term.joint_index
     if j is None or j not in units or term.family not in ("angle", "load"):
@@ -179,7 +184,8 @@ def lack_of_fit(
     extra_cols = axis_function_columns(unit, extra, fit.weights)
     base, scale = reweighted(fit, [family_cols, extra_cols], ctx.data.noise_blocks())
     augmented = with_columns(base, family_cols * scale[:, None])
-    return score_test(augmented, f"lack_of_fit:{term.family}:{j}", extra_cols * scale[:, None])
+    key = f"lack_of_fit:{term.family}:{j}"
+    return score_test(augmented, key, extra_cols * scale[:, None], certify_below)
 
 
 def residual_structure(

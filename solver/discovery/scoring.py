@@ -138,15 +138,21 @@ def score_test(
     null: NullModel, key: str, columns: FloatArray, certify_below: float | None = None
 ) -> ScoreTest | None:
     """Test whitened candidate ``columns`` (R, m); None when the model absorbs them entirely.
-    ``certify_below``: where :func:`flip_p_bound` already puts the sign-flip p-value at or
-    below that level, the bound stands in for it (the test's decision at that level is the
-    same, without enumerating sign patterns)."""
+    ``certify_below``: a level at which only the test's decision is needed. Where
+    :func:`flip_p_bound` already puts the sign-flip p-value at or below it, the bound stands
+    in for that p-value; where the classical half is already above it, the classical p-value
+    does (the p-value, the larger of the two, is then above the level whatever the sign-flip
+    half gives). Either way the decision at that level is the full test's, without
+    enumerating sign patterns."""
     pending = _pending_test(null, key, columns)
     if pending is None:
         return None
     test, z = pending
-    if certify_below is not None and (bound := flip_p_bound(z)) <= certify_below:
-        return replace(test, p_robust=bound)
+    if certify_below is not None:
+        if test.p_classical > certify_below:
+            return replace(test, p_robust=test.p_classical)
+        if (bound := flip_p_bound(z)) <= certify_below:
+            return replace(test, p_robust=bound)
     return replace(test, p_robust=flip_p_value(z, null.flip_seed))
 
 
