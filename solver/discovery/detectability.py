@@ -204,9 +204,10 @@ def smallest_detectable(
     the separation size from the hardest other term (module docstring); None: detection only.
     ``confirmation_level``: the level of discovery's held-out confirmation; no size is stated
     for a term whose effect could not pass it at any size (:func:`best_confirmation_p`).
-    ``joint_alpha``: the level of discovery's joint test itself (its α); a joint-angle term's
-    size is then stated only where that test separates it from the hardest other term on the
-    model refit with the effect at twice the size in the readings (:func:`refit_holds`)."""
+    ``joint_alpha``: discovery's α, the level of its joint and lack-of-fit tests; a joint-angle
+    term's size is then stated only where, on the model refit with the effect at twice the size
+    in the readings, the lack-of-fit test does not reject and the joint test separates the term
+    from the hardest other term (:func:`refit_holds`)."""
     if not library:
         return []
     design = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates=tuple(library))
