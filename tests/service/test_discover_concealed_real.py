@@ -25,6 +25,7 @@ from solver.mechanisms import (
     EncoderWarmup,
     conceal,
 )
+from tests.conftest import computed_once
 from tests.service.cli_support import discover_ok, write_recording
 
 ROBOT_FLAGS: dict[str, list[object]] = {
@@ -330,13 +331,17 @@ def test_another_shape_of_a_doubted_joint_structure_is_ambiguous_not_named(
 
 @pytest.fixture(scope="module")
 def talos(tmp_path_factory: pytest.TempPathFactory) -> FindingsResult:
-    """``kincal discover`` of the shipped TALOS recording with its defaults."""
+    """``kincal discover`` of the shipped TALOS recording with its defaults, once per test run
+    however many xdist workers its tests land on (:func:`tests.conftest.computed_once`)."""
     recording = concealed_real.RECORDINGS["talos"]
     assert recording.urdf is not None
     urdf = example_robot_data_dir() / recording.urdf.removeprefix(concealed_real.ERD)
     flags: list[object] = ["--urdf", urdf, "--base", "base_link", "--tip", "gripper_left_base_link"]
-    folder = tmp_path_factory.mktemp("talos")
-    return discover_ok(concealed_real.DATA / recording.relative, flags, folder / "talos.json")
+
+    def run(folder: Path) -> FindingsResult:
+        return discover_ok(concealed_real.DATA / recording.relative, flags, folder / "talos.json")
+
+    return computed_once(tmp_path_factory, "discover-talos", run)
 
 
 def test_a_wrist_spring_beyond_the_first_order_model_gets_no_size(talos: FindingsResult) -> None:
