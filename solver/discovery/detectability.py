@@ -148,6 +148,11 @@ class DetectableSize:
     reason: str = ""  # why no size is stated (smallest infinite)
     separated_from: Term | None = None  # the rival that set the size (separation, not test)
 
+    def withdrawn(self, reason: str, rival: Term | None = None) -> DetectableSize:
+        """This term's entry with no size stated, ``reason`` saying why (``rival``: the term it
+        is not told from, if that is the reason)."""
+        return replace(self, smallest=np.inf, reason=reason, separated_from=rival)
+
 
 def noncentrality_needed(m: int, dof: int, level: float, power: float) -> float:
     """λ* with P(F(m, dof, λ*) > F_{1−level}(m, dof)) = power."""
@@ -308,7 +313,7 @@ def first_order_backlash(ctx: Context, size: DetectableSize) -> DetectableSize:
         f"its gravity load on {reversed_share:.0%} of the samples, where the link floats "
         f"(limit {LOAD_SIGN_FLIP_LIMIT:.0%})"
     )
-    return replace(size, smallest=np.inf, reason=reason, separated_from=None)
+    return size.withdrawn(reason)
 
 
 def first_order_spring(ctx: Context, size: DetectableSize) -> DetectableSize:
@@ -331,7 +336,7 @@ def _within_first_order(size: DetectableSize, gain: float, reason: str) -> Detec
     size, with ``reason``."""
     if gain <= SPRING_GAIN_LIMIT:
         return size
-    return replace(size, smallest=np.inf, reason=reason, separated_from=None)
+    return size.withdrawn(reason)
 
 
 def flex_moment_nm(ctx: Context, term: Term) -> float:
@@ -428,7 +433,7 @@ def refit_holds(
             f"model refit on them keeps {kept:.0%} of the signal the size rests on "
             f"(limit {REFIT_KEPT_LIMIT:.0%})"
         )
-        return replace(size, smallest=np.inf, reason=reason, separated_from=None)
+        return size.withdrawn(reason)
     if joint_test is None:
         return size
     # both tests decide at the level without enumerating sign patterns where they can
@@ -444,7 +449,7 @@ def refit_holds(
             f"lack-of-fit test on the refit model gives p = {_p(exact):.2g}, below its "
             f"level {level:.2g}"
         )
-        return replace(size, smallest=np.inf, reason=reason, separated_from=None)
+        return size.withdrawn(reason)
     if rival is None:
         return size
     other = whitened(design.candidates[rival.key], fit.weights).reshape(-1, rival.size)
@@ -457,7 +462,7 @@ def refit_holds(
         "effect at twice it in the readings, discovery's joint test with that term in the "
         f"refit model gives p = {p_value:.2g}, not below its level {level:.2g}"
     )
-    return replace(size, smallest=np.inf, reason=reason, separated_from=rival)
+    return size.withdrawn(reason, rival)
 
 
 def _p(test: ScoreTest | None) -> float:
@@ -594,7 +599,7 @@ def separated(
         return size
     if not np.isfinite(needed):
         reason = f"not told from {describe(rival, names)}: {why}"
-        return replace(size, smallest=np.inf, reason=reason, separated_from=rival)
+        return size.withdrawn(reason, rival)
     return replace(size, smallest=needed, separated_from=rival)
 
 
