@@ -129,22 +129,8 @@ class Upload:
 
 
 def public(row: Dataset) -> DatasetPublic:
-    return DatasetPublic(
-        id=row.id,
-        name=row.name,
-        robot=row.robot,
-        robot_id=row.robot_id,
-        base_frame=row.base_frame,
-        tip_frame=row.tip_frame,
-        joint_names=row.joint_names,
-        n_samples=row.n_samples,
-        position_only=row.position_only,
-        time_start_s=row.time_start_s,
-        time_end_s=row.time_end_s,
-        content_sha256=row.content_sha256,
-        size_bytes=row.size_bytes,
-        created_at=row.created_at,
-    )
+    """The stored row as the API shows it: every field of ``DatasetPublic`` read by name."""
+    return DatasetPublic.model_validate(row, from_attributes=True)
 
 
 def content_sha256(dataset: PoseDataset, robot: RobotRef) -> str:
