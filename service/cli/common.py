@@ -4,7 +4,7 @@ several commands take, reading and writing the documents they exchange, the exec
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, TypeVar
@@ -368,20 +368,23 @@ class Outputs:
         return "\n".join(lines) if self.written else "wrote: nothing"
 
 
-def robot_flags(
-    robot: str | None, urdf: Path | None, base: str | None, tip: str | None
-) -> dict[str, object]:
-    """The robot's flags by name, for :func:`refuse_flags` of a mode that takes its robot
-    from a result."""
-    return {"--robot": robot, "--urdf": urdf, "--base": base, "--tip": tip}
-
-
-def refuse_flags(flags: Mapping[str, object], why: str) -> None:
-    """:class:`KincalError` naming the flags of ``flags`` (flag -> value, None or False when
-    not given) that were given, with ``why`` they do not apply."""
-    given = [flag for flag, value in flags.items() if value is not None and value is not False]
+def refuse_options_outside(ctx: typer.Context, allowed: Collection[str], why: str) -> None:
+    """:class:`KincalError` naming every option of the command that was given (on the command
+    line or through the environment) although its mode takes only the parameters ``allowed``
+    (Python names), with ``why`` they do not apply."""
+    given = [
+        param.opts[0]
+        for param in ctx.command.params
+        if param.name not in allowed and _given(ctx.get_parameter_source(param.name or ""))
+    ]
     if given:
         raise KincalError(f"{', '.join(given)}: {why}; drop them")
+
+
+def _given(source: Any) -> bool:
+    """Whether click's ``ParameterSource`` of a value says the user gave it (typer vendors its
+    own click, so the enum is compared by name)."""
+    return source is not None and source.name not in ("DEFAULT", "DEFAULT_MAP")
 
 
 def out_dir_for(out_dir: Path | None, recording: Path | None, fallback: str) -> Path:

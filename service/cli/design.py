@@ -20,8 +20,7 @@ from service.cli.common import (
     out_dir_for,
     output_option,
     read_result,
-    refuse_flags,
-    robot_flags,
+    refuse_options_outside,
 )
 from service.cli.flags import calibration_options, numbers, read_config
 from solver.errors import KincalError
@@ -101,6 +100,7 @@ def _cone(text: str) -> dict[str, object]:
 
 
 def design(
+    ctx: typer.Context,
     output: DesignOut = None,
     out_dir: OutDirOpt = None,
     robot: RobotOpt = None,
@@ -214,25 +214,10 @@ def design(
     from service.app import design as designs
 
     if check is not None:
-        calibration_only = robot_flags(robot, urdf, base, tip) | {
-            "--poses": poses,
-            "--criterion": criterion,
-            "--stage": stage,
-            "--measurement": measurement,
-            "--point-distance": point_distance,
-            "--marker-offsets": marker_offsets,
-            "--min-spacing": min_spacing,
-            "--noise-mm": noise_mm,
-            "--noise-deg": noise_deg,
-            "--prior-perturbation-deg": prior_perturbation_deg,
-            "--method": method,
-            "--allow-repeats": allow_repeats,
-            "--task": task,
-            "--recording": recording,
-            "--config": config,
-        }
-        refuse_flags(
-            calibration_only,
+        refuse_options_outside(
+            ctx,
+            {"check", "result", "candidates", "n_candidates", "seed", "box", "cone"}
+            | {"out_dir", "output", "poses_csv"},
             "--check designs check poses of --result; these belong to a calibration design",
         )
         if result is None:

@@ -32,8 +32,7 @@ from service.cli.common import (
     out_dir_for,
     output_option,
     read_result,
-    refuse_flags,
-    robot_flags,
+    refuse_options_outside,
 )
 from service.cli.flags import calibration_options, option_help, read_config
 from solver.errors import KincalError
@@ -45,6 +44,7 @@ FleetOut = Annotated[Path | None, output_option("fleet.json", "The fleet summary
 
 
 def fleet(
+    ctx: typer.Context,
     directory: Annotated[
         Path,
         typer.Argument(
@@ -150,23 +150,9 @@ def fleet(
     from service.app import fleet as fleet_mode
 
     if check is not None:
-        calibration_only = robot_flags(robot, urdf, base, tip) | {
-            "--config": config,
-            "--compliant-joints": compliant_joints,
-            "--rigid": rigid,
-            "--outlier-rule": outlier_rule,
-            "--outlier-sigma": outlier_sigma,
-            "--covariance": covariance,
-            "--estimator": estimator,
-            "--heldout": heldout,
-            "--marker": marker,
-            "--executor": executor,
-            "--dask": dask,
-            "--workers": workers,
-            "--results-dir": results_dir,
-        }
-        refuse_flags(
-            calibration_only,
+        refuse_options_outside(
+            ctx,
+            {"directory", "check", "level", "output", "out_dir"},
             "--check checks each unit against its result; these belong to calibrating a fleet",
         )
         fleet_check(directory, check, level, output, out_dir)

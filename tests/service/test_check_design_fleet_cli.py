@@ -92,6 +92,11 @@ def test_design_check_needs_a_result_and_three_poses(
 ) -> None:
     code, _, stderr = run(["design", "--check", 10, "--robot", "panda"], capsys, monkeypatch)
     assert code == 2 and "--robot: --check designs check poses of --result" in stderr
+    # A flag given at its default value is given all the same.
+    code, _, stderr = run(
+        ["design", "--check", 10, "--no-allow-repeats", "--poses", 25], capsys, monkeypatch
+    )
+    assert code == 2 and "--poses, --allow-repeats: --check designs check poses" in stderr
     code, _, stderr = run(["design", "--check", 10], capsys, monkeypatch)
     assert code == 2 and "give --result" in stderr
     code, _, stderr = run(
@@ -158,3 +163,12 @@ def test_a_unit_without_its_result_or_of_another_robot_is_named(
     code, _, stderr = run(args, capsys, monkeypatch)
     assert code == 2 and "unit(s) arm_c: a calibration result" in stderr
     assert "no check recording" in stderr
+
+
+def test_a_fleet_check_refuses_the_flags_of_calibrating_a_fleet(
+    tmp_path, capsys, monkeypatch
+) -> None:
+    args = ["fleet", tmp_path, "--check", tmp_path, "--z-threshold", 3.5, "--robot", "panda"]
+    code, _, stderr = run(args, capsys, monkeypatch)
+    assert code == 2 and len(stderr.strip().splitlines()) == 1
+    assert "--robot, --z-threshold: --check checks each unit against its result" in stderr
