@@ -107,18 +107,31 @@ class Scenario:
     random_joint: int | None = None  # floating: routed to random effects here
 
 
+NAMED_AS: dict[str, tuple[str, str]] = {
+    "gear_periodic": ("gear_periodic", "amplitude_rad"),
+    "backlash_load": ("backlash", "backlash_rad"),
+    "backlash_direction": ("backlash", "backlash_rad"),
+    "joint_scale": ("joint_scale", "scale_error"),
+    "drift_linear": ("thermal_drift", "drift_rad_per_s"),
+}
+"""A hidden joint effect's kind -> the library family discovery should name and that family's
+parameter holding the effect's size."""
+
+
 def _joint_effect(
     group: str,
     description: str,
     effect: JointEffect,
-    named: Expected,
-    parameter: str,
+    joints: tuple[str, ...],
     hidden: dict[str, Any] | None = None,
     random_joint: int | None = None,
 ) -> Scenario:
-    """A scenario hiding the one joint effect ``effect`` (with the simulation fields
-    ``hidden``), which discovery should name ``named``, its true ``parameter`` the effect's
-    size: stated once, so the truth cannot disagree with what was hidden."""
+    """A scenario hiding the one joint effect ``effect`` on one of ``joints`` (with the
+    simulation fields ``hidden``), which discovery should name by its family on that joint
+    (:data:`NAMED_AS`), the family's parameter the effect's size: stated once, so the truth
+    cannot disagree with what was hidden."""
+    family, parameter = NAMED_AS[effect.kind]
+    named = (family, joints.index(effect.joint))
     return Scenario(
         group,
         description,
@@ -177,50 +190,43 @@ def scenarios(joints: tuple[str, ...]) -> dict[str, Scenario]:
             "single",
             "joint 4 gear error, 1st harmonic, 0.1 mrad",
             JointEffect(j[3], "gear_periodic", 1e-4, harmonic=1),
-            ("gear_periodic", 3),
-            "amplitude_rad",
+            j,
         ),
         "gear_h2": _joint_effect(
             "single",
             "joint 3 gear error, 2nd harmonic, 0.05 mrad",
             gear,
-            ("gear_periodic", 2),
-            "amplitude_rad",
+            j,
         ),
         "gear_h3": _joint_effect(
             "single",
             "joint 2 gear error, 3rd harmonic, 0.05 mrad",
             JointEffect(j[1], "gear_periodic", 5e-5, harmonic=3),
-            ("gear_periodic", 1),
-            "amplitude_rad",
+            j,
         ),
         "backlash": _joint_effect(
             "single",
             "joint 2 backlash 0.2 mrad, taken up by the load sign",
             JointEffect(j[1], "backlash_load", 2e-4),
-            ("backlash", 1),
-            "backlash_rad",
+            j,
         ),
         "backlash_direction": _joint_effect(
             "single",
             "joint 3 backlash 0.2 mrad, taken up by the approach direction",
             JointEffect(j[2], "backlash_direction", 2e-4),
-            ("backlash", 2),
-            "backlash_rad",
+            j,
         ),
         "joint_scale": _joint_effect(
             "single",
             "joint 2 gear ratio off by 1e-4",
             JointEffect(j[1], "joint_scale", 1e-4),
-            ("joint_scale", 1),
-            "scale_error",
+            j,
         ),
         "drift_shuffled": _joint_effect(
             "single",
             "joint 2 zero drifts 1.8 mrad/h, shuffled acquisition order",
             JointEffect(j[1], "drift_linear", 5e-7),
-            ("thermal_drift", 1),
-            "drift_rad_per_s",
+            j,
         ),
         "camera_drift": Scenario(
             "single",
@@ -268,23 +274,20 @@ def scenarios(joints: tuple[str, ...]) -> dict[str, Scenario]:
             "hard",
             "joint 2 backlash 0.03 mrad by load sign (about the noise)",
             JointEffect(j[1], "backlash_load", 3e-5),
-            ("backlash", 1),
-            "backlash_rad",
+            j,
         ),
         "gear_h2_restricted": _joint_effect(
             "hard",
             "joint 3 gear error (2nd harmonic, 0.05 mrad), its travel restricted to 15 %",
             gear,
-            ("gear_periodic", 2),
-            "amplitude_rad",
+            j,
             hidden={"joint_range_fraction": restricted},
         ),
         "drift_blocked": _joint_effect(
             "hard",
             "joint 2 drift 1.8 mrad/h, samples recorded in order of joint 2's angle",
             JointEffect(j[1], "drift_linear", 5e-7),
-            ("thermal_drift", 1),
-            "drift_rad_per_s",
+            j,
             hidden={"order_by_joint": j[1]},
         ),
         "two_effects": Scenario(
@@ -325,8 +328,7 @@ def scenarios(joints: tuple[str, ...]) -> dict[str, Scenario]:
             "random",
             "joint 2 backlash 2 mrad, floating where |τ| < 3 N·m",
             JointEffect(j[1], "backlash_load", 2e-3, float_below_nm=3.0),
-            ("backlash", 1),
-            "backlash_rad",
+            j,
             random_joint=1,
         ),
     }
