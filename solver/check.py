@@ -39,8 +39,9 @@ import scipy.special
 
 from solver import lie
 from solver.arrays import FloatArray, IntArray
+from solver.distributions import chi2_quantile
 from solver.model import KinematicChain
-from solver.predictive import chi2_quantile, mahalanobis_squared
+from solver.predictive import mahalanobis_squared
 
 MIN_POSES = 3
 """Fewer usable check poses than this: the verdict is inconclusive."""
@@ -87,7 +88,7 @@ def whitening(covariance: FloatArray) -> FloatArray:
 
 def chi2_survival(statistic: float, dof: int) -> float:
     """``P(χ²_dof > statistic)`` (scipy.special, not scipy.stats: see
-    :func:`solver.predictive.chi2_quantile`)."""
+    :mod:`solver.distributions`)."""
     if dof <= 0:
         return 1.0
     return float(scipy.special.gammaincc(0.5 * dof, 0.5 * max(statistic, 0.0)))

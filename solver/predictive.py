@@ -36,9 +36,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.special
 
 from solver.arrays import FloatArray, IntArray
+from solver.distributions import chi2_quantile
 from solver.kinematics import ChainParameters, evaluate_chain, stacked_jacobian
 from solver.model import KinematicChain
 from solver.small_spd import spd_factors
@@ -316,12 +316,6 @@ class Coverage:
     def at(self, level: float) -> float:
         """The observed share inside the ``level`` ellipsoid."""
         return self.observed[self.expected.index(level)]
-
-
-def chi2_quantile(level: float, dimension: int) -> float:
-    """The ``level`` quantile of χ²_``dimension`` (``scipy.stats.chi2.ppf``'s formula, without
-    importing scipy.stats, which costs ~0.5 s at start-up)."""
-    return float(2.0 * scipy.special.gammaincinv(0.5 * dimension, level))
 
 
 def coverage(

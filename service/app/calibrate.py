@@ -113,7 +113,7 @@ def check_calibration(
     discovery must be of this robot's joints and the options it sets must be left at their
     defaults."""
     if findings is not None:
-        # only with a carried discovery: it imports scipy.stats
+        # only with a carried discovery: it imports the discovery modules
         from service.app import discover_carry
 
         discover_carry.findings_chain(findings, robot)

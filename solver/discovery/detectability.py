@@ -75,7 +75,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.optimize
 import scipy.special
-import scipy.stats
 from numpy.typing import NDArray
 
 from solver.arrays import FloatArray
@@ -96,6 +95,7 @@ from solver.discovery.scoring import (
     tie_threshold,
     unexplained_basis,
 )
+from solver.distributions import f_isf, ncf_sf, t_sf
 from solver.errors import CalibrationError
 
 DETECTION_POWER = 0.8
@@ -156,10 +156,10 @@ class DetectableSize:
 
 def noncentrality_needed(m: int, dof: int, level: float, power: float) -> float:
     """λ* with P(F(m, dof, λ*) > F_{1−level}(m, dof)) = power."""
-    critical = float(scipy.stats.f.isf(level, m, dof))
+    critical = f_isf(level, m, dof)
 
     def shortfall(lam: float) -> float:
-        return float(scipy.stats.ncf.sf(critical, m, dof, lam)) - power
+        return ncf_sf(critical, m, dof, lam) - power
 
     high = 1.0
     while shortfall(high) < 0.0:
@@ -574,7 +574,7 @@ def best_confirmation_p(effect: FloatArray) -> float:
     if spread == 0.0:
         return 0.0  # the same gain on every sample: any size is confirmed
     t = float(energy.mean() / (spread / np.sqrt(n)))
-    return float(scipy.stats.t.sf(t, n - 1))
+    return t_sf(t, n - 1)
 
 
 def separated(

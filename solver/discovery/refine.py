@@ -5,8 +5,6 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-import scipy.stats
-
 from solver.discovery.features import deadzones
 from solver.discovery.fitting import (
     Context,
@@ -17,6 +15,7 @@ from solver.discovery.fitting import (
     fit_with_noise,
 )
 from solver.discovery.library import Term, backlash_load_term, drift_term
+from solver.distributions import chi2_isf
 from solver.errors import CalibrationError
 
 
@@ -125,7 +124,7 @@ def linear_unless_warmup_earns_it(
         linear_fit = fit_model(ctx, linear_terms, start, fit.rows, fit.weights)
     except CalibrationError:
         return term, terms, fit  # no linear fit to compare with: the warm-up as fitted
-    if linear_fit.cost - fit.cost > float(scipy.stats.chi2.isf(alpha, 1)):
+    if linear_fit.cost - fit.cost > chi2_isf(alpha, 1):
         return term, terms, fit
     refit = fit_with_noise(ctx, linear_terms, linear_fit.params, fit.rows, fit.weights, rounds=1)
     return linear, linear_terms, refit

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.stats
 
 from solver.arrays import FloatArray, IntArray
 from solver.discovery.design import SeparatingPoses
@@ -13,6 +12,7 @@ from solver.discovery.detectability import DetectableSize
 from solver.discovery.fitting import ModelParameters, Unseen
 from solver.discovery.health import HealthReport
 from solver.discovery.library import Term
+from solver.distributions import t_sf
 
 
 @dataclass(frozen=True)
@@ -40,7 +40,7 @@ class HeldoutError:
         if gain.size < 3 or float(np.std(gain)) == 0.0:
             return True
         t = float(gain.mean() / (gain.std(ddof=1) / np.sqrt(gain.size)))
-        return float(scipy.stats.t.sf(t, gain.size - 1)) < level
+        return t_sf(t, gain.size - 1) < level
 
     def confirmed_by(self, other: HeldoutError, level: float) -> bool:
         """``other`` (the model with one more term) is confirmed on held-out samples: it is

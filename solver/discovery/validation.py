@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import scipy.stats
 
 from solver.arrays import BoolArray, FloatArray, IntArray
 from solver.calibration import pose_errors
@@ -18,6 +17,7 @@ from solver.discovery.fitting import (
 )
 from solver.discovery.library import Term
 from solver.discovery.results import HeldoutError
+from solver.distributions import chi2_isf, chi2_quantile
 from solver.errors import CalibrationError
 from solver.measurement.fit import row_errors
 
@@ -114,8 +114,8 @@ def _screen_limit(ctx: Context, level: float) -> tuple[float, float]:
     """(χ²_d quantile at ``level / N``, χ²_d median) of :func:`screen_outliers`."""
     d = ctx.data.rows
     return (
-        float(scipy.stats.chi2.isf(level / ctx.data.n_samples, d)),
-        float(scipy.stats.chi2.median(d)),
+        chi2_isf(level / ctx.data.n_samples, d),
+        chi2_quantile(0.5, d),
     )
 
 

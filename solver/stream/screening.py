@@ -28,6 +28,7 @@ from solver.batch_chain import (
 from solver.calibration import (
     within_spread,
 )
+from solver.distributions import f_isf
 from solver.kinematics import ChainParameters
 from solver.stream.chunks import Block, StreamProblem, cache_masks, cached_masks, take_residuals
 
@@ -73,8 +74,7 @@ def family_wise_t2(level: float, n_rows: int, dim: int, dof: float) -> float:
     inflated only by the covariance estimate's own error; T² (33.2) does not."""
     alpha = level / n_rows
     dof = max(dof, dim + 1.0)
-    f_isf = special.fdtri(dim, dof - dim + 1, 1.0 - alpha)  # scipy.stats.f.isf's formula
-    return float(dof * dim / (dof - dim + 1) * f_isf)
+    return float(dof * dim / (dof - dim + 1) * f_isf(alpha, dim, dof - dim + 1))
 
 
 MODEL_RULE_MAX_SHARE = 0.5
