@@ -108,9 +108,16 @@ def conceal_frame(
 ) -> PoseDataset:
     """The robot base moved by ``twist`` in its own frame (``T_mb ← T_mb Exp(δ)``, with
     ``T_mb = L_1 N_1⁻¹`` of the calibrated chain), or the tool bumped in its frame
-    (``X ← X Exp(δ)``)."""
+    (``X ← X Exp(δ)``; a recording of positions has no measured tool orientation: there the
+    tool frame is the calibrated model's at each pose, as the check's tool candidate takes it,
+    and the bump moves the marker by ``R(q) δ_t``)."""
     poses = measured(dataset)
     if kind == "tool":
+        if dataset.quaternion_xyzw is None:
+            predicted = result_json.predict_poses(
+                result, dataset.joint_positions, dataset.payload_kg
+            )
+            poses[:, :3, :3] = predicted[:, :3, :3]
         return with_poses(dataset, poses @ lie.se3_exp(twist))
     chain, params = result_json.result_chain(result)
     base = params.links[0] @ lie.inverse(chain.nominal_links[0])
