@@ -11,6 +11,7 @@ from service.cli.common import (
     OUTPUT,
     BaseOpt,
     DataArg,
+    DhOpt,
     MarkerOpt,
     MeasurementOpt,
     OutDirOpt,
@@ -39,6 +40,7 @@ def discover(
     urdf: UrdfOpt = None,
     base: BaseOpt = None,
     tip: TipOpt = None,
+    dh: DhOpt = None,
     compliant_joints: Annotated[
         str | None, typer.Option(help="Joints your model already treats as elastic.")
     ] = None,
@@ -80,7 +82,7 @@ def discover(
 
     from schemas.discovery import DiscoveryOptions
 
-    description = _robot(robot, urdf, base, tip)
+    description = _robot(robot, urdf, base, tip, dh)
     outputs = Outputs(out_dir_for(out_dir, data, "discovery"))
     output = outputs.path(output, "findings.json", "kincal.findings/1")
     report_path = None if report is None else outputs.path(report, "findings.html", None)

@@ -13,7 +13,7 @@ from schemas.discovery import EFFECTS, DiscoveryOptions, FindingsResult
 from service.app import discover as discovery
 from service.app import simulate as scenarios
 from service.render.findings import summary
-from tests.conftest import chain, robot
+from tests.conftest import REAL_DATA, chain, robot
 from tests.service.cli_support import run, run_ok
 
 
@@ -292,3 +292,33 @@ def test_findings_state_the_smallest_detectable_size_in_json_cli_and_html(
     page = render_discovery_report(result, {})
     assert "Smallest detectable effects" in page and "nan" not in page
     assert "harmonic = 2 ±" not in page and "harmonic = 2" in page
+
+
+def test_discover_takes_a_dh_table_as_calibrate_does(tmp_path, capsys, monkeypatch) -> None:
+    """The real 2-axis positioner has no URDF: ``--dh`` gives the findings that the URDF
+    ``kincal dh-urdf`` writes from the same table give (only the robot's name differs)."""
+    folder = REAL_DATA / "industrial_calibration_2axis_positioner"
+    recording, table = folder / "measurements.yaml", folder / "positioner_dh.yaml"
+    urdf = tmp_path / "positioner.urdf"
+    assert run(["dh-urdf", table, "-o", urdf], capsys, monkeypatch)[0] == 0
+    quick = ["--no-detectability", "--no-plots"]
+    code, stdout, _ = run(
+        ["discover", recording, "--dh", table, "-o", tmp_path / "dh.json", *quick],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 0 and stdout.rstrip().splitlines()[-1].startswith("verdict: ")
+    by_urdf = ["--urdf", urdf, "--base", "base_link", "--tip", "tool0"]
+    code, _, _ = run(
+        ["discover", recording, *by_urdf, "-o", tmp_path / "urdf.json", *quick],
+        capsys,
+        monkeypatch,
+    )
+    assert code == 0
+    found = [json.loads((tmp_path / name).read_text()) for name in ("dh.json", "urdf.json")]
+    for document in found:
+        for varying in ("created_utc", "elapsed_s"):
+            document.pop(varying)
+        document["robot"].pop("name")
+    assert found[0] == found[1]
+    assert found[0]["findings"]  # the recording's own finding, named through either robot
