@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import scipy.special
 
-# scipy.stats.ncf.sf evaluates this ufunc of scipy.special (Boost's non-central F); the public
-# ``ncfdtr`` is another implementation, which differs in the last bits of 1 − CDF.
-_NCF_SF = scipy.special._ufuncs._ncf_sf
+# scipy.stats.ncf.sf evaluates this private ufunc of scipy.special (Boost's non-central F); the
+# public ``ncfdtr`` is another implementation, which differs in the last bits of 1 − CDF. A SciPy
+# without it (the lock file pins one with it) falls back on scipy.stats itself.
+_NCF_SF = getattr(scipy.special._ufuncs, "_ncf_sf", None)
 
 
 def chi2_quantile(level: float, dof: float) -> float:
@@ -36,4 +37,8 @@ def f_isf(alpha: float, dfn: float, dfd: float) -> float:
 def ncf_sf(x: float, dfn: float, dfd: float, noncentrality: float) -> float:
     """``P(F(dfn, dfd, λ) > x)`` of the non-central F with λ = ``noncentrality``
     (``scipy.stats.ncf.sf``)."""
+    if _NCF_SF is None:
+        import scipy.stats
+
+        return float(scipy.stats.ncf.sf(x, dfn, dfd, noncentrality))
     return float(_NCF_SF(x, dfn, dfd, noncentrality))

@@ -33,6 +33,13 @@ def test_every_function_is_scipy_stats_to_the_bit(
     )
 
 
+def test_without_the_private_ufunc_the_non_central_f_comes_from_scipy_stats(monkeypatch) -> None:
+    monkeypatch.setattr(distributions, "_NCF_SF", None)
+    for x, m, dof, noncentrality in ((2.1, 1, 40, 3.0), (0.7, 2, 300, 12.5), (9.0, 6, 17, 0.0)):
+        expected = scipy.stats.ncf.sf(x, m, dof, noncentrality)
+        assert distributions.ncf_sf(x, m, dof, noncentrality) == expected
+
+
 def test_kincal_discover_does_not_import_scipy_stats(tmp_path) -> None:
     """A whole ``kincal discover`` of a shipped recording, in a fresh interpreter."""
     recording = REAL_DATA / "figaroh_ur10_experiment" / "calibration.csv"
