@@ -39,7 +39,7 @@ import scipy.special
 
 from solver import lie
 from solver.arrays import FloatArray, IntArray
-from solver.distributions import chi2_quantile
+from solver.distributions import chi2_quantile, chi2_survival
 from solver.model import KinematicChain
 from solver.predictive import mahalanobis_squared
 
@@ -84,14 +84,6 @@ def whitening(covariance: FloatArray) -> FloatArray:
     values, vectors = np.linalg.eigh(covariance)
     keep = values > EIGEN_CUT * max(float(values.max()), 0.0)
     return np.asarray((vectors[:, keep] / np.sqrt(values[keep])).T, dtype=float)
-
-
-def chi2_survival(statistic: float, dof: int) -> float:
-    """``P(χ²_dof > statistic)`` (scipy.special, not scipy.stats: see
-    :mod:`solver.distributions`)."""
-    if dof <= 0:
-        return 1.0
-    return float(scipy.special.gammaincc(0.5 * dof, 0.5 * max(statistic, 0.0)))
 
 
 def chi2_log_survival(statistic: float, dof: int) -> float:

@@ -1,8 +1,8 @@
 """Tail probabilities and quantiles of the test statistics' distributions, each the formula
 scipy.stats uses for it (``scipy.stats.<distribution>._sf`` and friends), computed with
-scipy.special: importing scipy.stats costs ~0.5 s at every start of ``kincal discover``,
-``check`` and ``calibrate``, and the numbers are the same to the last bit
-(tests/solver/test_distributions.py compares them with scipy.stats)."""
+scipy.special: importing scipy.stats would cost ~0.5 s at every start of ``kincal discover``
+(``check`` and ``calibrate`` do not load it either), and the numbers are the same to the last
+bit (tests/solver/test_distributions.py compares them with scipy.stats)."""
 
 from __future__ import annotations
 
@@ -17,6 +17,13 @@ _NCF_SF = getattr(scipy.special._ufuncs, "_ncf_sf", None)
 def chi2_quantile(level: float, dof: float) -> float:
     """The ``level`` quantile of χ²_dof (``scipy.stats.chi2.ppf``; level 0.5: the median)."""
     return float(2.0 * scipy.special.gammaincinv(0.5 * dof, level))
+
+
+def chi2_survival(statistic: float, dof: int) -> float:
+    """``P(χ²_dof > statistic)`` (``scipy.stats.chi2.sf``); 1 with no degree of freedom."""
+    if dof <= 0:
+        return 1.0
+    return float(scipy.special.gammaincc(0.5 * dof, 0.5 * max(statistic, 0.0)))
 
 
 def chi2_isf(alpha: float, dof: float) -> float:
