@@ -233,7 +233,7 @@ def same_parameters_heldout(
             q[train],
             pose[train],
             loads[train],
-            measurement=pose_measurement(rotation=not dataset.is_position_only),
+            measurement=pose_measurement(rotation=dataset.measures_rotation),
             options=options,
         )
         predicted = forward_kinematics(chain, fit.params, q[test], loads[test])

@@ -295,7 +295,7 @@ def load_rows(recording: Recording) -> tuple[KinematicChain, MeasurementRows, Fu
     )
     q = dataset.joint_positions
     pose = lie.pose_matrix(dataset.position_m, dataset.quaternion_xyzw)
-    measurement = Position() if dataset.is_position_only else FullPose()
+    measurement = FullPose() if dataset.measures_rotation else Position()
     return chain, MeasurementRows.of(q, gravity_loads(chain, q), pose), measurement
 
 

@@ -130,7 +130,10 @@ class DatasetPublic(BaseModel):
     tip_frame: str
     joint_names: list[str]
     n_samples: int
-    position_only: bool
+    measures_rotation: bool = Field(
+        description="Whether the rows hold the marker's orientation (qx, qy, qz, qw) as well as "
+        "its position; false: a position-only recording."
+    )
     time_start_s: float | None
     time_end_s: float | None
     content_sha256: str = Field(description="SHA-256 of the robot reference and the data.")

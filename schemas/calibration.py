@@ -497,17 +497,33 @@ class CovarianceResult(_Model):
     identifiability: CovarianceIdentifiability
 
 
+LEGACY_POSITION_FLAG = "position_only"
+"""The field result and findings documents written before issue 35 carried instead of
+``measures_rotation`` (its negation); read, never written."""
+
+
 class DatasetInfo(_Model):
     source: str
     n_samples: int
-    position_only: bool
+    measures_rotation: bool = Field(
+        description="Whether each row measured the marker's orientation as well as its position "
+        "(a pose: 6-D residuals) or its position alone (3-D residuals); the measurement model is "
+        "service.render.result_json.result_measurement."
+    )
 
-    @property
-    def measures_rotation(self) -> bool:
-        """Whether the rows measured the marker's rotation (a pose) or its position alone: the
-        document's public field above, read here and nowhere else (issue 35; the measurement
-        model is :func:`service.render.result_json.result_measurement`)."""
-        return not self.position_only
+    @model_validator(mode="before")
+    @classmethod
+    def _from_position_only(cls, data: object) -> object:
+        """Documents written before issue 35 said ``position_only``, the negation."""
+        if not isinstance(data, dict) or LEGACY_POSITION_FLAG not in data:
+            return data
+        data = dict(data)
+        position_only = data.pop(LEGACY_POSITION_FLAG)
+        if "measures_rotation" not in data:  # both given: the new one counts
+            data["measures_rotation"] = (
+                not position_only if isinstance(position_only, bool) else position_only
+            )
+        return data
 
 
 class ModelCorrection(_Model):

@@ -58,7 +58,7 @@ class DatasetChunks:
     marker: int | None
     header: tuple[str, ...]
     refs: tuple[ChunkRef, ...]
-    position_only: bool
+    measures_rotation: bool
     has_payload: bool
 
     @property
@@ -154,12 +154,12 @@ def plan_dataset_chunks(
         marker,
         header,
         refs,
-        position_only=False,
+        measures_rotation=True,
         has_payload=False,
     )
     first = plan.read(refs[0])
     return dataclasses.replace(
-        plan, position_only=first.is_position_only, has_payload=first.payload_kg is not None
+        plan, measures_rotation=first.measures_rotation, has_payload=first.payload_kg is not None
     )
 
 

@@ -85,9 +85,10 @@ class PoseDataset:
         return len(self.joint_names)
 
     @property
-    def is_position_only(self) -> bool:
-        """True when no orientation was measured (3-D residuals only)."""
-        return self.quaternion_xyzw is None
+    def measures_rotation(self) -> bool:
+        """Whether the rows measured the marker's orientation (quaternion columns: 6-D
+        residuals) or its position alone (3-D residuals)."""
+        return self.quaternion_xyzw is not None
 
     @property
     def measurement_model(self) -> FullPose:

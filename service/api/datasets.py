@@ -442,7 +442,7 @@ def _create(
         tip_frame=robot.ref.tip_frame,
         joint_names=list(dataset.joint_names),
         n_samples=dataset.n_samples,
-        position_only=dataset.is_position_only,
+        measures_rotation=dataset.measures_rotation,
         time_start_s=None if time_s is None else float(time_s[0]),
         time_end_s=None if time_s is None else float(time_s[-1]),
         content_sha256=sha,

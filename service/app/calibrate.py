@@ -227,7 +227,7 @@ def open_recording(
         )
         if plan.n_rows > IN_MEMORY_ROWS and setup.findings is None:
             measurement = rows_measurement(
-                options, file_rotation=not plan.position_only, source=plan.source
+                options, file_rotation=plan.measures_rotation, source=plan.source
             )
             problem = StreamProblem(
                 chain,

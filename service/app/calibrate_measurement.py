@@ -361,7 +361,7 @@ def measurement_result(
         dataset=DatasetInfo(
             source=recording.source,
             n_samples=recording.rows.n,
-            position_only=not model.rotation_rows,
+            measures_rotation=bool(model.rotation_rows),
         ),
         robot=robot,
         options=options,

@@ -276,7 +276,7 @@ def _discover(
         dataset=DatasetInfo(  # the findings document's field (public), from the rows' model
             source=source,
             n_samples=data.n_samples,
-            position_only=not data.pose_model.measures_rotation,
+            measures_rotation=data.pose_model.measures_rotation,
         ),
         robot=RobotRef(
             name=robot.name,

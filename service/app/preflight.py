@@ -138,7 +138,7 @@ def dataset_view(dataset: PoseDataset, *, plain: bool = True) -> RecordingView:
         dataset.joint_positions,
         dataset.position_m[:, None, :],
         dataset.n_samples,
-        not dataset.is_position_only,
+        dataset.measures_rotation,
         plain,
     )
 

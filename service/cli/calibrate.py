@@ -102,7 +102,13 @@ def simulate(
     ] = None,
     noise_mm: Annotated[float, typer.Option(min=0.0, help="Measurement noise σ, mm.")] = 0.05,
     noise_deg: Annotated[float, typer.Option(min=0.0, help="Measurement noise σ, deg.")] = 0.003,
-    position_only: Annotated[bool, typer.Option(help="Write positions only.")] = False,
+    rotation: Annotated[
+        bool,
+        typer.Option(
+            help="Write the orientation columns (qx, qy, qz, qw); --no-rotation writes a "
+            "position-only recording."
+        ),
+    ] = True,
     truth: Annotated[Path | None, typer.Option(help="Also write the ground truth JSON.")] = None,
 ) -> None:
     """Simulate a recording with known ground truth and write it in the dataset contract."""
@@ -118,7 +124,7 @@ def simulate(
         noise_translation_mm=noise_mm,
         noise_rotation_deg=noise_deg,
     )
-    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=not position_only)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=rotation)
     outputs = Outputs(output.parent)
     outputs.write(
         outputs.path(output, output.name, "a recording"),

@@ -458,7 +458,7 @@ def assemble_result(
         dataset=DatasetInfo(
             source=source,
             n_samples=fits.n_rows,
-            position_only=not measurement.measures_rotation,  # the document's field (public)
+            measures_rotation=measurement.measures_rotation,
         ),
         robot=RobotInfo(
             name=robot.name,

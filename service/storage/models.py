@@ -120,7 +120,7 @@ class Dataset(Base):
     tip_frame: Mapped[str] = mapped_column(String(200))
     joint_names: Mapped[list[str]] = mapped_column(JSON)
     n_samples: Mapped[int] = mapped_column(Integer)
-    position_only: Mapped[bool] = mapped_column(Boolean)
+    measures_rotation: Mapped[bool] = mapped_column(Boolean)
     time_start_s: Mapped[float | None] = mapped_column(Float, nullable=True)
     time_end_s: Mapped[float | None] = mapped_column(Float, nullable=True)
     content_sha256: Mapped[str] = mapped_column(String(64))

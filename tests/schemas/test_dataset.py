@@ -169,7 +169,7 @@ def test_write_then_read_gives_identical_arrays(ds: PoseDataset, suffix: str, st
         write_dataset(ds, path, joint_column_style=style)
         back = read_dataset(path, ds.joint_names)
     assert back.source == path.name
-    assert back.is_position_only == ds.is_position_only
+    assert back.measures_rotation == ds.measures_rotation
     assert_same_dataset(ds, back)
 
 
@@ -259,10 +259,10 @@ def test_figaroh_file_loads_marker_one(tmp_path: Path) -> None:
     np.testing.assert_allclose(ds.quaternion_xyzw, [[0, 0, s, s]])
 
 
-def test_figaroh_position_only_with_time(tmp_path: Path) -> None:
+def test_figaroh_positions_with_time(tmp_path: Path) -> None:
     text = "t,x1,y1,z1,base_joint,elbow,wrist\n0.5,1,2,3,4,5,6\n0.7,1,2,3,4,5,6\n"
     ds = read_dataset(write_text(tmp_path, text), J3)
-    assert ds.is_position_only and list(ds.time_s) == [0.5, 0.7]
+    assert not ds.measures_rotation and list(ds.time_s) == [0.5, 0.7]
 
 
 def test_figaroh_several_markers_need_a_choice(tmp_path: Path) -> None:
@@ -527,9 +527,9 @@ def test_partial_quaternion() -> None:
     assert "qx,qy,qz present but qw missing" in message and "all four" in message
 
 
-def test_position_only_dataset() -> None:
+def test_a_dataset_without_quaternions_measures_positions() -> None:
     ds = dataset_from_frame(valid_frame(quat=False), J3, source="m")
-    assert ds.is_position_only and ds.quaternion_xyzw is None
+    assert not ds.measures_rotation and ds.quaternion_xyzw is None
     assert ds.measurement_model == Position()
     assert dataset_from_frame(valid_frame(), J3, source="m").measurement_model == FullPose()
 
@@ -594,7 +594,7 @@ def test_unknown_suffix_on_write(tmp_path: Path) -> None:
 def test_fr3_converted_file_loads() -> None:
     ds = read_dataset(FR3_DIR / "fr3_poses.csv", PANDA_JOINTS)
     assert ds.source == "fr3_poses.csv"
-    assert (ds.n_samples, ds.n_joints, ds.is_position_only) == (114, 7, False)
+    assert (ds.n_samples, ds.n_joints, ds.measures_rotation) == (114, 7, True)
     assert list(ds.sample_id) == list(range(114))
     assert np.all(ds.quaternion_xyzw[:, 3] >= 0)
     np.testing.assert_allclose(np.linalg.norm(ds.quaternion_xyzw, axis=1), 1.0, atol=1e-12)
@@ -614,7 +614,7 @@ def test_fr3_converted_file_is_reproducible() -> None:
 
 def test_ur10_figaroh_file_loads() -> None:
     ds = read_dataset(UR10_CSV, UR10_JOINTS)
-    assert (ds.n_samples, ds.n_joints, ds.is_position_only) == (23, 6, False)
+    assert (ds.n_samples, ds.n_joints, ds.measures_rotation) == (23, 6, True)
     raw = pd.read_csv(UR10_CSV)
     np.testing.assert_array_equal(ds.joint_positions, raw[list(UR10_JOINTS)].to_numpy())
     np.testing.assert_array_equal(ds.position_m, raw[["x1", "y1", "z1"]].to_numpy())

@@ -21,7 +21,7 @@ from solver.errors import DatasetError
 JOINTS = ("j1", "j2", "j3")
 
 
-def _dataset(n: int, *, position_only: bool = False) -> PoseDataset:
+def _dataset(n: int, *, rotation: bool = True) -> PoseDataset:
     rng = np.random.default_rng(7)
     quaternion = rng.normal(size=(n, 4))
     quaternion /= np.linalg.norm(quaternion, axis=1, keepdims=True)
@@ -29,7 +29,7 @@ def _dataset(n: int, *, position_only: bool = False) -> PoseDataset:
         joint_names=JOINTS,
         joint_positions=rng.uniform(-3, 3, size=(n, 3)),
         position_m=rng.normal(size=(n, 3)),
-        quaternion_xyzw=None if position_only else quaternion,
+        quaternion_xyzw=quaternion if rotation else None,
         sample_id=np.arange(n) + 100,
         payload_kg=rng.uniform(0, 2, size=n),
     )
@@ -46,9 +46,9 @@ def _concatenated(path: Path, chunk_rows: int) -> tuple[PoseDataset, int]:
         joint_names=JOINTS,
         joint_positions=np.concatenate([p.joint_positions for p in parts]),
         position_m=np.concatenate([p.position_m for p in parts]),
-        quaternion_xyzw=None
-        if plan.position_only
-        else np.concatenate([p.quaternion_xyzw for p in parts]),  # type: ignore[misc]
+        quaternion_xyzw=np.concatenate([p.quaternion_xyzw for p in parts])  # type: ignore[misc]
+        if plan.measures_rotation
+        else None,
         payload_kg=np.concatenate([p.payload_kg for p in parts]),  # type: ignore[misc]
     )
     return whole, len(plan.refs)
@@ -67,12 +67,10 @@ def _same(a: PoseDataset, b: PoseDataset) -> bool:
 
 
 @pytest.mark.parametrize("suffix", [".csv", ".parquet", ".json"])
-@pytest.mark.parametrize("position_only", [False, True])
-def test_chunks_concatenate_to_the_whole_file(
-    tmp_path: Path, suffix: str, position_only: bool
-) -> None:
+@pytest.mark.parametrize("rotation", [True, False])
+def test_chunks_concatenate_to_the_whole_file(tmp_path: Path, suffix: str, rotation: bool) -> None:
     path = tmp_path / f"data{suffix}"
-    write_dataset(_dataset(1003, position_only=position_only), path)
+    write_dataset(_dataset(1003, rotation=rotation), path)
     whole, n_chunks = _concatenated(path, 250)
     assert _same(whole, read_dataset(path, JOINTS))
     assert n_chunks == 5  # Parquet: one row group of 1003 rows, sliced

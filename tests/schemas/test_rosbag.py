@@ -223,24 +223,24 @@ def test_one_sample_per_capture_message_while_still(
 
 
 @pytest.mark.parametrize(
-    ("measure", "position_only"),
+    ("measure", "rotation"),
     [
-        ("pose:/board_pose", False),
-        ("pose:/board_transform", False),
-        ("point:/tracker_point", True),
+        ("pose:/board_pose", True),
+        ("pose:/board_transform", True),
+        ("point:/tracker_point", False),
     ],
 )
 def test_pose_and_point_topics_are_measurements_too(
-    bags: dict[str, tuple[Path, Truth]], recorded: PoseDataset, measure: str, position_only: bool
+    bags: dict[str, tuple[Path, Truth]], recorded: PoseDataset, measure: str, rotation: bool
 ) -> None:
     recording = _read(bags["mcap"][0] / "fr3_mcap.mcap", measure)  # its storage file will do
     want = recorded
-    if position_only:
+    if not rotation:
         want = PoseDataset(
             recorded.joint_names, recorded.joint_positions, recorded.position_m, None
         )
     assert_same_rows(recording.dataset, want)
-    assert recording.dataset.is_position_only is position_only
+    assert recording.dataset.measures_rotation is rotation
 
 
 @pytest.mark.parametrize(

@@ -117,6 +117,36 @@ def test_calibrate_then_predict_round_trip(
     )
 
 
+def test_a_simulated_recording_of_positions_calibrates_and_reads_back_under_either_field(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    """``kincal simulate --no-rotation`` writes no quaternion columns; its result says
+    ``measures_rotation: false``; a result written before issue 35 (``position_only: true``)
+    predicts the same poses."""
+    data, result_path = tmp_path / "positions.csv", tmp_path / "r.json"
+    simulate = ["simulate", "--robot", "ur10", "--n", "40", "--no-rotation", "-o", data]
+    code, _, err = run(simulate, capsys, monkeypatch)
+    assert code == 0, err
+    assert not {"qx", "qy", "qz", "qw"} & set(pd.read_csv(data).columns)
+    calibrate = ["calibrate", data, "--robot", "ur10", "--no-heldout", "--covariance", "none"]
+    code, _, err = run([*calibrate, "-o", result_path], capsys, monkeypatch)
+    assert code == 0, err
+    document = json.loads(result_path.read_text())
+    assert document["dataset"]["measures_rotation"] is False
+    assert "position_only" not in document["dataset"]
+    old = tmp_path / "old.json"
+    document["dataset"]["position_only"] = not document["dataset"].pop("measures_rotation")
+    old.write_text(json.dumps(document))
+    predictions = []
+    for result in (result_path, old):
+        poses = tmp_path / f"{result.stem}_poses.csv"
+        code, _, err = run(["predict", result, data, "-o", poses], capsys, monkeypatch)
+        assert code == 0, err
+        predictions.append(pd.read_csv(poses))
+    pd.testing.assert_frame_equal(*predictions)
+    assert not CalibrationResult.model_validate(document).dataset.measures_rotation
+
+
 def _bad(recording: Path, tmp_path: Path, edit) -> Path:  # type: ignore[no-untyped-def]
     frame = pd.read_csv(recording)
     out = tmp_path / "bad.csv"

@@ -30,11 +30,11 @@ TASK_WEIGHTS = np.array([0.4, 0.4, 0.0, 0.1, 0.1, 0.0])
 
 
 @functools.cache
-def _simulated(n_samples: int, position_only: bool = False):  # type: ignore[no-untyped-def]
+def _simulated(n_samples: int, rotation: bool = True):  # type: ignore[no-untyped-def]
     scn, recording = scenarios.simulate(
         robot("kinova"), n_samples=n_samples, seed=11, effects=EFFECTS
     )
-    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=not position_only)
+    dataset = scenarios.recording_dataset(recording, scn.chain, rotation=rotation)
     return scn, recording, dataset
 
 
@@ -128,8 +128,8 @@ def test_rotation_only_perturbations_fix_the_translations_of_joint_frames() -> N
     assert any(np.array(f.matrix)[:3, :3].any() for f in everything.covariance.frames)
 
 
-def test_position_only_recording_gets_covariances() -> None:
-    _, _, dataset = _simulated(300, position_only=True)
+def test_a_recording_of_positions_gets_covariances() -> None:
+    _, _, dataset = _simulated(300, rotation=False)
     result = pipeline.calibrate(dataset, robot("kinova"), CalibrationOptions(heldout=False))
     assert result.covariance is not None
     for frame in result.covariance.frames:

@@ -177,7 +177,7 @@ def test_clarabel_and_first_order_agree_through_the_cli(
     assert first["criterion"]["method"] == "first_order"
 
 
-def test_cone_spacing_and_position_only(
+def test_cone_spacing_and_positions(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A camera's view cone, a facing constraint, a minimum spacing, a 3-D sensor."""

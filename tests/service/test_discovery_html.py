@@ -43,7 +43,7 @@ def findings_with(measurement: DiscoveryMeasurement | None) -> FindingsResult:
     return FindingsResult(
         kincal_version="test",
         created_utc="2024-01-01T00:00:00+00:00",
-        dataset=DatasetInfo(source="eye.csv", n_samples=40, position_only=True),
+        dataset=DatasetInfo(source="eye.csv", n_samples=40, measures_rotation=False),
         robot=RobotRef(
             name="panda",
             base_frame="panda_link0",

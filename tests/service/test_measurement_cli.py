@@ -268,7 +268,7 @@ def test_position_measurement_ignores_the_recorded_orientations(
     code, _, err = run(["calibrate", stripped, *base, "-o", out_b], capsys, monkeypatch)
     assert code == 0, err
     a, b = json.loads(out_a.read_text()), json.loads(out_b.read_text())
-    assert a["dataset"]["position_only"] and b["dataset"]["position_only"]
+    assert not a["dataset"]["measures_rotation"] and not b["dataset"]["measures_rotation"]
     for link_a, link_b in zip(a["links"], b["links"], strict=True):
         np.testing.assert_allclose(link_a["placement"], link_b["placement"], atol=1e-9)
     heldout_a, heldout_b = a["fit"]["after"]["heldout"], b["fit"]["after"]["heldout"]

@@ -257,7 +257,7 @@ def test_splits_with_many_training_rows_take_the_model_error_from_leave_one_out(
     assert 0.85 <= next(c.observed for c in found.coverage.levels if c.level == 0.95) <= 1.0
 
 
-def test_real_tiago_position_only_heldout_coverage_is_within_the_acceptance_band(
+def test_real_tiago_positions_heldout_coverage_is_within_the_acceptance_band(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Acceptance (issue 13) on a small real recording: the TIAGo Vicon gripper3/base1 file

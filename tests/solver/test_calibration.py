@@ -34,7 +34,7 @@ def _spec(n: int, seed: int) -> SimulationSpec:
     )
 
 
-def _heldout_ratio(position_only: bool) -> float:
+def _heldout_ratio(measurement: FullPose) -> float:
     """Mean held-out translation error of the calibrated model / of the true model (floor)."""
     c = chain("kinova")
     recording = simulate_recording(c, _spec(154, seed=11))
@@ -47,7 +47,7 @@ def _heldout_ratio(position_only: bool) -> float:
             q[train],
             measured[train],
             loads[train],
-            measurement=Position() if position_only else FullPose(),
+            measurement=measurement,
         )
         predicted = forward_kinematics(c, fit.params, q[test], loads[test])
         calibrated.append(pose_errors(predicted, measured[test], rotation=False)[0].mean())
@@ -58,15 +58,15 @@ def _heldout_ratio(position_only: bool) -> float:
 
 
 def test_heldout_error_reaches_noise_floor_full_pose() -> None:
-    assert _heldout_ratio(position_only=False) < 1.10
+    assert _heldout_ratio(FullPose()) < 1.10
 
 
-def test_heldout_error_reaches_noise_floor_position_only() -> None:
-    assert _heldout_ratio(position_only=True) < 1.10
+def test_heldout_error_reaches_noise_floor_measuring_positions() -> None:
+    assert _heldout_ratio(Position()) < 1.10
 
 
-@pytest.mark.parametrize("position_only", [False, True])
-def test_compliance_recovered_within_5_percent(position_only: bool) -> None:
+@pytest.mark.parametrize("measurement", [FullPose(), Position()], ids=["pose", "position"])
+def test_compliance_recovered_within_5_percent(measurement: FullPose) -> None:
     c = chain("kinova")
     recording = simulate_recording(c, _spec(1000, seed=12))
     fit = fit_deterministic(
@@ -74,7 +74,7 @@ def test_compliance_recovered_within_5_percent(position_only: bool) -> None:
         recording.joint_positions,
         recording.measured_pose,
         recording.loads_nm,
-        measurement=Position() if position_only else FullPose(),
+        measurement=measurement,
     )
     assert fit.converged
     for name, true_value in COMPLIANCE.items():

@@ -68,7 +68,7 @@ def test_a_frame_with_a_constant_jacobian_is_confused_with_the_noise():
     assert any("measurement noise" in w and "tool" in w for w in report.warnings)
 
 
-def test_rotational_noise_has_no_effect_on_position_only_residuals():
+def test_rotational_noise_has_no_effect_on_residuals_of_positions():
     names = ["a"]
     r, jac = random_case(names, seed=3, residual_dim=3)
     report = analyse_identifiability(build_moment_statistics(r, jac, make_layout(names, 3)))
@@ -128,7 +128,7 @@ def test_estimate_reports_unidentifiable_entries_without_standard_errors():
 
 
 @pytest.mark.parametrize("structure", ["diag", "full"])
-def test_position_only_entries_without_effect_come_out_exactly_zero(structure):
+def test_entries_without_effect_on_positions_come_out_exactly_zero(structure):
     names = S.jaco_joint_names()
     data = S.simulate_jaco(150, seed=12, residual_dim=3)
     free = {n: ("w_x", "w_y", "w_z") for n in names}

@@ -98,7 +98,7 @@ def test_gp_method_refits_the_baseline_on_training_rows_only() -> None:
     assert seen and all(set(s) == set(train.tolist()) for s in seen)
 
 
-def test_position_only_gp_corrects_translation_only() -> None:
+def test_gp_of_positions_corrects_translation_only() -> None:
     q, before, measured = _data()
     residuals = position_residuals(before, measured)
     model = fit_gp_error_model(q, residuals, SETTINGS)

@@ -322,7 +322,7 @@ def test_chain_parameters_are_unchanged_for_the_pose_path() -> None:
     assert isinstance(params, ChainParameters)
 
 
-# --- the pose rows' model answers what position_only used to (issue 35) -----------------------
+# --- the pose rows' model: whether they measured a rotation (issue 35) -------------------------
 
 
 @pytest.mark.parametrize(

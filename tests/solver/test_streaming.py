@@ -300,32 +300,32 @@ def test_without_the_chunk_cache_the_numbers_are_the_same(
     assert _close(cov.theta, ref_cov.theta)
 
 
-def _problem_of(rec: SimulatedRecording, *, position_only: bool) -> StreamProblem:
+def _problem_of(rec: SimulatedRecording, *, rotation: bool) -> StreamProblem:
     pose = rec.measured_pose
-    quaternion = None if position_only else lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
+    quaternion = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3]) if rotation else None
     source = ArrayChunks(rec.joint_positions, pose[:, :3, 3], quaternion)
     rows = row_ranges(rec.joint_positions.shape[0], 300)
     return StreamProblem(
         chain(ROBOT),
         source,
         rows,
-        measurement=pose_measurement(rotation=not position_only),
+        measurement=pose_measurement(rotation=rotation),
         block_rows=128,
     )
 
 
 @pytest.mark.parametrize(
-    "position_only, options",
-    [(True, FULL), (False, FitOptions(rotation_weight_m_per_rad=0.3))],
+    "rotation, options",
+    [(False, FULL), (True, FitOptions(rotation_weight_m_per_rad=0.3))],
     ids=["position-only", "rotation-weight"],
 )
-def test_streamed_fit_equals_in_memory_for_position_only_and_weighted_rotation(
-    recording: SimulatedRecording, position_only: bool, options: FitOptions
+def test_streamed_fit_equals_in_memory_for_positions_and_weighted_rotation(
+    recording: SimulatedRecording, rotation: bool, options: FitOptions
 ) -> None:
     """The structured normal equations (band Gram, unit tip columns, row weights) give the
     in-memory fits; the covariance statistics are the in-memory ones."""
     c = chain(ROBOT)
-    problem = _problem_of(recording, position_only=position_only)
+    problem = _problem_of(recording, rotation=rotation)
     spec = covariance_spec(problem.residual_dim, c.joint_names, range(c.n_joints))
     executor = InProcessExecutor()
     cal = calibrate_streamed_fits(
@@ -341,7 +341,7 @@ def test_streamed_fit_equals_in_memory_for_position_only_and_weighted_rotation(
     )
     release(problem, executor)
     q, pose = recording.joint_positions, recording.measured_pose
-    quaternion = None if position_only else lie.matrix_to_quaternion_xyzw(pose[:, :3, :3])
+    quaternion = lie.matrix_to_quaternion_xyzw(pose[:, :3, :3]) if rotation else None
     measured = lie.pose_matrix(pose[:, :3, 3], quaternion)
     loads = static_gravity_loads(StaticGravityModel.from_chain(c), q)
     first = fit_deterministic(
@@ -349,7 +349,7 @@ def test_streamed_fit_equals_in_memory_for_position_only_and_weighted_rotation(
         q,
         measured,
         loads,
-        measurement=Position() if position_only else FullPose(),
+        measurement=FullPose() if rotation else Position(),
         options=options,
     )
     used = np.flatnonzero(outlier_mask(first.residuals, 2.0))
@@ -358,7 +358,7 @@ def test_streamed_fit_equals_in_memory_for_position_only_and_weighted_rotation(
         q[used],
         measured[used],
         loads[used],
-        measurement=Position() if position_only else FullPose(),
+        measurement=FullPose() if rotation else Position(),
         options=options,
     )
     assert cal.fit.estimated == fit.estimated
@@ -369,7 +369,7 @@ def test_streamed_fit_equals_in_memory_for_position_only_and_weighted_rotation(
     # relative size κ²·eps, 1.3e-10 here
     assert _close(cal.fit.standard_errors, fit.standard_errors, 1e-9)
     assert np.array_equal(cal.removed_rows, np.setdiff1d(np.arange(q.shape[0]), used))
-    d = 3 if position_only else 6
+    d = 6 if rotation else 3
     evaluation = evaluate_chain(c, cal.fit.params, q[used], loads[used])
     layout = make_layout(c.joint_names, d)
     memory = build_moment_statistics(fit.residuals, evaluation.link_jacobians[:, :-1, :d], layout)
@@ -379,23 +379,23 @@ def test_streamed_fit_equals_in_memory_for_position_only_and_weighted_rotation(
 
 
 @pytest.mark.parametrize(
-    "structure, known, position_only",
+    "structure, known, rotation",
     [
-        ("diag", False, False),
-        ("diag", True, False),
-        ("full", False, False),
-        ("full", True, False),
         ("diag", False, True),
+        ("diag", True, True),
+        ("full", False, True),
+        ("full", True, True),
+        ("diag", False, False),
     ],
 )
 def test_statistics_taken_along_the_fit_equal_a_pass_of_their_own(
-    recording: SimulatedRecording, structure: str, known: bool, position_only: bool
+    recording: SimulatedRecording, structure: str, known: bool, rotation: bool
 ) -> None:
     """The refit's last pass takes the covariance statistics along (no pass of their own);
     they equal the statistics pass at the same point, for diagonal and full Σ, with and
     without a known noise covariance, pose or position-only; so do the Jacobian ranges."""
     c = chain(ROBOT)
-    problem = _problem_of(recording, position_only=position_only)
+    problem = _problem_of(recording, rotation=rotation)
     noise = np.diag([4e-9] * 3 + [1e-8] * 3) if known else None
     spec = covariance_spec(
         problem.residual_dim,

@@ -286,7 +286,7 @@ def test_a_result_without_predictive_covariance_is_409(
     ("change", "fragment"),
     [
         ("ur10", "not a recording of the calibrated robot"),
-        ("position_only", "holds positions only"),
+        ("positions", "holds positions only"),
         ("other_frames", "not in the calibration's measurement frame"),
     ],
 )
@@ -298,7 +298,7 @@ def test_a_dataset_it_cannot_be_checked_with_is_422_naming_dataset_id(
         response = upload_csv(restarted)  # a simulated UR10 recording
         assert response.status_code in (200, 201), response.text
         dataset_id = response.json()["id"]
-    elif change == "position_only":
+    elif change == "positions":
         dataset_id = upload_rows(restarted, rows.drop(columns=["qx", "qy", "qz", "qw"]), "p.csv")
     else:
         rows["x"] += 0.5  # the camera 0.5 m elsewhere

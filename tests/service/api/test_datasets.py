@@ -45,7 +45,7 @@ def test_csv_upload_is_validated_stored_exactly_and_summarised(client: TestClien
     expected = recording()
     assert body["n_samples"] == expected.n_samples
     assert body["joint_names"] == list(expected.joint_names)
-    assert body["position_only"] is False
+    assert body["measures_rotation"] is True
     assert expected.time_s is not None
     assert body["time_start_s"] == expected.time_s[0]
     assert body["time_end_s"] == expected.time_s[-1]

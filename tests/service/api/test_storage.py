@@ -9,12 +9,13 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
 from sqlalchemy import text, update
 
 from service.storage import repository
-from service.storage.db import Database
+from service.storage.db import Database, alembic_config
 from service.storage.files import FileStore
 from service.storage.models import Base, Check, Job, utcnow
 from tests.service.api.conftest import POSTGRES_URL
@@ -56,7 +57,7 @@ def test_migrations_produce_exactly_the_models(database: Database) -> None:
         diff = compare_metadata(MigrationContext.configure(connection), Base.metadata)
     assert diff == []
     database.migrate()  # idempotent
-    assert database.current_revision() == "0003"
+    assert database.current_revision() == "0004"
 
 
 @pytest.mark.skipif(POSTGRES_URL is not None, reason="SQLite-specific pragma")
@@ -204,3 +205,51 @@ def test_the_latest_check_per_calibration_for_the_most_recently_checked(
         (calibrations[2], 3.0),
     ]
     assert count == 2 and [c.statistic for c in page] == [5.0, 0.0]  # newest first
+
+
+def test_migration_0004_keeps_each_datasets_meaning_when_the_flag_turns_round(
+    database_url: str,
+) -> None:
+    """A database written before issue 35 stored ``position_only``; after the upgrade its rows
+    say ``measures_rotation``, the negation, and the downgrade gives the old values back."""
+    db = Database(database_url)
+
+    def to_revision(revision: str) -> None:
+        with db.engine.begin() as connection:
+            config = alembic_config(db.url)
+            config.attributes["connection"] = connection
+            move = (
+                command.upgrade if revision >= (db.current_revision() or "") else command.downgrade
+            )
+            move(config, revision)
+
+    to_revision("0003")
+    columns = (
+        "id, tenant_id, name, robot, base_frame, tip_frame, joint_names, n_samples, {flag}, "
+        "content_sha256, data_path, size_bytes, created_at"
+    )
+    with db.engine.begin() as connection:
+        connection.execute(
+            text("INSERT INTO tenants (id, name, created_at) VALUES ('t1', 't', :at)"),
+            {"at": utcnow()},
+        )
+        for dataset_id, position_only in (("poses", False), ("positions", True)):
+            connection.execute(
+                text(
+                    f"INSERT INTO datasets ({columns.format(flag='position_only')}) VALUES "
+                    "(:id, 't1', :id, 'panda', 'b', 't', '[]', 3, :flag, :id, 'p', 1, :at)"
+                ),
+                {"id": dataset_id, "flag": position_only, "at": utcnow()},
+            )
+
+    def flags(column: str) -> dict[str, bool]:
+        with db.engine.connect() as connection:
+            rows = connection.execute(text(f"SELECT id, {column} FROM datasets")).all()
+        return {dataset_id: bool(value) for dataset_id, value in rows}
+
+    db.migrate()
+    assert db.current_revision() == "0004"
+    assert flags("measures_rotation") == {"poses": True, "positions": False}
+    to_revision("0003")
+    assert flags("position_only") == {"poses": False, "positions": True}
+    db.dispose()
