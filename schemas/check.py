@@ -13,6 +13,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from schemas.calibration import Verdict
 from schemas.ranking import CalibrationReference
 
 CHECK_FORMAT: Literal["kincal.check/1"] = "kincal.check/1"
@@ -114,6 +115,12 @@ class CheckResult(_Model):
     kincal_version: str
     created_utc: str
     calibration: CalibrationReference
+    calibration_verdict: Verdict | None = Field(
+        default=None,
+        description="The checked calibration's own verdict (its result's; null: written before "
+        "verdicts). A calibration that failed its own tests predicts no better than the "
+        "nominal robot: the advice is then to recalibrate, whatever the check says.",
+    )
     recording: str
     dimension: int = Field(description="Residual rows per pose: 6 (full pose) or 3 (position).")
     level: float = Field(description="Family-wise false-alarm probability of the verdict.")

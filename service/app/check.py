@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.calibration import CalibrationResult
+from schemas.calibration import CalibrationResult, Verdict
 from schemas.check import (
     DEFAULT_LEVEL,
     CandidateTest,
@@ -188,10 +188,20 @@ def refuse_other_frames(
         )
 
 
-def advice(tests: checks.PoseTests, located: checks.LocatedDrift | None) -> str:
-    """What to do next, in one line."""
+def advice(
+    tests: checks.PoseTests, located: checks.LocatedDrift | None, calibration: Verdict | None
+) -> str:
+    """What to do next, in one line; a calibration that failed its own tests is recalibrated
+    first, whatever the check says (a drift cannot be told from its misfit)."""
     bad = ", ".join(str(i + 1) for i in tests.bad_samples)
     remeasure = f"re-measure pose(s) {bad}; " if bad else ""
+    if calibration is not None and calibration.status == "failed":
+        codes = ", ".join(dict.fromkeys(r.code for r in calibration.reasons))
+        return (
+            f"{remeasure}recalibrate (kincal calibrate, following its verdict's fixes): the "
+            f"calibration checked failed its own tests ({codes}), so its predictions are no "
+            "yardstick and this check cannot tell a drift from its misfit"
+        )
     if tests.verdict == "inconclusive":
         return f"{remeasure}record at least {checks.MIN_POSES} check poses"
     if tests.verdict == "holds":
@@ -292,7 +302,8 @@ def run_check(
         candidate_critical_p=None if drift is None else drift.candidate_p,
         verdict=tests.verdict,  # type: ignore[arg-type]
         reason=tests.reason,
-        advice=advice(tests, located),
+        advice=advice(tests, located, result.verdict),
+        calibration_verdict=result.verdict,
         max_threshold=tests.threshold if np.isfinite(tests.threshold) else None,
         poses=_poses(arrays.residuals, tests, dataset),
         global_test=None

@@ -11,6 +11,7 @@ from service.cli.common import (
     Outputs,
     ReportOpt,
     ResultOutDirOpt,
+    calibration_verdict_line,
     output_option,
     read_result,
 )
@@ -66,6 +67,7 @@ def check(
         outputs.write_text(report_path, "HTML report", render_check_report(out))
     typer.echo(summary(out))
     typer.echo(outputs.listing())
+    typer.echo(calibration_verdict_line(result))
     typer.echo(check_verdict_line(out))
     if out.verdict == "drifted":
         raise typer.Exit(EXIT_DRIFTED)

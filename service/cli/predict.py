@@ -12,6 +12,7 @@ from service.cli.common import (
     Outputs,
     ResultOutDirOpt,
     _prediction_note,
+    calibration_verdict_line,
     output_option,
     read_result,
 )
@@ -116,7 +117,7 @@ def predict(
         lambda p: frame.to_csv(p, index=False, float_format="%.17g"),
     )
     typer.echo(outputs.listing())
-    typer.echo(_verdict_of(result))
+    typer.echo(calibration_verdict_line(result))
 
 
 def rank(
@@ -206,13 +207,4 @@ def rank(
     )
     typer.echo(ranking_summary(out))
     typer.echo(outputs.listing())
-    typer.echo(_verdict_of(result))
-
-
-def _verdict_of(result: object) -> str:
-    """The one-line verdict of the calibration a prediction or ranking comes from."""
-    from schemas.calibration import CalibrationResult
-    from service.render.text import verdict_line
-
-    assert isinstance(result, CalibrationResult)
-    return f"calibration {verdict_line(result.verdict)}"
+    typer.echo(calibration_verdict_line(result))

@@ -40,6 +40,8 @@ def render_check_report(check: CheckResult) -> str:
         f'<p class="{"ok" if holds else "warn"}" id="verdict">'
         f"{e(text.check_verdict_line(check))}</p>",
         f'<p id="advice">advice: {e(check.advice)}</p>',
+        f'<p id="calibration-verdict">{e(text.used_calibration_line(check.calibration_verdict))}'
+        "</p>",
         _overview(check),
         "<h2>Each pose's d² against the check's χ² limits</h2>",
         _figure(check),

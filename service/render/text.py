@@ -212,6 +212,18 @@ def verdict_line(verdict: Verdict | None) -> str:
     )
 
 
+def used_calibration_line(verdict: Verdict | None) -> str:
+    """The verdict of the calibration a prediction, ranking or check used, in one line (the
+    command's own exit code is its own: the calibration's reasons are in its result file)."""
+    if verdict is None:
+        return "calibration verdict: none (a result written before verdicts existed)"
+    codes = ", ".join(dict.fromkeys(r.code for r in verdict.reasons))
+    line = f"calibration verdict: {verdict.status}{f' ({codes})' if codes else ''}"
+    if verdict.status == "ok":
+        return f"{line}: fit to use"
+    return f"{line}: see verdict.reasons in its result file for why and how to fix it"
+
+
 def parameter_count(identifiability: Identifiability) -> str:
     """How many parameters the fit estimated and where the others went, adding up to the
     total (CLI summary and HTML report)."""

@@ -97,6 +97,9 @@ def test_held_out_rows_hold(calibrated, tmp_path, capsys, monkeypatch) -> None:
     result = CheckResult.model_validate_json(out.read_bytes())
     assert result.verdict == "holds"
     assert stdout.splitlines()[-1].startswith("check: holds: ")
+    assert stdout.splitlines()[-2] == "calibration verdict: ok: fit to use"
+    assert result.calibration_verdict is not None and result.calibration_verdict.status == "ok"
+    assert result.advice == "keep using the calibration"
     assert len(result.poses) == 10 and not any(p.bad_sample for p in result.poses)
     assert result.located is None
     assert {s.name for s in result.stated_sizes} >= {
@@ -143,6 +146,40 @@ def test_a_bad_row_of_the_recording_is_named(calibrated, tmp_path, capsys, monke
     assert [p.index for p in result.poses if p.bad_sample] == [10]
     assert result.poses[9].sample_id == "112"
     assert "re-measure" in stdout
+
+
+def test_a_calibration_that_failed_its_own_tests_is_to_be_recalibrated_whatever_the_check_says(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The UR10e's 23 poses on its own URDF calibrate to a model no better than the nominal
+    robot on held-out poses (verdict failed): checked against six of its own rows, the check
+    says so and advises recalibrating, in the terminal, check.json and the report."""
+    folder = REAL_DATA / "figaroh_ur10_experiment"
+    calibration = tmp_path / "ur10e.json"
+    urdf = ["--urdf", folder / "ur10e_robot.urdf", "--base", "base_link", "--tip", "wrist_3_link"]
+    code, _, err = run(
+        ["calibrate", folder / "calibration.csv", *urdf, "-o", calibration], capsys, monkeypatch
+    )
+    result = read_result(calibration)
+    assert code == 3 and result.verdict is not None and result.verdict.status == "failed", err
+    rows = pd.read_csv(folder / "calibration.csv").iloc[:6]
+    recording, out, report = tmp_path / "six.csv", tmp_path / "check.json", tmp_path / "c.html"
+    rows.to_csv(recording, index=False, float_format="%.17g")
+    code, stdout, _ = run(
+        ["check", calibration, recording, "-o", out, "--report", report], capsys, monkeypatch
+    )
+    checked = CheckResult.model_validate_json(out.read_bytes())
+    assert code == (3 if checked.verdict == "drifted" else 0)
+    codes = ", ".join(dict.fromkeys(r.code for r in result.verdict.reasons))
+    line = f"calibration verdict: failed ({codes}): see verdict.reasons in its result file"
+    assert stdout.splitlines()[-2].startswith(line)
+    assert checked.calibration_verdict == result.verdict
+    assert checked.advice.startswith("recalibrate (kincal calibrate")
+    assert f"failed its own tests ({codes})" in checked.advice
+    page = html.unescape(report.read_text(encoding="utf-8"))
+    assert stdout.splitlines()[-2] in page and checked.advice in page
 
 
 def test_another_robot_is_refused(calibrated, tmp_path, capsys, monkeypatch) -> None:
