@@ -29,6 +29,7 @@ from benchmarks import (
     default_calibrate,
     design,
     design_measurements,
+    discover_speed,
     evaluate_real,
     figaroh_side_by_side,
     fleet_platonics,
@@ -68,6 +69,7 @@ RENDER = {
     "load": load.render,
     "discovery_simulated": concealed_effects.render,
     "discovery_real": concealed_real.render,
+    "discover_speed": discover_speed.render,
 }
 PAGES: dict[str, str | tuple[str, ...]] = {
     "check": "check.md",
@@ -90,6 +92,7 @@ PAGES: dict[str, str | tuple[str, ...]] = {
     "load": "http.md",
     "discovery_simulated": "discovery_benchmark.md",
     "discovery_real": "discovery_real_benchmark.md",
+    "discover_speed": "discovery.md",
 }
 
 
@@ -700,3 +703,15 @@ def test_the_real_discovery_table_holds_for_a_ur10e_run() -> None:
             assert got[key_] == pytest.approx(want[key_], abs=0.005 * want["truth"]), key_
     for key_ in ("heldout_before_mm", "heldout_after_mm"):
         assert got[key_] == pytest.approx(want[key_], abs=0.0005), key_
+
+
+def test_the_discover_speed_table_summarises_its_runs_and_found_the_same_everywhere() -> None:
+    _, rows = read_results("discover_speed")
+    assert rows and all(row["same_findings"] for row in rows)
+    for row in rows:
+        here, there = (statistics.median(row[key]) for key in ("inprocess_s", "processes_s"))
+        assert (row["median_inprocess_s"], row["median_processes_s"]) == (
+            round(here, 2),
+            round(there, 2),
+        )
+        assert row["speed_up"] == round(here / there, 2)

@@ -53,6 +53,7 @@ from solver import lie
 from solver.discovery.explain import describe
 from solver.discovery.features import probe_chain
 from solver.discovery.fitting import ModelParameters as FitParameters
+from solver.executors import Executor
 from solver.measurement import ModelParameters as MeasuredParameters
 from solver.measurement import RelativeBase
 from solver.measurement.pose import pose_measurement
@@ -103,10 +104,13 @@ def discover_source(
     *,
     marker: int | None = None,
     name: str | None = None,
+    executor: Executor | None = None,
 ) -> FindingsResult:
     """Run discovery on a recording file or folder, read as ``kincal calibrate`` reads it for
     ``options.measurement`` (:mod:`service.app.calibrate_measurement`: a platonics
-    ball-in-socket folder, a FIGAROH file with all its markers, chosen pose components, ...)."""
+    ball-in-socket folder, a FIGAROH file with all its markers, chosen pose components, ...);
+    ``executor``: where the detectable sizes are computed (None: in this process; the
+    findings do not depend on it)."""
     started = time.perf_counter()
     read = read_source(source, robot, options, marker=marker, name=name)
     return _discover(
@@ -120,6 +124,7 @@ def discover_source(
         plot_stem,
         started,
         read.measurement,
+        executor,
     )
 
 
@@ -248,9 +253,10 @@ def _discover(
     plot_stem: str,
     started: float,
     measurement: DiscoveryMeasurement | None = None,
+    executor: Executor | None = None,
 ) -> FindingsResult:
     chain = chain_for(robot, options)
-    result = solver_discovery.discover(chain, data, solver_options(options))
+    result = solver_discovery.discover(chain, data, solver_options(options), executor)
     if measurement is not None and not data.is_pose:
         measurement = measurement.model_copy(
             update={

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from service.cli.common import (
+    EXECUTION,
     OUTPUT,
     BaseOpt,
+    DaskOpt,
     DataArg,
     DhOpt,
     MarkerOpt,
@@ -21,6 +24,8 @@ from service.cli.common import (
     RobotOpt,
     TipOpt,
     UrdfOpt,
+    WorkersOpt,
+    _executor,
     _names,
     _robot,
     _vector3,
@@ -76,6 +81,18 @@ def discover(
         bool, typer.Option(help="Write a PNG per finding next to -o.", rich_help_panel=OUTPUT)
     ] = True,
     report: ReportOpt = None,
+    executor: Annotated[
+        str | None,
+        typer.Option(
+            help="Where the smallest detectable sizes are computed (most of a run's time): "
+            "inprocess, processes (local, one per core) or dask. Default: in this process. "
+            "The findings do not depend on it.",
+            metavar="inprocess|processes|dask",
+            rich_help_panel=EXECUTION,
+        ),
+    ] = None,
+    workers: WorkersOpt = None,
+    dask: DaskOpt = None,
 ) -> None:
     """Find what the model leaves out, name the physics, model it, show the held-out gain."""
     import pydantic
@@ -119,9 +136,16 @@ def discover(
     plot_dir = output.resolve().parent if plots else None
     if plot_dir is not None:
         plot_dir.mkdir(parents=True, exist_ok=True)
-    findings = discovery.discover_source(
-        data, description, options, plot_dir, output.stem, marker=marker
-    )
+    from solver.executors import preload_in_workers
+
+    preload_in_workers("solver.discovery.detectability")  # what local workers import once
+    with contextlib.ExitStack() as stack:
+        pool = _executor(executor, dask, workers)
+        if pool is not None:
+            stack.enter_context(pool)
+        findings = discovery.discover_source(
+            data, description, options, plot_dir, output.stem, marker=marker, executor=pool
+        )
     outputs.write_text(output, "findings", findings.model_dump_json(indent=1) + "\n")
     figures = [f.plot for f in findings.findings if f.plot is not None and plot_dir is not None]
     for name in figures:

@@ -97,6 +97,7 @@ from solver.discovery.scoring import (
 )
 from solver.distributions import f_isf, ncf_sf, t_sf
 from solver.errors import CalibrationError
+from solver.executors import Executor
 
 DETECTION_POWER = 0.8
 DETECTION_REPLICATES = 10
@@ -197,6 +198,7 @@ def smallest_detectable(
     joint_level: float | None = None,
     confirmation_level: float | None = None,
     joint_alpha: float | None = None,
+    executor: Executor | None = None,
 ) -> list[DetectableSize]:
     """Smallest detectable size of each term of ``library`` (not in ``fit``'s model) on the
     recording, for the score test at ``level`` with ``power`` (module docstring); ``seed`` is
@@ -212,7 +214,10 @@ def smallest_detectable(
     ``joint_alpha``: discovery's α, the level of its joint and lack-of-fit tests; a joint-angle
     term's size is then stated only where, on the model refit with the effect at twice the size
     in the readings, the lack-of-fit test does not reject and the joint test separates the term
-    from the hardest other term (:func:`refit_holds`)."""
+    from the hardest other term (:func:`refit_holds`). ``executor``: where the terms are sized,
+    side by side (None: here, one after the other); each term's size depends only on the
+    recording, the fit and the replicates drawn here, so the sizes are the same wherever they
+    run."""
     if not library:
         return []
     design = evaluate(ctx, fit.terms, fit.params, fit.rows, candidates=tuple(library))
@@ -223,50 +228,108 @@ def smallest_detectable(
         t.key: whitened(design.candidates[t.key], fit.weights).reshape(-1, t.size) for t in testable
     }
     bases = {t.key: unexplained_basis(null, columns[t.key]) for t in testable}
-    twins = collinear_twins(testable, bases, collinear)
-    out = []
-    for term in library:
-        reason = ""
-        if (term.family, term.joint_index) in unexplained:
-            reason = f"its joint's {term.family}-dependent structure is reported unexplained"
-        elif twins.get(term.key):
-            twin, correlation = twins[term.key]
-            label = describe(twin, ctx.chain.joint_names)
-            reason = f"not separable from {label} (correlation {correlation:.4f})"
-        if reason:
-            out += [DetectableSize(term, name, np.inf, reason) for name, _ in size_groups(term)]
-            continue
-        sizes = term_sizes(
-            null,
-            term,
-            columns[term.key],
-            replicates,
-            level,
-            power,
-            absorbed_limit,
-            confirmation_level,
-        )
-        rivals = [
-            (t, bases[t.key])
-            for t in testable
-            if t.key != term.key and not same_mechanism(t, term) and bases[t.key].shape[1]
+    shared = _Sizing(
+        ctx,
+        fit,
+        null,
+        replicates,
+        tuple(testable),
+        columns,
+        bases,
+        collinear_twins(testable, bases, collinear),
+        unexplained,
+        level,
+        power,
+        absorbed_limit,
+        joint_level,
+        confirmation_level,
+        joint_alpha,
+    )
+    if executor is None or executor.n_workers <= 1:
+        return [size for term in library for size in _term_detectability(shared, term)]
+    # Terms of one joint cost alike and executors hand out contiguous blocks: dealt round-robin,
+    # each worker gets a share of every joint.
+    order = [
+        i for w in range(executor.n_workers) for i in range(w, len(library), executor.n_workers)
+    ]
+    found = executor.map(_term_detectability, shared, [library[i] for i in order])
+    by_index = dict(zip(order, found, strict=True))
+    return [size for i in range(len(library)) for size in by_index[i]]
+
+
+@dataclass(frozen=True)
+class _Sizing:
+    """What every term's sizing shares (:func:`smallest_detectable`): the recording and the
+    fit, the linearised null model, the replicates, the testable terms' whitened columns and
+    unexplained bases, the collinear twins, and the levels."""
+
+    ctx: Context
+    fit: ModelFit
+    null: NullModel
+    replicates: list[FloatArray]
+    testable: tuple[Term, ...]
+    columns: dict[str, FloatArray]
+    bases: dict[str, FloatArray]
+    twins: dict[str, tuple[Term, float]]
+    unexplained: frozenset[tuple[str, int]]
+    level: float
+    power: float
+    absorbed_limit: float
+    joint_level: float | None
+    confirmation_level: float | None
+    joint_alpha: float | None
+
+
+def _term_detectability(shared: _Sizing, term: Term) -> list[DetectableSize]:
+    """The :class:`DetectableSize` of each of ``term``'s size groups (module docstring)."""
+    ctx, null, columns = shared.ctx, shared.null, shared.columns
+    reason = ""
+    if (term.family, term.joint_index) in shared.unexplained:
+        reason = f"its joint's {term.family}-dependent structure is reported unexplained"
+    elif shared.twins.get(term.key):
+        twin, correlation = shared.twins[term.key]
+        label = describe(twin, ctx.chain.joint_names)
+        reason = f"not separable from {label} (correlation {correlation:.4f})"
+    if reason:
+        return [DetectableSize(term, name, np.inf, reason) for name, _ in size_groups(term)]
+    sizes = term_sizes(
+        null,
+        term,
+        columns[term.key],
+        shared.replicates,
+        shared.level,
+        shared.power,
+        shared.absorbed_limit,
+        shared.confirmation_level,
+    )
+    rivals = [
+        (t, shared.bases[t.key])
+        for t in shared.testable
+        if t.key != term.key and not same_mechanism(t, term) and shared.bases[t.key].shape[1]
+    ]
+    if shared.joint_level is not None:
+        names = ctx.chain.joint_names
+        sizes = [
+            separated(
+                null,
+                s,
+                columns[term.key],
+                rivals,
+                shared.replicates,
+                shared.joint_level,
+                shared.power,
+                names,
+            )
+            for s in sizes
         ]
-        if joint_level is not None:
-            names = ctx.chain.joint_names
-            sizes = [
-                separated(null, s, columns[term.key], rivals, replicates, joint_level, power, names)
-                for s in sizes
-            ]
-        if term.effect == "joint_compliance":
-            sizes = [first_order_spring(ctx, s) for s in sizes]
-        elif term.effect in ("link_bending", "base_flex"):
-            sizes = [first_order_flex(ctx, s) for s in sizes]
-        elif term.deadzone() is not None:
-            sizes = [first_order_backlash(ctx, s) for s in sizes]
-        joint_test = None if joint_alpha is None else JointTest(joint_alpha, rivals)
-        sizes = [refit_holds(ctx, fit, null, s, columns[term.key], joint_test) for s in sizes]
-        out += sizes
-    return out
+    if term.effect == "joint_compliance":
+        sizes = [first_order_spring(ctx, s) for s in sizes]
+    elif term.effect in ("link_bending", "base_flex"):
+        sizes = [first_order_flex(ctx, s) for s in sizes]
+    elif term.deadzone() is not None:
+        sizes = [first_order_backlash(ctx, s) for s in sizes]
+    joint_test = None if shared.joint_alpha is None else JointTest(shared.joint_alpha, rivals)
+    return [refit_holds(ctx, shared.fit, null, s, columns[term.key], joint_test) for s in sizes]
 
 
 def own_torque_nm(ctx: Context, term: Term, shift_rad: float | FloatArray = 0.0) -> FloatArray:

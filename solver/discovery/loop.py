@@ -108,6 +108,7 @@ from solver.discovery.validation import (
     screen_outliers,
 )
 from solver.errors import CalibrationError
+from solver.executors import Executor
 from solver.model import KinematicChain
 
 
@@ -170,10 +171,15 @@ class DiscoveryOptions:
 
 
 def discover(
-    chain: KinematicChain, data: DiscoveryData, options: DiscoveryOptions = DiscoveryOptions()
+    chain: KinematicChain,
+    data: DiscoveryData,
+    options: DiscoveryOptions = DiscoveryOptions(),
+    executor: Executor | None = None,
 ) -> DiscoveryResult:
-    """Find, name and model what the user's model (``chain``'s compliance axes) leaves out."""
-    return _Search(chain, data, options).run()
+    """Find, name and model what the user's model (``chain``'s compliance axes) leaves out;
+    ``executor``: where the terms left out are sized (:func:`smallest_detectable`; None: in
+    this process). The result does not depend on it."""
+    return _Search(chain, data, options, executor).run()
 
 
 @dataclass
@@ -206,8 +212,15 @@ class _Candidates:
 class _Search:
     """State of one discovery run; :meth:`run` is the loop of the module docstring."""
 
-    def __init__(self, chain: KinematicChain, data: DiscoveryData, options: DiscoveryOptions):
+    def __init__(
+        self,
+        chain: KinematicChain,
+        data: DiscoveryData,
+        options: DiscoveryOptions,
+        executor: Executor | None = None,
+    ):
         self.options = options
+        self.executor = executor
         self.rng = np.random.default_rng(options.seed)
         self.names = chain.joint_names
         self.ctx = Context.build(probe_chain(chain), data)
@@ -786,6 +799,7 @@ class _Search:
                 joint_level=level,
                 confirmation_level=self._confirmation_level(),
                 joint_alpha=options.alpha,
+                executor=self.executor,
             )
             if options.detectability
             else None,

@@ -199,3 +199,43 @@ def test_a_size_the_refit_would_absorb_is_not_stated(
     assert np.isfinite(held.smallest) == kept, held.reason
     if not kept:
         assert held.reason.startswith("absorbed by the refit")
+
+
+class _ReversedBlocks:
+    """An executor that runs its contiguous blocks last block first (as a pool may finish
+    them) and records what it was handed."""
+
+    name = "reversed-blocks"
+    n_workers = 3
+
+    def __init__(self) -> None:
+        self.items: list[object] = []
+
+    def map(self, fn, shared, items):  # type: ignore[no-untyped-def]
+        from solver.executors import blocks
+
+        self.items = list(items)
+        parts = blocks(len(items), self.n_workers)
+        done = {tuple(p): [fn(shared, items[i]) for i in p] for p in reversed(parts)}
+        return [r for p in parts for r in done[tuple(p)]]
+
+
+def test_terms_sized_on_an_executor_are_dealt_round_robin_and_come_back_in_order() -> None:
+    """The sizes do not depend on where each term is sized: an executor handed the library
+    dealt round-robin (each worker a share of every joint), its blocks run in any order, gives
+    the sizes computed in this process, term by term."""
+    here = _discover(3, 5e-5)
+    recording = simulate_recording(KINOVA, _spec(3, 5e-5))
+    data = DiscoveryData(
+        recording.joint_positions, recording.measured_pose, FullPose(), recording.time_s
+    )
+    pool = _ReversedBlocks()
+    there = discover(RIGID, data, DiscoveryOptions(seed=3, bootstrap=0), executor=pool)  # type: ignore[arg-type]
+    assert here.detectable is not None and there.detectable is not None
+    library = [d.term for d in here.detectable]
+    dealt = [term.key for term in pool.items]  # type: ignore[attr-defined]
+    keys = list(dict.fromkeys(t.key for t in library))
+    assert dealt == [keys[i] for w in range(3) for i in range(w, len(keys), 3)]
+    assert [(d.term.key, d.parameter, d.smallest, d.reason) for d in there.detectable] == [
+        (d.term.key, d.parameter, d.smallest, d.reason) for d in here.detectable
+    ]
