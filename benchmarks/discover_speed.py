@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from benchmarks.results import Row, markdown_table, write_results
+from benchmarks.results import Row, dash, markdown_table, write_results
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "real"
 KINCAL = str(Path(sys.executable).with_name("kincal"))
@@ -59,8 +59,17 @@ def discover(recording: list[str], extra: list[str], output: Path) -> tuple[floa
     return seconds, document
 
 
-def measure(name: str, recording: list[str], repeats: int, workers: int, folder: Path) -> Row:
-    """The row of one recording: median wall time per setting (alternating runs)."""
+def measure(
+    name: str,
+    recording: list[str],
+    repeats: int,
+    workers: int,
+    folder: Path,
+    *,
+    without_sizes: bool = True,
+) -> Row:
+    """The row of one recording: median wall time per setting (alternating runs), and with
+    ``without_sizes`` one run with ``--no-detectability``."""
     settings = {
         "inprocess": [],
         "processes": ["--executor", "processes", "--workers", str(workers)],
@@ -71,7 +80,9 @@ def measure(name: str, recording: list[str], repeats: int, workers: int, folder:
         for key, extra in settings.items():
             seconds, documents[key] = discover(recording, extra, folder / f"{key}.json")
             times[key].append(seconds)
-    without, _ = discover(recording, ["--no-detectability"], folder / "none.json")
+    without = None
+    if without_sizes:
+        without, _ = discover(recording, ["--no-detectability"], folder / "none.json")
     n_samples = documents["inprocess"]["dataset"]["n_samples"]
     here, there = (statistics.median(times[key]) for key in settings)
     return {
@@ -83,7 +94,7 @@ def measure(name: str, recording: list[str], repeats: int, workers: int, folder:
         "median_inprocess_s": round(here, 2),
         "median_processes_s": round(there, 2),
         "speed_up": round(here / there, 2),
-        "without_sizes_s": round(without, 2),
+        "without_sizes_s": None if without is None else round(without, 2),
         "same_findings": documents["inprocess"] == documents["processes"],
         "load_average": round(os.getloadavg()[0], 2),
         "cpus": os.cpu_count(),
@@ -107,7 +118,7 @@ def render(rows: list[Row]) -> str:
             f"{r['median_inprocess_s']:.2f}",
             f"{r['median_processes_s']:.2f} ({r['workers']} workers)",
             f"{r['speed_up']:.2f}×",
-            f"{r['without_sizes_s']:.2f}",
+            dash(r["without_sizes_s"], 2),
             "yes" if r["same_findings"] else "**no**",
         ]
         for r in rows
