@@ -365,3 +365,34 @@ def test_declared_compliance_with_the_wrong_sign_is_flagged() -> None:
     notes = [u for u in result.unexplained if u.variable == "declared"]
     assert [u.joint_index for u in notes] == [1]
     assert "wrong sign" in notes[0].explanation
+
+
+def test_a_rival_shape_is_judged_over_the_fold_partitions_the_best_one_was(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Like with like (issue 32): the best candidate's held-out error is averaged over the
+    run's fold partitions, so is the rival's it is weighed against; a rival judged on one
+    partition was kept or dropped by that partition's luck."""
+    import solver.discovery.loop as loop
+    from benchmarks import concealed_real
+
+    chain, data, _ = concealed_real.recording("tiago")
+    search = loop._Search(chain, data, DiscoveryOptions(seed=2, bootstrap=0, detectability=False))
+    candidates = search._candidates()
+    best_key, rival_key = candidates.ranked[0], candidates.ranked[1]
+    added = search._add(candidates.by_key[best_key], candidates.tests[best_key])
+    assert added is not None
+    best = loop.repeated_heldout(
+        search.ctx, added[1], added[2], search.partitions, search.fit.weights
+    )
+    judged: list[object] = []
+    original = loop.repeated_heldout
+
+    def recording(*args: object) -> object:
+        judged.append(args[3])
+        return original(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(loop, "repeated_heldout", recording)
+    monkeypatch.setattr(loop, "cross_validate", None)  # one partition is not what it weighs
+    search._heldout_prefers(best, candidates, rival_key)
+    assert judged == [search.partitions] and len(search.partitions) == 3
