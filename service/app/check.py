@@ -31,6 +31,7 @@ from service.app import rank
 from service.app.measurement_input import read_chain_dataset
 from service.app.preflight import check_dataset
 from service.render import corrections, result_json
+from service.render.text import verdict_codes
 from solver import check as checks
 from solver import lie
 from solver.arrays import FloatArray
@@ -196,11 +197,10 @@ def advice(
     bad = ", ".join(str(i + 1) for i in tests.bad_samples)
     remeasure = f"re-measure pose(s) {bad}; " if bad else ""
     if calibration is not None and calibration.status == "failed":
-        codes = ", ".join(dict.fromkeys(r.code for r in calibration.reasons))
         return (
             f"{remeasure}recalibrate (kincal calibrate, following its verdict's fixes): the "
-            f"calibration checked failed its own tests ({codes}), so its predictions are no "
-            "yardstick and this check cannot tell a drift from its misfit"
+            f"calibration checked failed its own tests ({verdict_codes(calibration)}), so its "
+            "predictions are no yardstick and this check cannot tell a drift from its misfit"
         )
     if tests.verdict == "inconclusive":
         return f"{remeasure}record at least {checks.MIN_POSES} check poses"

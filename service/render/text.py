@@ -199,12 +199,17 @@ VERDICT_MEANING = {
 """What each verdict status means for the user, in the one-line verdict of every command."""
 
 
+def verdict_codes(verdict: Verdict) -> str:
+    """The verdict's reason codes, each once, in order: "few_equations, heldout_worse"."""
+    return ", ".join(dict.fromkeys(r.code for r in verdict.reasons))
+
+
 def verdict_line(verdict: Verdict | None) -> str:
     """The one-line verdict a command ends with, also when it is ok: status, the reasons'
     codes, what it means and the exit code."""
     if verdict is None:
         return "verdict: none (a result written before verdicts existed)"
-    codes = ", ".join(dict.fromkeys(r.code for r in verdict.reasons))
+    codes = verdict_codes(verdict)
     exit_code = 3 if verdict.status == "failed" else 0
     return (
         f"verdict: {verdict.status}{f' ({codes})' if codes else ''}: "
@@ -217,7 +222,7 @@ def used_calibration_line(verdict: Verdict | None) -> str:
     command's own exit code is its own: the calibration's reasons are in its result file)."""
     if verdict is None:
         return "calibration verdict: none (a result written before verdicts existed)"
-    codes = ", ".join(dict.fromkeys(r.code for r in verdict.reasons))
+    codes = verdict_codes(verdict)
     line = f"calibration verdict: {verdict.status}{f' ({codes})' if codes else ''}"
     if verdict.status == "ok":
         return f"{line}: fit to use"

@@ -19,7 +19,7 @@ import pytest
 from schemas.check import CheckResult
 from service.app.check import run_check
 from service.cli.common import read_result
-from service.render.text import BAD_SAMPLE, check_size
+from service.render.text import BAD_SAMPLE, check_size, verdict_codes
 from solver.errors import KincalError
 from tests.conftest import REAL_DATA, REPO, assert_quoted_output, computed_once
 from tests.service.cli_support import real_calibration, run, run_ok
@@ -172,7 +172,7 @@ def test_a_calibration_that_failed_its_own_tests_is_to_be_recalibrated_whatever_
     )
     checked = CheckResult.model_validate_json(out.read_bytes())
     assert code == (3 if checked.verdict == "drifted" else 0)
-    codes = ", ".join(dict.fromkeys(r.code for r in result.verdict.reasons))
+    codes = verdict_codes(result.verdict)
     line = f"calibration verdict: failed ({codes}): see verdict.reasons in its result file"
     assert stdout.splitlines()[-2].startswith(line)
     assert checked.calibration_verdict == result.verdict
