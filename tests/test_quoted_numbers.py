@@ -44,6 +44,7 @@ from benchmarks.results import RESULTS, read_results
 from schemas.calibration import CalibrationOptions
 from schemas.robots import load_robot
 from service.render import result_json
+from tests.conftest import assert_documents_close
 from tests.service.cli_support import run_ok
 
 DOCS = Path(__file__).parents[1] / "docs"
@@ -602,13 +603,15 @@ def test_the_figaroh_table_holds_for_tiago_on_two_splits() -> None:
 
 def test_the_scale_details_are_its_runs() -> None:
     """docs/scale.md's stage and CPU-fit tables are computed from the runs of ``scale.json``
-    (whose passes at 10³ poses are re-run above) by the benchmark's own functions."""
+    (whose passes at 10³ poses are re-run above) by the benchmark's own functions — to rounding:
+    numpy's SIMD logarithm differs in the last bit between CPUs (the wall-time exponent
+    0.43856789283656755 on an AVX-512 machine is 0.4385678928365675 without AVX-512)."""
     command, runs = scale.recorded_runs()
     stages_command, stages = read_results("scale_stages")
     cpu_command, cpu = read_results("scale_cpu")
     assert stages_command == cpu_command == command
-    assert stages == scale.stage_rows(runs)
-    assert cpu == scale.cpu_rows(runs)
+    assert_documents_close(scale.stage_rows(runs), stages, "scale_stages", rel=1e-12)
+    assert_documents_close(scale.cpu_rows(runs), cpu, "scale_cpu", rel=1e-12)
 
 
 def _no_nan(numbers: dict[str, float]) -> dict[str, float | None]:
