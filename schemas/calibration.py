@@ -519,10 +519,9 @@ class DatasetInfo(_Model):
             return data
         data = dict(data)
         position_only = data.pop(LEGACY_POSITION_FLAG)
-        if "measures_rotation" not in data:  # both given: the new one counts
-            data["measures_rotation"] = (
-                not position_only if isinstance(position_only, bool) else position_only
-            )
+        if not isinstance(position_only, bool):  # coerced, "true" would turn into its negation
+            raise ValueError(f"{LEGACY_POSITION_FLAG} must be true or false, got {position_only!r}")
+        data.setdefault("measures_rotation", not position_only)  # both given: the new one counts
         return data
 
 

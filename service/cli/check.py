@@ -11,7 +11,6 @@ from service.cli.common import (
     Outputs,
     ReportOpt,
     ResultOutDirOpt,
-    calibration_verdict_line,
     output_option,
     read_result,
 )
@@ -53,7 +52,7 @@ def check(
     size and 95 % interval, and the smallest changes the check detects with 90 % probability
     (docs/check.md)."""
     from service.app.check import run_check
-    from service.render.text import check_verdict_line
+    from service.render.text import check_verdict_line, used_calibration_line
 
     outputs = Outputs(out_dir if out_dir is not None else result_path.parent)
     path = outputs.path(output, "check.json", "kincal.check/1")
@@ -67,7 +66,7 @@ def check(
         outputs.write_text(report_path, "HTML report", render_check_report(out))
     typer.echo(summary(out))
     typer.echo(outputs.listing())
-    typer.echo(calibration_verdict_line(result))
+    typer.echo(used_calibration_line(result.verdict))
     typer.echo(check_verdict_line(out))
     if out.verdict == "drifted":
         raise typer.Exit(EXIT_DRIFTED)

@@ -495,13 +495,6 @@ def read_result(path: Path) -> CalibrationResult:
     return _read_document(path, CalibrationResult, "calibration result", "calibrate")
 
 
-def calibration_verdict_line(result: CalibrationResult) -> str:
-    """The one-line verdict of the calibration a prediction, ranking or check comes from."""
-    from service.render.text import used_calibration_line
-
-    return used_calibration_line(result.verdict)
-
-
 def read_noise_covariance(path: Path) -> object:
     """The JSON of ``--noise-covariance`` (checked by :class:`CalibrationOptions`), with a
     one-line error if it cannot be read."""

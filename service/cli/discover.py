@@ -139,10 +139,7 @@ def discover(
     from solver.executors import preload_in_workers
 
     preload_in_workers("solver.discovery.detectability")  # what local workers import once
-    with contextlib.ExitStack() as stack:
-        pool = _executor(executor, dask, workers)
-        if pool is not None:
-            stack.enter_context(pool)
+    with _executor(executor, dask, workers) or contextlib.nullcontext() as pool:
         findings = discovery.discover_source(
             data, description, options, plot_dir, output.stem, marker=marker, executor=pool
         )

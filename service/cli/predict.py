@@ -12,7 +12,6 @@ from service.cli.common import (
     Outputs,
     ResultOutDirOpt,
     _prediction_note,
-    calibration_verdict_line,
     output_option,
     read_result,
 )
@@ -68,6 +67,7 @@ def predict(
     import pandas as pd
 
     from service.render import result_json
+    from service.render.text import used_calibration_line
     from solver import lie
 
     outputs = Outputs(out_dir if out_dir is not None else result_path.parent)
@@ -117,7 +117,7 @@ def predict(
         lambda p: frame.to_csv(p, index=False, float_format="%.17g"),
     )
     typer.echo(outputs.listing())
-    typer.echo(calibration_verdict_line(result))
+    typer.echo(used_calibration_line(result.verdict))
 
 
 def rank(
@@ -163,7 +163,7 @@ def rank(
 ) -> None:
     """Rank configurations by predicted task uncertainty tr(W Σ_E Wᵀ), best first (Eq. 22–23)."""
     from service.app import rank as ranking
-    from service.render.text import ranking_summary
+    from service.render.text import ranking_summary, used_calibration_line
 
     outputs = Outputs(out_dir if out_dir is not None else result_path.parent)
     path = outputs.path(output, "ranking.json", "kincal.ranking/1")
@@ -207,4 +207,4 @@ def rank(
     )
     typer.echo(ranking_summary(out))
     typer.echo(outputs.listing())
-    typer.echo(calibration_verdict_line(result))
+    typer.echo(used_calibration_line(result.verdict))

@@ -145,6 +145,11 @@ def test_a_simulated_recording_of_positions_calibrates_and_reads_back_under_eith
         predictions.append(pd.read_csv(poses))
     pd.testing.assert_frame_equal(*predictions)
     assert not CalibrationResult.model_validate(document).dataset.measures_rotation
+    # a legacy flag that is not true or false is refused, never coerced into its negation
+    document["dataset"]["position_only"] = "true"
+    old.write_text(json.dumps(document))
+    code, _, err = run(["predict", old, data, "-o", tmp_path / "x.csv"], capsys, monkeypatch)
+    assert code == 2 and "position_only must be true or false, got 'true'" in err
 
 
 def _bad(recording: Path, tmp_path: Path, edit) -> Path:  # type: ignore[no-untyped-def]
