@@ -14,32 +14,68 @@ Every problem raises :class:`solver.errors.DatasetError` with ONE line
 Modules by concern: ``records`` (the arrays and the contract's column names), ``columns``
 (which columns hold what), ``figaroh`` (the FIGAROH marker adapter), ``validate`` (tables to
 checked arrays), ``readers`` (files to tables), ``chunks`` (recordings larger than memory),
-``writers`` (arrays to files).
+``writers`` (arrays to files), ``paths`` (which files, judged from the path alone: loaded
+without pandas, so that a command refuses a missing file at once).
 """
 
 from __future__ import annotations
 
-from schemas.dataset.chunks import ChunkRef, DatasetChunks, plan_dataset_chunks
-from schemas.dataset.columns import QUATERNION_NORM_TOL
-from schemas.dataset.figaroh import rpy_to_quaternion_xyzw
-from schemas.dataset.readers import (
-    TooManyRowsError,
-    read_configurations,
-    read_dataset,
-    read_dataset_bytes,
-)
-from schemas.dataset.records import (
-    CONTRACT_COLUMNS,
-    OPTIONAL_FLOAT_COLUMNS,
-    POSITION_COLUMNS,
-    QUATERNION_COLUMNS,
-    READ_SUFFIXES,
-    SUFFIXES,
-    ConfigurationSet,
-    PoseDataset,
-)
-from schemas.dataset.validate import configurations_from_frame, dataset_from_frame
-from schemas.dataset.writers import dataset_to_frame, write_dataset
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from schemas.dataset.paths import READ_SUFFIXES, SUFFIXES
+
+if TYPE_CHECKING:
+    from schemas.dataset.chunks import ChunkRef, DatasetChunks, plan_dataset_chunks
+    from schemas.dataset.columns import QUATERNION_NORM_TOL
+    from schemas.dataset.figaroh import rpy_to_quaternion_xyzw
+    from schemas.dataset.readers import (
+        TooManyRowsError,
+        read_configurations,
+        read_dataset,
+        read_dataset_bytes,
+    )
+    from schemas.dataset.records import (
+        CONTRACT_COLUMNS,
+        OPTIONAL_FLOAT_COLUMNS,
+        POSITION_COLUMNS,
+        QUATERNION_COLUMNS,
+        ConfigurationSet,
+        PoseDataset,
+    )
+    from schemas.dataset.validate import configurations_from_frame, dataset_from_frame
+    from schemas.dataset.writers import dataset_to_frame, write_dataset
+
+_HOME = {
+    "ChunkRef": "chunks",
+    "DatasetChunks": "chunks",
+    "plan_dataset_chunks": "chunks",
+    "QUATERNION_NORM_TOL": "columns",
+    "rpy_to_quaternion_xyzw": "figaroh",
+    "TooManyRowsError": "readers",
+    "read_configurations": "readers",
+    "read_dataset": "readers",
+    "read_dataset_bytes": "readers",
+    "CONTRACT_COLUMNS": "records",
+    "OPTIONAL_FLOAT_COLUMNS": "records",
+    "POSITION_COLUMNS": "records",
+    "QUATERNION_COLUMNS": "records",
+    "ConfigurationSet": "records",
+    "PoseDataset": "records",
+    "configurations_from_frame": "validate",
+    "dataset_from_frame": "validate",
+    "dataset_to_frame": "writers",
+    "write_dataset": "writers",
+}
+"""Each public name's module, imported on first use: the readers load pandas (0.2 s), and a
+command must be able to refuse a missing file (:mod:`schemas.dataset.paths`) without it."""
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _HOME:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_HOME[name]}"), name)
+
 
 __all__ = [
     "CONTRACT_COLUMNS",

@@ -13,12 +13,8 @@ import numpy as np
 import pandas as pd
 
 from schemas.dataset.columns import check_joint_names, one_line
-from schemas.dataset.readers import (
-    EXACT_FLOATS,
-    check_dataset_path,
-    read_csv_header,
-    read_frame,
-)
+from schemas.dataset.paths import check_dataset_path
+from schemas.dataset.readers import EXACT_FLOATS, read_csv_header, read_frame
 from schemas.dataset.records import PoseDataset
 from schemas.dataset.validate import dataset_from_frame
 from solver.errors import DatasetError

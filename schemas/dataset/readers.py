@@ -14,7 +14,8 @@ import pandas as pd
 
 from schemas.dataset.columns import check_duplicates, duplicates, one_line
 from schemas.dataset.industrial import read_industrial_yaml
-from schemas.dataset.records import READ_SUFFIXES, ConfigurationSet, PoseDataset
+from schemas.dataset.paths import READ_SUFFIXES, check_dataset_path
+from schemas.dataset.records import ConfigurationSet, PoseDataset
 from schemas.dataset.validate import configurations_from_frame, dataset_from_frame
 from solver.errors import DatasetError
 
@@ -75,20 +76,6 @@ def read_configurations(
     return configurations_from_frame(
         read_frame(path, source), joint_names, source=source, other_joint_names=other_joint_names
     )
-
-
-def check_dataset_path(path: Path, source: str) -> str:
-    """The lower-case suffix of a dataset file that exists; a one-line error otherwise."""
-    suffix = path.suffix.lower()
-    if suffix not in READ_SUFFIXES:
-        raise DatasetError(
-            f"{source}: unsupported file type {path.suffix or '(no suffix)'!r}; "
-            f"save it as one of {', '.join(READ_SUFFIXES)}"
-        )
-    if not path.is_file():
-        problem = "is a directory" if path.is_dir() else "file not found"
-        raise DatasetError(f"{source}: {problem} ({path}); check the path")
-    return suffix
 
 
 def read_frame(path: Path, source: str) -> pd.DataFrame:

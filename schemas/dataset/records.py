@@ -19,9 +19,6 @@ POSITION_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw")
 OPTIONAL_FLOAT_COLUMNS = ("t", "temperature_c", "payload_kg")
 CONTRACT_COLUMNS = (*POSITION_COLUMNS, *QUATERNION_COLUMNS, "sample_id", *OPTIONAL_FLOAT_COLUMNS)
-SUFFIXES = (".csv", ".parquet", ".json")
-READ_SUFFIXES = (*SUFFIXES, ".yaml", ".yml")
-"""What the readers take: the writable formats and industrial_calibration's YAML recordings."""
 ROW_FLOAT_FIELDS = ("time_s", "temperature_c", "payload_kg")
 FLOAT_FIELD_OF_COLUMN = dict(zip(OPTIONAL_FLOAT_COLUMNS, ROW_FLOAT_FIELDS, strict=True))
 """Optional float column of the file → :class:`PoseDataset` field."""

@@ -47,7 +47,6 @@ from solver.errors import DatasetError
 if TYPE_CHECKING:
     from rosbags.highlevel import AnyReader
 
-BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 UPLOAD_SUFFIXES = (".bag", ".zip")
 """A bag sent as bytes: a ROS 1 ``.bag`` file, or a rosbag2 folder in a ``.zip`` archive."""
 MAX_ARCHIVE_MEMBERS = 64
@@ -122,13 +121,6 @@ class BagRecording:
             f"{s.n_too_short} still segment(s) too short, {s.n_no_measurement} without a "
             f"measurement; {s.n_moving} of {s.n_messages} joint-state messages while moving"
         )
-
-
-def is_bag(path: Path) -> bool:
-    """A ROS 1 bag file, a rosbag2 folder (``metadata.yaml``) or a storage file inside one."""
-    if path.is_dir():
-        return (path / "metadata.yaml").is_file()
-    return path.suffix.lower() in BAG_SUFFIXES
 
 
 def read_bag(

@@ -9,11 +9,11 @@ from typing import Any, Literal
 
 import pandas as pd
 
+from schemas.dataset.paths import SUFFIXES
 from schemas.dataset.records import (
     FLOAT_FIELD_OF_COLUMN,
     POSITION_COLUMNS,
     QUATERNION_COLUMNS,
-    SUFFIXES,
     PoseDataset,
 )
 from solver.errors import DatasetError

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from schemas.dataset.paths import check_recording_path
 from service.cli.common import (
     CLOCK_TOLERANCE_S,
     COVARIANCE,
@@ -282,6 +283,7 @@ def calibrate(
     rows: exit code 2 with the fix), then writes the result JSON (and the files asked for) to
     -o/--out-dir, lists every file written and ends with the verdict: exit code 0 when it is ok
     or a warning, 3 when it failed."""
+    check_recording_path(data)
     description = robot_for(data, robot, urdf, base, tip, dh, to_stderr=show_options)
     if rigid and compliant_joints is not None:
         raise KincalError("give --rigid or --compliant-joints, not both")
@@ -408,7 +410,7 @@ def bag_source(
 ) -> Path | PoseDataset:
     """``data`` itself, or the recording a ROS bag holds (its synchronisation report printed);
     the bag options without a bag are refused."""
-    from schemas.dataset.rosbag import is_bag
+    from schemas.dataset.paths import is_bag
 
     if not is_bag(data):
         if joint_states is not None or measure is not None or capture is not None:

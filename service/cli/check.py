@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from schemas.dataset.paths import check_recording_path
 from service.cli.common import (
     Outputs,
     ReportOpt,
@@ -51,6 +52,7 @@ def check(
     set aside as a bad sample and the verdict taken on the rest; the drift located with its
     size and 95 % interval, and the smallest changes the check detects with 90 % probability
     (docs/check.md)."""
+    check_recording_path(recording)
     from service.app.check import run_check
     from service.render.text import check_verdict_line, used_calibration_line
 

@@ -419,10 +419,12 @@ def robot_for(
     neither: :class:`KincalError` naming both fixes."""
     if robot is not None or urdf is not None or dh is not None:
         return _robot(robot, urdf, base, tip, dh)
-    from schemas.dataset.rosbag import ROBOT_DESCRIPTION_TOPIC, is_bag
+    from schemas.dataset.paths import is_bag
 
     if not is_bag(recording):
         return _robot(robot, urdf, base, tip, dh)  # the error that names the robot options
+    from schemas.dataset.rosbag import ROBOT_DESCRIPTION_TOPIC
+
     description = bag_robot(recording, base, tip, to_stderr=to_stderr)
     if description is None:
         raise KincalError(

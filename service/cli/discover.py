@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from schemas.dataset.paths import check_recording_path
 from service.cli.common import (
     EXECUTION,
     OUTPUT,
@@ -95,6 +96,7 @@ def discover(
     dask: DaskOpt = None,
 ) -> None:
     """Find what the model leaves out, name the physics, model it, show the held-out gain."""
+    check_recording_path(data)
     import pydantic
 
     from schemas.discovery import DiscoveryOptions

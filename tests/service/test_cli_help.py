@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -58,6 +59,27 @@ def _imported_by(*args: str) -> set[str]:
     return set(json.loads(done.stdout))
 
 
+def _run_and_list_modules(*args: str) -> tuple[set[str], int, str]:
+    """``kincal *args`` in a fresh interpreter: the top-level packages it imported, its exit
+    code and its stderr."""
+    script = (
+        "import json, sys\n"
+        f"sys.argv = ['kincal', *{list(args)!r}]\n"
+        "from service.cli import main\n"
+        "code = 0\n"
+        "try:\n"
+        "    main()\n"
+        "except SystemExit as exc:\n"
+        "    code = int(exc.code or 0)\n"
+        "print(json.dumps([code, sorted({m.split('.')[0] for m in sys.modules})]))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True
+    )
+    code, loaded = json.loads(done.stdout.splitlines()[-1])
+    return set(loaded), code, done.stderr
+
+
 @pytest.mark.parametrize(
     "args",
     [
@@ -71,6 +93,35 @@ def _imported_by(*args: str) -> set[str]:
 def test_help_loads_none_of_the_heavy_packages(args: tuple[str, ...]) -> None:
     loaded = _imported_by(*args)
     assert "typer" in loaded and "service" in loaded
+    assert not loaded & set(HEAVY), sorted(loaded & set(HEAVY))
+
+
+@pytest.mark.parametrize(
+    ("command", "name", "message"),
+    [
+        ("calibrate", "missing.csv", "missing.csv: file not found"),
+        ("calibrate", "rows.txt", "rows.txt: unsupported file type '.txt'"),
+        ("discover", "missing.parquet", "missing.parquet: file not found"),
+        ("check", "missing.csv", "missing.csv: file not found"),
+    ],
+)
+def test_a_refused_recording_loads_none_of_the_heavy_packages(
+    tmp_path: Path, command: str, name: str, message: str
+) -> None:
+    """Issue 29: a recording refused for its path (missing, unknown format) is refused with
+    one line and exit code 2 before pandas, numpy, scipy or Pinocchio load (0.2 s instead of
+    ~1 s)."""
+    (tmp_path / "rows.txt").write_text("x,y,z\n0,0,0\n", encoding="utf-8")
+    recording = str(tmp_path / name)
+    robot = ["--robot", "kinova"]
+    args = {
+        "calibrate": ["calibrate", recording, *robot],
+        "discover": ["discover", recording, *robot],
+        "check": ["check", str(tmp_path / "result.json"), recording],
+    }[command]
+    loaded, code, stderr = _run_and_list_modules(*args)
+    assert code == 2 and f"kincal: error: {message}" in stderr, stderr
+    assert "check the path" in stderr or "save it as one of" in stderr
     assert not loaded & set(HEAVY), sorted(loaded & set(HEAVY))
 
 

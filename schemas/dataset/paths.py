@@ -1,0 +1,44 @@
+"""Which files kincal reads, judged from the path alone (no pandas, numpy or rosbags): a
+command refuses a missing file or an unknown format before it loads anything heavy."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from solver.errors import DatasetError
+
+SUFFIXES = (".csv", ".parquet", ".json")
+"""The formats kincal writes and reads."""
+READ_SUFFIXES = (*SUFFIXES, ".yaml", ".yml")
+"""What the readers take: the writable formats and industrial_calibration's YAML recordings."""
+BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+"""A ROS 1 bag file, or a storage file inside a rosbag2 folder."""
+
+
+def is_bag(path: Path) -> bool:
+    """A ROS 1 bag file, a rosbag2 folder (``metadata.yaml``) or a storage file inside one."""
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    return path.suffix.lower() in BAG_SUFFIXES
+
+
+def check_dataset_path(path: Path, source: str) -> str:
+    """The lower-case suffix of a dataset file that exists; a one-line error otherwise."""
+    suffix = path.suffix.lower()
+    if suffix not in READ_SUFFIXES:
+        raise DatasetError(
+            f"{source}: unsupported file type {path.suffix or '(no suffix)'!r}; "
+            f"save it as one of {', '.join(READ_SUFFIXES)}"
+        )
+    if not path.is_file():
+        problem = "is a directory" if path.is_dir() else "file not found"
+        raise DatasetError(f"{source}: {problem} ({path}); check the path")
+    return suffix
+
+
+def check_recording_path(path: Path) -> None:
+    """A recording argument that can be read, as far as its path tells: a dataset file
+    (:func:`check_dataset_path`: one line naming the file otherwise). A folder (a rosbag2 or
+    ball-in-socket folder) or a ROS bag is left to its reader."""
+    if not (path.is_dir() or is_bag(path)):
+        check_dataset_path(path, path.name)
