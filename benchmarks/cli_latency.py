@@ -1,6 +1,7 @@
 """How long a newcomer waits (issue 28), whole process, wall time: ``kincal --help``,
-``kincal calibrate --help`` (target ≤ 0.5 s) and the refusal of the FR3 recording converted to
-millimetres and to degrees (target < 2 s, exit code 2, the unit named in the message).
+``kincal calibrate --help`` and the refusal of a recording that is not there (target ≤ 0.5 s,
+issue 29), and the refusal of the FR3 recording converted to millimetres and to degrees
+(target < 2 s, exit code 2, the unit named in the message).
 
 Median and range of ``--repeats`` runs each, and the median CPU time (user + system of the
 process and its children): on a machine loaded by other work the wall time grows with the
@@ -52,6 +53,13 @@ def cases(folder: Path) -> list[Case]:
     return [
         Case("kincal --help", ["--help"], 0, "calibrate", 0.5),
         Case("kincal calibrate --help", ["calibrate", "--help"], 0, "Outliers", 0.5),
+        Case(
+            "calibrate, file not found",
+            ["calibrate", str(folder / "fr3_missing.csv"), *refuse],
+            2,
+            "file not found",
+            0.5,
+        ),
         Case(
             "calibrate, positions in mm",
             ["calibrate", str(folder / "fr3_mm.csv"), *refuse],

@@ -1,6 +1,7 @@
-"""``benchmarks/cli_latency.py`` runs (one repeat): whole ``kincal`` processes for the help and
-for the FR3 recording in millimetres and in degrees, each with the exit code and the word the
-issue asks for (the benchmark stops otherwise). Its times are printed, never asserted."""
+"""``benchmarks/cli_latency.py`` runs (one repeat): whole ``kincal`` processes for the help, for
+a recording that is not there and for the FR3 recording in millimetres and in degrees, each
+with the exit code and the word the issue asks for (the benchmark stops otherwise). Its times
+are printed, never asserted."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ def test_the_latency_benchmark_runs_every_case_with_its_exit_code_and_message() 
     assert [row[0] for row in rows] == [
         "kincal --help",
         "kincal calibrate --help",
+        "calibrate, file not found",
         "calibrate, positions in mm",
         "calibrate, joints in degrees",
     ]
