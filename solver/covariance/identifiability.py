@@ -596,7 +596,12 @@ def _least_norm_diag(
     system = np.vstack([a.T, c[None, :]])
     unit = np.zeros(k + 1)
     unit[k] = 1.0
-    weights = nnls(system, unit, maxiter=10 * system.shape[1])[0]
+    if not np.all(np.isfinite(system)):
+        return None
+    try:
+        weights = nnls(system, unit, maxiter=10 * system.shape[1])[0]
+    except RuntimeError:  # no answer within its iterations (it needs at most a few per bound)
+        return None
     residual = system @ weights - unit
     if not residual[k] < -LDP_FEASIBLE:  # ‖residual‖ = 0: the constraints have no solution
         return None

@@ -163,6 +163,12 @@ def test_an_infeasible_diagonal_rule_says_so() -> None:
     assert _least_norm_diag(np.array([1.0, -1.0]), basis, np.ones(2), np.zeros(2)) is None
 
 
+def test_a_diagonal_rule_with_a_non_finite_entry_says_so() -> None:
+    """No answer (the caller keeps the fit's θ) rather than NNLS on a NaN."""
+    basis = np.array([[1.0], [0.0]])
+    assert _least_norm_diag(np.array([1.0, np.nan]), basis, np.ones(2), np.zeros(2)) is None
+
+
 def test_a_failed_scoring_step_falls_back_to_the_iterated_estimate(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
