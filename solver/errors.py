@@ -15,6 +15,11 @@ class DatasetError(KincalError):
     """A recording is unreadable or inconsistent (names row and column)."""
 
 
+class JointColumnsError(DatasetError):
+    """A recording's joint columns are not the robot's joints (missing, or named another
+    way): often a recording of another robot."""
+
+
 class ModelError(KincalError):
     """A robot model cannot be built (unknown robot, frame, joint type)."""
 

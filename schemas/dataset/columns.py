@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from schemas.dataset.records import CONTRACT_COLUMNS, POSITION_COLUMNS, QUATERNION_COLUMNS
-from solver.errors import DatasetError
+from solver.errors import DatasetError, JointColumnsError
 
 QUATERNION_NORM_TOL = 1e-3
 """Largest accepted | |q| - 1 |; quaternions within it are re-normalised silently."""
@@ -102,7 +102,7 @@ def joint_columns(
     q_style = [c for c in free if _Q_STYLE.match(c)]
     unknown = [c for c in free if not _Q_STYLE.match(c)]
     if by_name and q_style:
-        raise DatasetError(
+        raise JointColumnsError(
             f"{source}: mixes URDF joint columns ({listing(by_name)}) with q-style columns "
             f"({listing(q_style)}); name all joints one way: {listing(names)} "
             f"or q1..q{len(names)}"
@@ -135,7 +135,7 @@ def _check_q_style(q_style: list[str], names: tuple[str, ...], source: str) -> N
     parts = ([f"missing {listing(missing)}"] if missing else []) + (
         [f"{listing(beyond)} beyond the last joint"] if beyond else []
     )
-    raise DatasetError(
+    raise JointColumnsError(
         f"{source}: q-style joint columns {listing([f'q{i}' for i in found])} do not match the "
         f"robot's {k} joints ({'; '.join(parts)}); write exactly q1..q{k} for "
         f"{listing(names)} in chain order"
@@ -149,7 +149,7 @@ def _check_named(
     if not missing:
         return
     seen = f"; unrecognised column(s) present: {listing(unknown)}" if unknown else ""
-    raise DatasetError(
+    raise JointColumnsError(
         f"{source}: missing joint column(s) {listing(missing)}{seen}; expected one column per "
         f"joint named {listing(names)}, or q1..q{len(names)} in chain order"
     )

@@ -35,7 +35,7 @@ from service.render.text import verdict_codes
 from solver import check as checks
 from solver import lie
 from solver.arrays import FloatArray
-from solver.errors import DatasetError, KincalError
+from solver.errors import DatasetError, JointColumnsError, KincalError
 from solver.ranking import ee_covariance
 from solver.verdict import reach_m
 
@@ -95,12 +95,14 @@ def read_check_recording(
     else:
         try:
             dataset = read_chain_dataset(source, chain, name=name)
-        except DatasetError as exc:
+        except JointColumnsError as exc:
             raise KincalError(
                 f"check recording: not a recording of the calibrated robot "
                 f"{result.robot.name} ({len(chain.joint_names)} joints "
                 f"{', '.join(chain.joint_names)}): {exc}"
             ) from exc
+        except DatasetError as exc:
+            raise KincalError(f"check recording: {exc}") from exc
     check_dataset(dataset, chain)
     recorded = dataset.measurement_model
     calibrated = result_json.result_measurement(result)

@@ -190,6 +190,19 @@ def test_another_robot_is_refused(calibrated, tmp_path, capsys, monkeypatch) -> 
     assert "panda_joint1" in stderr and len(stderr.strip().splitlines()) == 1
 
 
+def test_a_recording_without_a_position_column_is_refused_for_that(
+    calibrated, tmp_path, capsys, monkeypatch
+) -> None:
+    """The robot's joints are all there: the message names the missing column, not another
+    robot."""
+    rows = calibrated[1].drop(columns=["x"])
+    code, _, stderr, _ = check(calibrated, rows, tmp_path, capsys, monkeypatch)
+    assert code == 2
+    assert stderr.startswith("kincal: error: check recording: ")
+    assert "missing position column(s) x" in stderr
+    assert "calibrated robot" not in stderr and len(stderr.strip().splitlines()) == 1
+
+
 def test_another_measurement_type_is_refused(calibrated, tmp_path, capsys, monkeypatch) -> None:
     rows = calibrated[1].drop(columns=["qx", "qy", "qz", "qw"])
     code, _, stderr, _ = check(calibrated, rows, tmp_path, capsys, monkeypatch)
