@@ -32,6 +32,7 @@ Jacobian at the calibration. Tests:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -557,14 +558,20 @@ class DriftModel:
         share = self.false_alarm(p_value / weight)
         return max(share, p_value) if share > 0.0 else min(1.0, p_value / weight)
 
+    @functools.cached_property
+    def locate_noise(self) -> FloatArray:
+        """The whitened noise (:data:`LOCATE_DRAWS`, ν) of every simulated check of
+        :meth:`simulated_rates`, which adds its change to it (a fixed seed: drawn once)."""
+        rng = np.random.default_rng(NULL_SEED + 1)
+        return rng.standard_normal((LOCATE_DRAWS, self.white.shape[0]))
+
     def simulated_rates(self, pattern: FloatArray, target: int) -> tuple[float, float]:
         """Shares of :data:`LOCATE_DRAWS` simulated checks with the whitened change ``pattern``
         (ν,) in which the check detects drift and in which it locates candidate ``target``
         (its index), with the rules of :func:`locate_drift` (smallest p-value among the
         significant; a nested simpler candidate unless the extra components are significant),
         under the linearised model."""
-        rng = np.random.default_rng(NULL_SEED + 1)
-        z = pattern + rng.standard_normal((LOCATE_DRAWS, pattern.size))
+        z = pattern + self.locate_noise
         statistics = np.stack(
             [np.sum(z**2, axis=1)] + [np.sum((z @ b) ** 2, axis=1) for b in self.bases], axis=1
         )
@@ -574,10 +581,13 @@ class DriftModel:
         ranks = self.ranks[1:]
         significant = rejects[:, 1:]
         masked = np.full(scores.shape, np.inf)  # log p of the significant tests only
-        for t, rank in enumerate(ranks):
-            rows = np.flatnonzero(significant[:, t])
-            if rows.size:
-                masked[rows, t] = chi2_log_survivals(scores[rows, t], int(rank))
+        for rank in np.unique(ranks):  # one call per degree of freedom
+            tests = np.flatnonzero(ranks == rank)
+            hit = significant[:, tests]
+            if np.any(hit):
+                block = masked[:, tests]
+                block[hit] = chi2_log_survivals(scores[:, tests][hit], int(rank))
+                masked[:, tests] = block
         log_p = masked
         best = np.argmin(masked, axis=1)
         any_significant = np.any(significant, axis=1)
