@@ -53,13 +53,13 @@ def check(
     size and 95 % interval, and the smallest changes the check detects with 90 % probability
     (docs/check.md)."""
     check_recording_path(recording)
-    from service.app.check import run_check
-    from service.render.text import check_verdict_line, used_calibration_line
-
     outputs = Outputs(out_dir if out_dir is not None else result_path.parent)
     path = outputs.path(output, "check.json", "kincal.check/1")
     report_path = None if report is None else outputs.path(report, "check.html", None)
     result = read_result(result_path)
+    from service.app.check import run_check
+    from service.render.text import check_verdict_line, used_calibration_line
+
     out = run_check(result, recording, level=level, result_name=str(result_path))
     outputs.write_text(path, f"check of {len(out.poses)} poses", out.model_dump_json(indent=1))
     if report_path is not None:

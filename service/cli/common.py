@@ -472,15 +472,24 @@ def _vector3(text: str, option: str) -> tuple[float, float, float]:
     return x, y, z
 
 
-def _read_document(path: Path, model: type[DocumentT], what: str, producer: str) -> DocumentT:
-    """A JSON document of ``model`` from ``path`` (what: "calibration result"; producer: the
-    command that writes it), with a one-line error naming the first bad field otherwise."""
+def _document_bytes(path: Path, what: str) -> bytes:
+    """The bytes of a document (what: "calibration result"), read before its model is imported:
+    a file that is not there is refused at once."""
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise KincalError(f"cannot read {what} {path}: {exc.strerror}") from exc
+
+
+def _read_document(
+    path: Path, data: bytes, model: type[DocumentT], what: str, producer: str
+) -> DocumentT:
+    """The JSON document of ``model`` in ``data`` (read from ``path``; producer: the command
+    that writes it), with a one-line error naming the first bad field otherwise."""
     import pydantic
 
     try:
-        return model.model_validate_json(path.read_bytes())
-    except OSError as exc:
-        raise KincalError(f"cannot read {what} {path}: {exc.strerror}") from exc
+        return model.model_validate_json(data)
     except pydantic.ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "document"
@@ -492,9 +501,10 @@ def _read_document(path: Path, model: type[DocumentT], what: str, producer: str)
 
 def read_result(path: Path) -> CalibrationResult:
     """Load a result JSON written by ``kincal calibrate``, with a one-line error otherwise."""
+    data = _document_bytes(path, "calibration result")
     from schemas.calibration import CalibrationResult
 
-    return _read_document(path, CalibrationResult, "calibration result", "calibrate")
+    return _read_document(path, data, CalibrationResult, "calibration result", "calibrate")
 
 
 def read_noise_covariance(path: Path) -> object:
@@ -512,9 +522,10 @@ def read_noise_covariance(path: Path) -> object:
 
 def read_findings(path: Path) -> FindingsResult:
     """Load a findings JSON written by ``kincal discover``, with a one-line error otherwise."""
+    data = _document_bytes(path, "findings file")
     from schemas.discovery import FindingsResult
 
-    return _read_document(path, FindingsResult, "findings file", "discover")
+    return _read_document(path, data, FindingsResult, "findings file", "discover")
 
 
 def _integers(text: str, option: str) -> list[int]:

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from schemas.dataset.paths import check_recording_path
 from service.cli.common import (
     Outputs,
     ResultOutDirOpt,
@@ -64,15 +65,16 @@ def predict(
     when the result has covariances, the predicted 6×6 EE covariance (cov_00..cov_55, row-major,
     EE frame, [v; w], m and rad): by default the total, Σ_E (Eq. 12) + Σ_n + the
     parameter-estimation part + the model-error part (docs/predictive.md)."""
+    check_recording_path(configs)
+    outputs = Outputs(out_dir if out_dir is not None else result_path.parent)
+    path = outputs.path(output, "predictions.csv", "predicted poses (kincal predict)")
+    result = read_result(result_path)
     import pandas as pd
 
     from service.render import result_json
     from service.render.text import used_calibration_line
     from solver import lie
 
-    outputs = Outputs(out_dir if out_dir is not None else result_path.parent)
-    path = outputs.path(output, "predictions.csv", "predicted poses (kincal predict)")
-    result = read_result(result_path)
     _prediction_note(result)
     chain, _ = result_json.result_chain(result)
     configurations = _configurations(configs, chain)
@@ -162,12 +164,14 @@ def rank(
     ] = "random-effects",
 ) -> None:
     """Rank configurations by predicted task uncertainty tr(W Σ_E Wᵀ), best first (Eq. 22–23)."""
-    from service.app import rank as ranking
-    from service.render.text import ranking_summary, used_calibration_line
-
+    if configs is not None:
+        check_recording_path(configs)
     outputs = Outputs(out_dir if out_dir is not None else result_path.parent)
     path = outputs.path(output, "ranking.json", "kincal.ranking/1")
     result = read_result(result_path)
+    from service.app import rank as ranking
+    from service.render.text import ranking_summary, used_calibration_line
+
     if result.covariance is None:
         raise KincalError(f"{result_path} {ranking.NO_COVARIANCE}")
     if (configs is None) == (target is None):

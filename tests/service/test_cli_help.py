@@ -79,31 +79,30 @@ def test_help_loads_none_of_the_heavy_packages(args: tuple[str, ...]) -> None:
 
 
 @pytest.mark.parametrize(
-    ("command", "name", "message"),
+    ("args", "message"),
     [
-        ("calibrate", "missing.csv", "missing.csv: file not found"),
-        ("calibrate", "rows.txt", "rows.txt: unsupported file type '.txt'"),
-        ("discover", "missing.parquet", "missing.parquet: file not found"),
-        ("check", "missing.csv", "missing.csv: file not found"),
+        (["calibrate", "missing.csv", "--robot", "kinova"], "missing.csv: file not found"),
+        (["calibrate", "rows.txt", "--robot", "kinova"], "rows.txt: unsupported file type '.txt'"),
+        (["discover", "missing.parquet", "--robot", "kinova"], "missing.parquet: file not found"),
+        (["check", "missing.json", "missing.csv"], "missing.csv: file not found"),
+        (["check", "missing.json", "rows.csv"], "cannot read calibration result"),
+        (["predict", "missing.json", "missing.csv"], "missing.csv: file not found"),
+        (["predict", "missing.json", "rows.csv"], "cannot read calibration result"),
+        (["rank", "missing.json", "missing.csv"], "missing.csv: file not found"),
     ],
 )
-def test_a_refused_recording_loads_none_of_the_heavy_packages(
-    tmp_path: Path, command: str, name: str, message: str
+def test_a_refused_file_loads_none_of_the_heavy_packages(
+    tmp_path: Path, args: list[str], message: str
 ) -> None:
-    """Issue 29: a recording refused for its path (missing, unknown format) is refused with
-    one line and exit code 2 before pandas, numpy, scipy or Pinocchio load (0.2 s instead of
-    ~1 s)."""
-    (tmp_path / "rows.txt").write_text("x,y,z\n0,0,0\n", encoding="utf-8")
-    recording = str(tmp_path / name)
-    robot = ["--robot", "kinova"]
-    args = {
-        "calibrate": ["calibrate", recording, *robot],
-        "discover": ["discover", recording, *robot],
-        "check": ["check", str(tmp_path / "result.json"), recording],
-    }[command]
-    loaded, code, stderr = _run_and_list_modules(*args)
-    assert code == 2 and f"kincal: error: {message}" in stderr, stderr
-    assert "check the path" in stderr or "save it as one of" in stderr
+    """Issue 29: a recording, configurations file or result refused for its path (missing,
+    unknown format) is refused with one line and exit code 2 before pandas, numpy, scipy or
+    Pinocchio load (0.2 s instead of ~1 s)."""
+    for name in ("rows.txt", "rows.csv"):
+        (tmp_path / name).write_text("x,y,z\n0,0,0\n", encoding="utf-8")
+    command = [args[0], *(str(tmp_path / a) if "." in a else a for a in args[1:])]
+    loaded, code, stderr = _run_and_list_modules(*command)
+    assert code == 2 and f"kincal: error: {message}" in stderr.replace(f"{tmp_path}/", ""), stderr
+    assert len(stderr.strip().splitlines()) == 1
     assert not loaded & set(HEAVY), sorted(loaded & set(HEAVY))
 
 
