@@ -36,9 +36,25 @@ def check_dataset_path(path: Path, source: str) -> str:
     return suffix
 
 
+def bag_location(path: Path, source: str) -> Path:
+    """What a ROS bag reader opens: a ROS 1 ``.bag`` file or a rosbag2 folder (a storage file
+    inside one stands for its folder); a one-line error when it is not there."""
+    if path.is_file() and path.suffix.lower() in (".mcap", ".db3"):
+        if not (path.parent / "metadata.yaml").is_file():
+            raise DatasetError(
+                f"{source}: no metadata.yaml next to it; pass the rosbag2 folder that holds it"
+            )
+        path = path.parent
+    if not path.exists():
+        raise DatasetError(f"{source}: file not found ({path}); check the path")
+    return path
+
+
 def check_recording_path(path: Path) -> None:
-    """A recording argument that can be read, as far as its path tells: a dataset file
-    (:func:`check_dataset_path`: one line naming the file otherwise). A folder (a rosbag2 or
-    ball-in-socket folder) or a ROS bag is left to its reader."""
-    if not (path.is_dir() or is_bag(path)):
+    """A recording argument that can be read, as far as its path tells: a ROS bag that is
+    there (:func:`bag_location`) or a dataset file (:func:`check_dataset_path`); one line
+    naming the file otherwise. A folder (rosbag2, ball-in-socket) is left to its reader."""
+    if is_bag(path):
+        bag_location(path, path.name)
+    elif not path.is_dir():
         check_dataset_path(path, path.name)

@@ -30,6 +30,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from schemas.dataset.columns import one_line
+from schemas.dataset.paths import bag_location
 from schemas.dataset.records import POSITION_COLUMNS, QUATERNION_COLUMNS, PoseDataset
 from schemas.dataset.ros_types import CALIBRATION_DATA
 from schemas.dataset.still import (
@@ -401,14 +402,7 @@ def _open(path: Path, source: str) -> Iterator[AnyReader]:
 
     from schemas.dataset.ros_types import typestore
 
-    if path.is_file() and path.suffix.lower() in (".mcap", ".db3"):
-        if not (path.parent / "metadata.yaml").is_file():
-            raise DatasetError(
-                f"{source}: no metadata.yaml next to it; pass the rosbag2 folder that holds it"
-            )
-        path = path.parent
-    if not path.exists():
-        raise DatasetError(f"{source}: file not found ({path}); check the path")
+    path = bag_location(path, source)
     try:
         reader = AnyReader([path], default_typestore=typestore())
         reader.open()

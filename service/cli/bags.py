@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from schemas.dataset.paths import bag_location
 from service.cli.common import (
     CLOCK_TOLERANCE_S,
     STILL_TOLERANCE_RAD_S,
@@ -66,6 +67,7 @@ def import_command(
     /robot_description, then written next to the recording) the joint-state names are matched
     to its chain joints and the columns are named by them; without, every joint of the topic is
     written. Prints the samples kept and the holds and messages dropped, per reason."""
+    bag_location(bag, bag.name)
     from schemas.dataset import write_dataset
     from schemas.dataset.rosbag import ROBOT_DESCRIPTION_TOPIC
 

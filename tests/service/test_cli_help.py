@@ -78,6 +78,9 @@ def test_help_loads_none_of_the_heavy_packages(args: tuple[str, ...]) -> None:
     assert not loaded & set(HEAVY), sorted(loaded & set(HEAVY))
 
 
+BAG_FLAGS = ["--joint-states", "/joint_states", "--measure", "tf:camera:board"]
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -89,14 +92,16 @@ def test_help_loads_none_of_the_heavy_packages(args: tuple[str, ...]) -> None:
         (["predict", "missing.json", "missing.csv"], "missing.csv: file not found"),
         (["predict", "missing.json", "rows.csv"], "cannot read calibration result"),
         (["rank", "missing.json", "missing.csv"], "missing.csv: file not found"),
+        (["import", "missing.bag", *BAG_FLAGS], "missing.bag: file not found"),
+        (["calibrate", "missing.bag", "--robot", "kinova", *BAG_FLAGS], "missing.bag: file not"),
     ],
 )
 def test_a_refused_file_loads_none_of_the_heavy_packages(
     tmp_path: Path, args: list[str], message: str
 ) -> None:
-    """Issue 29: a recording, configurations file or result refused for its path (missing,
-    unknown format) is refused with one line and exit code 2 before pandas, numpy, scipy or
-    Pinocchio load (0.2 s instead of ~1 s)."""
+    """Issue 29: a recording (file or ROS bag), configurations file or result refused for its
+    path (missing, unknown format) is refused with one line and exit code 2 before pandas,
+    numpy, scipy or Pinocchio load (0.2 s instead of ~1 s)."""
     for name in ("rows.txt", "rows.csv"):
         (tmp_path / name).write_text("x,y,z\n0,0,0\n", encoding="utf-8")
     command = [args[0], *(str(tmp_path / a) if "." in a else a for a in args[1:])]
