@@ -310,8 +310,8 @@ def _se3_log_batch_last(
 
     ``w = θ / sin θ · vee(R − Rᵀ) / 2`` with θ = atan2(sin θ, cos θ) (series for θ < 1e-2),
     ``v = V(w)⁻¹ t = t − ½ w × t + c w × (w × t)`` as in :func:`solver.lie.se3_log`. The
-    angle is returned as ``arccos((tr R − 1) / 2)``, the formula of
-    :func:`solver.lie.rotation_angle_rad`, so error statistics match the in-memory path.
+    angle is θ, the formula of :func:`solver.lie.rotation_angle_rad`, so error statistics
+    match the in-memory path.
     """
     cos = 0.5 * (rotation[0, 0] + rotation[1, 1] + rotation[2, 2] - 1.0)
     w = np.empty((3, cos.size))
@@ -341,7 +341,7 @@ def _se3_log_batch_last(
     v += translation
     v -= 0.5 * cross
     out = np.concatenate([v, w])
-    return out, np.arccos(np.clip(cos, -1.0, 1.0))
+    return out, theta
 
 
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:

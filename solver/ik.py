@@ -306,13 +306,10 @@ class _Polisher:
             axis=1,
         )
         converged = np.linalg.norm(residual, axis=1) < self.options.tolerance
-        # The rotation error is the norm of the log's rotation part, accurate at any angle;
-        # arccos of the trace is not: near 0 it floors at ~1e-8 rad from the trace's rounding
-        # (2.1e-8 rad on a kinova candidate without AVX-512, whose log says below 1e-10).
         errors = np.stack(
             [
                 np.linalg.norm(pose[:, :3, 3] - targets[:, :3, 3], axis=1),
-                np.linalg.norm(residual[:, 3:], axis=1),
+                lie.rotation_angle_rad(np.swapaxes(pose[:, :3, :3], 1, 2) @ targets[:, :3, :3]),
             ],
             axis=1,
         )

@@ -530,6 +530,12 @@ def matrix_to_quaternion_xyzw(rotation: FloatArray) -> FloatArray:
 
 
 def rotation_angle_rad(rotation: FloatArray) -> FloatArray:
-    """Geodesic angle of rotation matrices in [0, pi]; (..., 3, 3) -> (...)."""
-    trace = np.trace(rotation, axis1=-2, axis2=-1)
-    return np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
+    """Geodesic angle of rotation matrices in [0, pi]; (..., 3, 3) -> (...).
+
+    ``atan2(sin θ, cos θ)`` with ``sin θ = |vee(R − Rᵀ)| / 2`` and ``cos θ = (tr R − 1) / 2``:
+    accurate at every angle, where ``arccos`` of the trace alone floors at ~1e-8 rad near 0
+    (the trace's rounding; 2.1e-8 rad for a rotation whose log is below 1e-10)."""
+    w = 0.5 * (rotation[..., [2, 0, 1], [1, 2, 0]] - rotation[..., [1, 2, 0], [2, 0, 1]])
+    sin = np.sqrt(w[..., 0] * w[..., 0] + w[..., 1] * w[..., 1] + w[..., 2] * w[..., 2])
+    cos = 0.5 * (rotation[..., 0, 0] + rotation[..., 1, 1] + rotation[..., 2, 2] - 1.0)
+    return np.arctan2(sin, cos)

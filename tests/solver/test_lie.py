@@ -71,3 +71,16 @@ def test_known_rotation_about_z() -> None:
     """A quarter turn about z is (0, 0, sin 45°, cos 45°) — fails if w-first slips in."""
     matrix = lie.pose_matrix(np.zeros(3), np.array([0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)]))
     assert np.allclose(matrix[:3, :3] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+
+
+@given(
+    angle=st.floats(0.0, np.pi),
+    axis=arrays(np.float64, 3, elements=st.floats(-1.0, 1.0)).filter(
+        lambda a: np.linalg.norm(a) > 0.1
+    ),
+)
+def test_the_rotation_angle_is_exact_at_every_angle(angle: float, axis: np.ndarray) -> None:
+    """The geodesic angle of exp(θ a) is θ to rounding, also near 0 (arccos of the trace
+    alone is off by up to ~1e-8 rad there) and near π."""
+    rotation = lie.so3_exp(angle * axis / np.linalg.norm(axis))
+    assert abs(float(lie.rotation_angle_rad(rotation)) - angle) < 1e-12
