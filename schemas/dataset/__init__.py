@@ -20,10 +20,10 @@ without pandas, so that a command refuses a missing file at once).
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from schemas.dataset.paths import READ_SUFFIXES, SUFFIXES
+from solver.lazy_exports import lazy_exports
 
 if TYPE_CHECKING:
     from schemas.dataset.chunks import ChunkRef, DatasetChunks, plan_dataset_chunks
@@ -71,10 +71,7 @@ _HOME = {
 command must be able to refuse a missing file (:mod:`schemas.dataset.paths`) without it."""
 
 
-def __getattr__(name: str) -> Any:
-    if name not in _HOME:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f"{__name__}.{_HOME[name]}"), name)
+__getattr__ = lazy_exports(__name__, _HOME)
 
 
 __all__ = [

@@ -6,18 +6,14 @@ solver (≈ 350 MB and seconds) just to start its children."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from solver.lazy_exports import lazy_exports
 
 if TYPE_CHECKING:
     from service.api.app import create_app
 
-
-def __getattr__(name: str) -> Any:
-    if name == "create_app":
-        from service.api.app import create_app
-
-        return create_app
-    raise AttributeError(f"module 'service.api' has no attribute {name!r}")
+__getattr__ = lazy_exports(__name__, {"create_app": "app"})
 
 
 __all__ = ["create_app"]

@@ -7,8 +7,9 @@ Public API: :func:`discover` with :class:`DiscoveryOptions` on a chain and
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from solver.lazy_exports import lazy_exports
 
 if TYPE_CHECKING:
     from solver.discovery.features import DiscoveryData
@@ -39,10 +40,7 @@ that only carries a discovery's model (:mod:`solver.discovery.carry`) does not p
 discovery loop's imports at start-up."""
 
 
-def __getattr__(name: str) -> Any:
-    if name not in _HOME:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f"{__name__}.{_HOME[name]}"), name)
+__getattr__ = lazy_exports(__name__, _HOME)
 
 
 __all__ = [

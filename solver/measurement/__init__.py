@@ -6,9 +6,9 @@ deterministic fit among them (:mod:`solver.measurement.pose`)."""
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
+from solver.lazy_exports import lazy_exports
 from solver.measurement.models import (
     EyeOnHead,
     FixedPoints,
@@ -33,20 +33,20 @@ if TYPE_CHECKING:
         screened_fit,
     )
 
-_FIT_NAMES = (
-    "HeldoutError",
-    "MeasurementFit",
-    "fit_measurement",
-    "heldout_errors",
-    "row_errors",
-    "screened_fit",
+_HOME = dict.fromkeys(
+    [
+        "HeldoutError",
+        "MeasurementFit",
+        "fit_measurement",
+        "heldout_errors",
+        "row_errors",
+        "screened_fit",
+    ],
+    "fit",
 )
+"""The fit's names, imported on first use (PEP 562)."""
 
-
-def __getattr__(name: str) -> Any:
-    if name in _FIT_NAMES:
-        return getattr(importlib.import_module("solver.measurement.fit"), name)
-    raise AttributeError(f"module 'solver.measurement' has no attribute {name!r}")
+__getattr__ = lazy_exports(__name__, _HOME)
 
 
 __all__ = [
