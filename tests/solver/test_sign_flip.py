@@ -213,3 +213,22 @@ def test_a_strong_effect_on_a_ur10e_sized_recording_passes_the_first_holm_level(
         test = score_test(NullModel(r, basis, d), "c", columns)
         assert test is not None
         assert test.p_robust < level and test.p_classical < level, (m, test.p_robust)
+
+
+def test_the_bank_is_the_seeded_one_every_stated_number_was_computed_with() -> None:
+    """The bank's patterns are part of every p-value and stated size: a change of how they are
+    drawn changes findings. Pinned: the first patterns and a digest of one whole batch (the
+    signs ``Generator.integers(0, 2, dtype=int8)`` drew before the bank was read from the raw
+    stream), and the same batch from the cached bank and drawn alone."""
+    import hashlib
+
+    from solver.discovery.scoring import FLIP_BATCH, _cached_bank, _generate_batch
+
+    batch = flip_batch(0, 500, 0)
+    assert batch.shape == (FLIP_BATCH, 500) and batch.dtype == np.float32
+    assert batch[0, :8].tolist() == [1.0, 1.0, -1.0, -1.0, 1.0, -1.0, 1.0, -1.0]
+    assert hashlib.sha256(batch.tobytes()).hexdigest()[:16] == "aa546416f6fa028e"
+    assert set(np.unique(batch)) == {-1.0, 1.0} and abs(float(batch.mean())) < 0.01
+    assert np.array_equal(
+        _cached_bank(7, 23)[3 * FLIP_BATCH : 4 * FLIP_BATCH], _generate_batch(7, 23, 3)
+    )
