@@ -89,6 +89,34 @@ def so3_right_jacobian_inverse(rotation_vector_rad: FloatArray) -> FloatArray:
     return np.asarray(eye + 0.5 * w_hat + c[..., None, None] * (w_hat @ w_hat), dtype=float)
 
 
+def se3_ad(twist: FloatArray) -> FloatArray:
+    """``ad_ξ = [[[w]x, [v]x], [0, [w]x]]`` of twists ``ξ = [v; w]``; (..., 6) -> (..., 6, 6):
+    the Lie bracket ``[ξ, η] = ad_ξ η``, the derivative of :func:`adjoint` at the identity."""
+    out = np.zeros((*twist.shape[:-1], 6, 6))
+    w_hat = skew(twist[..., 3:])
+    out[..., :3, :3] = w_hat
+    out[..., :3, 3:] = skew(twist[..., :3])
+    out[..., 3:, 3:] = w_hat
+    return out
+
+
+def se3_left_jacobian_inverse(twist: FloatArray) -> FloatArray:
+    """``J_l⁻¹(ξ) = ad_ξ / (Exp(ad_ξ) − I) = Σ_n B_n/n! ad_ξⁿ`` (Bernoulli numbers, B₁ = −½) of
+    twists ``ξ = [v; w]``; (..., 6) -> (..., 6, 6). ``Log(Exp(−t) Exp(ξ)) ≈ ξ − J_l⁻¹(ξ) t``;
+    equals Pinocchio's ``Jlog6(Exp(−ξ))``.
+
+    The series to ad⁶: its remainder is below ``‖ad_ξ‖⁸ / 1 209 600`` relative, with
+    ``‖ad_ξ‖ ≤ |v| + |w|`` (1e-14 at 0.05, 2e-10 at 0.2): exact to double precision for the
+    residuals of a fit, and a Gauss–Newton Jacobian beyond them."""
+    ad = se3_ad(twist)
+    ad2 = ad @ ad
+    ad4 = ad2 @ ad2
+    eye = np.broadcast_to(np.eye(6), ad.shape)
+    return np.asarray(
+        eye - 0.5 * ad + ad2 / 12.0 - ad4 / 720.0 + (ad4 @ ad2) / 30240.0, dtype=float
+    )
+
+
 def se3_log(transform: FloatArray) -> FloatArray:
     """``Log`` of a transform as a twist ``[v; w]``; (..., 4, 4) -> (..., 6). = ``pin.log6``."""
     w = so3_log(transform[..., :3, :3])

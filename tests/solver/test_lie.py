@@ -84,3 +84,36 @@ def test_the_rotation_angle_is_exact_at_every_angle(angle: float, axis: np.ndarr
     alone is off by up to ~1e-8 rad there) and near π."""
     rotation = lie.so3_exp(angle * axis / np.linalg.norm(axis))
     assert abs(float(lie.rotation_angle_rad(rotation)) - angle) < 1e-12
+
+
+residual_twists = arrays(np.float64, (6,), elements=st.floats(-0.15, 0.15))
+
+
+@given(twists, twists)
+def test_ad_is_pinocchios_motion_cross_product(a: np.ndarray, b: np.ndarray) -> None:
+    expected = pin.Motion(a).cross(pin.Motion(b)).vector
+    assert np.allclose(lie.se3_ad(a) @ b, expected, atol=1e-12)
+
+
+@given(residual_twists)
+def test_left_jacobian_inverse_is_pinocchios_jlog6_of_the_inverse(twist: np.ndarray) -> None:
+    """J_l⁻¹(ξ) = Jr⁻¹(−ξ) = Jlog6(Exp(−ξ)), to the series' stated bound (‖ad‖ ≤ 0.6 here:
+    (0.6)⁸ / 1 209 600 = 1.4e-8)."""
+    exact = pin.Jlog6(pin.exp6(-twist))
+    assert np.allclose(lie.se3_left_jacobian_inverse(twist), exact, rtol=0.0, atol=2e-8)
+
+
+@given(residual_twists, twists)
+def test_left_jacobian_inverse_is_the_derivative_of_log_after_a_left_step(
+    residual: np.ndarray, direction: np.ndarray
+) -> None:
+    """``Log(Exp(−h t) Exp(ξ)) = ξ − h J_l⁻¹(ξ) t + O(h²)``: central differences."""
+    h = 1e-6
+    x = lie.se3_exp(residual)
+    plus = lie.se3_log(lie.se3_exp(-h * direction) @ x)
+    minus = lie.se3_log(lie.se3_exp(h * direction) @ x)
+    numeric = (minus - plus) / (2.0 * h)
+    scale = max(1.0, float(np.abs(direction).max()))
+    assert np.allclose(
+        lie.se3_left_jacobian_inverse(residual) @ direction, numeric, atol=1e-7 * scale
+    )
