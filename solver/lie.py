@@ -105,9 +105,9 @@ def se3_left_jacobian_inverse(twist: FloatArray) -> FloatArray:
     twists ``ξ = [v; w]``; (..., 6) -> (..., 6, 6). ``Log(Exp(−t) Exp(ξ)) ≈ ξ − J_l⁻¹(ξ) t``;
     equals Pinocchio's ``Jlog6(Exp(−ξ))``.
 
-    The series to ad⁶: its remainder is below ``‖ad_ξ‖⁸ / 1 209 600`` relative, with
-    ``‖ad_ξ‖ ≤ |v| + |w|`` (1e-14 at 0.05, 2e-10 at 0.2): exact to double precision for the
-    residuals of a fit, and a Gauss–Newton Jacobian beyond them."""
+    The series to ad⁶: what it leaves out is about ``‖ad_ξ‖⁸ / 1 209 600`` (the next term),
+    with ``‖ad_ξ‖ ≤ |v| + |w|``: 1e-14 at 0.1, 3e-9 at 0.5: exact to double precision for the
+    residuals of a fit, and a Gauss–Newton Jacobian well beyond them."""
     ad = se3_ad(twist)
     ad2 = ad @ ad
     ad4 = ad2 @ ad2

@@ -25,9 +25,9 @@ are nuisance columns beside the link corrections, the links it cannot see are le
 its extra equations (known socket distances) hold exactly in every Gauss–Newton step (the
 step is taken in the null space of their Jacobian). For pose and position rows ``M`` is the
 first d rows of I₆ (Eq. 9): exactly the columns above, in every test and every reported
-covariance. Only the Gauss–Newton step of pose rows is taken on the residual's exact Jacobian
-``J_l⁻¹(r) M`` (:func:`fit_model`): Eq. 9's columns are it to O(|r|), and near the minimum
-their step promised ~1e-8 of the cost that the cost did not deliver.
+covariance. Only the Gauss–Newton step of pose rows is taken on the residual's exact Jacobian,
+``J_l⁻¹(r)`` times those columns (:func:`fit_model`): Eq. 9's columns are it to O(|r|), and
+near the minimum their step promised ~1e-8 of the cost that the cost did not deliver.
 """
 
 from __future__ import annotations
