@@ -598,6 +598,8 @@ def fit_model(
             whitened(des.terms, weights).reshape(n * d, -1),
         )
 
+    exact_steps = ctx.data.is_pose and ctx.data.pose_model.measures_rotation
+
     def step_columns(des: Design, a: FloatArray) -> FloatArray:
         """The whitened columns ``a`` (n·d, p) as the residual's exact Jacobian for the
         Gauss–Newton step of pose rows: ``W J_l⁻¹(r) W⁻¹ a`` per sample (W the weights); Eq. 9's
@@ -608,7 +610,6 @@ def fit_model(
         n = des.rows.size
         return np.asarray(scaled @ a.reshape(n, d, -1), dtype=np.float64).reshape(n * d, -1)
 
-    exact_steps = ctx.data.is_pose and ctx.data.pose_model.measures_rotation
     r, links_w, terms_w = stacked(design)
     first = frame_columns(ctx.chain, links_w.shape[1], n_compliance=0)
     kept = _kept_links(links_w, terms_w, r, first, pin=not ctx.data.is_pose)

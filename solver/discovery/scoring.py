@@ -423,9 +423,10 @@ def _generate_batch(
 
     Pattern entry k (row-major) is −1 where the top bit of byte k of the raw 64-bit outputs of
     PCG64 seeded with ``SeedSequence([seed, n, batch])`` (bytes in little-endian order) is set,
-    +1 where it is clear: one byte per sign read straight from the generator, the same signs
-    ``Generator.integers(0, 2, dtype=int8)`` draws (its bounded-integer method keeps a byte's
-    top bit for two values) at a third of the cost, and defined without depending on it."""
+    +1 where it is clear: one byte per sign read straight from the generator. These are the
+    signs ``Generator.integers(0, 2, dtype=int8)`` draws (its bounded-integer method keeps a
+    byte's top bit for two values), without its per-byte bounding, and defined without
+    depending on it."""
     count = FLIP_BATCH * n
     raw = np.random.default_rng([seed, n, batch]).bit_generator.random_raw(-(-count // 8))
     top_bits = (np.asarray(raw, dtype="<u8").view(np.uint8)[:count] >> 7).view(np.int8)

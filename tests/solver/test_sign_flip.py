@@ -8,6 +8,7 @@ asymptotic reference it replaces could never reach the first Holm level.
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 
 import numpy as np
@@ -17,7 +18,10 @@ from hypothesis import strategies as st
 
 from solver.discovery.fitting import orthonormal_basis
 from solver.discovery.scoring import (
+    FLIP_BATCH,
     NullModel,
+    _cached_bank,
+    _generate_batch,
     flip_batch,
     flip_p_bound,
     flip_p_exact,
@@ -220,10 +224,6 @@ def test_the_bank_is_the_seeded_one_every_stated_number_was_computed_with() -> N
     drawn changes findings. Pinned: the first patterns and a digest of one whole batch (the
     signs ``Generator.integers(0, 2, dtype=int8)`` drew before the bank was read from the raw
     stream), and the same batch from the cached bank and drawn alone."""
-    import hashlib
-
-    from solver.discovery.scoring import FLIP_BATCH, _cached_bank, _generate_batch
-
     batch = flip_batch(0, 500, 0)
     assert batch.shape == (FLIP_BATCH, 500) and batch.dtype == np.float32
     assert batch[0, :8].tolist() == [1.0, 1.0, -1.0, -1.0, 1.0, -1.0, 1.0, -1.0]
