@@ -58,3 +58,20 @@ def check_recording_path(path: Path) -> None:
         bag_location(path, path.name)
     elif not path.is_dir():
         check_dataset_path(path, path.name)
+
+
+def check_fleet_folder(folder: Path) -> None:
+    """A fleet's folder of datasets (one per robot serial, :func:`service.app.fleet.
+    fleet_datasets`) that is a folder; one line otherwise."""
+    if not folder.is_dir():
+        raise DatasetError(f"{folder}: not a folder; pass a folder with one dataset per robot")
+
+
+def check_results_folder(folder: Path) -> None:
+    """The folder of a fleet's calibration results (``kincal fleet --check``) that is a
+    folder; one line otherwise."""
+    if not folder.is_dir():
+        raise DatasetError(
+            f"--check {folder}: not a folder; give the folder of the units' results "
+            "(<unit>.json, as kincal fleet --results-dir writes them)"
+        )

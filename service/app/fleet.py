@@ -54,6 +54,7 @@ import numpy as np
 from schemas.calibration import CalibrationOptions, CalibrationResult
 from schemas.dataset import SUFFIXES, PoseDataset
 from schemas.dataset.constraints import is_socket_folder
+from schemas.dataset.paths import check_fleet_folder
 from schemas.robots import RobotDescription
 from service.app import calibrate as pipeline
 from solver.errors import KincalError
@@ -200,8 +201,7 @@ def fleet_datasets(directory: str | Path) -> dict[str, str]:
     """Datasets of a fleet folder, by serial, sorted: its files (serial = the file name without
     suffix) and its ball-in-socket sub-folders (serial = the folder name)."""
     folder = Path(directory)
-    if not folder.is_dir():
-        raise KincalError(f"{folder}: not a folder; pass a folder with one dataset per robot")
+    check_fleet_folder(folder)
     files = sorted(
         p
         for p in folder.iterdir()

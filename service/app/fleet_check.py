@@ -17,6 +17,7 @@ from pathlib import Path
 from schemas.calibration import CalibrationResult
 from schemas.check import CheckResult, FleetCheck, FleetCheckUnit
 from schemas.dataset import PoseDataset
+from schemas.dataset.paths import check_results_folder
 from service import kincal_version
 from service.app.check import read_check_recording, refuse_unsupported, run_check
 from service.app.fleet import fleet_datasets
@@ -37,11 +38,7 @@ class UnitPair:
 def unit_results(results_dir: Path) -> dict[str, Path]:
     """The calibration results of a fleet, by unit: the ``<unit>.json`` files of
     ``results_dir`` (what ``kincal fleet --results-dir`` writes)."""
-    if not results_dir.is_dir():
-        raise KincalError(
-            f"--check {results_dir}: not a folder; give the folder of the units' results "
-            "(<unit>.json, as kincal fleet --results-dir writes them)"
-        )
+    check_results_folder(results_dir)
     return {p.stem: p for p in sorted(results_dir.glob("*.json")) if p.is_file()}
 
 

@@ -60,11 +60,13 @@ def export_command(
     """Write a calibration in a format a robot controller uses (docs/exports.md). Each
     reproduces kincal's calibrated forward kinematics where the format can express it; what it
     cannot (gravity-dependent compliance; link geometry in an offsets table) is printed."""
+    result = read_result(
+        result_path
+    )  # a result that is not there: refused before the exporters load
     from service.render import exports
 
     if format not in exports.FORMATS:
         raise KincalError(f"--format {format!r}: choose one of {', '.join(exports.FORMATS)}")
-    result = read_result(result_path)
     verdict = result.verdict
     if verdict is not None and verdict.status == "failed" and not force:
         causes = "; ".join(r.message for r in verdict.reasons if r.severity == "failed")

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from schemas.dataset.paths import check_fleet_folder, check_results_folder
 from service.cli.check import EXIT_DRIFTED
 from service.cli.common import (
     COVARIANCE,
@@ -147,6 +148,9 @@ def fleet(
     population spread of each parameter and flag robots that are outliers (e.g. a worn
     joint). With ``--check RESULTS_DIR``: check every unit's calibration instead
     (docs/check.md)."""
+    check_fleet_folder(directory)  # a folder that is not there is refused before the imports
+    if check is not None:
+        check_results_folder(check)
     from service.app import fleet as fleet_mode
 
     if check is not None:
