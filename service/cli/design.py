@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from schemas.dataset.paths import check_input_exists
 from service.cli.common import (
     OUTPUT,
     BaseOpt,
@@ -26,6 +27,7 @@ from service.cli.flags import calibration_options, numbers, read_config
 from solver.errors import KincalError
 
 if TYPE_CHECKING:
+    from schemas.calibration import CalibrationResult
     from schemas.design import DesignOptions, DesignResult
 
 DesignOut = Annotated[Path | None, output_option("design.json", "The design JSON")]
@@ -210,9 +212,8 @@ def design(
 ) -> None:
     """Choose the K poses to record that tell the calibration most (D-, A-, E- or I-optimal
     design as a convex relaxation, rounded; the relaxation's bound is reported); with
-    ``--check K``, the K check poses of a calibration (docs/check.md)."""
-    from service.app import design as designs
-
+    ``--check K``, the K check poses of a calibration (docs/check.md). A given file that
+    cannot be read is refused before the design machinery loads."""
     if check is not None:
         refuse_options_outside(
             ctx,
@@ -222,7 +223,11 @@ def design(
         )
         if result is None:
             raise KincalError("--check K designs check poses of a calibration: give --result")
+        calibration = read_result(result)
+        if candidates is not None:
+            check_input_exists(candidates, candidates.name)
         check_design(
+            calibration,
             result,
             check,
             candidates,
@@ -242,16 +247,22 @@ def design(
     csv_path = None if poses_csv is None else outputs.path(poses_csv, "", "joint configurations")
     if (result is None) != (recording is None):
         raise KincalError("a sequential design needs both --result and --recording")
+    if result is not None and config is not None:
+        raise KincalError("--result carries its calibration options; drop --config")
+    calibrated = None if result is None else read_result(result)
+    config_values = None if config is None else read_config(config)
+    for source in (recording, candidates, task):
+        if source is not None:
+            check_input_exists(source, source.name)
+    from service.app import design as designs
+
     recorded = None
-    if result is not None and recording is not None:
-        if config is not None:
-            raise KincalError("--result carries its calibration options; drop --config")
+    if calibrated is not None and recording is not None:
         from service.app.preflight import check_recording
         from service.render.result_json import result_chain
 
-        calibration = read_result(result)
-        check_recording(recording, result_chain(calibration)[0])
-        description, recorded = designs.recorded_design(calibration, recording)
+        check_recording(recording, result_chain(calibrated)[0])
+        description, recorded = designs.recorded_design(calibrated, recording)
     else:
         description = _robot(robot, urdf, base, tip)
     options = _design_options(
@@ -274,7 +285,7 @@ def design(
             "calibration": None
             if config is None and point_distance is None
             else calibration_options(
-                None if config is None else read_config(config),
+                config_values,
                 {"point_distance_m": point_distance},
             ).model_dump(),
         }
@@ -362,6 +373,7 @@ def design_summary(out: DesignResult) -> str:
 
 
 def check_design(
+    calibration: CalibrationResult,
     result_path: Path,
     n_poses: int,
     candidates: Path | None,
@@ -381,7 +393,6 @@ def check_design(
 
     path = outputs.path(output, "check_design.json", CHECK_DESIGN_FORMAT)
     csv_path = outputs.path(poses_csv, "check_poses.csv", "joint configurations")
-    calibration = read_result(result_path)
     given = None
     if candidates is not None:
         from schemas.dataset import read_configurations

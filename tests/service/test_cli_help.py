@@ -97,14 +97,20 @@ BAG_FLAGS = ["--joint-states", "/joint_states", "--measure", "tf:camera:board"]
         (["export", "missing.json", "-o", "out.urdf"], "cannot read calibration result"),
         (["fleet", "rows.csv", "--robot", "kinova"], "rows.csv: not a folder"),
         (["fleet", "units.d", "--check", "missing.d"], "--check missing.d: not a folder"),
+        (["design", "--robot", "kinova", "--candidates", "missing.csv"], "missing.csv: file not"),
+        (["design", "--robot", "kinova", "--task", "missing.csv"], "missing.csv: file not found"),
+        (["design", "--robot", "kinova", "--config", "missing.toml"], "cannot read config"),
+        (["design", "--result", "missing.json", "--recording", "rows.csv"], "cannot read calib"),
+        (["design", "--check", "5", "--result", "missing.json"], "cannot read calibration result"),
     ],
 )
 def test_a_refused_file_loads_none_of_the_heavy_packages(
     tmp_path: Path, args: list[str], message: str
 ) -> None:
-    """Issue 29: a recording (file or ROS bag), configurations file, result or fleet folder
-    refused for its path (missing, unknown format, not a folder) is refused with one line and
-    exit code 2 before pandas, numpy, scipy or Pinocchio load (0.2 s instead of 1–1.7 s)."""
+    """Issue 29: a recording (file or ROS bag), configurations file, result, config file or
+    fleet folder refused for its path (missing, unknown format, not a folder) is refused with
+    one line and exit code 2 before pandas, numpy, scipy or Pinocchio load (0.2 s instead of
+    1–1.85 s)."""
     for name in ("rows.txt", "rows.csv"):
         (tmp_path / name).write_text("x,y,z\n0,0,0\n", encoding="utf-8")
     (tmp_path / "units.d").mkdir()
