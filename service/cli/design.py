@@ -212,8 +212,9 @@ def design(
 ) -> None:
     """Choose the K poses to record that tell the calibration most (D-, A-, E- or I-optimal
     design as a convex relaxation, rounded; the relaxation's bound is reported); with
-    ``--check K``, the K check poses of a calibration (docs/check.md). A given file that
-    cannot be read is refused before the design machinery loads."""
+    ``--check K``, the K check poses of a calibration (docs/check.md)."""
+    # the files given are read or checked first: one that is not there is refused in ~0.2 s,
+    # before the design machinery (SciPy, Pinocchio, cvxpy) loads
     if check is not None:
         refuse_options_outside(
             ctx,
@@ -382,8 +383,8 @@ def check_design(
     output: Path | None,
     poses_csv: Path | None,
 ) -> None:
-    """``kincal design --check K``: choose, write (the JSON and the recording template),
-    print the stated sizes."""
+    """``kincal design --check K`` of ``calibration`` (read from ``result_path``): choose,
+    write (the JSON and the recording template), print the stated sizes."""
     import pandas as pd
 
     from schemas.design import CHECK_DESIGN_FORMAT
