@@ -45,15 +45,9 @@ def bag_location(path: Path, source: str) -> Path:
                 f"{source}: no metadata.yaml next to it; pass the rosbag2 folder that holds it"
             )
         path = path.parent
-    check_input_exists(path, source)
-    return path
-
-
-def check_input_exists(path: Path, source: str) -> None:
-    """A file or folder given as an input (a recording, a ball in socket's folder of
-    hole_<k>.csv files, a bag) that is there; one line otherwise, before anything reads it."""
     if not path.exists():
         raise DatasetError(f"{source}: file not found ({path}); check the path")
+    return path
 
 
 def check_recording_path(path: Path) -> None:

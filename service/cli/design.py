@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from schemas.dataset.paths import check_input_exists
+from schemas.dataset.paths import check_recording_path
 from service.cli.common import (
     OUTPUT,
     BaseOpt,
@@ -226,7 +226,7 @@ def design(
             raise KincalError("--check K designs check poses of a calibration: give --result")
         calibration = read_result(result)
         if candidates is not None:
-            check_input_exists(candidates, candidates.name)
+            check_recording_path(candidates)
         check_design(
             calibration,
             result,
@@ -254,7 +254,7 @@ def design(
     config_values = None if config is None else read_config(config)
     for source in (recording, candidates, task):
         if source is not None:
-            check_input_exists(source, source.name)
+            check_recording_path(source)
     from service.app import design as designs
 
     recorded = None
