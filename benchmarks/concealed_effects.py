@@ -852,6 +852,8 @@ def command_line(arguments: argparse.Namespace) -> str:
         flags += [f"--sizes {arguments.sizes}"]
         if arguments.recordings:
             flags += [f"--recordings {arguments.recordings}"]
+        if arguments.seeds_only:
+            flags += ["--seeds-only"]
     else:
         flags += [f"--n {arguments.n}", f"--bootstrap {arguments.bootstrap}"]
         flags += [f"--timing-n {arguments.timing_n}", f"--timing-seeds {arguments.timing_seeds}"]
@@ -880,6 +882,12 @@ if __name__ == "__main__":
     parser.add_argument("--real", action="store_true", help="Semi-real benchmark (data/real).")
     parser.add_argument("--recordings", default=None, help="--real: comma-separated subset.")
     parser.add_argument(
+        "--seeds-only",
+        action="store_true",
+        help="--real: exactly --seeds runs per row, even where joints with a stated size are "
+        "left untried (a quick run; by default every such joint gets one).",
+    )
+    parser.add_argument(
         "--sizes", default="1,2,4", help="--real: multiples of the stated detectability."
     )
     parser.add_argument(
@@ -899,6 +907,7 @@ if __name__ == "__main__":
             effects=arguments.scenarios.split(",") if arguments.scenarios else None,
             sizes=tuple(float(m) for m in arguments.sizes.split(",")),
             write_command=write_command,
+            every_joint=not arguments.seeds_only,
         )[0]
         arguments.out.mkdir(parents=True, exist_ok=True)
         (arguments.out / "real_table.md").write_text(real_text, encoding="utf-8")

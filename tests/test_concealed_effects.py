@@ -81,6 +81,7 @@ def test_real_benchmark_runs_on_a_shipped_recording_and_prints_its_table() -> No
         effects=["backlash_direction"],
         sizes=(2.0,),
         echo=lines.append,
+        every_joint=False,
     )
     assert text.startswith("| Recording |") and len(rows) == 1 and len(runs) == 2
     assert {run.recording for run in runs} == {"ur10e"}
@@ -137,6 +138,7 @@ def test_real_benchmark_runs_on_a_ball_in_socket_recording_and_names_what_it_lea
         effects=["backlash_direction", "link_bending"],
         sizes=(1.0,),
         echo=lines.append,
+        every_joint=False,
     )
     assert text.startswith("| Recording |") and list(rows) == [
         ("platonics", "backlash_direction", 1.0)
