@@ -547,11 +547,12 @@ def _size_of(values: np.ndarray, effect: Effect) -> float:
     return float(abs(values[0]))
 
 
-def row_seeds(base: Baseline, effect: Effect, seeds: int, every_joint: bool = True) -> int:
-    """The runs of one row: ``seeds``, and with ``every_joint`` at least one per joint where the
-    effect has a stated size (the seed cycles those joints, :func:`placed`), so every size the
-    report states is tried: with 5 seeds the FR3's panda_joint6 and panda_joint7 never were."""
-    return max(seeds, len(candidate_joints(base, effect)) if every_joint else 0)
+def row_seeds(joints: list[int | None], seeds: int, every_joint: bool = True) -> int:
+    """The runs of one row: ``seeds``, and with ``every_joint`` at least one per joint of
+    ``joints`` (where the effect has a stated size: the seed cycles them, :func:`placed`), so
+    every size the report states is tried: with 5 seeds the FR3's panda_joint6 and
+    panda_joint7 never were."""
+    return max(seeds, len(joints) if every_joint else 0)
 
 
 def placed(job: tuple[str, str, float, int]) -> tuple[int | None, float]:
@@ -745,10 +746,12 @@ def run_of(name: str, effect: str, multiple: float, record: Row) -> Run:
     )
 
 
-def row_of(name: str, effect: str, multiple: float, runs: list[Run], seeds: int) -> Row:
+def row_of(
+    name: str, effect: str, multiple: float, runs: list[Run], joints: list[int | None], seeds: int
+) -> Row:
     """One table row of the results file: :func:`summarise` of its kept runs (NaN as null),
-    the stated detectability (median over the joints), the seeds planned (:func:`row_seeds`)
-    and the runs (``outcomes``)."""
+    the stated detectability (median over the joints), the joints with a stated size (the
+    seed cycles them), the seeds planned (:func:`row_seeds`) and the runs (``outcomes``)."""
     outcomes = [outcome(r) for r in runs]
     numbers = summarise([run_of(name, effect, multiple, o) for o in outcomes])
     return {
@@ -756,6 +759,7 @@ def row_of(name: str, effect: str, multiple: float, runs: list[Run], seeds: int)
         "effect": effect,
         "multiple": multiple,
         "stated_median": stated_median(baseline(name), EFFECTS[effect]),
+        "joints": joints,
         "seeds": seeds,
         **{k: None if math.isnan(v) else v for k, v in numbers.items()},
         "outcomes": outcomes,
@@ -895,13 +899,19 @@ def main(
     chosen = recordings or list(RECORDINGS)
     wanted = effects or list(EFFECTS)
     started = time.perf_counter()
+    stated_joints = {
+        (name, e): candidate_joints(baseline(name), EFFECTS[e]) for name in chosen for e in wanted
+    }
+    row_count = {
+        key: row_seeds(joints, seeds, every_joint) for key, joints in stated_joints.items()
+    }
     planned = [
         (name, e, m, seed)
         for name in chosen
         for e in wanted
-        if candidate_joints(baseline(name), EFFECTS[e])
+        if stated_joints[(name, e)]
         for m in sizes
-        for seed in range(row_seeds(baseline(name), EFFECTS[e], seeds, every_joint))
+        for seed in range(row_count[(name, e)])
     ]
     beyond = {job: beyond_mechanism(job[1], placed(job)[1]) for job in planned}
     jobs = [job for job in planned if not beyond[job]]
@@ -933,8 +943,8 @@ def main(
             for m in sizes:
                 picked = [r for r in runs if (r.recording, r.effect, r.multiple) == (name, e, m)]
                 if picked:
-                    planned_seeds = row_seeds(baseline(name), EFFECTS[e], seeds, every_joint)
-                    rows[(name, e, m)] = row_of(name, e, m, picked, planned_seeds)
+                    joints, count = stated_joints[(name, e)], row_count[(name, e)]
+                    rows[(name, e, m)] = row_of(name, e, m, picked, joints, count)
     run_row = {
         "seeds": seeds,
         "every_joint": every_joint,
