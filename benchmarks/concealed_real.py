@@ -818,16 +818,34 @@ def report(rows: list[Row]) -> str:
         if r["not_concealed"]:
             notes.append(f"- {label}, not concealed: " + "; ".join(r["not_concealed"]))
         notes += [f"- {label}, {line}" for line in r["not_run"]]
-    at_two = [r for (n, e, m), r in table_rows.items() if m == ACCEPTANCE_MULTIPLE]
+    # the library's effects only: the floating backlash is not judged (the library describes
+    # only its load-sign part), and its rates would stand for the library's lowest
+    at_two = {
+        key: r
+        for key, r in table_rows.items()
+        if key[2] == ACCEPTANCE_MULTIPLE and EFFECTS[key[1]].library
+    }
     if at_two:
+        count = {
+            (r["recording"], r["effect"], r["multiple"]): len(r["outcomes"])
+            for r in rows
+            if "effect" in r
+        }
+        runs = sum(count[key] for key in at_two)
+
+        def of_runs(name: str) -> str:  # a count, not a rounded mean: 1 of 391 is not "0 %"
+            found = round(sum(r[name] * count[key] for key, r in at_two.items()))
+            return f"{found} of {runs} runs"
+
+        def mean(name: str) -> str:
+            return _pct(float(np.mean([r[name] for r in at_two.values()])))
+
         notes.append(
-            "- at twice the stated detectability: named with the right joint in "
-            f"{_pct(float(np.mean([r['detected'] for r in at_two])))} of runs (lowest "
-            f"{_pct(min(r['detected'] for r in at_two))}), anything else named in "
-            f"{_pct(float(np.mean([r['wrong_runs'] for r in at_two])))}, size within 25 % in "
-            f"{_pct(float(np.mean([r['within_25'] for r in at_two])))}, ambiguous in "
-            f"{_pct(float(np.mean([r['ambiguous'] for r in at_two])))}, nothing named in "
-            f"{_pct(float(np.mean([r['nothing'] for r in at_two])))}"
+            "- library effects at twice the stated detectability: named with the right joint in "
+            f"{mean('detected')} of runs (lowest "
+            f"{_pct(min(r['detected'] for r in at_two.values()))}), anything else named in "
+            f"{of_runs('wrong_runs')}, size within 25 % in {mean('within_25')}, ambiguous in "
+            f"{of_runs('ambiguous')}, nothing named in {of_runs('nothing')}"
         )
     summary = acceptance(table_rows, {r["recording"]: unmodified_names(r) for r in recordings})
     return "\n\n".join([text, "\n".join(notes), *(["\n".join(summary)] if summary else [])])
