@@ -547,7 +547,7 @@ def _size_of(values: np.ndarray, effect: Effect) -> float:
     return float(abs(values[0]))
 
 
-def row_seeds(joints: list[int | None], seeds: int, every_joint: bool = True) -> int:
+def row_seeds(joints: list[int | None], seeds: int, every_joint: bool) -> int:
     """The runs of one row: ``seeds``, and with ``every_joint`` at least one per joint of
     ``joints`` (where the effect has a stated size: the seed cycles them, :func:`placed`), so
     every size the report states is tried: with 5 seeds the FR3's panda_joint6 and
@@ -934,9 +934,7 @@ def main(
     beyond = {job: beyond_mechanism(job[1], placed(job)[1]) for job in planned}
     jobs = [job for job in planned if not beyond[job]]
     # the unmodified recording at every seed its concealed runs use (a seed sets the folds)
-    most = {
-        name: max([seeds] + [job[3] + 1 for job in planned if job[0] == name]) for name in chosen
-    }
+    most = {name: max(row_count[(name, e)] for e in wanted) for name in chosen}
     unmodified_jobs = [(name, seed) for name in chosen for seed in range(most[name])]
     if workers <= 1:
         runs = [run_one(job) for job in jobs]
